@@ -1,0 +1,1 @@
+//! Dataset folder readers (TUM, EuRoC, TartanAir, plain folder).

@@ -1,0 +1,7 @@
+//! Subcommand implementations of the `duv` binary (`anyhow` lives here and in `main`).
+
+pub mod board;
+pub mod dataset;
+pub mod demo;
+pub mod eval;
+pub mod sim;

@@ -1,0 +1,239 @@
+//! Board profiles: what a compute module can give duv-slam. Every capacity the runtime
+//! allocates comes from here; nothing grows past it at run time.
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The board file schema this build reads.
+pub const BOARD_SCHEMA_VERSION: u32 = 1;
+
+/// Errors of the `config` module.
+#[derive(Debug, thiserror::Error)]
+pub enum BoardError {
+    #[error("{path}: {source}")]
+    Read { path: PathBuf, source: std::io::Error },
+    #[error("{path}: {message}")]
+    Syntax { path: PathBuf, message: String },
+    #[error("{path}: schema_version {found} is not supported (this build reads {expected})")]
+    SchemaVersion { path: PathBuf, found: u32, expected: u32 },
+    #[error("{path}: {key} = {value} is invalid: {why}")]
+    Invalid { path: PathBuf, key: &'static str, value: String, why: &'static str },
+}
+
+/// One compute module's profile.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Board {
+    /// Version of this file's layout; must equal [`BOARD_SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// Short name used in logs and reports.
+    pub name: String,
+    /// One line on the hardware this profile is for.
+    pub description: String,
+    pub camera: CameraConfig,
+    pub budgets: Budgets,
+    pub threads: Threads,
+}
+
+/// The pixel layout a camera delivers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PixelFormat {
+    Rgb24,
+    Yuyv,
+    Mjpeg,
+    Grey,
+    BayerRg8,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    /// Default frame source, e.g. `sim:coastal`, `v4l2:/dev/video0`, `aravis:ID`, `tum:DIR`.
+    pub source: String,
+    /// Image width in pixels delivered to tracking.
+    pub width: u32,
+    /// Image height in pixels delivered to tracking.
+    pub height: u32,
+    /// Nominal frame rate in frames per second.
+    pub fps: f64,
+    /// Pixel format requested from the camera.
+    pub pixel_format: PixelFormat,
+    /// Fixed exposure time in microseconds; absent for the camera's auto exposure.
+    #[serde(default)]
+    pub exposure_us: Option<u32>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Budgets {
+    /// Host memory the whole process may use, in MiB.
+    pub host_mb: u32,
+    /// GPU memory the mapper may allocate, in MiB.
+    pub gpu_mb: u32,
+    /// Hard cap on the number of Gaussians in the map.
+    pub max_gaussians: u32,
+    /// Keyframes kept in the factor graph (older ones are pruned).
+    pub max_keyframes: u32,
+    /// Keyframes in the sliding bundle-adjustment window.
+    pub ba_window: u32,
+    /// Frames buffered between capture and tracking (drop oldest when full).
+    pub frame_queue: u32,
+    /// Keyframes buffered between tracking and mapping.
+    pub keyframe_queue: u32,
+    /// Bytes buffered for the log writer, in MiB (drop and count when full).
+    pub log_queue_mb: u32,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Threads {
+    /// Worker threads for tracking's data-parallel loops (flow, BA linearisation).
+    pub tracking: u32,
+    /// Worker threads for the CPU mapper (unused when mapping runs on the GPU).
+    pub mapping: u32,
+}
+
+impl Board {
+    /// Parses and validates a board file.
+    pub fn load(path: &Path) -> Result<Board, BoardError> {
+        let text = std::fs::read_to_string(path).map_err(|source| BoardError::Read { path: path.to_path_buf(), source })?;
+        Board::parse(path, &text)
+    }
+
+    /// Parses board text; `path` is only used in messages.
+    pub fn parse(path: &Path, text: &str) -> Result<Board, BoardError> {
+        // Check the version first so an old file gets the right message, not a field error.
+        let version = toml::from_str::<toml::Table>(text)
+            .map_err(|e| BoardError::Syntax { path: path.to_path_buf(), message: e.to_string().trim_end().to_string() })?
+            .get("schema_version")
+            .and_then(|v| v.as_integer());
+        match version {
+            Some(v) if v == BOARD_SCHEMA_VERSION as i64 => {}
+            Some(v) => {
+                return Err(BoardError::SchemaVersion { path: path.to_path_buf(), found: v.clamp(0, u32::MAX as i64) as u32, expected: BOARD_SCHEMA_VERSION })
+            }
+            None => return Err(BoardError::Syntax { path: path.to_path_buf(), message: "missing integer key `schema_version`".into() }),
+        }
+        let board: Board = toml::from_str(text)
+            .map_err(|e| BoardError::Syntax { path: path.to_path_buf(), message: e.to_string().trim_end().to_string() })?;
+        board.validate(path)?;
+        Ok(board)
+    }
+
+    fn validate(&self, path: &Path) -> Result<(), BoardError> {
+        let invalid = |key: &'static str, value: String, why: &'static str| BoardError::Invalid { path: path.to_path_buf(), key, value, why };
+        let c = &self.camera;
+        if c.source.trim().is_empty() {
+            return Err(invalid("camera.source", format!("{:?}", c.source), "must name a frame source"));
+        }
+        if c.width < 16 || c.height < 16 {
+            return Err(invalid("camera.width/height", format!("{}x{}", c.width, c.height), "must be at least 16x16"));
+        }
+        if !(c.fps.is_finite() && c.fps > 0.0 && c.fps <= 1000.0) {
+            return Err(invalid("camera.fps", c.fps.to_string(), "must be in (0, 1000]"));
+        }
+        if c.exposure_us == Some(0) {
+            return Err(invalid("camera.exposure_us", "0".into(), "must be > 0 (omit it for auto exposure)"));
+        }
+        let b = &self.budgets;
+        let positive: [(&'static str, u32); 8] = [
+            ("budgets.host_mb", b.host_mb),
+            ("budgets.gpu_mb", b.gpu_mb),
+            ("budgets.max_gaussians", b.max_gaussians),
+            ("budgets.max_keyframes", b.max_keyframes),
+            ("budgets.ba_window", b.ba_window),
+            ("budgets.frame_queue", b.frame_queue),
+            ("budgets.keyframe_queue", b.keyframe_queue),
+            ("budgets.log_queue_mb", b.log_queue_mb),
+        ];
+        for (key, v) in positive {
+            if v == 0 {
+                return Err(invalid(key, "0".into(), "a budget must be > 0"));
+            }
+        }
+        if b.ba_window < 2 {
+            return Err(invalid("budgets.ba_window", b.ba_window.to_string(), "bundle adjustment needs at least 2 keyframes"));
+        }
+        if b.ba_window > b.max_keyframes {
+            return Err(invalid("budgets.ba_window", b.ba_window.to_string(), "must not exceed budgets.max_keyframes"));
+        }
+        for (key, v) in [("threads.tracking", self.threads.tracking), ("threads.mapping", self.threads.mapping)] {
+            if v == 0 {
+                return Err(invalid(key, "0".into(), "at least one thread"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Every `*.toml` directly in `dir`, sorted by name.
+    pub fn files_in(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+        let mut v: Vec<PathBuf> = std::fs::read_dir(dir)?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+            .collect();
+        v.sort();
+        Ok(v)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub(crate) const MINIMAL: &str = r#"
+schema_version = 1
+name = "t"
+description = "test"
+[camera]
+source = "sim:clear"
+width = 320
+height = 240
+fps = 10.0
+pixel_format = "rgb24"
+[budgets]
+host_mb = 512
+gpu_mb = 256
+max_gaussians = 1000
+max_keyframes = 32
+ba_window = 8
+frame_queue = 4
+keyframe_queue = 4
+log_queue_mb = 16
+[threads]
+tracking = 2
+mapping = 1
+"#;
+
+    #[test]
+    fn parses_minimal_board() {
+        let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
+        assert_eq!(b.budgets.ba_window, 8);
+        assert_eq!(b.camera.pixel_format, PixelFormat::Rgb24);
+    }
+
+    #[test]
+    fn unknown_key_names_file_and_key() {
+        let text = MINIMAL.replace("mapping = 1", "mapping = 1\nturbo = true");
+        let e = Board::parse(Path::new("boards/x.toml"), &text).unwrap_err();
+        let s = e.to_string();
+        assert!(s.starts_with("boards/x.toml:") && s.contains("unknown field `turbo`") && s.contains("line"), "{s}");
+    }
+
+    #[test]
+    fn zero_budget_is_rejected_by_name() {
+        let text = MINIMAL.replace("max_gaussians = 1000", "max_gaussians = 0");
+        let e = Board::parse(Path::new("b.toml"), &text).unwrap_err();
+        assert_eq!(e.to_string(), "b.toml: budgets.max_gaussians = 0 is invalid: a budget must be > 0");
+    }
+
+    #[test]
+    fn wrong_schema_version_and_window() {
+        let e = Board::parse(Path::new("b.toml"), &MINIMAL.replace("schema_version = 1", "schema_version = 2")).unwrap_err();
+        assert!(matches!(e, BoardError::SchemaVersion { found: 2, .. }));
+        let e = Board::parse(Path::new("b.toml"), &MINIMAL.replace("ba_window = 8", "ba_window = 64")).unwrap_err();
+        assert!(e.to_string().contains("budgets.ba_window"));
+        let e = Board::parse(Path::new("b.toml"), &MINIMAL.replace("fps = 10.0", "fps = nan")).unwrap_err();
+        assert!(e.to_string().contains("camera.fps"), "{e}");
+    }
+}

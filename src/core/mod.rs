@@ -1,0 +1,36 @@
+//! Plain types every stage shares: time, frames, the camera model, poses, ground-truth
+//! records. Nothing here depends on any stage.
+
+pub mod camera;
+pub mod frame;
+pub mod pose;
+pub mod rng;
+pub mod time;
+
+pub use camera::{CameraModelError, PinholeCamera, RadTan};
+pub use frame::{Frame, FrameImage, Image, ImageGray16, ImageGray8, ImageRgb8, ImageRgbF32, PlaneF32};
+pub use pose::{Se3, Sim3};
+pub use time::Timestamp;
+
+/// A time-stamped pose, `world_from_cam` (camera-to-world), as in a TUM trajectory file.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StampedPose {
+    pub t_ns: Timestamp,
+    pub world_from_cam: Se3,
+}
+
+/// Per-channel underwater medium parameters of the image formation model
+/// `I = J exp(-beta_D r) + B_inf (1 - exp(-beta_B r))`, channels R, G, B, coefficients in 1/m.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MediumParams {
+    /// Attenuation of the direct signal per metre of range.
+    #[serde(rename = "beta_D")]
+    pub beta_d: [f64; 3],
+    /// Attenuation governing backscatter build-up per metre of range.
+    #[serde(rename = "beta_B")]
+    pub beta_b: [f64; 3],
+    /// Veiling light (backscatter at infinite range), in [0, 1].
+    #[serde(rename = "B_inf")]
+    pub b_inf: [f64; 3],
+}

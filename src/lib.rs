@@ -1,0 +1,13 @@
+//! duv-slam: dense underwater visual SLAM with depth uncertainty and medium modelling.
+//!
+//! The module tree is the architecture (see `ARCHITECTURE.md`): `core` holds the plain types
+//! every stage shares; `config` the board profiles; `camera` the frame sources (dataset
+//! readers today, live cameras later); `sim` the underwater sequence generator; `eval` the
+//! metrics; `io` the file formats. Stages never import one another.
+
+pub mod camera;
+pub mod config;
+pub mod core;
+pub mod eval;
+pub mod io;
+pub mod sim;

@@ -1,0 +1,59 @@
+//! `duv`: the duv-slam command line. Thin: parse, set up logging, dispatch to `cli/`.
+
+mod cli;
+
+use clap::{Parser, Subcommand};
+
+/// Dense underwater visual SLAM: monocular tracking with depth uncertainty and a
+/// Gaussian-splat map of the seabed with the water modelled.
+#[derive(Parser)]
+#[command(name = "duv", version, about, long_about = None, propagate_version = true)]
+struct Cli {
+    /// Log filter (tracing `EnvFilter` syntax), e.g. `info`, `duv=debug`. Overrides RUST_LOG.
+    #[arg(long, global = true)]
+    log: Option<String>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Generate a short underwater sequence, run the pipeline on it, print the metrics table.
+    Demo(cli::demo::DemoArgs),
+    /// Generate an underwater sequence with exact ground truth (TUM RGB-D layout).
+    Sim(cli::sim::SimArgs),
+    /// Evaluate a trajectory / run against ground truth: ATE, RPE, PSNR, SSIM, AUSE, figures.
+    Eval(cli::eval::EvalArgs),
+    /// Check board profiles and print the capacities they give.
+    Board(cli::board::BoardArgs),
+    /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
+    Dataset(cli::dataset::DatasetArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let filter = cli
+        .log
+        .clone()
+        .or_else(|| std::env::var("RUST_LOG").ok())
+        .unwrap_or_else(|| "info".to_string());
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_new(&filter).unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")))
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    let result = match cli.command {
+        Command::Demo(a) => cli::demo::run(a),
+        Command::Sim(a) => cli::sim::run(a),
+        Command::Eval(a) => cli::eval::run(a),
+        Command::Board(a) => cli::board::run(a),
+        Command::Dataset(a) => cli::dataset::run(a),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
