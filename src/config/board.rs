@@ -37,7 +37,7 @@ pub struct Board {
 
 /// The pixel layout a camera delivers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(rename_all = "snake_case")]
 pub enum PixelFormat {
     Rgb24,
     Yuyv,

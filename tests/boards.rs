@@ -1,0 +1,70 @@
+//! Every board profile in `boards/` parses, validates, and gives the capacities its comments
+//! promise; broken variants of a real board are refused with messages that name the key.
+
+use duv::config::{Board, BoardError};
+use std::path::{Path, PathBuf};
+
+fn boards_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("boards")
+}
+
+#[test]
+fn every_board_file_parses() {
+    let files = Board::files_in(&boards_dir()).unwrap();
+    assert!(files.len() >= 3, "expected sim + two real AUV boards, found {files:?}");
+    let mut names = Vec::new();
+    for f in &files {
+        let b = Board::load(f).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(b.schema_version, 1);
+        assert_eq!(f.file_stem().unwrap().to_str().unwrap(), b.name, "file name and board name differ");
+        names.push(b.name);
+    }
+    for required in ["sim", "jetson-orin-nx-16gb", "x86-igpu-nuc"] {
+        assert!(names.iter().any(|n| n == required), "missing board {required}");
+    }
+}
+
+#[test]
+fn sim_board_is_ci_sized() {
+    let b = Board::load(&boards_dir().join("sim.toml")).unwrap();
+    assert_eq!((b.camera.width, b.camera.height), (320, 240));
+    assert!(b.budgets.max_gaussians <= 100_000);
+    assert!(b.budgets.ba_window <= b.budgets.max_keyframes);
+}
+
+#[test]
+fn real_boards_hold_the_targets() {
+    // TARGETS.md: <= 2 GB GPU for 640x480 with 300k Gaussians; the Orin profile must allow both.
+    let orin = Board::load(&boards_dir().join("jetson-orin-nx-16gb.toml")).unwrap();
+    assert_eq!(orin.budgets.max_gaussians, 300_000);
+    assert!(orin.budgets.gpu_mb >= 2048);
+    assert_eq!((orin.camera.width, orin.camera.height), (640, 480));
+}
+
+#[test]
+fn every_budget_of_zero_is_refused_by_name() {
+    let path = boards_dir().join("sim.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    for key in ["host_mb", "gpu_mb", "max_gaussians", "max_keyframes", "ba_window", "frame_queue", "keyframe_queue", "log_queue_mb"] {
+        let broken: String = text
+            .lines()
+            .map(|l| if l.trim_start().starts_with(&format!("{key} =")) { format!("{key} = 0") } else { l.to_string() })
+            .collect::<Vec<_>>()
+            .join("\n");
+        assert_ne!(broken, text, "{key} not found in sim.toml");
+        let err = Board::parse(&path, &broken).unwrap_err();
+        assert!(matches!(err, BoardError::Invalid { .. }), "{key}: {err}");
+        assert!(err.to_string().contains(&format!("budgets.{key}")), "{key}: {err}");
+        assert!(err.to_string().contains("sim.toml"), "{err}");
+    }
+}
+
+#[test]
+fn unknown_key_and_missing_file_are_named() {
+    let path = boards_dir().join("sim.toml");
+    let text = std::fs::read_to_string(&path).unwrap().replace("[threads]", "[threads]\nturbo = 3");
+    let err = Board::parse(&path, &text).unwrap_err().to_string();
+    assert!(err.contains("unknown field `turbo`") && err.contains("sim.toml"), "{err}");
+    let err = Board::load(Path::new("boards/does-not-exist.toml")).unwrap_err().to_string();
+    assert!(err.contains("does-not-exist.toml"), "{err}");
+}
