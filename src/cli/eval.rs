@@ -1,4 +1,150 @@
-//! PLACEHOLDER: replaced by the owner of this subcommand.
+//! `duv eval`: a trajectory (and optionally rendered images and depth uncertainty) against
+//! ground truth. Prints the metrics table and writes `report.json`, `report.md` and figures.
+
+use anyhow::Context;
+use clap::ValueEnum;
+use duv::eval::load::{ground_truth_file, load_depth_inputs, load_image_pairs};
+use duv::eval::report::{AuseInput, ImagePair};
+use duv::eval::trajectory::TrajectoryOptions;
+use duv::eval::{build_report, write_report, Alignment, AuseOptions, EvalInputs, EvalOptions, SsimConvention};
+use duv::io::tum::read_trajectory;
+use std::path::PathBuf;
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum AlignArg {
+    /// Rotation, translation and scale (monocular estimates).
+    Sim3,
+    /// Rotation and translation.
+    Se3,
+    /// The estimate as it is.
+    None,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum SsimArg {
+    /// scikit-image: mirrored borders, border band of 5 px left out of the mean.
+    Skimage,
+    /// 3DGS/MonoGS papers: zero padding, every pixel in the mean.
+    Same,
+}
+
 #[derive(clap::Args)]
-pub struct EvalArgs {}
-pub fn run(_: EvalArgs) -> anyhow::Result<()> { anyhow::bail!("duv eval is being built") }
+#[command(group(clap::ArgGroup::new("estimate").required(true).args(["est", "run"])))]
+pub struct EvalArgs {
+    /// Ground truth: a TUM trajectory file, or a dataset folder holding `groundtruth.txt`.
+    #[arg(long, value_name = "FILE_OR_DATASET_DIR")]
+    gt: PathBuf,
+    /// Estimated trajectory (TUM format: timestamp tx ty tz qx qy qz qw).
+    #[arg(long, value_name = "TRAJ_FILE")]
+    est: Option<PathBuf>,
+    /// A run folder: shortcut for `--est DIR/trajectory.txt`.
+    #[arg(long, value_name = "DIR")]
+    run: Option<PathBuf>,
+    /// Alignment of the estimate before ATE/RPE.
+    #[arg(long, value_enum, default_value_t = AlignArg::Sim3)]
+    align: AlignArg,
+    /// Largest time-stamp difference of an associated pose pair, seconds.
+    #[arg(long, default_value_t = 0.01, value_name = "SECS")]
+    max_dt: f64,
+    /// RPE delta in frames (0 skips RPE).
+    #[arg(long, default_value_t = 1, value_name = "FRAMES")]
+    rpe_delta: usize,
+    /// Start RPE pairs only at every delta-th pose (evo's default) rather than at every pose.
+    #[arg(long)]
+    rpe_consecutive: bool,
+    /// Folder of rendered PNG images, paired by file name with --reference.
+    #[arg(long, requires = "reference", value_name = "DIR")]
+    rendered: Option<PathBuf>,
+    /// Folder of reference PNG images (the captured frames).
+    #[arg(long, requires = "rendered", value_name = "DIR")]
+    reference: Option<PathBuf>,
+    /// SSIM border convention.
+    #[arg(long, value_enum, default_value_t = SsimArg::Skimage)]
+    ssim: SsimArg,
+    /// Folder of estimated depth maps (PFM, or 16-bit PNG) for AUSE, paired by file stem with
+    /// --variance and --gt-depth.
+    #[arg(long, requires_all = ["variance", "gt_depth"], value_name = "DIR")]
+    depth: Option<PathBuf>,
+    /// Folder of depth variance maps (PFM).
+    #[arg(long, requires = "depth", value_name = "DIR")]
+    variance: Option<PathBuf>,
+    /// Folder of ground-truth depth maps (PFM, or 16-bit PNG).
+    #[arg(long, requires = "depth", value_name = "DIR")]
+    gt_depth: Option<PathBuf>,
+    /// Units per metre of 16-bit PNG depth (TUM: 5000).
+    #[arg(long, default_value_t = 5000.0)]
+    depth_scale: f64,
+    /// Points on the sparsification curves.
+    #[arg(long, default_value_t = 100)]
+    ause_steps: usize,
+    /// Output folder for report.json, report.md and the figures (created if needed).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+}
+
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.max_dt.is_finite() && args.max_dt >= 0.0, "--max-dt must be a non-negative number of seconds, got {}", args.max_dt);
+    let gt_path = ground_truth_file(&args.gt);
+    let est_path = match (&args.est, &args.run) {
+        (Some(est), _) => est.clone(),
+        (None, Some(run)) => run.join("trajectory.txt"),
+        (None, None) => anyhow::bail!("give --est TRAJ_FILE or --run DIR"),
+    };
+    let gt = read_trajectory(&gt_path)?;
+    let est = read_trajectory(&est_path)?;
+
+    let mut images: Vec<ImagePair> = Vec::new();
+    let mut images_source = None;
+    if let (Some(rendered), Some(reference)) = (&args.rendered, &args.reference) {
+        let (pairs, unmatched) = load_image_pairs(rendered, reference)?;
+        if !unmatched.is_empty() {
+            tracing::warn!("{} rendered image(s) have no reference in {} and are skipped: {}", unmatched.len(), reference.display(), unmatched.join(", "));
+        }
+        images_source = Some(format!("{} vs {}", rendered.display(), reference.display()));
+        images = pairs;
+    }
+    let mut ause: Vec<AuseInput> = Vec::new();
+    let mut ause_source = None;
+    if let (Some(depth), Some(variance), Some(gt_depth)) = (&args.depth, &args.variance, &args.gt_depth) {
+        let (inputs, skipped) = load_depth_inputs(depth, variance, gt_depth, args.depth_scale)?;
+        if !skipped.is_empty() {
+            tracing::warn!("{} depth map(s) lack a variance or ground-truth map and are skipped: {}", skipped.len(), skipped.join(", "));
+        }
+        ause_source = Some(format!("{} (variance {}, ground truth {})", depth.display(), variance.display(), gt_depth.display()));
+        ause = inputs;
+    }
+
+    let options = EvalOptions {
+        trajectory: TrajectoryOptions {
+            max_dt_ns: (args.max_dt * 1e9).round() as i64,
+            alignment: match args.align {
+                AlignArg::Sim3 => Alignment::Sim3,
+                AlignArg::Se3 => Alignment::Se3,
+                AlignArg::None => Alignment::None,
+            },
+            rpe_delta_frames: args.rpe_delta,
+            rpe_all_pairs: !args.rpe_consecutive,
+        },
+        ssim: match args.ssim {
+            SsimArg::Skimage => SsimConvention::Skimage,
+            SsimArg::Same => SsimConvention::Same,
+        },
+        ause: AuseOptions { steps: args.ause_steps, ..Default::default() },
+    };
+    let inputs = EvalInputs {
+        gt_name: gt_path.display().to_string(),
+        est_name: est_path.display().to_string(),
+        gt: &gt,
+        est: &est,
+        images: &images,
+        images_source,
+        ause: &ause,
+        ause_source,
+        options,
+    };
+    let evaluation = build_report(&inputs)?;
+    let written = write_report(&evaluation, &args.out).with_context(|| format!("writing the report to {}", args.out.display()))?;
+    print!("{}", evaluation.report.metrics_table());
+    println!("\nwrote {}", written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
+    Ok(())
+}
