@@ -2,8 +2,9 @@
 //!
 //! The module tree is the architecture (see `ARCHITECTURE.md`): `core` holds the plain types
 //! every stage shares; `config` the board profiles; `camera` the frame sources (dataset
-//! readers today, live cameras later); `sim` the underwater sequence generator; `eval` the
-//! metrics; `io` the file formats. Stages never import one another.
+//! readers today, live cameras later); `sim` the underwater sequence generator; `track` the
+//! tracking stage (flow, bundle adjustment); `eval` the metrics; `io` the file formats.
+//! Stages never import one another.
 
 pub mod camera;
 pub mod config;
@@ -11,3 +12,4 @@ pub mod core;
 pub mod eval;
 pub mod io;
 pub mod sim;
+pub mod track;
