@@ -11,3 +11,4 @@ pub mod core;
 pub mod eval;
 pub mod io;
 pub mod sim;
+pub mod track;

@@ -1,0 +1,3 @@
+//! Tracking: dense correspondence between keyframes (`flow`) feeding bundle adjustment.
+
+pub mod flow;
