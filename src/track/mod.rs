@@ -4,3 +4,4 @@
 //! variance) are plain `core` types.
 
 pub mod ba;
+pub mod flow;
