@@ -1,0 +1,118 @@
+//! No allocation per iteration after warm-up (house habit 7): a counting global allocator
+//! shows that one mapping iteration of the CPU references (medium forward, total loss with
+//! every term, medium backward, Adam step) allocates nothing once the workspaces exist and
+//! have run once. Its own test binary, because the global allocator is per binary.
+//!
+//! The passes run on rayon threads, so the count covers the threads of a dedicated pool (marked
+//! by its start handler) as well as the calling thread; counting is armed only inside the pool
+//! job, after warm-up, so the one-off job injection into the pool is not counted.
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+use duv::core::rng::Rng;
+use duv::core::{Image, PinholeCamera, Se3};
+use duv::map::adam::{AdamGroup, AdamGroupConfig};
+use duv::map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
+use duv::map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace};
+
+/// Counts allocations (and reallocations) made on marked threads while armed.
+struct CountingAllocator;
+
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+static ARMED: AtomicBool = AtomicBool::new(false);
+
+thread_local! {
+    static MARKED: Cell<bool> = const { Cell::new(false) };
+}
+
+fn note_allocation() {
+    if ARMED.load(Ordering::Relaxed) && MARKED.with(|c| c.get()) {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        note_allocation();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        note_allocation();
+        unsafe { System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        note_allocation();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
+
+fn random<const C: usize>(w: usize, h: usize, lo: f64, hi: f64, rng: &mut Rng) -> Image<f32, C> {
+    Image::from_vec(w, h, (0..w * h * C).map(|_| rng.range(lo, hi) as f32).collect()).unwrap()
+}
+
+#[test]
+fn a_mapping_iteration_allocates_nothing_after_warm_up() {
+    // Odd size, smaller than the workspaces' capacity (the gradient images are resized within it).
+    let (w, h) = (67, 45);
+    let cam = PinholeCamera::from_hfov(70.0, w, h).unwrap();
+    let pose = Se3::identity();
+    let mut rng = Rng::new(5);
+    let color = random::<3>(w, h, 0.0, 1.0, &mut rng);
+    let image = random::<3>(w, h, 0.0, 1.0, &mut rng);
+    let depth = random::<1>(w, h, 0.2, 1.0, &mut rng);
+    let var = random::<1>(w, h, 1e-3, 1e-2, &mut rng);
+    let alpha = random::<1>(w, h, 0.0, 1.0, &mut rng);
+    let track_d = random::<1>(w, h, 0.2, 1.0, &mut rng);
+    let mut track_v = random::<1>(w, h, 1e-3, 1e-2, &mut rng);
+    track_v.data[10] = f32::INFINITY;
+
+    let mut net = MediumNet::<f32>::new(&MediumConfig::default()).unwrap();
+    let mut medium_ws = MediumWorkspace::new(&net, 64);
+    let mut loss_ws = LossWorkspace::<f32>::new(80, 64);
+    let mut adam = AdamGroup::new(AdamGroupConfig::default(), 1, net.param_count(), net.param_count()).unwrap();
+    let mut planes = MediumPlanes::<f32>::new(w, h);
+    let mut grads = vec![0.0f32; net.param_count()];
+    let config = LossConfig::default();
+
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).start_handler(|_| MARKED.with(|c| c.set(true))).build().unwrap();
+    let mut iteration = || {
+        net.forward(&cam, &pose, &mut planes).unwrap();
+        let rendered = RenderedView { color: &color, depth: &depth, depth_variance: &var, alpha: &alpha, medium: Some(&planes) };
+        let target = TargetView { image: &image, depth: &track_d, depth_variance: &track_v };
+        let terms = total_loss(&mut loss_ws, &config, &rendered, &target).unwrap();
+        grads.fill(0.0);
+        medium_ws.backward(&net, &cam, &pose, &loss_ws.grads().d_medium, &mut grads).unwrap();
+        adam.step(net.params_mut(), &grads).unwrap();
+        terms.total
+    };
+    let counted = pool.install(|| {
+        iteration();
+        MARKED.with(|c| c.set(true));
+        ARMED.store(true, Ordering::SeqCst);
+        let before = ALLOCATIONS.load(Ordering::SeqCst);
+        let mut totals = [0.0; 3];
+        for t in totals.iter_mut() {
+            *t = iteration();
+        }
+        let after = ALLOCATIONS.load(Ordering::SeqCst);
+        ARMED.store(false, Ordering::SeqCst);
+        assert!(totals.iter().all(|t| t.is_finite()));
+        // Self-check: allocations inside parallel jobs are seen.
+        use rayon::prelude::*;
+        ARMED.store(true, Ordering::SeqCst);
+        let probe = ALLOCATIONS.load(Ordering::SeqCst);
+        (0..64usize).into_par_iter().for_each(|i| drop(std::hint::black_box(vec![0u8; i + 1])));
+        ARMED.store(false, Ordering::SeqCst);
+        assert!(ALLOCATIONS.load(Ordering::SeqCst) - probe >= 64, "the counting allocator misses parallel jobs");
+        after - before
+    });
+    assert_eq!(counted, 0, "{counted} allocations in 3 mapping iterations after warm-up");
+}
