@@ -3,7 +3,8 @@
 //! The module tree is the architecture (see `ARCHITECTURE.md`): `core` holds the plain types
 //! every stage shares; `config` the board profiles; `camera` the frame sources (dataset
 //! readers today, live cameras later); `sim` the underwater sequence generator; `track` the
-//! tracking stage (flow, bundle adjustment); `eval` the metrics; `io` the file formats.
+//! tracking stage (flow, bundle adjustment); `map` the mapping stage (Gaussians, medium,
+//! rendering); `eval` the metrics; `io` the file formats.
 //! Stages never import one another.
 
 pub mod camera;
@@ -11,5 +12,6 @@ pub mod config;
 pub mod core;
 pub mod eval;
 pub mod io;
+pub mod map;
 pub mod sim;
 pub mod track;
