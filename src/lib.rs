@@ -3,8 +3,8 @@
 //! The module tree is the architecture (see `ARCHITECTURE.md`): `core` holds the plain types
 //! every stage shares; `config` the board profiles; `camera` the frame sources (dataset
 //! readers today, live cameras later); `sim` the underwater sequence generator; `track` the
-//! tracking stage (flow, bundle adjustment); `map` the mapping stage (medium, losses,
-//! optimiser); `eval` the metrics; `io` the file formats.
+//! tracking stage (flow, bundle adjustment); `map` the mapping stage (Gaussians, rendering,
+//! medium, losses, optimiser); `eval` the metrics; `io` the file formats.
 //! Stages never import one another.
 
 pub mod camera;

@@ -1,14 +1,18 @@
 //! Mapping stage (paper §3.2-3.3): the 3D Gaussian map with the neural medium, rendered and
 //! optimised against the keyframes the tracker hands over (image, pose, inverse depth and its
-//! variance).
+//! variance). Mapping never imports another stage.
 //!
-//! This part holds the CPU references of the medium network ([`medium`]), the mapping losses
-//! and their gradients ([`loss`]) and the optimiser ([`adam`]); they are the oracles the GPU
-//! kernels are compared with, so their loops keep the kernels' shape (per pixel, per row for
-//! separable filters, rows in parallel). [`real`] makes them generic over `f32` (runtime) and
-//! `f64` (finite-difference gradient checks). Mapping never imports another stage.
+//! CPU references, the oracles the GPU kernels are compared with, so their loops keep the
+//! kernels' shape (per Gaussian, per tile, per pixel, per row for separable filters):
+//! [`gaussians`] holds the map in fixed-capacity SoA buffers; [`render`] is the splatting
+//! renderer with the medium (Eq. 6-9, 11), forward and backward; [`medium`] the medium network
+//! (Eq. 10); [`loss`] the mapping losses and their gradients (Eq. 12-14); [`adam`] the
+//! optimiser. [`real`] makes the medium and losses generic over `f32` (runtime) and `f64`
+//! (finite-difference gradient checks).
 
 pub mod adam;
+pub mod gaussians;
 pub mod loss;
 pub mod medium;
 pub mod real;
+pub mod render;
