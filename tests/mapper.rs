@@ -162,3 +162,81 @@ fn prune_keeps_adam_moments_aligned() {
     }
     assert!(m.medium_adam().steps() == 0, "the medium's Adam state is reset at densify/prune");
 }
+
+/// A textured plane tilted away from the camera (ranges ~1 to ~9 m) rendered through a known
+/// uniform medium; with the Gaussians fixed, the medium network alone is fitted to the image.
+#[test]
+fn recovers_known_medium_from_a_tilted_plane() {
+    use duv::core::rng::Rng;
+    use duv::core::{ImageRgbF32, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+    use duv::map::gaussians::{GaussianParam, Gaussians, SH_C0};
+    use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderOutput};
+    let (w, h) = (32usize, 24usize);
+    let camera = PinholeCamera::new(27.0, 27.0, 15.5, 11.5, w, h).unwrap();
+    let mut g = Gaussians::with_capacity(w * h);
+    let mut inv_depth = PlaneF32::new(w, h);
+    let mut variance = PlaneF32::new(w, h);
+    let mut rng = Rng::new(7);
+    for y in 0..h {
+        let z = 1.0 + 7.0 * y as f64 / (h - 1) as f64;
+        for x in 0..w {
+            let c: [f32; 3] = std::array::from_fn(|_| rng.range(0.2, 0.9) as f32);
+            g.push(&GaussianParam {
+                mean: [((x as f64 - 15.5) / 27.0 * z) as f32, ((y as f64 - 11.5) / 27.0 * z) as f32, z as f32],
+                log_scale: [(z / 27.0 * 0.8).ln() as f32; 3],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                opacity_logit: 5.0,
+                f_dc: c.map(|v| ((v - 0.5) as f64 / SH_C0) as f32),
+                f_rest: [0.0; 9],
+            })
+            .unwrap();
+            inv_depth.data[y * w + x] = (1.0 / z) as f32;
+            variance.data[y * w + x] = (0.01 / z).powi(2) as f32;
+        }
+    }
+    let (beta_d, beta_b, b_inf) = ([0.5f32, 0.3, 0.2], [0.45f32, 0.35, 0.25], [0.15f32, 0.35, 0.45]);
+    let truth = MediumPlanes::uniform(w, h, b_inf, beta_d, beta_b);
+    let mut ws = RasterWorkspace::new(RasterCapacity { width: w, height: h, max_gaussians: w * h, max_intersections: 64 * w * h }).unwrap();
+    let mut out = RenderOutput::new(w, h);
+    ws.forward(&g, &camera, &Se3::identity(), &truth, &RenderConfig::default(), &mut out).unwrap();
+    let image = ImageRgbF32 { width: w, height: h, data: out.colour.data.clone() }.to_rgb8();
+    let kf = Keyframe { index: 0, t_ns: Timestamp(0), image, world_from_cam: Se3::identity(), camera, inv_depth, inv_depth_variance: variance };
+    let mut config = MapperConfig { optimise_gaussians: false, densify_every: 0, init_covered_alpha: 0.0, ..MapperConfig::default() };
+    config.lr.medium = 1e-2;
+    let mut m = Mapper::new(config, MapperCapacity { max_gaussians: w * h, max_keyframes: 1, width: w, height: h }).unwrap();
+    m.set_gaussians(&g).unwrap();
+    assert_eq!(m.add_keyframe(kf).unwrap(), 0, "the plane covers the view: nothing is seeded");
+    let start = m.medium_summary(&Se3::identity());
+    for _ in 0..400 {
+        m.iterate().unwrap();
+    }
+    let got = m.medium_summary(&Se3::identity());
+    let rel = |r: [f64; 3], t: [f32; 3]| -> f64 { (0..3).map(|c| (r[c] - t[c] as f64).abs() / t[c] as f64).fold(0.0, f64::max) };
+    let errs = [rel(got.beta_d, beta_d), rel(got.beta_b, beta_b), rel(got.b_inf, b_inf)];
+    let errs0 = [rel(start.beta_d, beta_d), rel(start.beta_b, beta_b), rel(start.b_inf, b_inf)];
+    eprintln!("start {start:?} {errs0:?}\nfit {got:?} {errs:?}");
+    // Measured (400 iterations): largest relative error beta_D 0.2%, beta_B 10.4%, B_inf 6.3%
+    // (beta_B and B_inf trade off where beta_B r is small); the target is 15%.
+    assert!(errs.iter().all(|&e| e < 0.15), "{errs:?}");
+}
+
+#[test]
+fn keyframe_folder_round_trip() {
+    use duv::io::keyframes::{read_keyframe_folder, write_keyframe_folder};
+    let (_r, kfs) = tiny_sequence(WaterPreset::Clear, 8);
+    let kfs: Vec<_> = kfs.into_iter().map(|k| k.keyframe).collect();
+    let dir = std::env::temp_dir().join(format!("duv_kfdir_{}", std::process::id()));
+    write_keyframe_folder(&dir, &kfs).unwrap();
+    let back = read_keyframe_folder(&dir).unwrap();
+    assert_eq!(back.len(), kfs.len());
+    for (a, b) in kfs.iter().zip(&back) {
+        assert_eq!(a.index, b.index);
+        assert_eq!(a.image, b.image);
+        assert_eq!(a.inv_depth, b.inv_depth);
+        assert_eq!(a.inv_depth_variance, b.inv_depth_variance);
+        assert!((a.world_from_cam.translation.vector - b.world_from_cam.translation.vector).norm() < 1e-9);
+        assert!(a.world_from_cam.rotation.angle_to(&b.world_from_cam.rotation) < 1e-9);
+        assert!((a.camera.fx - b.camera.fx).abs() < 1e-9 && a.camera.width == b.camera.width);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
