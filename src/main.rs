@@ -24,6 +24,8 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// Evaluate a trajectory / run against ground truth: ATE, RPE, PSNR, SSIM, AUSE, figures.
     Eval(cli::eval::EvalArgs),
+    /// Refine a Gaussian map and the water offline from a keyframe folder or generated keyframes.
+    Refine(cli::refine::RefineArgs),
     /// Check board profiles and print the capacities they give.
     Board(cli::board::BoardArgs),
     /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
@@ -46,6 +48,7 @@ fn main() -> std::process::ExitCode {
         Command::Demo(a) => cli::demo::run(a),
         Command::Sim(a) => cli::sim::run(a),
         Command::Eval(a) => cli::eval::run(a),
+        Command::Refine(a) => cli::refine::run(a),
         Command::Board(a) => cli::board::run(a),
         Command::Dataset(a) => cli::dataset::run(a),
     };

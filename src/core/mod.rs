@@ -3,11 +3,13 @@
 
 pub mod camera;
 pub mod frame;
+pub mod keyframe;
 pub mod pose;
 pub mod rng;
 pub mod time;
 
 pub use camera::{CameraModelError, PinholeCamera, RadTan};
+pub use keyframe::Keyframe;
 pub use frame::{Frame, FrameImage, Image, ImageGray16, ImageGray8, ImageRgb8, ImageRgbF32, PlaneF32};
 pub use pose::{Se3, Sim3};
 pub use time::Timestamp;

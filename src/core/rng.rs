@@ -19,6 +19,14 @@ impl Rng {
         let mut st = seed;
         Rng { s: [splitmix64(&mut st), splitmix64(&mut st), splitmix64(&mut st), splitmix64(&mut st)] }
     }
+    /// The generator's complete state (checkpoints); [`Rng::from_state`] resumes it exactly.
+    pub fn state(&self) -> [u64; 4] {
+        self.s
+    }
+    /// A generator continuing from a [`Rng::state`].
+    pub fn from_state(s: [u64; 4]) -> Self {
+        Rng { s }
+    }
     /// An independent stream derived from this seed and `stream` (e.g. a frame index).
     pub fn derive(seed: u64, stream: u64) -> Self {
         let mut st = seed ^ stream.wrapping_mul(0xD1B5_4A32_D192_ED03);

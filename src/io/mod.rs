@@ -2,6 +2,7 @@
 //! colour and grey, 16-bit depth), PFM float images, TUM trajectory text files. Every error
 //! names the file, and the line where there is one.
 
+pub mod keyframes;
 pub mod pfm;
 pub mod png_io;
 pub mod tum;

@@ -190,6 +190,24 @@ impl AdamGroup {
         Ok(())
     }
 
+    /// Restores a saved state (checkpoints): the step count and the moments of
+    /// `m.len() / stride` items, which become the live items.
+    pub fn set_state(&mut self, steps: u64, m: &[f32], v: &[f32]) -> Result<(), AdamError> {
+        let items = m.len() / self.stride;
+        if items > self.capacity {
+            return Err(AdamError::CapacityExceeded { requested: items, capacity: self.capacity });
+        }
+        let n = items * self.stride;
+        if m.len() != n || v.len() != n {
+            return Err(AdamError::LengthMismatch { what: "saved moments", len: v.len().max(m.len()), expected: n, items, stride: self.stride });
+        }
+        self.m[..n].copy_from_slice(m);
+        self.v[..n].copy_from_slice(v);
+        self.len = items;
+        self.steps = steps;
+        Ok(())
+    }
+
     /// Zeroes both moments of every item and the step count (paper §3.3: the medium's Adam
     /// state is reset at every densify/prune step).
     pub fn reset_moments(&mut self) {

@@ -362,6 +362,18 @@ impl GaussianGrads {
         &self.views[..self.len]
     }
 
+    /// Restores saved densification statistics (checkpoints) for the first `dgn.len()`
+    /// Gaussians, which must equal the current length.
+    pub fn set_densify_stats(&mut self, dgn: &[f32], touched: &[u32], views: &[u32]) -> Result<(), RenderError> {
+        if dgn.len() != self.len || touched.len() != self.len || views.len() != self.len {
+            return Err(RenderError::GradLenMismatch { grads: dgn.len(), gaussians: self.len });
+        }
+        self.densify_grad_norm[..self.len].copy_from_slice(dgn);
+        self.pixels_touched[..self.len].copy_from_slice(touched);
+        self.views[..self.len].copy_from_slice(views);
+        Ok(())
+    }
+
     /// Same as [`Gaussians::retain`], for keeping gradients aligned with a pruned map.
     pub fn retain(&mut self, mut keep: impl FnMut(usize) -> bool) -> usize {
         let mut out = 0;

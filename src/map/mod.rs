@@ -7,12 +7,18 @@
 //! [`gaussians`] holds the map in fixed-capacity SoA buffers; [`render`] is the splatting
 //! renderer with the medium (Eq. 6-9, 11), forward and backward; [`medium`] the medium network
 //! (Eq. 10); [`loss`] the mapping losses and their gradients (Eq. 12-14); [`adam`] the
-//! optimiser. [`real`] makes the medium and losses generic over `f32` (runtime) and `f64`
+//! optimiser; [`mapper`] the mapping stage that ties them together ([`densify`] and
+//! [`schedule`] are its density control and keyframe schedule). [`real`] makes the medium and losses generic over `f32` (runtime) and `f64`
 //! (finite-difference gradient checks).
 
 pub mod adam;
+pub mod checkpoint;
+pub mod densify;
 pub mod gaussians;
 pub mod loss;
+pub mod mapper;
 pub mod medium;
+pub mod ply;
 pub mod real;
 pub mod render;
+pub mod schedule;

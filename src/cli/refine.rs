@@ -1,0 +1,225 @@
+//! `duv refine`: offshore map refinement from a keyframe folder (the layout is documented in
+//! `duv::io::keyframes`), or from generated keyframes with ground-truth poses and depth
+//! (`--sim WATER`) so that mapping is evaluated without the tracker.
+//!
+//! Writes into `--out`: `map.ply` (3DGS PLY), `map.ckpt` (full mapper checkpoint),
+//! `medium.json` (the medium along the first keyframe's optical axis, the generator's keys),
+//! `renders/NNNNNN.png` (input | render | restored | depth | uncertainty) and `metrics.json`,
+//! and prints the metrics table.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use duv::core::{Image, ImageRgb8, Keyframe, MediumParams, PlaneF32};
+use duv::eval::image::{psnr, ssim, SsimConvention};
+use duv::io::keyframes::read_keyframe_folder;
+use duv::io::png_io::write_rgb8;
+use duv::io::write_atomic;
+use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv::map::ply::write_ply;
+use duv::sim::keyframes::sim_keyframes;
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+
+#[derive(clap::Args)]
+pub struct RefineArgs {
+    /// Keyframe folder written by the tracker (calibration.txt, keyframes.txt, keyframes/).
+    #[arg(long, conflicts_with = "sim", required_unless_present = "sim")]
+    keyframes: Option<PathBuf>,
+    /// Instead of a folder: generated keyframes with ground-truth poses and depth in this water.
+    #[arg(long, value_enum)]
+    sim: Option<WaterPreset>,
+    /// Generated path (with --sim).
+    #[arg(long, value_enum, default_value_t = TrajectoryKind::Survey)]
+    trajectory: TrajectoryKind,
+    /// Generated frames (with --sim); every --every-th becomes a keyframe.
+    #[arg(long, default_value_t = 40)]
+    frames: usize,
+    /// Keyframe spacing in generated frames (with --sim).
+    #[arg(long, default_value_t = 5)]
+    every: usize,
+    /// Generated image width and height (with --sim).
+    #[arg(long, default_value_t = 320)]
+    width: usize,
+    #[arg(long, default_value_t = 240)]
+    height: usize,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Optimisation iterations.
+    #[arg(long, default_value_t = 2000)]
+    iterations: u64,
+    /// Gaussian capacity of the map (the board's max_gaussians).
+    #[arg(long, default_value_t = 200_000)]
+    max_gaussians: usize,
+    /// Keyframes kept for optimisation (the board's max_keyframes).
+    #[arg(long, default_value_t = 64)]
+    max_keyframes: usize,
+    /// Mapper config (TOML, `MapperConfig` fields); defaults otherwise.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(serde::Serialize)]
+struct KeyframeMetrics {
+    index: u64,
+    psnr_db: f64,
+    ssim: f64,
+    restored_psnr_db: Option<f64>,
+}
+
+#[derive(serde::Serialize)]
+struct Metrics {
+    keyframes: Vec<KeyframeMetrics>,
+    mean_psnr_db: f64,
+    mean_ssim: f64,
+    mean_restored_psnr_db: Option<f64>,
+    medium: MediumParams,
+    medium_truth: Option<MediumParams>,
+    /// Relative error of each recovered coefficient, in the order beta_D, beta_B, B_inf (R G B each).
+    medium_rel_error: Option<[[f64; 3]; 3]>,
+    /// (iteration, Gaussians) every 1/20 of the run.
+    gaussians_over_time: Vec<(u64, usize)>,
+    ms_per_iteration: f64,
+    iterations: u64,
+}
+
+fn gray_panel(plane: &PlaneF32, valid: &PlaneF32) -> ImageRgb8 {
+    let vals: Vec<f32> = plane.data.iter().zip(&valid.data).filter(|(_, &a)| a > 0.5).map(|(&v, _)| v).collect();
+    let lo = vals.iter().cloned().fold(f32::INFINITY, f32::min);
+    let hi = vals.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    let mut out = ImageRgb8::new(plane.width, plane.height);
+    for (i, (&v, &a)) in plane.data.iter().zip(&valid.data).enumerate() {
+        let g = if a > 0.5 && lo.is_finite() { (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 };
+        out.data[i * 3..i * 3 + 3].fill(g);
+    }
+    out
+}
+
+fn hconcat(panels: &[&ImageRgb8]) -> ImageRgb8 {
+    let (w, h) = (panels[0].width, panels[0].height);
+    let mut out = ImageRgb8::new(w * panels.len(), h);
+    for (k, p) in panels.iter().enumerate() {
+        for y in 0..h {
+            let dst = (y * out.width + k * w) * 3;
+            out.data[dst..dst + w * 3].copy_from_slice(p.row(y));
+        }
+    }
+    out
+}
+
+pub fn run(a: RefineArgs) -> anyhow::Result<()> {
+    let (keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
+        let mut cfg = SimConfig::preset(water, a.trajectory);
+        cfg.frames = a.frames;
+        cfg.width = a.width;
+        cfg.height = a.height;
+        let r = SimRenderer::new(&cfg).context("building the generated sequence")?;
+        let kfs = sim_keyframes(&r, a.every, a.max_keyframes);
+        let truth = *r.medium();
+        let (k, c) = kfs.into_iter().map(|s| (s.keyframe, Some(s.clear))).unzip();
+        (k, c, Some(truth))
+    } else {
+        let dir = a.keyframes.as_ref().context("--keyframes or --sim is required")?;
+        let k = read_keyframe_folder(dir)?;
+        let n = k.len();
+        let truth_path = dir.join("medium.json");
+        let truth = if truth_path.exists() { Some(serde_json::from_str(&duv::io::read_text(&truth_path)?).context("medium.json")?) } else { None };
+        (k, vec![None; n], truth)
+    };
+    anyhow::ensure!(!keyframes.is_empty(), "no keyframes");
+    let config: MapperConfig = match &a.config {
+        Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+        None => MapperConfig::default(),
+    };
+    let cam = keyframes[0].camera;
+    let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: a.max_keyframes.max(keyframes.len()), width: cam.width, height: cam.height };
+    let mut mapper = Mapper::new(config, capacity)?;
+    for kf in &keyframes {
+        mapper.add_keyframe(kf.clone())?;
+    }
+    std::fs::create_dir_all(a.out.join("renders")).with_context(|| format!("creating {}", a.out.display()))?;
+
+    let bar = if a.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.iterations) };
+    if let Ok(style) = indicatif::ProgressStyle::with_template("refine [{elapsed_precise}] {wide_bar} {pos}/{len} it ({per_sec}, eta {eta}) {msg}") {
+        bar.set_style(style);
+    }
+    let mut over_time = vec![(0, mapper.gaussians().len())];
+    let (mut loss_avg, mut psnr_avg) = (0.0, 0.0);
+    let start = std::time::Instant::now();
+    for it in 1..=a.iterations {
+        let r = mapper.iterate()?;
+        loss_avg = if it == 1 { r.loss.total } else { 0.95 * loss_avg + 0.05 * r.loss.total };
+        psnr_avg = if it == 1 { r.psnr_db } else { 0.95 * psnr_avg + 0.05 * r.psnr_db };
+        if it % 10 == 0 {
+            bar.set_message(format!("loss {loss_avg:.4} psnr {psnr_avg:.2} dB, {} Gaussians", r.gaussians));
+        }
+        if it % (a.iterations / 20).max(1) == 0 {
+            over_time.push((it, r.gaussians));
+        }
+        bar.inc(1);
+    }
+    bar.finish();
+    let ms_per_iteration = start.elapsed().as_secs_f64() * 1e3 / a.iterations.max(1) as f64;
+
+    write_ply(&a.out.join("map.ply"), mapper.gaussians())?;
+    mapper.save_checkpoint(&a.out.join("map.ckpt"))?;
+    let medium = mapper.medium_summary(&keyframes[0].world_from_cam);
+    write_atomic(&a.out.join("medium.json"), serde_json::to_string_pretty(&medium)?.as_bytes())?;
+
+    let mut per_kf = Vec::new();
+    for slot in 0..mapper.keyframe_count() {
+        let kf = mapper.keyframe(slot).context("keyframe")?.clone();
+        let clear_img = keyframes.iter().position(|k| k.index == kf.index).and_then(|i| clear[i].clone());
+        let out = mapper.render_keyframe(slot)?;
+        let input = kf.image.to_rgb_f32();
+        let p = psnr(&out.colour, &input)?;
+        let s = ssim(&out.colour, &input, SsimConvention::Skimage)?;
+        let restored_psnr = match &clear_img {
+            Some(c) => Some(psnr(&out.restored, &c.to_rgb_f32())?),
+            None => None,
+        };
+        let valid: PlaneF32 = Image { width: out.alpha.width, height: out.alpha.height, data: out.alpha.data.clone() };
+        let unc = Image { width: out.depth_var.width, height: out.depth_var.height, data: out.depth_var.data.iter().map(|v| v.max(0.0).sqrt()).collect() };
+        let panel = hconcat(&[&kf.image, &out.colour.to_rgb8(), &out.restored.to_rgb8(), &gray_panel(&out.depth, &valid), &gray_panel(&unc, &valid)]);
+        write_rgb8(&a.out.join("renders").join(format!("{:06}.png", kf.index)), &panel)?;
+        per_kf.push(KeyframeMetrics { index: kf.index, psnr_db: p, ssim: s, restored_psnr_db: restored_psnr });
+    }
+    let n = per_kf.len() as f64;
+    let restored: Vec<f64> = per_kf.iter().filter_map(|k| k.restored_psnr_db).collect();
+    let rel = truth.map(|t| {
+        let e = |r: [f64; 3], t: [f64; 3]| [0, 1, 2].map(|c| (r[c] - t[c]).abs() / t[c].abs().max(1e-9));
+        [e(medium.beta_d, t.beta_d), e(medium.beta_b, t.beta_b), e(medium.b_inf, t.b_inf)]
+    });
+    let metrics = Metrics {
+        mean_psnr_db: per_kf.iter().map(|k| k.psnr_db).sum::<f64>() / n,
+        mean_ssim: per_kf.iter().map(|k| k.ssim).sum::<f64>() / n,
+        mean_restored_psnr_db: if restored.is_empty() { None } else { Some(restored.iter().sum::<f64>() / restored.len() as f64) },
+        keyframes: per_kf,
+        medium,
+        medium_truth: truth,
+        medium_rel_error: rel,
+        gaussians_over_time: over_time,
+        ms_per_iteration,
+        iterations: a.iterations,
+    };
+    write_atomic(&a.out.join("metrics.json"), serde_json::to_string_pretty(&metrics)?.as_bytes())?;
+
+    println!("keyframe   PSNR dB   SSIM    restored PSNR dB");
+    for k in &metrics.keyframes {
+        let r = k.restored_psnr_db.map_or("-".to_string(), |v| format!("{v:.2}"));
+        println!("{:8}  {:8.2}  {:6.4}  {r}", k.index, k.psnr_db, k.ssim);
+    }
+    println!("mean      {:8.2}  {:6.4}  {}", metrics.mean_psnr_db, metrics.mean_ssim, metrics.mean_restored_psnr_db.map_or("-".into(), |v| format!("{v:.2}")));
+    let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
+    println!("medium    beta_D {} beta_B {} B_inf {}", f(medium.beta_d), f(medium.beta_b), f(medium.b_inf));
+    if let (Some(t), Some(e)) = (truth, rel) {
+        println!("truth     beta_D {} beta_B {} B_inf {}", f(t.beta_d), f(t.beta_b), f(t.b_inf));
+        println!("rel.err   beta_D {} beta_B {} B_inf {}", f(e[0]), f(e[1]), f(e[2]));
+    }
+    println!("{} Gaussians, {:.1} ms per iteration, outputs in {}", mapper.gaussians().len(), ms_per_iteration, a.out.display());
+    Ok(())
+}

@@ -1,0 +1,198 @@
+//! Adaptive density control (3DGS §5.2, paper §3.3) on a map of fixed capacity.
+//!
+//! One call, every few iterations:
+//! 1. **Prune** Gaussians that became transparent (`sigmoid(opacity) < prune_min_opacity`) or
+//!    too large (largest axis above `prune_max_scale_m`).
+//! 2. **Densify** the survivors whose mean attenuation-compensated screen-space gradient
+//!    (`densify_grad_norm / views`, the paper's `detach(exp(sigma_med t))` scaling is in
+//!    [`GaussianGrads::densify_grad_norm`]) is at least `grad_threshold`: a small Gaussian is
+//!    **cloned**, a large one (largest axis above `split_scale_m`) is **split** into two at
+//!    `mean +- R (s * n)` (`n` a standard normal sample) with scales divided by 1.6.
+//! 3. **Hard cap:** new Gaussians are appended while there is room; once the map is full, each
+//!    new one **replaces** the least useful Gaussian (lowest `opacity x pixels touched`, never a
+//!    parent densified in the same step, nor a slot already replaced), at most `max_replace_fraction` of the map per call. No buffer grows.
+//!
+//! Every compaction moves the Adam moments with the parameters ([`AdamGroup::retain`]); an
+//! appended Gaussian starts with zero moments ([`AdamGroup::grow`]), a replaced slot has its
+//! moments zeroed ([`AdamGroup::reset_items`]). The gradients and statistics are reset for the
+//! new length. Scratch buffers are sized once for the capacity: no call allocates.
+
+use super::adam::{retain_strided, AdamError, AdamGroup};
+use super::gaussians::{GaussianGrads, Gaussians, ParamGroup};
+use super::render::{quat_to_mat3, sigmoid};
+use crate::core::rng::Rng;
+
+/// Thresholds of one densify/prune step (copied from the mapper's config).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DensifyParams {
+    /// Mean screen-space gradient norm (pixel units) above which a Gaussian is densified.
+    pub grad_threshold: f64,
+    /// Gaussians whose largest axis (m) is above this are split, smaller ones cloned.
+    pub split_scale_m: f64,
+    /// Gaussians less opaque than this are pruned.
+    pub prune_min_opacity: f64,
+    /// Gaussians whose largest axis (m) is above this are pruned.
+    pub prune_max_scale_m: f64,
+    /// Share of the map that may be replaced per step once it is full, in [0, 1].
+    pub max_replace_fraction: f64,
+}
+
+/// What one step did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct DensifyReport {
+    pub pruned: usize,
+    pub cloned: usize,
+    pub split: usize,
+    /// New Gaussians written over the least useful ones because the map was full.
+    pub replaced: usize,
+    /// Candidates dropped because the map was full and the replacement budget spent.
+    pub dropped: usize,
+    /// Map size after the step.
+    pub len: usize,
+}
+
+/// Per-Gaussian scratch of [`densify_and_prune`], allocated once for the capacity.
+#[derive(Clone, Debug)]
+pub struct DensifyScratch {
+    keep: Vec<bool>,
+    candidate: Vec<bool>,
+    usefulness: Vec<f32>,
+    avg_grad: Vec<f32>,
+    order: Vec<u32>,
+    victims: Vec<u32>,
+}
+
+impl DensifyScratch {
+    pub fn with_capacity(capacity: usize) -> Self {
+        DensifyScratch {
+            keep: vec![false; capacity],
+            candidate: vec![false; capacity],
+            usefulness: vec![0.0; capacity],
+            avg_grad: vec![0.0; capacity],
+            order: Vec::with_capacity(capacity),
+            victims: Vec::with_capacity(capacity),
+        }
+    }
+}
+
+/// Prunes, then clones/splits, within the map's capacity; `adam` holds one group per
+/// [`ParamGroup::ALL`] entry, in that order, aligned with the map. See the module doc.
+pub fn densify_and_prune(
+    gaussians: &mut Gaussians,
+    grads: &mut GaussianGrads,
+    adam: &mut [AdamGroup],
+    params: &DensifyParams,
+    rng: &mut Rng,
+    s: &mut DensifyScratch,
+) -> Result<DensifyReport, AdamError> {
+    let n = gaussians.len();
+    let capacity = gaussians.capacity();
+    debug_assert_eq!(grads.len(), n);
+    debug_assert_eq!(adam.len(), ParamGroup::ALL.len());
+    let mut report = DensifyReport::default();
+    {
+        let (dgn, touched, views) = (grads.densify_grad_norm(), grads.pixels_touched(), grads.views());
+        let opacity = gaussians.group(ParamGroup::OpacityLogit);
+        let log_scale = gaussians.group(ParamGroup::LogScale);
+        for i in 0..n {
+            let avg = if views[i] > 0 { dgn[i] / views[i] as f32 } else { 0.0 };
+            let op = sigmoid(opacity[i]);
+            let max_scale = log_scale[i * 3..i * 3 + 3].iter().fold(f32::MIN, |a, &b| a.max(b)).exp();
+            let keep = op as f64 >= params.prune_min_opacity && max_scale as f64 <= params.prune_max_scale_m;
+            s.keep[i] = keep;
+            s.candidate[i] = keep && avg as f64 >= params.grad_threshold;
+            s.usefulness[i] = op * touched[i] as f32;
+            s.avg_grad[i] = avg;
+        }
+    }
+    // 1. Prune: parameters and moments move together; the scratch follows the same mask.
+    let mut kept = n;
+    for (k, g) in ParamGroup::ALL.iter().enumerate() {
+        kept = adam[k].retain(gaussians.group_mut(*g), &s.keep[..n])?;
+    }
+    gaussians.truncate(kept);
+    retain_strided(&mut s.candidate[..n], 1, &s.keep[..n]);
+    retain_strided(&mut s.usefulness[..n], 1, &s.keep[..n]);
+    retain_strided(&mut s.avg_grad[..n], 1, &s.keep[..n]);
+    report.pruned = n - kept;
+    let n = kept;
+
+    // 2. Densify, strongest gradients first; 3. replace the least useful once full.
+    s.order.clear();
+    s.victims.clear();
+    for i in 0..n {
+        if s.candidate[i] {
+            s.order.push(i as u32);
+        }
+        s.victims.push(i as u32);
+        // From here on `keep` marks Gaussians already used this step (a densified parent or a
+        // replaced slot): neither is replaced, nor densified, again.
+        s.keep[i] = false;
+    }
+    let avg = &s.avg_grad;
+    s.order.sort_unstable_by(|&a, &b| avg[b as usize].total_cmp(&avg[a as usize]).then(a.cmp(&b)));
+    let useful = &s.usefulness;
+    s.victims.sort_unstable_by(|&a, &b| useful[a as usize].total_cmp(&useful[b as usize]).then(a.cmp(&b)));
+    let replace_budget = (params.max_replace_fraction.clamp(0.0, 1.0) * n as f64) as usize;
+    let mut next_victim = 0;
+    let split_log = (params.split_scale_m.max(1e-30) as f32).ln();
+    let shrink = 1.6f32.ln();
+    for oi in 0..s.order.len() {
+        let i = s.order[oi] as usize;
+        if s.keep[i] {
+            continue;
+        }
+        s.keep[i] = true;
+        let mut parent = gaussians.get(i);
+        let mut child = parent;
+        let max_log = parent.log_scale.iter().fold(f32::MIN, |a, &b| a.max(b));
+        let split = max_log > split_log;
+        if split {
+            let q = parent.rotation;
+            let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+            let r = quat_to_mat3(&q.map(|v| v / norm));
+            let local = [0, 1, 2].map(|k| parent.log_scale[k].exp() * rng.normal() as f32);
+            for row in 0..3 {
+                let off = r[row][0] * local[0] + r[row][1] * local[1] + r[row][2] * local[2];
+                child.mean[row] = parent.mean[row] + off;
+                parent.mean[row] -= off;
+            }
+            for k in 0..3 {
+                parent.log_scale[k] -= shrink;
+                child.log_scale[k] -= shrink;
+            }
+        }
+        if gaussians.len() < capacity {
+            gaussians.push(&child).map_err(|_| AdamError::CapacityExceeded { requested: capacity + 1, capacity })?;
+            for group in adam.iter_mut() {
+                group.grow(1)?;
+            }
+        } else if report.replaced < replace_budget && {
+            while next_victim < s.victims.len() && s.keep[s.victims[next_victim] as usize] {
+                next_victim += 1;
+            }
+            next_victim < s.victims.len()
+        } {
+            let v = s.victims[next_victim] as usize;
+            s.keep[v] = true;
+            next_victim += 1;
+            gaussians.set(v, &child);
+            for group in adam.iter_mut() {
+                group.reset_items(v, 1)?;
+            }
+            report.replaced += 1;
+        } else {
+            report.dropped += s.order.len() - oi;
+            break;
+        }
+        if split {
+            gaussians.set(i, &parent);
+            report.split += 1;
+        } else {
+            report.cloned += 1;
+        }
+    }
+    grads.reset(gaussians.len()).map_err(|_| AdamError::CapacityExceeded { requested: gaussians.len(), capacity: grads.capacity() })?;
+    report.len = gaussians.len();
+    Ok(report)
+}

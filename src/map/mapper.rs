@@ -1,0 +1,625 @@
+//! The mapper (paper §3.2-3.3): owns the Gaussian map, the medium network, their Adam states
+//! and every workspace, takes keyframes from the tracker and optimises the map against them.
+//!
+//! * [`Mapper::add_keyframe`] stores the keyframe and back-projects new Gaussians from its
+//!   inverse depth where the tracker is confident (relative standard deviation at most
+//!   [`MapperConfig::init_max_rel_std`]) and the current map does not already cover the pixel
+//!   (rendered alpha below [`MapperConfig::init_covered_alpha`]), on a grid of
+//!   [`MapperConfig::init_stride_px`] pixels, never past the capacity.
+//! * [`Mapper::iterate`] runs one optimisation step on one keyframe picked by
+//!   [`schedule::pick_keyframe`](super::schedule::pick_keyframe): medium forward, render
+//!   forward, [`total_loss`], render backward, medium backward, one Adam step per group; every
+//!   [`MapperConfig::densify_every`] iterations [`densify_and_prune`] runs and the medium's
+//!   Adam moments are reset (§3.3).
+//!
+//! All buffers are sized in [`Mapper::new`] from a [`MapperCapacity`] (the board's
+//! `max_gaussians` and `max_keyframes`, the camera size); every keyframe must have that size.
+//! Once the keyframe store is full, a random keyframe older than the window is dropped (its
+//! Gaussians stay in the map).
+
+use serde::{Deserialize, Serialize};
+
+use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
+use super::densify::{densify_and_prune, DensifyParams, DensifyReport, DensifyScratch};
+use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
+use super::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
+use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
+use super::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput, RenderUpstream};
+use super::schedule::pick_keyframe;
+use crate::core::rng::Rng;
+use crate::core::{ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
+
+/// Why the mapper refused a call. Nothing is changed by a refused call unless stated.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum MapperError {
+    #[error("render: {0}")]
+    Render(#[from] RenderError),
+    #[error("medium: {0}")]
+    Medium(#[from] MediumError),
+    #[error("loss: {0}")]
+    Loss(#[from] LossError),
+    #[error("optimiser: {0}")]
+    Adam(#[from] AdamError),
+    #[error("mapper config: {field} = {value} {why}")]
+    InvalidConfig { field: &'static str, value: f64, why: &'static str },
+    #[error("keyframe {index}: {why}")]
+    BadKeyframe { index: u64, why: &'static str },
+    #[error("keyframe {index} is {width}x{height}, the mapper was built for {expected_width}x{expected_height}")]
+    KeyframeSize { index: u64, width: usize, height: usize, expected_width: usize, expected_height: usize },
+    #[error("no keyframe to optimise")]
+    NoKeyframes,
+    #[error("keyframe slot {slot} out of range ({count} keyframes)")]
+    NoSuchKeyframe { slot: usize, count: usize },
+}
+
+/// Adam learning rates, one per parameter group.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LearningRates {
+    /// Gaussian means, metres per step.
+    pub mean: f64,
+    /// Log scales per step.
+    pub log_scale: f64,
+    /// Quaternion components per step.
+    pub rotation: f64,
+    /// Opacity logits per step.
+    pub opacity_logit: f64,
+    /// SH degree-0 coefficients per step.
+    pub f_dc: f64,
+    /// SH degree-1 coefficients per step.
+    pub f_rest: f64,
+    /// Medium network parameters per step.
+    pub medium: f64,
+}
+
+impl LearningRates {
+    /// The rate of a Gaussian parameter group.
+    pub fn of(&self, g: ParamGroup) -> f64 {
+        match g {
+            ParamGroup::Mean => self.mean,
+            ParamGroup::LogScale => self.log_scale,
+            ParamGroup::Rotation => self.rotation,
+            ParamGroup::OpacityLogit => self.opacity_logit,
+            ParamGroup::FDc => self.f_dc,
+            ParamGroup::FRest => self.f_rest,
+        }
+    }
+}
+
+/// Parameters of the mapper. Defaults live in [`MapperConfig::default`] and nowhere else.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MapperConfig {
+    /// Loss weights (Eq. 12-14).
+    pub loss: LossConfig,
+    /// Renderer settings (depth mode must stay inverse depth: the keyframes carry inverse depth).
+    pub render: RenderConfig,
+    /// Medium network shape and initial water.
+    pub medium: MediumConfig,
+    /// Adam learning rates per parameter group.
+    pub lr: LearningRates,
+    /// Seed of the keyframe schedule and of the split sampling.
+    pub seed: u64,
+    /// Back-projection grid step, pixels (>= 1).
+    pub init_stride_px: usize,
+    /// Only pixels whose inverse-depth standard deviation is at most this fraction of the
+    /// inverse depth seed Gaussians.
+    pub init_max_rel_std: f64,
+    /// Pixels where the current map already renders at least this alpha seed no Gaussian.
+    pub init_covered_alpha: f64,
+    /// Opacity of a new Gaussian, in (0, 1).
+    pub init_opacity: f64,
+    /// Scale of a new Gaussian as a multiple of its grid cell footprint `z stride / fx`.
+    pub init_scale_factor: f64,
+    /// Seed colours with the image corrected by the current medium estimate (else the raw image).
+    pub init_compensate_medium: bool,
+    /// Newest keyframes forming the window the schedule favours (>= 1).
+    pub window: usize,
+    /// Probability that an iteration picks a window keyframe rather than an older one.
+    pub window_probability: f64,
+    /// Densify/prune every this many iterations; 0 disables it.
+    pub densify_every: u64,
+    /// No densify/prune before this iteration.
+    pub densify_start: u64,
+    /// Mean attenuation-compensated screen-space gradient (pixel units) that triggers densification.
+    pub densify_grad_threshold: f64,
+    /// Gaussians larger than this (largest axis, m) are split rather than cloned.
+    pub split_scale_m: f64,
+    /// Gaussians less opaque than this are pruned.
+    pub prune_min_opacity: f64,
+    /// Gaussians larger than this (largest axis, m) are pruned.
+    pub prune_max_scale_m: f64,
+    /// Share of a full map that one densify step may replace, in [0, 1].
+    pub max_replace_fraction: f64,
+    /// Update the Gaussians (false: fit only the medium).
+    pub optimise_gaussians: bool,
+    /// Update the medium network (false: medium fixed).
+    pub optimise_medium: bool,
+    /// Tile intersections the raster workspace holds per Gaussian of capacity.
+    pub intersections_per_gaussian: usize,
+}
+
+impl Default for MapperConfig {
+    fn default() -> Self {
+        MapperConfig {
+            loss: LossConfig::default(),
+            render: RenderConfig::default(),
+            medium: MediumConfig::default(),
+            lr: LearningRates { mean: 2e-4, log_scale: 5e-3, rotation: 1e-3, opacity_logit: 2.5e-2, f_dc: 1e-2, f_rest: 5e-4, medium: 1e-3 },
+            seed: 1,
+            init_stride_px: 2,
+            init_max_rel_std: 0.2,
+            init_covered_alpha: 0.9,
+            init_opacity: 0.8,
+            init_scale_factor: 0.7,
+            init_compensate_medium: true,
+            window: 4,
+            window_probability: 0.7,
+            densify_every: 50,
+            densify_start: 50,
+            densify_grad_threshold: 2e-4,
+            split_scale_m: 0.05,
+            prune_min_opacity: 0.02,
+            prune_max_scale_m: 1.0,
+            max_replace_fraction: 0.05,
+            optimise_gaussians: true,
+            optimise_medium: true,
+            intersections_per_gaussian: 8,
+        }
+    }
+}
+
+impl MapperConfig {
+    /// Checks every field (and the nested configs); the error names the first bad one.
+    pub fn validate(&self) -> Result<(), MapperError> {
+        self.loss.validate()?;
+        self.render.validate()?;
+        self.medium.validate()?;
+        let bad = |field: &'static str, value: f64, why: &'static str| Err(MapperError::InvalidConfig { field, value, why });
+        for g in ParamGroup::ALL {
+            AdamGroupConfig { lr: self.lr.of(g), ..AdamGroupConfig::default() }.validate()?;
+        }
+        AdamGroupConfig { lr: self.lr.medium, ..AdamGroupConfig::default() }.validate()?;
+        if self.init_stride_px == 0 {
+            return bad("init_stride_px", 0.0, "must be >= 1");
+        }
+        if self.window == 0 {
+            return bad("window", 0.0, "must be >= 1");
+        }
+        if self.intersections_per_gaussian == 0 {
+            return bad("intersections_per_gaussian", 0.0, "must be >= 1");
+        }
+        for (field, v, lo, hi) in [
+            ("init_opacity", self.init_opacity, 1e-6, 1.0 - 1e-6),
+            ("window_probability", self.window_probability, 0.0, 1.0),
+            ("max_replace_fraction", self.max_replace_fraction, 0.0, 1.0),
+            ("init_covered_alpha", self.init_covered_alpha, 0.0, 1.0),
+            ("prune_min_opacity", self.prune_min_opacity, 0.0, 1.0),
+        ] {
+            if !(v.is_finite() && v >= lo && v <= hi) {
+                return bad(field, v, "is out of range");
+            }
+        }
+        for (field, v) in [
+            ("init_max_rel_std", self.init_max_rel_std),
+            ("init_scale_factor", self.init_scale_factor),
+            ("densify_grad_threshold", self.densify_grad_threshold),
+            ("split_scale_m", self.split_scale_m),
+            ("prune_max_scale_m", self.prune_max_scale_m),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, v, "must be finite and > 0");
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Fixed sizes of a mapper: the board's budgets and the camera size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapperCapacity {
+    /// Largest Gaussian map (board `max_gaussians`).
+    pub max_gaussians: usize,
+    /// Keyframes kept for optimisation (board `max_keyframes`).
+    pub max_keyframes: usize,
+    /// Image size of every keyframe, pixels.
+    pub width: usize,
+    pub height: usize,
+}
+
+/// What one [`Mapper::iterate`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct IterationReport {
+    /// Iteration number (1 for the first).
+    pub iteration: u64,
+    /// Index of the keyframe optimised.
+    pub keyframe: u64,
+    /// Loss terms before the step.
+    pub loss: LossTerms,
+    /// PSNR (dB) of the render against the keyframe image, before the step.
+    pub psnr_db: f64,
+    /// Map size after the step.
+    pub gaussians: usize,
+    /// Set when densify/prune ran after the step.
+    pub densify: Option<DensifyReport>,
+}
+
+/// A stored keyframe with its float image and its depth target (variance 0 marks pixels
+/// without depth, which the loss skips).
+#[derive(Clone, Debug)]
+pub(crate) struct MapKeyframe {
+    pub(crate) kf: Keyframe,
+    pub(crate) image: ImageRgbF32,
+    pub(crate) target_variance: PlaneF32,
+}
+
+impl MapKeyframe {
+    pub(crate) fn new(kf: Keyframe) -> Self {
+        let image = kf.image.to_rgb_f32();
+        let mut target_variance = kf.inv_depth_variance.clone();
+        for (v, &d) in target_variance.data.iter_mut().zip(&kf.inv_depth.data) {
+            if !(d > 0.0 && d.is_finite() && v.is_finite()) {
+                *v = 0.0;
+            }
+        }
+        MapKeyframe { kf, image, target_variance }
+    }
+}
+
+/// Per-view buffers, sized once.
+#[derive(Clone, Debug)]
+struct ViewBuffers {
+    out: RenderOutput,
+    upstream: RenderUpstream,
+    planes9: MediumPlanes9,
+    planes: MediumPlanes,
+    planes_grad: MediumPlanes,
+    d_planes9: MediumPlanes9,
+}
+
+/// Copies the medium network's 9-channel planes into the renderer's three RGB planes.
+pub fn planes_from_nine(nine: &MediumPlanes9, out: &mut MediumPlanes) {
+    for (((px, c), a), b) in nine
+        .data
+        .chunks_exact(MEDIUM_CHANNELS)
+        .zip(out.c_med.data.chunks_exact_mut(3))
+        .zip(out.sigma_att.data.chunks_exact_mut(3))
+        .zip(out.sigma_bs.data.chunks_exact_mut(3))
+    {
+        c.copy_from_slice(&px[C_MED..C_MED + 3]);
+        a.copy_from_slice(&px[SIGMA_ATT..SIGMA_ATT + 3]);
+        b.copy_from_slice(&px[SIGMA_BS..SIGMA_BS + 3]);
+    }
+}
+
+/// Copies the renderer's three RGB planes into the medium network's 9-channel layout.
+pub fn nine_from_planes(planes: &MediumPlanes, out: &mut MediumPlanes9) {
+    for (((px, c), a), b) in out
+        .data
+        .chunks_exact_mut(MEDIUM_CHANNELS)
+        .zip(planes.c_med.data.chunks_exact(3))
+        .zip(planes.sigma_att.data.chunks_exact(3))
+        .zip(planes.sigma_bs.data.chunks_exact(3))
+    {
+        px[C_MED..C_MED + 3].copy_from_slice(c);
+        px[SIGMA_ATT..SIGMA_ATT + 3].copy_from_slice(a);
+        px[SIGMA_BS..SIGMA_BS + 3].copy_from_slice(b);
+    }
+}
+
+/// The mapping stage: map, medium, optimiser state and keyframes.
+pub struct Mapper {
+    pub(crate) config: MapperConfig,
+    pub(crate) capacity: MapperCapacity,
+    pub(crate) gaussians: Gaussians,
+    pub(crate) grads: GaussianGrads,
+    /// One group per [`ParamGroup::ALL`] entry.
+    pub(crate) adam: Vec<AdamGroup>,
+    pub(crate) medium: MediumNet,
+    pub(crate) medium_adam: AdamGroup,
+    medium_grads: Vec<f32>,
+    medium_ws: MediumWorkspace,
+    raster: RasterWorkspace,
+    loss_ws: LossWorkspace,
+    view: ViewBuffers,
+    densify_scratch: DensifyScratch,
+    pub(crate) keyframes: Vec<MapKeyframe>,
+    pub(crate) iteration: u64,
+    pub(crate) rng: Rng,
+}
+
+impl Mapper {
+    /// An empty map with every buffer allocated for `capacity`.
+    pub fn new(config: MapperConfig, capacity: MapperCapacity) -> Result<Self, MapperError> {
+        config.validate()?;
+        let (w, h) = (capacity.width, capacity.height);
+        if w == 0 || h == 0 || capacity.max_gaussians == 0 || capacity.max_keyframes == 0 {
+            return Err(MapperError::InvalidConfig { field: "capacity", value: 0.0, why: "sizes must be > 0" });
+        }
+        let cap = capacity.max_gaussians;
+        let adam = ParamGroup::ALL
+            .iter()
+            .map(|&g| AdamGroup::new(AdamGroupConfig { lr: config.lr.of(g), ..AdamGroupConfig::default() }, g.width(), 0, cap))
+            .collect::<Result<Vec<_>, _>>()?;
+        let medium = MediumNet::new(&config.medium)?;
+        let medium_adam = AdamGroup::new(AdamGroupConfig { lr: config.lr.medium, ..AdamGroupConfig::default() }, 1, medium.param_count(), medium.param_count())?;
+        let raster = RasterWorkspace::new(RasterCapacity {
+            width: w,
+            height: h,
+            max_gaussians: cap,
+            max_intersections: cap.saturating_mul(config.intersections_per_gaussian).max(1024),
+        })?;
+        Ok(Mapper {
+            medium_grads: vec![0.0; medium.param_count()],
+            medium_ws: MediumWorkspace::new(&medium, h),
+            loss_ws: LossWorkspace::new(w, h),
+            view: ViewBuffers {
+                out: RenderOutput::new(w, h),
+                upstream: RenderUpstream::new(w, h),
+                planes9: MediumPlanes9::new(w, h),
+                planes: MediumPlanes::new(w, h),
+                planes_grad: MediumPlanes::new(w, h),
+                d_planes9: MediumPlanes9::new(w, h),
+            },
+            densify_scratch: DensifyScratch::with_capacity(cap),
+            gaussians: Gaussians::with_capacity(cap),
+            grads: GaussianGrads::with_capacity(cap),
+            keyframes: Vec::with_capacity(capacity.max_keyframes),
+            iteration: 0,
+            rng: Rng::new(config.seed),
+            adam,
+            medium,
+            medium_adam,
+            raster,
+            config,
+            capacity,
+        })
+    }
+
+    pub fn config(&self) -> &MapperConfig {
+        &self.config
+    }
+    pub fn capacity(&self) -> MapperCapacity {
+        self.capacity
+    }
+    pub fn gaussians(&self) -> &Gaussians {
+        &self.gaussians
+    }
+    pub fn medium(&self) -> &MediumNet {
+        &self.medium
+    }
+    /// Iterations run so far.
+    pub fn iteration(&self) -> u64 {
+        self.iteration
+    }
+    /// Adam state of a Gaussian group (aligned with the map).
+    pub fn adam_group(&self, g: ParamGroup) -> &AdamGroup {
+        &self.adam[g as usize]
+    }
+    pub fn medium_adam(&self) -> &AdamGroup {
+        &self.medium_adam
+    }
+    pub fn keyframe_count(&self) -> usize {
+        self.keyframes.len()
+    }
+    /// The stored keyframe in slot `slot` (oldest first).
+    pub fn keyframe(&self, slot: usize) -> Option<&Keyframe> {
+        self.keyframes.get(slot).map(|k| &k.kf)
+    }
+    /// The medium along the optical axis of `world_from_cam` (`medium.json`).
+    pub fn medium_summary(&self, world_from_cam: &Se3) -> MediumParams {
+        self.medium.summary_along_axis(world_from_cam)
+    }
+
+    /// Replaces the map (e.g. a fixed test scene); Adam moments restart at zero.
+    pub fn set_gaussians(&mut self, gaussians: &Gaussians) -> Result<(), MapperError> {
+        if gaussians.len() > self.capacity.max_gaussians {
+            return Err(RenderError::GaussianCapacity { capacity: self.capacity.max_gaussians }.into());
+        }
+        self.gaussians.clear();
+        for i in 0..gaussians.len() {
+            self.gaussians.push(&gaussians.get(i))?;
+        }
+        for (k, g) in ParamGroup::ALL.iter().enumerate() {
+            let cfg = *self.adam[k].config();
+            self.adam[k] = AdamGroup::new(cfg, g.width(), self.gaussians.len(), self.capacity.max_gaussians)?;
+        }
+        self.grads.reset(self.gaussians.len())?;
+        Ok(())
+    }
+
+    /// Renders the map and medium from a pose; the result is valid until the next call.
+    pub fn render(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<&RenderOutput, MapperError> {
+        self.check_camera(u64::MAX, camera)?;
+        self.medium.forward(camera, world_from_cam, &mut self.view.planes9)?;
+        planes_from_nine(&self.view.planes9, &mut self.view.planes);
+        self.raster.forward(&self.gaussians, camera, &world_from_cam.inverse(), &self.view.planes, &self.config.render, &mut self.view.out)?;
+        Ok(&self.view.out)
+    }
+
+    /// Renders keyframe `slot` (oldest first).
+    pub fn render_keyframe(&mut self, slot: usize) -> Result<&RenderOutput, MapperError> {
+        let (camera, pose) = match self.keyframes.get(slot) {
+            Some(k) => (k.kf.camera, k.kf.world_from_cam),
+            None => return Err(MapperError::NoSuchKeyframe { slot, count: self.keyframes.len() }),
+        };
+        self.render(&camera, &pose)
+    }
+
+    fn check_camera(&self, index: u64, camera: &PinholeCamera) -> Result<(), MapperError> {
+        if camera.width != self.capacity.width || camera.height != self.capacity.height {
+            return Err(MapperError::KeyframeSize {
+                index,
+                width: camera.width,
+                height: camera.height,
+                expected_width: self.capacity.width,
+                expected_height: self.capacity.height,
+            });
+        }
+        if camera.distortion.is_some() {
+            return Err(MapperError::BadKeyframe { index, why: "the camera must be undistorted" });
+        }
+        Ok(())
+    }
+
+    /// Stores the keyframe and seeds Gaussians from its confident inverse depth where the map
+    /// does not cover it yet; returns how many Gaussians were added.
+    pub fn add_keyframe(&mut self, kf: Keyframe) -> Result<usize, MapperError> {
+        self.check_camera(kf.index, &kf.camera)?;
+        if !kf.is_consistent() {
+            return Err(MapperError::BadKeyframe { index: kf.index, why: "image, inverse depth and variance sizes differ from the camera's" });
+        }
+        if !kf.world_from_cam.to_homogeneous().iter().all(|v| v.is_finite()) {
+            return Err(MapperError::BadKeyframe { index: kf.index, why: "pose is not finite" });
+        }
+        // Current coverage and medium at this pose.
+        self.render(&kf.camera, &kf.world_from_cam)?;
+        let cfg = &self.config;
+        let cam = kf.camera;
+        let (w, h) = (cam.width, cam.height);
+        let stride = cfg.init_stride_px;
+        let opacity_logit = (cfg.init_opacity / (1.0 - cfg.init_opacity)).ln() as f32;
+        let before = self.gaussians.len();
+        'rows: for y in (stride / 2..h).step_by(stride) {
+            for x in (stride / 2..w).step_by(stride) {
+                let i = y * w + x;
+                let d = kf.inv_depth.data[i];
+                let var = kf.inv_depth_variance.data[i];
+                if !(d > 0.0 && d.is_finite() && var.is_finite() && var >= 0.0) {
+                    continue;
+                }
+                if (var as f64).sqrt() > cfg.init_max_rel_std * d as f64 {
+                    continue;
+                }
+                if self.view.out.alpha.data[i] as f64 >= cfg.init_covered_alpha {
+                    continue;
+                }
+                if self.gaussians.len() == self.gaussians.capacity() {
+                    break 'rows;
+                }
+                let z = 1.0 / d as f64;
+                let p_in_cam = nalgebra::Point3::new((x as f64 - cam.cx) / cam.fx * z, (y as f64 - cam.cy) / cam.fy * z, z);
+                let p_in_world = kf.world_from_cam * p_in_cam;
+                let range = p_in_cam.coords.norm() as f32;
+                let log_scale = ((z * stride as f64 / cam.fx) * cfg.init_scale_factor).ln() as f32;
+                let mut f_dc = [0.0f32; 3];
+                for c in 0..3 {
+                    let observed = kf.image.data[i * 3 + c] as f32 / 255.0;
+                    let colour = if cfg.init_compensate_medium {
+                        let px = &self.view.planes9.data[i * MEDIUM_CHANNELS..(i + 1) * MEDIUM_CHANNELS];
+                        let backscatter = px[C_MED + c] * (1.0 - (-px[SIGMA_BS + c] * range).exp());
+                        ((observed - backscatter) * (px[SIGMA_ATT + c] * range).exp()).clamp(0.0, 1.0)
+                    } else {
+                        observed
+                    };
+                    f_dc[c] = ((colour - 0.5) as f64 / SH_C0) as f32;
+                }
+                let p = GaussianParam {
+                    mean: [p_in_world.x as f32, p_in_world.y as f32, p_in_world.z as f32],
+                    log_scale: [log_scale; 3],
+                    rotation: [1.0, 0.0, 0.0, 0.0],
+                    opacity_logit,
+                    f_dc,
+                    f_rest: [0.0; 9],
+                };
+                self.gaussians.push(&p)?;
+            }
+        }
+        let added = self.gaussians.len() - before;
+        for group in self.adam.iter_mut() {
+            group.grow(added)?;
+        }
+        self.grads.reset(self.gaussians.len())?;
+        if self.keyframes.len() == self.capacity.max_keyframes {
+            let older = self.keyframes.len().saturating_sub(self.config.window);
+            let slot = if older > 0 { self.rng.below(older as u64) as usize } else { 0 };
+            self.keyframes.remove(slot);
+        }
+        self.keyframes.push(MapKeyframe::new(kf));
+        tracing::debug!(added, total = self.gaussians.len(), "map.add_keyframe");
+        Ok(added)
+    }
+
+    /// One optimisation step on a scheduled keyframe, then densify/prune when due.
+    pub fn iterate(&mut self) -> Result<IterationReport, MapperError> {
+        if self.keyframes.is_empty() {
+            return Err(MapperError::NoKeyframes);
+        }
+        let slot = pick_keyframe(&mut self.rng, self.keyframes.len(), self.config.window, self.config.window_probability);
+        self.step_on(slot)
+    }
+
+    /// One optimisation step on keyframe `slot` (oldest first), then densify/prune when due.
+    pub fn step_on(&mut self, slot: usize) -> Result<IterationReport, MapperError> {
+        let _span = tracing::debug_span!("map.iterate", iteration = self.iteration + 1).entered();
+        let count = self.keyframes.len();
+        let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
+        let (camera, pose) = (kf.kf.camera, kf.kf.world_from_cam);
+        let v = &mut self.view;
+        self.medium.forward(&camera, &pose, &mut v.planes9)?;
+        planes_from_nine(&v.planes9, &mut v.planes);
+        self.raster.forward(&self.gaussians, &camera, &pose.inverse(), &v.planes, &self.config.render, &mut v.out)?;
+        let rendered = RenderedView { color: &v.out.colour, depth: &v.out.depth, depth_variance: &v.out.depth_var, alpha: &v.out.alpha, medium: Some(&v.planes9) };
+        let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
+        let loss = total_loss(&mut self.loss_ws, &self.config.loss, &rendered, &target)?;
+        let psnr_db = psnr_db(&v.out.colour, &kf.image);
+        let lg = self.loss_ws.grads();
+        v.upstream.colour.data.copy_from_slice(&lg.d_color.data);
+        v.upstream.depth.data.copy_from_slice(&lg.d_depth.data);
+        v.upstream.depth_var.data.copy_from_slice(&lg.d_depth_variance.data);
+        v.upstream.alpha.data.copy_from_slice(&lg.d_alpha.data);
+        self.grads.zero_params();
+        self.raster.backward(&self.gaussians, &v.planes, &v.out, &v.upstream, &mut self.grads, &mut v.planes_grad)?;
+        nine_from_planes(&v.planes_grad, &mut v.d_planes9);
+        for (d, &l) in v.d_planes9.data.iter_mut().zip(&lg.d_medium.data) {
+            *d += l;
+        }
+        if self.config.optimise_medium {
+            self.medium_grads.fill(0.0);
+            self.medium_ws.backward(&self.medium, &camera, &pose, &v.d_planes9, &mut self.medium_grads)?;
+            self.medium_adam.step(self.medium.params_mut(), &self.medium_grads)?;
+        }
+        if self.config.optimise_gaussians {
+            for (k, g) in ParamGroup::ALL.iter().enumerate() {
+                self.adam[k].step(self.gaussians.group_mut(*g), self.grads.group(*g))?;
+            }
+        }
+        self.iteration += 1;
+        let cfg = &self.config;
+        let densify = if cfg.optimise_gaussians && cfg.densify_every > 0 && self.iteration >= cfg.densify_start && self.iteration % cfg.densify_every == 0 {
+            Some(self.densify_and_prune()?)
+        } else {
+            None
+        };
+        Ok(IterationReport { iteration: self.iteration, keyframe: self.keyframes[slot].kf.index, loss, psnr_db, gaussians: self.gaussians.len(), densify })
+    }
+
+    /// Prunes and densifies now (see [`densify_and_prune`]) and resets the medium's Adam
+    /// moments (§3.3).
+    pub fn densify_and_prune(&mut self) -> Result<DensifyReport, MapperError> {
+        let c = &self.config;
+        let params = DensifyParams {
+            grad_threshold: c.densify_grad_threshold,
+            split_scale_m: c.split_scale_m,
+            prune_min_opacity: c.prune_min_opacity,
+            prune_max_scale_m: c.prune_max_scale_m,
+            max_replace_fraction: c.max_replace_fraction,
+        };
+        let report = densify_and_prune(&mut self.gaussians, &mut self.grads, &mut self.adam, &params, &mut self.rng, &mut self.densify_scratch)?;
+        self.medium_adam.reset_moments();
+        tracing::debug!(?report, "map.densify");
+        Ok(report)
+    }
+}
+
+/// PSNR in dB of `a` against `b` (data range 1), infinite for identical images.
+pub fn psnr_db(a: &ImageRgbF32, b: &ImageRgbF32) -> f64 {
+    let n = a.data.len().max(1) as f64;
+    let mse = a.data.iter().zip(&b.data).map(|(&x, &y)| ((x - y) as f64).powi(2)).sum::<f64>() / n;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    }
+}

@@ -1,0 +1,242 @@
+//! Mapping stage: optimisation on generated keyframes, medium recovery, density control,
+//! checkpoint and PLY round trips. CI-sized (64x48 images, hundreds of Gaussians).
+
+use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv::sim::keyframes::{sim_keyframes, SimKeyframe};
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+
+fn tiny_sequence(water: WaterPreset, frames: usize) -> (SimRenderer, Vec<SimKeyframe>) {
+    let mut cfg = SimConfig::preset(water, TrajectoryKind::Survey);
+    cfg.width = 64;
+    cfg.height = 48;
+    cfg.frames = frames;
+    let r = SimRenderer::new(&cfg).expect("sim");
+    let kfs = sim_keyframes(&r, 4, 8);
+    (r, kfs)
+}
+
+fn capacity(max_gaussians: usize) -> MapperCapacity {
+    MapperCapacity { max_gaussians, max_keyframes: 8, width: 64, height: 48 }
+}
+
+#[test]
+fn mapping_raises_keyframe_psnr() {
+    let t = std::time::Instant::now();
+    let (_r, kfs) = tiny_sequence(WaterPreset::Coastal, 16);
+    eprintln!("sim {:?}", t.elapsed());
+    let mut m = Mapper::new(MapperConfig::default(), capacity(3000)).unwrap();
+    for k in &kfs {
+        let added = m.add_keyframe(k.keyframe.clone()).unwrap();
+        eprintln!("added {added}");
+    }
+    let mean_psnr = |m: &mut Mapper| {
+        let n = m.keyframe_count();
+        let mut s = 0.0;
+        for i in 0..n {
+            let img = m.keyframe(i).unwrap().image.to_rgb_f32();
+            let out = m.render_keyframe(i).unwrap();
+            s += duv::map::mapper::psnr_db(&out.colour, &img);
+        }
+        s / n as f64
+    };
+    let before = mean_psnr(&mut m);
+    let t = std::time::Instant::now();
+    for _ in 0..100 {
+        let r = m.iterate().unwrap();
+        if r.iteration % 10 == 0 {
+            eprintln!("{} loss {:.4} psnr {:.2} n {} {:?}", r.iteration, r.loss.total, r.psnr_db, r.gaussians, r.densify);
+        }
+    }
+    eprintln!("iter {:?}", t.elapsed());
+    let after = mean_psnr(&mut m);
+    eprintln!("psnr before {before:.2} after {after:.2} medium {:?}", m.medium_summary(&kfs[0].keyframe.world_from_cam));
+    // Measured on this sequence: 32.6 dB -> 35.1 dB after 100 iterations.
+    assert!(after > before + 1.5, "PSNR {before:.2} -> {after:.2}");
+}
+
+fn small_mapper(config: MapperConfig, max_gaussians: usize) -> (Mapper, Vec<SimKeyframe>) {
+    let (_r, kfs) = tiny_sequence(WaterPreset::Coastal, 12);
+    let mut m = Mapper::new(config, capacity(max_gaussians)).unwrap();
+    for k in &kfs {
+        m.add_keyframe(k.keyframe.clone()).unwrap();
+    }
+    (m, kfs)
+}
+
+#[test]
+fn checkpoint_restore_renders_identically_and_continues_identically() {
+    let (mut m, _) = small_mapper(MapperConfig { densify_every: 5, densify_start: 5, ..MapperConfig::default() }, 2000);
+    for _ in 0..7 {
+        m.iterate().unwrap();
+    }
+    let dir = std::env::temp_dir().join(format!("duv_ckpt_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("map.ckpt");
+    m.save_checkpoint(&path).unwrap();
+    let mut r = Mapper::load_checkpoint(&path).unwrap();
+    assert_eq!(r.iteration(), m.iteration());
+    assert_eq!(r.gaussians(), m.gaussians());
+    for slot in 0..m.keyframe_count() {
+        let a = m.render_keyframe(slot).unwrap().clone();
+        let b = r.render_keyframe(slot).unwrap();
+        assert_eq!(a.colour.data, b.colour.data, "keyframe {slot}: bit-identical render");
+        assert_eq!(a.depth.data, b.depth.data);
+    }
+    // The next iterations (including a densify step at 10) are the same.
+    for _ in 0..4 {
+        let ra = m.iterate().unwrap();
+        let rb = r.iterate().unwrap();
+        assert_eq!(ra, rb);
+    }
+    assert_eq!(r.gaussians(), m.gaussians());
+    assert_eq!(r.medium().params(), m.medium().params());
+    // A corrupted file is refused with a checksum error.
+    let mut bytes = std::fs::read(&path).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0x5a;
+    std::fs::write(&path, &bytes).unwrap();
+    let e = Mapper::load_checkpoint(&path).err().expect("corrupt checkpoint refused");
+    assert!(e.to_string().contains("checksum"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn hard_cap_holds_under_aggressive_densification() {
+    let cap = 400;
+    let config = MapperConfig {
+        densify_every: 2,
+        densify_start: 2,
+        densify_grad_threshold: 1e-12,
+        max_replace_fraction: 0.5,
+        ..MapperConfig::default()
+    };
+    let (mut m, _) = small_mapper(config, cap);
+    assert!(m.gaussians().len() <= cap);
+    let mut replaced = 0;
+    for _ in 0..30 {
+        let r = m.iterate().unwrap();
+        assert!(m.gaussians().len() <= cap, "len {} > capacity {cap}", m.gaussians().len());
+        assert_eq!(m.gaussians().capacity(), cap, "no buffer grows");
+        for g in duv::map::gaussians::ParamGroup::ALL {
+            assert_eq!(m.adam_group(g).len(), m.gaussians().len(), "Adam group {} aligned", g.name());
+            assert_eq!(m.adam_group(g).capacity(), cap);
+        }
+        if let Some(d) = r.densify {
+            replaced += d.replaced;
+        }
+    }
+    assert_eq!(m.gaussians().len(), cap, "the map fills up");
+    assert!(replaced > 0, "a full map replaces its least useful Gaussians");
+}
+
+#[test]
+fn prune_keeps_adam_moments_aligned() {
+    use duv::map::gaussians::ParamGroup;
+    let config = MapperConfig { densify_every: 0, densify_grad_threshold: 1e9, prune_min_opacity: 0.8, ..MapperConfig::default() };
+    let (mut m, _) = small_mapper(config, 2000);
+    for _ in 0..6 {
+        m.iterate().unwrap();
+    }
+    let before = m.gaussians().clone();
+    let moments: Vec<(Vec<f32>, Vec<f32>)> = ParamGroup::ALL.iter().map(|&g| {
+        let (a, b) = m.adam_group(g).moments();
+        (a.to_vec(), b.to_vec())
+    }).collect();
+    let report = m.densify_and_prune().unwrap();
+    assert!(report.pruned > 0 && report.pruned < before.len(), "{report:?}");
+    assert_eq!(report.cloned + report.split, 0);
+    let after = m.gaussians();
+    // Survivors keep their order: walk both lists.
+    let mut j = 0;
+    for i in 0..after.len() {
+        while before.get(j) != after.get(i) {
+            j += 1;
+        }
+        for (k, &g) in ParamGroup::ALL.iter().enumerate() {
+            let w = g.width();
+            let (ma, va) = m.adam_group(g).moments();
+            assert_eq!(&ma[i * w..(i + 1) * w], &moments[k].0[j * w..(j + 1) * w], "m of {} for Gaussian {i} (was {j})", g.name());
+            assert_eq!(&va[i * w..(i + 1) * w], &moments[k].1[j * w..(j + 1) * w]);
+        }
+        j += 1;
+    }
+    assert!(m.medium_adam().steps() == 0, "the medium's Adam state is reset at densify/prune");
+}
+
+/// A textured plane tilted away from the camera (ranges ~1 to ~9 m) rendered through a known
+/// uniform medium; with the Gaussians fixed, the medium network alone is fitted to the image.
+#[test]
+fn recovers_known_medium_from_a_tilted_plane() {
+    use duv::core::rng::Rng;
+    use duv::core::{ImageRgbF32, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+    use duv::map::gaussians::{GaussianParam, Gaussians, SH_C0};
+    use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderOutput};
+    let (w, h) = (32usize, 24usize);
+    let camera = PinholeCamera::new(27.0, 27.0, 15.5, 11.5, w, h).unwrap();
+    let mut g = Gaussians::with_capacity(w * h);
+    let mut inv_depth = PlaneF32::new(w, h);
+    let mut variance = PlaneF32::new(w, h);
+    let mut rng = Rng::new(7);
+    for y in 0..h {
+        let z = 1.0 + 7.0 * y as f64 / (h - 1) as f64;
+        for x in 0..w {
+            let c: [f32; 3] = std::array::from_fn(|_| rng.range(0.2, 0.9) as f32);
+            g.push(&GaussianParam {
+                mean: [((x as f64 - 15.5) / 27.0 * z) as f32, ((y as f64 - 11.5) / 27.0 * z) as f32, z as f32],
+                log_scale: [(z / 27.0 * 0.8).ln() as f32; 3],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                opacity_logit: 5.0,
+                f_dc: c.map(|v| ((v - 0.5) as f64 / SH_C0) as f32),
+                f_rest: [0.0; 9],
+            })
+            .unwrap();
+            inv_depth.data[y * w + x] = (1.0 / z) as f32;
+            variance.data[y * w + x] = (0.01 / z).powi(2) as f32;
+        }
+    }
+    let (beta_d, beta_b, b_inf) = ([0.5f32, 0.3, 0.2], [0.45f32, 0.35, 0.25], [0.15f32, 0.35, 0.45]);
+    let truth = MediumPlanes::uniform(w, h, b_inf, beta_d, beta_b);
+    let mut ws = RasterWorkspace::new(RasterCapacity { width: w, height: h, max_gaussians: w * h, max_intersections: 64 * w * h }).unwrap();
+    let mut out = RenderOutput::new(w, h);
+    ws.forward(&g, &camera, &Se3::identity(), &truth, &RenderConfig::default(), &mut out).unwrap();
+    let image = ImageRgbF32 { width: w, height: h, data: out.colour.data.clone() }.to_rgb8();
+    let kf = Keyframe { index: 0, t_ns: Timestamp(0), image, world_from_cam: Se3::identity(), camera, inv_depth, inv_depth_variance: variance };
+    let mut config = MapperConfig { optimise_gaussians: false, densify_every: 0, init_covered_alpha: 0.0, ..MapperConfig::default() };
+    config.lr.medium = 1e-2;
+    let mut m = Mapper::new(config, MapperCapacity { max_gaussians: w * h, max_keyframes: 1, width: w, height: h }).unwrap();
+    m.set_gaussians(&g).unwrap();
+    assert_eq!(m.add_keyframe(kf).unwrap(), 0, "the plane covers the view: nothing is seeded");
+    let start = m.medium_summary(&Se3::identity());
+    for _ in 0..400 {
+        m.iterate().unwrap();
+    }
+    let got = m.medium_summary(&Se3::identity());
+    let rel = |r: [f64; 3], t: [f32; 3]| -> f64 { (0..3).map(|c| (r[c] - t[c] as f64).abs() / t[c] as f64).fold(0.0, f64::max) };
+    let errs = [rel(got.beta_d, beta_d), rel(got.beta_b, beta_b), rel(got.b_inf, b_inf)];
+    let errs0 = [rel(start.beta_d, beta_d), rel(start.beta_b, beta_b), rel(start.b_inf, b_inf)];
+    eprintln!("start {start:?} {errs0:?}\nfit {got:?} {errs:?}");
+    // Measured (400 iterations): largest relative error beta_D 0.2%, beta_B 10.4%, B_inf 6.3%
+    // (beta_B and B_inf trade off where beta_B r is small); the target is 15%.
+    assert!(errs.iter().all(|&e| e < 0.15), "{errs:?}");
+}
+
+#[test]
+fn keyframe_folder_round_trip() {
+    use duv::io::keyframes::{read_keyframe_folder, write_keyframe_folder};
+    let (_r, kfs) = tiny_sequence(WaterPreset::Clear, 8);
+    let kfs: Vec<_> = kfs.into_iter().map(|k| k.keyframe).collect();
+    let dir = std::env::temp_dir().join(format!("duv_kfdir_{}", std::process::id()));
+    write_keyframe_folder(&dir, &kfs).unwrap();
+    let back = read_keyframe_folder(&dir).unwrap();
+    assert_eq!(back.len(), kfs.len());
+    for (a, b) in kfs.iter().zip(&back) {
+        assert_eq!(a.index, b.index);
+        assert_eq!(a.image, b.image);
+        assert_eq!(a.inv_depth, b.inv_depth);
+        assert_eq!(a.inv_depth_variance, b.inv_depth_variance);
+        assert!((a.world_from_cam.translation.vector - b.world_from_cam.translation.vector).norm() < 1e-9);
+        assert!(a.world_from_cam.rotation.angle_to(&b.world_from_cam.rotation) < 1e-9);
+        assert!((a.camera.fx - b.camera.fx).abs() < 1e-9 && a.camera.width == b.camera.width);
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
