@@ -4,4 +4,5 @@ pub mod board;
 pub mod dataset;
 pub mod demo;
 pub mod eval;
+pub mod run;
 pub mod sim;
