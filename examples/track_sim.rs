@@ -12,6 +12,7 @@ use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
 use std::time::Instant;
 
 fn main() {
+    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).with_writer(std::io::stderr).init();
     let a: Vec<String> = std::env::args().collect();
     let get = |i: usize, d: &str| a.get(i).cloned().unwrap_or_else(|| d.to_string());
     let water = match get(1, "coastal").as_str() {
@@ -66,4 +67,45 @@ fn main() {
         c.lost_frames,
         c.relocalisations
     );
+    // Metric scale of each keyframe's depth map (median of true depth x estimated inverse
+    // depth at the depth-grid pixel centres): its drift along the run.
+    if a.iter().any(|s| s == "scales") {
+        let f = cfg.depth_factor;
+        let mut line = String::from("kf depth scale:");
+        for k in r.tracker.keyframes() {
+            let gt = renderer.render(k.seq as usize).depth_m;
+            let mut ratios: Vec<f32> = Vec::new();
+            for y in 0..k.inv_depth.height {
+                for x in 0..k.inv_depth.width {
+                    let z = gt.data[(y * f + f / 2) * gt.width + x * f + f / 2];
+                    if z > 0.0 {
+                        ratios.push(z * k.inv_depth.data[y * k.inv_depth.width + x]);
+                    }
+                }
+            }
+            ratios.sort_by(|a, b| a.total_cmp(b));
+            line += &format!(" {}:{:.3}", k.id, ratios.get(ratios.len() / 2).copied().unwrap_or(f32::NAN));
+        }
+        println!("{line}");
+    }
+    // Loop edges against the ground truth: relative pose of the two keyframes.
+    let kfs: Vec<_> = r.tracker.keyframes().map(|k| (k.id, k.seq, k.world_from_cam)).collect();
+    for (from, to, is_loop) in r.tracker.edges() {
+        if !is_loop {
+            continue;
+        }
+        let f = kfs.iter().find(|k| k.0 == from).unwrap();
+        let t = kfs.iter().find(|k| k.0 == to).unwrap();
+        let gt = renderer.pose(f.1 as usize).world_from_cam.inv_mul(&renderer.pose(t.1 as usize).world_from_cam);
+        let est = f.2.inv_mul(&t.2);
+        println!(
+            "loop edge kf {from} (frame {}) -> kf {to} (frame {}): gt |t| {:.3} m rot {:.2} deg; est |t| {:.3} rot {:.2} deg",
+            f.1,
+            t.1,
+            gt.translation.vector.norm(),
+            gt.rotation.angle().to_degrees(),
+            est.translation.vector.norm(),
+            est.rotation.angle().to_degrees()
+        );
+    }
 }

@@ -97,6 +97,8 @@ pub struct TrackerConfig {
     pub loop_min_interval: usize,
     /// Gauss-Newton iterations of the Sim(3) pose graph.
     pub pose_graph_iterations: usize,
+    /// Run a dense global BA over every keyframe after each accepted loop (after the pose graph).
+    pub loop_global_ba: bool,
     /// Run a dense global BA over every keyframe after this many insertions (0: only after loops).
     pub global_ba_period: usize,
     /// Gauss-Newton iterations of the dense global BA.
@@ -141,6 +143,7 @@ impl Default for TrackerConfig {
             loop_min_confident_fraction: 0.35,
             loop_min_interval: 5,
             pose_graph_iterations: 20,
+            loop_global_ba: true,
             global_ba_period: 0,
             global_iterations: 6,
             upsample_sigma_px: 0.8,

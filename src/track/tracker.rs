@@ -1135,8 +1135,14 @@ impl State {
         self.rank_candidates(Some(s), n - 1 - self.cfg.loop_exclude_recent, self.cfg.loop_min_ncc);
         for k in 0..self.candidates.len() {
             let c = self.candidates[k].1;
+            // Seeded by the flow the current (drifted) estimate induces: drift is small next
+            // to what the pyramid recovers, and the seed only offers each patch a candidate.
+            {
+                let (kc, ks) = (&self.kfs.slots[c], &self.kfs.slots[s]);
+                induced_flow(&self.low, &kc.world_from_cam, &kc.inv_depth, &ks.world_from_cam, Some(&mut self.seed));
+            }
             let t0 = Instant::now();
-            self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, None, &mut self.res)?;
+            self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, Some(&self.seed), &mut self.res)?;
             self.times.flow += t0.elapsed();
             self.times.flow_estimates += 1;
             let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, &mut self.obs_target, &mut self.obs_weight);
@@ -1144,7 +1150,8 @@ impl State {
             if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
                 continue;
             }
-            let mut world_from_s = self.kfs.slots[c].world_from_cam;
+            // Start from the current estimate (close: drift is a few percent of the loop).
+            let mut world_from_s = self.kfs.slots[s].world_from_cam;
             if self.motion_only(c, &mut world_from_s).is_err() {
                 continue;
             }
@@ -1160,11 +1167,26 @@ impl State {
             }
             let z = sim3_relative(&self.kfs.slots[c].world_from_cam.inv_mul(&world_from_s), scale);
             self.pose_graph(c, s, z);
-            self.global_ba();
+            if self.cfg.loop_global_ba {
+                self.global_ba();
+            }
             self.inserted_since_loop = 0;
             self.counters.loops_closed += 1;
             self.times.loops += 1;
-            tracing::debug!(from = self.kfs.slots[c].id, to = self.kfs.slots[s].id, scale, "track: loop closed");
+            let rel = self.kfs.slots[c].world_from_cam.inv_mul(&world_from_s);
+            tracing::debug!(
+                from = self.kfs.slots[c].id,
+                to = self.kfs.slots[s].id,
+                from_seq = self.kfs.slots[c].seq,
+                to_seq = self.kfs.slots[s].seq,
+                ncc = self.candidates[k].0,
+                conf,
+                mean_flow,
+                scale,
+                rel_t = rel.translation.vector.norm(),
+                rel_deg = rel.rotation.angle().to_degrees(),
+                "track: loop closed"
+            );
             return Ok(true);
         }
         Ok(false)
