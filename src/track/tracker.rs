@@ -180,7 +180,7 @@ pub enum TrackError {
 /// Dense monocular tracker. Everything is allocated by [`Tracker::new`]; see the module docs
 /// for what is allocation-free afterwards.
 pub struct Tracker {
-    pool: rayon::ThreadPool,
+    pool: std::sync::Arc<rayon::ThreadPool>,
     st: State,
 }
 
@@ -266,14 +266,29 @@ impl Tracker {
             .build()
             .map_err(|e| TrackError::ThreadPool(e.to_string()))?;
         let st = pool.install(|| State::new(camera, config, cap))?;
-        Ok(Tracker { pool, st })
+        Ok(Tracker { pool: std::sync::Arc::new(pool), st })
     }
 
     /// Tracks one frame. Frames of the wrong size are an error; black, saturated or
     /// featureless frames are reported as [`TrackingState::Lost`] and leave the map untouched.
+    ///
+    /// Called from outside the tracker's pool, each call enters it (`ThreadPool::install`),
+    /// which goes through rayon's injector queue: that allocates a small block every 63 calls.
+    /// The tracking thread of a pipeline runs its loop inside the pool with
+    /// [`run_in_pool`](Self::run_in_pool) instead, and then nothing is allocated per frame.
     pub fn track(&mut self, frame: &Frame) -> Result<TrackOutput, TrackError> {
+        if self.pool.current_thread_index().is_some() {
+            return self.st.track(frame);
+        }
         let st = &mut self.st;
         self.pool.install(|| st.track(frame))
+    }
+
+    /// Runs `f` on one of the tracker's pool threads, so that the [`track`](Self::track) calls
+    /// it makes enter no queue (a tracking thread's whole loop goes here).
+    pub fn run_in_pool<R: Send>(&mut self, f: impl FnOnce(&mut Tracker) -> R + Send) -> R {
+        let pool = std::sync::Arc::clone(&self.pool);
+        pool.install(|| f(self))
     }
 
     /// The full-resolution camera.
@@ -336,9 +351,9 @@ impl Tracker {
         let cfg = &st.cfg;
         self.pool.install(|| {
             if kf.has_variance {
-                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &[&kf.inv_depth, &kf.variance], &mut [inv_depth, variance]);
+                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
             } else {
-                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &[&kf.inv_depth], &mut [inv_depth]);
+                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
             }
         });

@@ -8,9 +8,9 @@
 use crate::core::PlaneF32;
 use rayon::prelude::*;
 
-/// Upsamples `low` maps (`cell` input pixels per low pixel) into `out` maps (full size), with
-/// `guide` (full-resolution 8-bit grey) and `guide_low` (block means at the low grid, [0, 1]).
-/// `low` and `out` hold one or more planes upsampled with the same weights.
+/// Upsamples `low` (one plane, and optionally a second with the same weights) at `cell` input
+/// pixels per low pixel into `out` / `out2` (full size), with `guide` (full-resolution 8-bit
+/// grey) and `guide_low` (block means at the low grid, [0, 1]). Allocation-free.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn joint_bilateral(
     guide: &[u8],
@@ -18,29 +18,17 @@ pub(crate) fn joint_bilateral(
     cell: usize,
     sigma_px: f32,
     sigma_intensity: f32,
-    low: &[&PlaneF32],
-    out: &mut [&mut PlaneF32],
+    low: &PlaneF32,
+    out: &mut PlaneF32,
+    second: Option<(&PlaneF32, &mut PlaneF32)>,
 ) {
     let (lw, lh) = (guide_low.width, guide_low.height);
-    let w = out[0].width;
+    let w = out.width;
     let inv_s = -0.5 / (sigma_px * sigma_px);
     let inv_r = -0.5 / (sigma_intensity * sigma_intensity);
     let c = cell as f32;
     let off = 0.5 * (c - 1.0);
-    let n_planes = low.len();
-    // Rows in parallel: split every output plane by rows, zipped through one index.
-    let rows: Vec<_> = (0..out[0].height).collect();
-    let mut planes: Vec<&mut [f32]> = out.iter_mut().map(|p| p.data.as_mut_slice()).collect();
-    let chunks: Vec<Vec<&mut [f32]>> = {
-        let mut per_row: Vec<Vec<&mut [f32]>> = rows.iter().map(|_| Vec::with_capacity(n_planes)).collect();
-        for plane in planes.iter_mut() {
-            for (y, row) in plane.chunks_mut(w).enumerate() {
-                per_row[y].push(row);
-            }
-        }
-        per_row
-    };
-    chunks.into_par_iter().enumerate().for_each(|(y, mut rows_out)| {
+    let row = |y: usize, row1: &mut [f32], mut row2: Option<&mut [f32]>, low2: Option<&PlaneF32>| {
         let ly = (y as f32 - off) / c;
         let y0 = (ly.floor() as isize - 1).clamp(0, lh as isize - 1) as usize;
         let y1 = (ly.floor() as isize + 2).clamp(0, lh as isize - 1) as usize;
@@ -49,23 +37,29 @@ pub(crate) fn joint_bilateral(
             let x0 = (lx.floor() as isize - 1).clamp(0, lw as isize - 1) as usize;
             let x1 = (lx.floor() as isize + 2).clamp(0, lw as isize - 1) as usize;
             let g = guide[y * w + x] as f32 / 255.0;
-            let mut wsum = 0.0f32;
-            let mut acc = [0.0f32; 4];
+            let (mut wsum, mut a1, mut a2) = (0.0f32, 0.0f32, 0.0f32);
             for qy in y0..=y1 {
                 for qx in x0..=x1 {
                     let (dx, dy) = (qx as f32 - lx, qy as f32 - ly);
-                    let dg = guide_low.data[qy * lw + qx] - g;
+                    let q = qy * lw + qx;
+                    let dg = guide_low.data[q] - g;
                     let wgt = ((dx * dx + dy * dy) * inv_s + dg * dg * inv_r).exp();
                     wsum += wgt;
-                    for (k, plane) in low.iter().enumerate().take(4) {
-                        acc[k] += wgt * plane.data[qy * lw + qx];
+                    a1 += wgt * low.data[q];
+                    if let Some(l2) = low2 {
+                        a2 += wgt * l2.data[q];
                     }
                 }
             }
             let inv = if wsum > 0.0 { 1.0 / wsum } else { 0.0 };
-            for (k, row) in rows_out.iter_mut().enumerate().take(4) {
-                row[x] = acc[k] * inv;
+            row1[x] = a1 * inv;
+            if let Some(r2) = row2.as_deref_mut() {
+                r2[x] = a2 * inv;
             }
         }
-    });
+    };
+    match second {
+        Some((low2, out2)) => out.data.par_chunks_mut(w).zip(out2.data.par_chunks_mut(w)).enumerate().for_each(|(y, (r1, r2))| row(y, r1, Some(r2), Some(low2))),
+        None => out.data.par_chunks_mut(w).enumerate().for_each(|(y, r1)| row(y, r1, None, None)),
+    }
 }
