@@ -20,6 +20,8 @@ struct Cli {
 enum Command {
     /// Generate a short underwater sequence, run the pipeline on it, print the metrics table.
     Demo(cli::demo::DemoArgs),
+    /// Track a dataset or a generated sequence: trajectory, keyframe depth and variance, eval report.
+    Run(cli::run::RunArgs),
     /// Generate an underwater sequence with exact ground truth (TUM RGB-D layout).
     Sim(cli::sim::SimArgs),
     /// Evaluate a trajectory / run against ground truth: ATE, RPE, PSNR, SSIM, AUSE, figures.
@@ -46,6 +48,7 @@ fn main() -> std::process::ExitCode {
         .init();
     let result = match cli.command {
         Command::Demo(a) => cli::demo::run(a),
+        Command::Run(a) => cli::run::run(a),
         Command::Sim(a) => cli::sim::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Refine(a) => cli::refine::run(a),

@@ -5,4 +5,5 @@ pub mod dataset;
 pub mod demo;
 pub mod eval;
 pub mod refine;
+pub mod run;
 pub mod sim;

@@ -2,6 +2,64 @@
 //! turns them into keyframe poses, inverse depth maps and their uncertainty (paper §3.1).
 //! Tracking never imports another stage; what it hands on (poses, keyframes with depth and
 //! variance) are plain `core` types.
+//!
+//! # The tracker ([`Tracker`])
+//! A DROID-SLAM-like factor graph with the classical flow of [`flow`] in the place of RAFT:
+//! nodes are keyframes (pose, prepared image pyramid, inverse depth at 1/`depth_factor` of
+//! the input, its variance), edges are flow measurements between keyframes (pooled targets
+//! and per-axis confidences, the diagonal of `Sigma^-1` of Eq. 1).
+//!
+//! - *Every frame*: grey conversion into a preallocated plane, a health check (black,
+//!   saturated, contrast collapse), the pyramid, then flow from the reference keyframe seeded
+//!   by the flow the constant-velocity prediction induces (reprojecting the keyframe's depth
+//!   grid), and a motion-only BA against the keyframe: every frame gets a pose.
+//! - *Keyframes*: when the mean flow from the reference keyframe exceeds
+//!   `keyframe_flow_px` (depth-grid pixels, as DROID measures it). The new keyframe's depth
+//!   starts as the previous keyframe's splatted into it; it is linked (two directed edges
+//!   each) to up to `edges_per_keyframe` window keyframes whose induced flow and overlap say
+//!   they see the same scene. Then `local_rounds` rounds of: re-estimate the new edges' flow
+//!   seeded by the current BA estimate, run `local_iterations` Gauss-Newton iterations over
+//!   the sliding window (`ba_window` newest keyframes, the oldest two fixed: gauge and scale).
+//!   The depth variance of every window keyframe follows from Eq. 4. A new keyframe whose
+//!   refined induced flow to its predecessor is under `prune_flow_px` is dropped again.
+//! - *Initialisation*: the first `init_keyframes` keyframes start from constant inverse depth
+//!   (first pose fixed, the weak depth prior sets the scale) and are refined by
+//!   `init_rounds` flow/BA rounds of `init_iterations` iterations.
+//! - *Capacity*: `max_keyframes` slots; when full, the most redundant keyframe outside the
+//!   window (its neighbours closest by induced flow) is evicted and re-expressed relative to
+//!   its predecessor ([`EvictedKeyframe`]).
+//! - *Loop closure*: after each insertion, old keyframes (all but the newest
+//!   `loop_exclude_recent`) are ranked by thumbnail NCC; the best are verified by unseeded
+//!   flow (mean flow magnitude and confident fraction, as the paper thresholds mean flow). An
+//!   accepted loop gives a relative pose (motion-only BA against the old keyframe's depth) and
+//!   a relative scale (median depth ratio), a loop edge, a Sim(3) pose graph over every
+//!   keyframe (scale drift corrected, depths rescaled), then a dense global BA over every
+//!   keyframe and edge.
+//! - *Lost tracking*: a bad image, too few confident flow vectors or a failed motion-only BA
+//!   make the frame [`TrackingState::Lost`] with a predicted pose; nothing of it reaches the
+//!   map. The next good frame tries the reference keyframe with the prediction, then the
+//!   stored keyframes by thumbnail NCC, verified by flow and motion-only BA.
+//!
+//! Full-resolution depth and variance come from joint bilateral upsampling guided by the
+//! keyframe image ([`Tracker::upsample_keyframe`]).
+//!
+//! # Memory
+//! [`Tracker::new`] allocates the keyframe slots, edge table, flow buffers, both BA
+//! workspaces and the pose graph from [`TrackerCapacity`]; see `tests/tracker_alloc.rs` for
+//! what is proven allocation-free.
 
 pub mod ba;
+mod config;
 pub mod flow;
+mod graph;
+mod keyframes;
+mod tracker;
+mod trajectory;
+mod upsample;
+
+pub use config::{ConfigError, TrackerCapacity, TrackerConfig};
+pub use tracker::{
+    depth_grid_camera, EvictedKeyframe, FrameAnchor, KeyframeView, LostReason, StageTimes, TrackError, TrackOutput, Tracker,
+    TrackerCounters, TrackingState,
+};
+pub use trajectory::{FinalKeyframe, FinalTrajectory, RecordedFrame, TrajectoryRecorder};

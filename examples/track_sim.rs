@@ -1,0 +1,111 @@
+//! Tracks a generated sequence in memory and prints ATE and timings; the tool the tracker's
+//! test thresholds were measured with.
+//!
+//! ```text
+//! cargo run --release --example track_sim -- WATER TRAJECTORY FRAMES WIDTH HEIGHT SPEED DEPTH_FACTOR [noloop] [threads=N]
+//! ```
+
+#[path = "../tests/common/track_sim.rs"]
+mod track_sim;
+
+use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
+use std::time::Instant;
+
+fn main() {
+    tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).with_writer(std::io::stderr).init();
+    let a: Vec<String> = std::env::args().collect();
+    let get = |i: usize, d: &str| a.get(i).cloned().unwrap_or_else(|| d.to_string());
+    let water = match get(1, "coastal").as_str() {
+        "clear" => WaterPreset::Clear,
+        "turbid" => WaterPreset::Turbid,
+        _ => WaterPreset::Coastal,
+    };
+    let traj = match get(2, "survey").as_str() {
+        "loop" => TrajectoryKind::Loop,
+        "hover" => TrajectoryKind::Hover,
+        _ => TrajectoryKind::Survey,
+    };
+    let frames: usize = get(3, "60").parse().unwrap();
+    let (w, h): (usize, usize) = (get(4, "160").parse().unwrap(), get(5, "120").parse().unwrap());
+    let speed: f64 = get(6, "0.5").parse().unwrap();
+    let factor: usize = get(7, "4").parse().unwrap();
+    let no_loop = a.iter().any(|s| s == "noloop");
+    let threads = a.iter().find_map(|s| s.strip_prefix("threads=")).map(|s| s.parse().unwrap()).unwrap_or(2);
+    let sim = track_sim::sim_config(water, traj, frames, w, h, speed);
+    let renderer = SimRenderer::new(&sim).unwrap();
+    let images = track_sim::render_all(&renderer);
+    let mut cfg = track_sim::small_tracker_config();
+    cfg.depth_factor = factor;
+    cfg.loop_closure = !no_loop;
+    for kv in a.iter().filter_map(|s| s.strip_prefix("set:")) {
+        let text = kv.replace(',', "\n");
+        let patch: toml::Table = toml::from_str(&text).unwrap();
+        let mut base = toml::Value::try_from(&cfg).unwrap();
+        let table = base.as_table_mut().unwrap();
+        for (k, v) in patch {
+            table.insert(k, v);
+        }
+        cfg = base.try_into().unwrap();
+    }
+    let t0 = Instant::now();
+    let r = track_sim::run(&renderer, &images, &cfg, track_sim::capacity(threads));
+    let secs = t0.elapsed().as_secs_f64();
+    let c = r.tracker.counters();
+    let loops = r.tracker.edges().filter(|e| e.2).count();
+    println!(
+        "ATE {:.4} m = {:.3}% of {:.2} m; {:.1} fps; kf {} live {} pruned {} evicted {}; loops {} (edges {}); lost {} reloc {}",
+        r.ate_rmse_m,
+        r.ate_percent,
+        r.path_m,
+        frames as f64 / secs,
+        c.keyframes_inserted,
+        r.tracker.num_keyframes(),
+        c.keyframes_pruned,
+        c.keyframes_evicted,
+        c.loops_closed,
+        loops,
+        c.lost_frames,
+        c.relocalisations
+    );
+    // Metric scale of each keyframe's depth map (median of true depth x estimated inverse
+    // depth at the depth-grid pixel centres): its drift along the run.
+    if a.iter().any(|s| s == "scales") {
+        let f = cfg.depth_factor;
+        let mut line = String::from("kf depth scale:");
+        for k in r.tracker.keyframes() {
+            let gt = renderer.render(k.seq as usize).depth_m;
+            let mut ratios: Vec<f32> = Vec::new();
+            for y in 0..k.inv_depth.height {
+                for x in 0..k.inv_depth.width {
+                    let z = gt.data[(y * f + f / 2) * gt.width + x * f + f / 2];
+                    if z > 0.0 {
+                        ratios.push(z * k.inv_depth.data[y * k.inv_depth.width + x]);
+                    }
+                }
+            }
+            ratios.sort_by(|a, b| a.total_cmp(b));
+            line += &format!(" {}:{:.3}", k.id, ratios.get(ratios.len() / 2).copied().unwrap_or(f32::NAN));
+        }
+        println!("{line}");
+    }
+    // Loop edges against the ground truth: relative pose of the two keyframes.
+    let kfs: Vec<_> = r.tracker.keyframes().map(|k| (k.id, k.seq, k.world_from_cam)).collect();
+    for (from, to, is_loop) in r.tracker.edges() {
+        if !is_loop {
+            continue;
+        }
+        let f = kfs.iter().find(|k| k.0 == from).unwrap();
+        let t = kfs.iter().find(|k| k.0 == to).unwrap();
+        let gt = renderer.pose(f.1 as usize).world_from_cam.inv_mul(&renderer.pose(t.1 as usize).world_from_cam);
+        let est = f.2.inv_mul(&t.2);
+        println!(
+            "loop edge kf {from} (frame {}) -> kf {to} (frame {}): gt |t| {:.3} m rot {:.2} deg; est |t| {:.3} rot {:.2} deg",
+            f.1,
+            t.1,
+            gt.translation.vector.norm(),
+            gt.rotation.angle().to_degrees(),
+            est.translation.vector.norm(),
+            est.rotation.angle().to_degrees()
+        );
+    }
+}

@@ -1,0 +1,347 @@
+//! `duv run`: track a frame source (a dataset folder or a generated `sim:` sequence), write the
+//! trajectory, the keyframes and their full-resolution inverse depth and variance, and, where
+//! ground truth exists, the evaluation report (ATE with Sim(3) alignment, AUSE of the depth
+//! uncertainty).
+
+use anyhow::Context;
+use duv::camera::dataset::{open_dataset, Dataset};
+use duv::config::board::Board;
+use duv::core::pose::se3_to_tum;
+use duv::core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
+use duv::eval::report::AuseInput;
+use duv::eval::{build_report, write_report, EvalInputs, EvalOptions};
+use duv::io::pfm::write_pfm;
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv::track::{KeyframeView, TrackOutput, Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+#[derive(clap::Args)]
+pub struct RunArgs {
+    /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
+    /// in `duv dataset`), or `sim:WATER[-TRAJECTORY]` generated in memory, e.g. `sim:coastal`,
+    /// `sim:turbid-loop` (water: clear, coastal, turbid; trajectory: survey, loop, hover).
+    #[arg(long)]
+    source: String,
+    /// Output folder (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Board profile: capacities (keyframes, BA window), threads, and the sim image size.
+    #[arg(long, default_value = "boards/sim.toml")]
+    board: PathBuf,
+    /// Track at most this many frames (a `sim:` source generates this many).
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Disable loop closure (and with it the pose graph and the global BA after loops).
+    #[arg(long)]
+    no_loop_closure: bool,
+    /// Tracker parameters (TOML, `TrackerConfig` fields); defaults otherwise.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Image width of a `sim:` source [default: the board's camera width].
+    #[arg(long)]
+    width: Option<usize>,
+    /// Image height of a `sim:` source [default: the board's camera height].
+    #[arg(long)]
+    height: Option<usize>,
+    /// Seed of a `sim:` source.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// No progress line on stderr.
+    #[arg(long)]
+    no_progress: bool,
+}
+
+/// Where frames come from, with what ground truth.
+enum Source {
+    Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
+    Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv::core::camera::UndistortMap, ImageRgb8)> },
+}
+
+/// `WATER[-TRAJECTORY]` of a `sim:` spec.
+fn parse_sim_preset(spec: &str) -> anyhow::Result<(WaterPreset, TrajectoryKind)> {
+    let mut parts = spec.splitn(2, '-');
+    let water = match parts.next().unwrap_or("") {
+        "clear" => WaterPreset::Clear,
+        "coastal" => WaterPreset::Coastal,
+        "turbid" => WaterPreset::Turbid,
+        w => anyhow::bail!("sim:{spec}: unknown water {w:?} (expected clear, coastal or turbid)"),
+    };
+    let trajectory = match parts.next() {
+        None | Some("survey") => TrajectoryKind::Survey,
+        Some("loop") => TrajectoryKind::Loop,
+        Some("hover") => TrajectoryKind::Hover,
+        Some(t) => anyhow::bail!("sim:{spec}: unknown trajectory {t:?} (expected survey, loop or hover)"),
+    };
+    Ok((water, trajectory))
+}
+
+impl Source {
+    fn open(args: &RunArgs, board: &Board) -> anyhow::Result<Source> {
+        if let Some(preset) = args.source.strip_prefix("sim:") {
+            let (water, trajectory) = parse_sim_preset(preset)?;
+            let mut cfg = SimConfig::preset(water, trajectory);
+            cfg.width = args.width.unwrap_or(board.camera.width as usize);
+            cfg.height = args.height.unwrap_or(board.camera.height as usize);
+            if let Some(n) = args.frames {
+                cfg.frames = n;
+            }
+            cfg.seed = args.seed;
+            let renderer = SimRenderer::new(&cfg).with_context(|| format!("source {}", args.source))?;
+            let count = renderer.len();
+            return Ok(Source::Sim { renderer: Box::new(renderer), next: 0, count });
+        }
+        anyhow::ensure!(args.width.is_none() && args.height.is_none(), "--width/--height apply to sim: sources only");
+        let dataset = open_dataset(&args.source)?;
+        let count = args.frames.unwrap_or(usize::MAX).min(dataset.frames.len());
+        let undistort = dataset.camera.distortion.is_some().then(|| {
+            let map = dataset.camera.undistort_map();
+            let buf = ImageRgb8::new(dataset.camera.width, dataset.camera.height);
+            (map, buf)
+        });
+        Ok(Source::Dataset { dataset: Box::new(dataset), next: 0, count, undistort })
+    }
+
+    /// Camera of the frames handed to the tracker (undistorted).
+    fn camera(&self) -> PinholeCamera {
+        match self {
+            Source::Sim { renderer, .. } => *renderer.camera(),
+            Source::Dataset { dataset, .. } => dataset.camera.undistorted(),
+        }
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            Source::Sim { count, .. } | Source::Dataset { count, .. } => *count,
+        }
+    }
+
+    /// The next frame; `Ok(None)` at the end. A dataset frame that cannot be decoded is
+    /// reported and skipped.
+    fn next(&mut self) -> anyhow::Result<Option<Frame>> {
+        match self {
+            Source::Sim { renderer, next, count } => {
+                if *next >= *count {
+                    return Ok(None);
+                }
+                let f = renderer.render(*next);
+                let frame = Frame { t_ns: f.t_ns, seq: *next as u64, image: FrameImage::Rgb8(f.rgb) };
+                *next += 1;
+                Ok(Some(frame))
+            }
+            Source::Dataset { dataset, next, count, undistort } => loop {
+                if *next >= *count {
+                    return Ok(None);
+                }
+                let i = *next;
+                *next += 1;
+                match dataset.load_frame(i) {
+                    Ok(mut frame) => {
+                        if let Some((map, buf)) = undistort {
+                            let rgb = frame.image.to_rgb8();
+                            map.apply_rgb8(&rgb, buf);
+                            frame.image = FrameImage::Rgb8(buf.clone());
+                        }
+                        return Ok(Some(frame));
+                    }
+                    Err(e) => tracing::warn!("skipping a frame: {e}"),
+                }
+            },
+        }
+    }
+
+    fn ground_truth(&self) -> Option<Vec<StampedPose>> {
+        match self {
+            Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),
+            Source::Dataset { dataset, .. } => dataset.ground_truth.clone(),
+        }
+    }
+
+    /// Ground-truth depth (metres, 0 = none) of frame `seq`, where the source has it.
+    fn depth(&self, seq: u64) -> Option<PlaneF32> {
+        match self {
+            Source::Sim { renderer, .. } => Some(renderer.render(seq as usize).depth_m),
+            Source::Dataset { dataset, .. } => dataset.load_depth_for_frame(seq as usize).ok().flatten(),
+        }
+    }
+
+    fn describe(&self) -> String {
+        match self {
+            Source::Sim { renderer, count, .. } => {
+                let c = renderer.config();
+                format!("sim {:?} water, {:?} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
+            }
+            Source::Dataset { dataset, .. } => dataset.describe(),
+        }
+    }
+}
+
+/// Writes a keyframe's upsampled inverse depth and variance as PFM.
+fn write_keyframe_maps(tracker: &Tracker, id: u64, dir: &Path, inv: &mut PlaneF32, var: &mut PlaneF32) -> anyhow::Result<()> {
+    tracker.upsample_keyframe(id, inv, var)?;
+    write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
+    write_pfm(&dir.join(format!("{id:06}_variance.pfm")), var)?;
+    Ok(())
+}
+
+fn tum_line(t_ns: duv::core::Timestamp, pose: &duv::core::Se3) -> String {
+    let v = se3_to_tum(pose);
+    format!("{:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}", t_ns.as_secs_f64(), v[0], v[1], v[2], v[3], v[4], v[5], v[6])
+}
+
+fn percentile_ms(sorted: &[Duration], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    sorted[i].as_secs_f64() * 1e3
+}
+
+pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    let board = Board::load(&args.board)?;
+    let capacity = TrackerCapacity::from_board(&board);
+    let mut cfg = match &args.config {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            toml::from_str::<TrackerConfig>(&text).with_context(|| format!("{}", p.display()))?
+        }
+        None => TrackerConfig::default(),
+    };
+    if args.no_loop_closure {
+        cfg.loop_closure = false;
+    }
+    let mut source = Source::open(&args, &board)?;
+    let camera = source.camera();
+    let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
+    let kf_dir = args.out.join("keyframes");
+    std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
+    eprintln!("duv run: {} -> {}", source.describe(), args.out.display());
+
+    let total = source.len();
+    let mut recorder = TrajectoryRecorder::new();
+    let mut latencies: Vec<Duration> = Vec::with_capacity(total.min(1 << 20));
+    let mut inv = PlaneF32::new(camera.width, camera.height);
+    let mut var = PlaneF32::new(camera.width, camera.height);
+    let mut last_state: Option<TrackingState> = None;
+    let mut frames_done = 0usize;
+    let progress_every = Duration::from_millis(500);
+    let mut last_progress = Instant::now();
+    let mut track_time = Duration::ZERO;
+    while let Some(frame) = source.next()? {
+        let t0 = Instant::now();
+        let out: TrackOutput = tracker.track(&frame)?;
+        let dt = t0.elapsed();
+        track_time += dt;
+        latencies.push(dt);
+        recorder.record(&out);
+        frames_done += 1;
+        if out.evicted.is_some() {
+            if let Some(ev) = tracker.evicted_keyframe() {
+                write_keyframe_maps(&tracker, ev.id, &kf_dir, &mut inv, &mut var)?;
+            }
+        }
+        if last_state != Some(out.state) {
+            eprintln!("\rframe {:>6}: {}{:30}", out.seq, out.state.name(), "");
+            last_state = Some(out.state);
+        }
+        if out.loop_closed {
+            eprintln!("\rframe {:>6}: loop closed{:30}", out.seq, "");
+        }
+        if !args.no_progress && (last_progress.elapsed() >= progress_every || frames_done == total) {
+            last_progress = Instant::now();
+            let fps = frames_done as f64 / track_time.as_secs_f64().max(1e-9);
+            eprint!("\rframe {frames_done}/{total}  keyframes {}  {:.1} frames/s  {}   ", tracker.num_keyframes(), fps, out.state.name());
+        }
+    }
+    if !args.no_progress {
+        eprintln!();
+    }
+    anyhow::ensure!(frames_done > 0, "the source delivered no frame");
+
+    // Final trajectory and keyframes.
+    let fin = recorder.finish(&tracker);
+    duv::io::tum::write_trajectory(&args.out.join("trajectory.txt"), &fin.frames)?;
+    let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
+    for k in &fin.keyframes {
+        let _ = writeln!(kf_text, "{} {}", k.id, tum_line(k.t_ns, &k.world_from_cam));
+    }
+    duv::io::write_atomic(&args.out.join("keyframes.txt"), kf_text.as_bytes())?;
+    let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
+    for &(id, _) in &live {
+        write_keyframe_maps(&tracker, id, &kf_dir, &mut inv, &mut var)?;
+    }
+    let mut states_text = String::from("# seq timestamp state\n");
+    for (f, s) in recorder.frames().iter().zip(&fin.states) {
+        let _ = writeln!(states_text, "{} {:.9} {}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"));
+    }
+    duv::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
+
+    // Timing.
+    let times = tracker.times();
+    let counters = tracker.counters();
+    let n = frames_done as f64;
+    latencies.sort();
+    let secs = track_time.as_secs_f64();
+    println!(
+        "tracked {frames_done} frames in {secs:.2} s: {:.1} frames/s (tracker only), latency median {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+        n / secs.max(1e-9),
+        percentile_ms(&latencies, 0.5),
+        percentile_ms(&latencies, 0.99),
+        percentile_ms(&latencies, 1.0)
+    );
+    println!(
+        "per frame: flow {:.2} ms, BA {:.2} ms, covariance {:.2} ms, loop closure {:.2} ms ({} flow estimates)",
+        times.flow.as_secs_f64() * 1e3 / n,
+        times.ba.as_secs_f64() * 1e3 / n,
+        times.covariance.as_secs_f64() * 1e3 / n,
+        times.loop_closure.as_secs_f64() * 1e3 / n,
+        times.flow_estimates
+    );
+    println!(
+        "keyframes: {} inserted, {} pruned, {} evicted, {} live; loops closed {}; global BAs {}; lost frames {}; relocalisations {}",
+        counters.keyframes_inserted,
+        counters.keyframes_pruned,
+        counters.keyframes_evicted,
+        live.len(),
+        counters.loops_closed,
+        counters.global_bas,
+        counters.lost_frames,
+        counters.relocalisations
+    );
+
+    // Evaluation against ground truth.
+    if let Some(gt) = source.ground_truth() {
+        let options = EvalOptions::default();
+        let gt_name = format!("{} ground truth", args.source);
+        let est_name = args.out.join("trajectory.txt").display().to_string();
+        let base = EvalInputs { gt_name, est_name, gt: &gt, est: &fin.frames, images: &[], images_source: None, ause: &[], ause_source: None, options };
+        let first = build_report(&base)?;
+        let scale = first.report.trajectory.alignment.scale;
+        let mut ause: Vec<AuseInput> = Vec::new();
+        for &(id, seq) in &live {
+            let Some(depth) = source.depth(seq) else { continue };
+            tracker.upsample_keyframe(id, &mut inv, &mut var)?;
+            let (mut errors, mut uncertainties) = (Vec::new(), Vec::new());
+            for ((&z, &d), &v) in depth.data.iter().zip(&inv.data).zip(&var.data) {
+                if z > 0.0 && d.is_finite() && v.is_finite() && v < f32::MAX {
+                    errors.push((1.0 / z as f64 - d as f64 / scale).abs());
+                    uncertainties.push(v as f64 / (scale * scale));
+                }
+            }
+            if errors.len() >= 100 {
+                ause.push(AuseInput { name: format!("keyframe {id:06}"), errors, uncertainties });
+            }
+        }
+        let evaluation = if ause.is_empty() {
+            first
+        } else {
+            build_report(&EvalInputs { ause: &ause, ause_source: Some("keyframe inverse depth vs ground truth, variance as uncertainty".into()), ..base })?
+        };
+        let eval_dir = args.out.join("eval");
+        write_report(&evaluation, &eval_dir).with_context(|| format!("writing the report to {}", eval_dir.display()))?;
+        print!("{}", evaluation.report.metrics_table());
+        println!("wrote {}", eval_dir.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,229 @@
+//! Tracker parameters ([`TrackerConfig`], algorithm data: defaults here and nowhere else) and
+//! capacities ([`TrackerCapacity`], from the board: every buffer is sized from them once).
+
+use super::ba::BaConfig;
+use super::flow::FlowConfig;
+use serde::{Deserialize, Serialize};
+
+/// Fixed sizes of a [`Tracker`](super::Tracker), taken from the board.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrackerCapacity {
+    /// Keyframes kept in the graph (`budgets.max_keyframes`); older redundant ones are evicted.
+    pub max_keyframes: usize,
+    /// Keyframes in the sliding local BA window (`budgets.ba_window`).
+    pub ba_window: usize,
+    /// Worker threads of the tracker's rayon pool (`threads.tracking`).
+    pub threads: usize,
+}
+
+impl TrackerCapacity {
+    /// The capacities a board gives.
+    pub fn from_board(board: &crate::config::board::Board) -> Self {
+        TrackerCapacity {
+            max_keyframes: board.budgets.max_keyframes as usize,
+            ba_window: board.budgets.ba_window as usize,
+            threads: board.threads.tracking as usize,
+        }
+    }
+}
+
+/// Every parameter of the tracker. Pixel quantities named `_px` are in low-resolution (depth
+/// grid) pixels, as DROID-SLAM measures flow, unless named otherwise.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrackerConfig {
+    /// Input pixels per inverse-depth pixel (8: 40x30 depth for 320x240 input); also the flow's
+    /// pooled output cell.
+    pub depth_factor: usize,
+    /// Dense flow front end (its `output_factor` is replaced by `depth_factor`).
+    pub flow: FlowConfig,
+    /// Local window BA (its `max_iterations` and `fixed_poses` are set per use).
+    pub ba: BaConfig,
+    /// A frame becomes a keyframe when the mean flow from the last keyframe exceeds this.
+    pub keyframe_flow_px: f32,
+    /// A new keyframe whose BA-induced mean flow to the previous one is below this is dropped.
+    pub prune_flow_px: f32,
+    /// Keyframes collected before the initial BA (monocular initialisation).
+    pub init_keyframes: usize,
+    /// Flow/BA rounds of the initial BA.
+    pub init_rounds: usize,
+    /// Gauss-Newton iterations per round of the initial BA.
+    pub init_iterations: usize,
+    /// Flow/BA rounds per keyframe insertion (the recurrent updates of the paper).
+    pub local_rounds: usize,
+    /// Gauss-Newton iterations per round of the local BA.
+    pub local_iterations: usize,
+    /// Older keyframes a new keyframe is linked to (each link is two directed edges).
+    pub edges_per_keyframe: usize,
+    /// Largest BA-induced mean flow between two keyframes that still gives an edge.
+    pub edge_max_flow_px: f32,
+    /// Smallest fraction of a keyframe's pixels that must land inside the other for an edge.
+    pub edge_min_overlap: f32,
+    /// Inverse depth the first keyframe starts from, 1/m (sets the arbitrary monocular scale).
+    pub initial_inv_depth: f32,
+    /// Gauss-Newton iterations of the motion-only BA of a frame.
+    pub motion_iterations: usize,
+    /// Scale of the flow confidences into BA weights (inverse variance per weight unit).
+    pub weight_scale: f32,
+    /// A pooled pixel is confident when both of its axis weights exceed this.
+    pub confident_weight: f32,
+    /// Tracking fails when fewer than this fraction of the keyframe's pixels are confident.
+    pub min_confident_fraction: f32,
+    /// A frame whose mean intensity (in [0, 1]) is below this is black.
+    pub min_mean_intensity: f32,
+    /// A frame whose mean intensity is above this is saturated.
+    pub max_mean_intensity: f32,
+    /// A frame whose contrast (standard deviation of 4x4 block means, intensity units) is
+    /// below this is a contrast collapse (turbidity burst).
+    pub min_contrast: f32,
+    /// Thumbnails (appearance) a relocalisation or loop search verifies with flow, best first.
+    pub search_candidates: usize,
+    /// Smallest thumbnail NCC of a relocalisation candidate.
+    pub reloc_min_ncc: f32,
+    /// Largest mean flow to a relocalisation candidate.
+    pub reloc_max_flow_px: f32,
+    /// Detect loops and correct the graph (pose graph in Sim(3), then dense global BA).
+    pub loop_closure: bool,
+    /// Keyframes before the newest that are not loop candidates (the recent trajectory).
+    pub loop_exclude_recent: usize,
+    /// Smallest thumbnail NCC of a loop candidate.
+    pub loop_min_ncc: f32,
+    /// Largest mean flow magnitude between a loop candidate and the new keyframe.
+    pub loop_max_flow_px: f32,
+    /// Smallest confident fraction of the flow between a loop candidate and the new keyframe.
+    pub loop_min_confident_fraction: f32,
+    /// Keyframes inserted between two accepted loop closures at least.
+    pub loop_min_interval: usize,
+    /// Gauss-Newton iterations of the Sim(3) pose graph.
+    pub pose_graph_iterations: usize,
+    /// Run a dense global BA over every keyframe after each accepted loop (after the pose graph).
+    pub loop_global_ba: bool,
+    /// Run a dense global BA over every keyframe after this many insertions (0: only after loops).
+    pub global_ba_period: usize,
+    /// Gauss-Newton iterations of the dense global BA.
+    pub global_iterations: usize,
+    /// Spatial sigma of the joint bilateral upsampling, low-res pixels.
+    pub upsample_sigma_px: f32,
+    /// Range sigma of the joint bilateral upsampling, intensity units.
+    pub upsample_sigma_intensity: f32,
+}
+
+impl Default for TrackerConfig {
+    fn default() -> Self {
+        TrackerConfig {
+            depth_factor: 8,
+            flow: FlowConfig::default(),
+            ba: BaConfig::default(),
+            keyframe_flow_px: 2.5,
+            prune_flow_px: 1.0,
+            init_keyframes: 6,
+            init_rounds: 3,
+            init_iterations: 15,
+            local_rounds: 2,
+            local_iterations: 4,
+            edges_per_keyframe: 3,
+            edge_max_flow_px: 20.0,
+            edge_min_overlap: 0.4,
+            initial_inv_depth: 0.5,
+            motion_iterations: 6,
+            weight_scale: 1.0,
+            confident_weight: 0.2,
+            min_confident_fraction: 0.15,
+            min_mean_intensity: 0.03,
+            max_mean_intensity: 0.97,
+            min_contrast: 0.004,
+            search_candidates: 3,
+            reloc_min_ncc: 0.3,
+            reloc_max_flow_px: 8.0,
+            loop_closure: true,
+            loop_exclude_recent: 10,
+            loop_min_ncc: 0.5,
+            loop_max_flow_px: 6.0,
+            loop_min_confident_fraction: 0.35,
+            loop_min_interval: 5,
+            pose_graph_iterations: 20,
+            loop_global_ba: true,
+            global_ba_period: 0,
+            global_iterations: 6,
+            upsample_sigma_px: 0.8,
+            upsample_sigma_intensity: 0.08,
+        }
+    }
+}
+
+/// A tracker parameter that is out of range.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+#[error("tracker config: {field}: {problem}")]
+pub struct ConfigError {
+    pub field: &'static str,
+    pub problem: &'static str,
+}
+
+impl TrackerConfig {
+    /// Checks the fields the tracker relies on (flow and BA are checked by their owners).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field, problem| Err(ConfigError { field, problem });
+        if !(1..=32).contains(&self.depth_factor) {
+            return bad("depth_factor", "must be in 1..=32");
+        }
+        if self.init_keyframes < 2 {
+            return bad("init_keyframes", "must be at least 2");
+        }
+        if self.edges_per_keyframe == 0 {
+            return bad("edges_per_keyframe", "must be at least 1");
+        }
+        for (field, v) in [("init_rounds", self.init_rounds), ("local_rounds", self.local_rounds)] {
+            if v == 0 {
+                return bad(field, "must be at least 1");
+            }
+        }
+        for (field, v) in [
+            ("init_iterations", self.init_iterations),
+            ("local_iterations", self.local_iterations),
+            ("motion_iterations", self.motion_iterations),
+            ("pose_graph_iterations", self.pose_graph_iterations),
+            ("global_iterations", self.global_iterations),
+        ] {
+            if v == 0 {
+                return bad(field, "must be at least 1");
+            }
+        }
+        let positive = [
+            ("keyframe_flow_px", self.keyframe_flow_px),
+            ("edge_max_flow_px", self.edge_max_flow_px),
+            ("initial_inv_depth", self.initial_inv_depth),
+            ("weight_scale", self.weight_scale),
+            ("reloc_max_flow_px", self.reloc_max_flow_px),
+            ("loop_max_flow_px", self.loop_max_flow_px),
+            ("upsample_sigma_px", self.upsample_sigma_px),
+            ("upsample_sigma_intensity", self.upsample_sigma_intensity),
+        ];
+        for (field, v) in positive {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, "must be finite and positive");
+            }
+        }
+        let unit = [
+            ("prune_flow_px", self.prune_flow_px, f32::MAX),
+            ("edge_min_overlap", self.edge_min_overlap, 1.0),
+            ("confident_weight", self.confident_weight, 1.0),
+            ("min_confident_fraction", self.min_confident_fraction, 1.0),
+            ("min_mean_intensity", self.min_mean_intensity, 1.0),
+            ("max_mean_intensity", self.max_mean_intensity, 1.0),
+            ("min_contrast", self.min_contrast, 1.0),
+            ("reloc_min_ncc", self.reloc_min_ncc, 1.0),
+            ("loop_min_ncc", self.loop_min_ncc, 1.0),
+            ("loop_min_confident_fraction", self.loop_min_confident_fraction, 1.0),
+        ];
+        for (field, v, hi) in unit {
+            if !(v.is_finite() && v >= 0.0 && v <= hi) {
+                return bad(field, "out of range");
+            }
+        }
+        if self.prune_flow_px >= self.keyframe_flow_px {
+            return bad("prune_flow_px", "must be below keyframe_flow_px");
+        }
+        Ok(())
+    }
+}

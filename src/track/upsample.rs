@@ -1,0 +1,65 @@
+//! Joint bilateral upsampling (Kopf et al. 2007) of a keyframe's depth-grid maps to the input
+//! resolution, guided by the keyframe's image: each full-resolution pixel averages the 4x4
+//! nearest depth-grid pixels with a spatial Gaussian (depth-grid pixels) times a range Gaussian
+//! on the difference between its intensity and the block mean of the neighbour's cell. Depth
+//! edges that coincide with image edges stay sharp; the learned upsampler of DROID-SLAM is
+//! not available here.
+
+use crate::core::PlaneF32;
+use rayon::prelude::*;
+
+/// Upsamples `low` (one plane, and optionally a second with the same weights) at `cell` input
+/// pixels per low pixel into `out` / `out2` (full size), with `guide` (full-resolution 8-bit
+/// grey) and `guide_low` (block means at the low grid, [0, 1]). Allocation-free.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn joint_bilateral(
+    guide: &[u8],
+    guide_low: &PlaneF32,
+    cell: usize,
+    sigma_px: f32,
+    sigma_intensity: f32,
+    low: &PlaneF32,
+    out: &mut PlaneF32,
+    second: Option<(&PlaneF32, &mut PlaneF32)>,
+) {
+    let (lw, lh) = (guide_low.width, guide_low.height);
+    let w = out.width;
+    let inv_s = -0.5 / (sigma_px * sigma_px);
+    let inv_r = -0.5 / (sigma_intensity * sigma_intensity);
+    let c = cell as f32;
+    let off = 0.5 * (c - 1.0);
+    let row = |y: usize, row1: &mut [f32], mut row2: Option<&mut [f32]>, low2: Option<&PlaneF32>| {
+        let ly = (y as f32 - off) / c;
+        let y0 = (ly.floor() as isize - 1).clamp(0, lh as isize - 1) as usize;
+        let y1 = (ly.floor() as isize + 2).clamp(0, lh as isize - 1) as usize;
+        for x in 0..w {
+            let lx = (x as f32 - off) / c;
+            let x0 = (lx.floor() as isize - 1).clamp(0, lw as isize - 1) as usize;
+            let x1 = (lx.floor() as isize + 2).clamp(0, lw as isize - 1) as usize;
+            let g = guide[y * w + x] as f32 / 255.0;
+            let (mut wsum, mut a1, mut a2) = (0.0f32, 0.0f32, 0.0f32);
+            for qy in y0..=y1 {
+                for qx in x0..=x1 {
+                    let (dx, dy) = (qx as f32 - lx, qy as f32 - ly);
+                    let q = qy * lw + qx;
+                    let dg = guide_low.data[q] - g;
+                    let wgt = ((dx * dx + dy * dy) * inv_s + dg * dg * inv_r).exp();
+                    wsum += wgt;
+                    a1 += wgt * low.data[q];
+                    if let Some(l2) = low2 {
+                        a2 += wgt * l2.data[q];
+                    }
+                }
+            }
+            let inv = if wsum > 0.0 { 1.0 / wsum } else { 0.0 };
+            row1[x] = a1 * inv;
+            if let Some(r2) = row2.as_deref_mut() {
+                r2[x] = a2 * inv;
+            }
+        }
+    };
+    match second {
+        Some((low2, out2)) => out.data.par_chunks_mut(w).zip(out2.data.par_chunks_mut(w)).enumerate().for_each(|(y, (r1, r2))| row(y, r1, Some(r2), Some(low2))),
+        None => out.data.par_chunks_mut(w).enumerate().for_each(|(y, r1)| row(y, r1, None, None)),
+    }
+}

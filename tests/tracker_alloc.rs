@@ -1,0 +1,101 @@
+//! No allocation per frame after warm-up: the tracker, run inside its pool as a tracking
+//! thread runs it (`Tracker::run_in_pool`), is driven through frames under a counting global
+//! allocator. The counted frames include plain frames (flow + motion-only BA), keyframe
+//! insertions (flow/BA rounds over the window, covariance, pruning check), evictions from a
+//! full keyframe store, a black frame (lost) and the relocalisation after it, and, on a loop
+//! sequence, the loop closure (verification, Sim(3) pose graph, dense global BA).
+//!
+//! Not covered: `Tracker::new` (the start-up allocation), `upsample_keyframe` (output, called
+//! by the writer; allocation-free too but not counted here), the caller's frame decoding and
+//! `TrajectoryRecorder` (it grows with the run by design).
+
+#[path = "common/track_sim.rs"]
+mod track_sim;
+
+use duv::core::{Frame, FrameImage, ImageRgb8};
+use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
+use duv::track::{TrackOutput, Tracker, TrackerCapacity, TrackingState};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+
+struct Counting;
+
+static COUNTING: AtomicBool = AtomicBool::new(false);
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        if COUNTING.load(Ordering::Relaxed) {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn count(f: impl FnOnce()) -> usize {
+    ALLOCATIONS.store(0, Ordering::SeqCst);
+    COUNTING.store(true, Ordering::SeqCst);
+    f();
+    COUNTING.store(false, Ordering::SeqCst);
+    ALLOCATIONS.swap(0, Ordering::SeqCst)
+}
+
+/// Tracks `frames[..warm]` uncounted, then `frames[warm..]` counted; returns the allocation
+/// count and the counted outputs.
+fn counted_run(renderer: &SimRenderer, frames: &[Frame], warm: usize, cap: TrackerCapacity) -> (usize, Vec<TrackOutput>) {
+    let mut tracker = Tracker::new(renderer.camera(), &track_sim::small_tracker_config(), cap).unwrap();
+    tracker.run_in_pool(|t| {
+        for f in &frames[..warm] {
+            t.track(f).unwrap();
+        }
+        let probe = count(|| {
+            rayon::join(|| std::hint::black_box(vec![1u8; 64]), || std::hint::black_box(vec![2u8; 64]));
+        });
+        assert!(probe >= 2, "counting allocator missed allocations: {probe}");
+        let mut outputs: Vec<TrackOutput> = Vec::with_capacity(frames.len());
+        let n = count(|| {
+            for f in &frames[warm..] {
+                outputs.push(t.track(f).unwrap());
+            }
+        });
+        (n, outputs)
+    })
+}
+
+#[test]
+fn tracking_keyframes_eviction_and_relocalisation_do_not_allocate() {
+    let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 90, 160, 120, 0.5)).unwrap();
+    let mut frames = track_sim::render_all(&renderer);
+    frames[75].image = FrameImage::Rgb8(ImageRgb8 { width: 160, height: 120, data: vec![0; 160 * 120 * 3] });
+    // A store of 10 keyframes fills during warm-up: the counted insertions evict.
+    let cap = TrackerCapacity { max_keyframes: 10, ba_window: 6, threads: 2 };
+    let (n, outputs) = counted_run(&renderer, &frames, 50, cap);
+    let keyframes = outputs.iter().filter(|o| o.new_keyframe.is_some()).count();
+    let evicted = outputs.iter().filter(|o| o.evicted.is_some()).count();
+    assert!(keyframes >= 3, "only {keyframes} keyframe insertions counted");
+    assert!(evicted >= 1, "no eviction counted");
+    assert!(outputs.iter().any(|o| matches!(o.state, TrackingState::Lost(_))));
+    assert!(outputs.iter().any(|o| o.state == TrackingState::Relocalised));
+    assert_eq!(n, 0, "{n} allocations in {} frames ({keyframes} keyframes, {evicted} evictions)", outputs.len());
+}
+
+#[test]
+fn loop_closure_does_not_allocate() {
+    let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
+    let frames = track_sim::render_all(&renderer);
+    let (n, outputs) = counted_run(&renderer, &frames, 60, track_sim::capacity(2));
+    assert!(outputs.iter().any(|o| o.loop_closed), "no loop closed in the counted frames");
+    assert_eq!(n, 0, "{n} allocations in {} frames with a loop closure", outputs.len());
+}
