@@ -14,7 +14,7 @@ fn help_lists_every_subcommand() {
     let out = duv().arg("--help").output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
-    for sub in ["demo", "run", "sim", "eval", "board", "dataset"] {
+    for sub in ["demo", "run", "sim", "refine", "eval", "board", "dataset"] {
         assert!(text.lines().any(|l| l.trim_start().starts_with(sub)), "`duv --help` does not list {sub}:\n{text}");
     }
 }

@@ -13,11 +13,12 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct DemoArgs {
-    /// Output folder: `sequence/` (the generated data) and `demo.md` (the metrics table).
+    /// Output folder: `sequence/` (the generated data), `run/` (tracking outputs and the eval
+    /// report with figures) and `demo.md` (the water's cost).
     #[arg(long, default_value = "out/demo")]
     out: PathBuf,
     /// Frames to generate (10 fps).
-    #[arg(long, default_value_t = 60)]
+    #[arg(long, default_value_t = 100)]
     frames: usize,
     /// Water type of the generated sequence.
     #[arg(long, value_enum, default_value_t = WaterPreset::Coastal)]
@@ -41,11 +42,11 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let mut cfg = SimConfig::preset(args.water, TrajectoryKind::Survey);
     cfg.frames = args.frames;
     cfg.seed = args.seed;
-    eprintln!("[1/3] generating {} frames of {:?} water at {}x{}", cfg.frames, args.water, cfg.width, cfg.height);
+    eprintln!("[1/4] generating {} frames of {:?} water at {}x{}", cfg.frames, args.water, cfg.width, cfg.height);
     let sim = write_sequence(&cfg, &seq_dir, !args.no_progress).context("generating the demo sequence")?;
 
     // 2. Read it back through the dataset reader, decoding every frame, as `duv run` will.
-    eprintln!("[2/3] reading {} back through the TUM reader", seq_dir.display());
+    eprintln!("[2/4] reading {} back through the TUM reader", seq_dir.display());
     let spec = format!("tum:{}", seq_dir.display());
     let dataset = open_dataset(&spec).with_context(|| format!("opening {spec}"))?;
     let gt_poses = dataset.ground_truth.as_ref().map_or(0, |g| g.len());
@@ -58,9 +59,15 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
         decoded += 1;
     }
 
-    // 3. What the water costs: each captured frame against the same view without water. A
+    // 3. Track it: `duv run --source tum:SEQUENCE --out OUT/run`, which prints and writes the
+    //    eval report (ATE, RPE, AUSE of the depth uncertainty) against the ground truth.
+    eprintln!("[3/4] tracking the sequence (duv run --source {spec} --out {})", args.out.join("run").display());
+    super::run::run(super::run::RunArgs::with_defaults(spec.clone(), args.out.join("run"), args.no_progress))
+        .context("tracking the demo sequence")?;
+
+    // 4. What the water costs: each captured frame against the same view without water. A
     //    restoration (the mapper's restored image) has to beat these numbers.
-    eprintln!("[3/3] scoring captured frames against the water-free views");
+    eprintln!("[4/4] scoring captured frames against the water-free views");
     let (mut psnr_sum, mut ssim_sum) = (0.0, 0.0);
     for path in &frame_paths {
         let clear_path = seq_dir.join("clear").join(path.file_name().context("frame without a file name")?);
@@ -90,6 +97,6 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     println!("{table}");
     let md = args.out.join("demo.md");
     std::fs::write(&md, format!("# duv demo\n\n{table}")).with_context(|| format!("writing {}", md.display()))?;
-    println!("wrote {} and {}", seq_dir.display(), md.display());
+    println!("wrote {}, {} and {}", seq_dir.display(), args.out.join("run").display(), md.display());
     Ok(())
 }

@@ -345,3 +345,22 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+impl RunArgs {
+    /// The arguments `duv run --source SOURCE --out OUT` would get, everything else default
+    /// (used by `duv demo`).
+    pub fn with_defaults(source: String, out: PathBuf, no_progress: bool) -> Self {
+        RunArgs {
+            source,
+            out,
+            board: PathBuf::from("boards/sim.toml"),
+            frames: None,
+            no_loop_closure: false,
+            config: None,
+            width: None,
+            height: None,
+            seed: 1,
+            no_progress,
+        }
+    }
+}
