@@ -43,9 +43,48 @@ fn main() {
         let mut base = toml::Value::try_from(&cfg).unwrap();
         let table = base.as_table_mut().unwrap();
         for (k, v) in patch {
-            table.insert(k, v);
+            match (table.get_mut(&k), v) {
+                (Some(toml::Value::Table(dst)), toml::Value::Table(src)) => {
+                    for (k2, v2) in src {
+                        dst.insert(k2, v2);
+                    }
+                }
+                (_, v) => {
+                    table.insert(k, v);
+                }
+            }
         }
         cfg = base.try_into().unwrap();
+    }
+    if a.iter().any(|s| s == "trace") {
+        // Scale of every live keyframe after each insertion (true depth x estimated inverse depth).
+        let f = cfg.depth_factor;
+        let gt_depth: Vec<_> = (0..frames).map(|i| renderer.render(i).depth_m).collect();
+        let mut tracker = duv::track::Tracker::new(renderer.camera(), &cfg, track_sim::capacity(threads)).unwrap();
+        for fr in &images {
+            let out = tracker.track(fr).unwrap();
+            if out.new_keyframe.is_none() {
+                continue;
+            }
+            let mut line = format!("frame {:3}:", fr.seq);
+            let n = tracker.num_keyframes();
+            for k in tracker.keyframes().skip(n.saturating_sub(10)) {
+                let gt = &gt_depth[k.seq as usize];
+                let mut ratios: Vec<f32> = Vec::new();
+                for y in 0..k.inv_depth.height {
+                    for x in 0..k.inv_depth.width {
+                        let z = gt.data[(y * f + f / 2) * gt.width + x * f + f / 2];
+                        if z > 0.0 {
+                            ratios.push(z * k.inv_depth.data[y * k.inv_depth.width + x]);
+                        }
+                    }
+                }
+                ratios.sort_by(|a, b| a.total_cmp(b));
+                line += &format!(" {}:{:.3}", k.id, ratios.get(ratios.len() / 2).copied().unwrap_or(f32::NAN));
+            }
+            println!("{line}");
+        }
+        return;
     }
     let t0 = Instant::now();
     let r = track_sim::run(&renderer, &images, &cfg, track_sim::capacity(threads));
@@ -67,6 +106,21 @@ fn main() {
         c.lost_frames,
         c.relocalisations
     );
+    if a.iter().any(|s| s == "prefix") {
+        let mut line = String::from("ATE % of prefix:");
+        for n in (40..=frames).step_by(20) {
+            let (_, p, _) = track_sim::ate(&renderer.poses()[..n], &r.trajectory.frames[..n]);
+            line += &format!(" {n}:{p:.2}");
+        }
+        println!("{line}");
+        let states: String = r.outputs.iter().map(|o| match o.state {
+            duv::track::TrackingState::Tracking => if o.new_keyframe.is_some() { 'K' } else { '.' },
+            duv::track::TrackingState::Initializing => 'i',
+            duv::track::TrackingState::Relocalised => 'R',
+            duv::track::TrackingState::Lost(_) => 'L',
+        }).collect();
+        println!("{states}");
+    }
     // Metric scale of each keyframe's depth map (median of true depth x estimated inverse
     // depth at the depth-grid pixel centres): its drift along the run.
     if a.iter().any(|s| s == "scales") {

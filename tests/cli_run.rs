@@ -17,7 +17,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let cfg = dir.path().join("tracker.toml");
     // A depth grid of 1/4 suits 160x120 images (40x30, as 1/8 of 320x240).
     std::fs::write(&cfg, "depth_factor = 4\n").unwrap();
-    let frames = 48;
+    let frames = 64;
     let res = duv()
         .args(["run", "--source", "sim:coastal", "--frames", &frames.to_string(), "--width", "160", "--height", "120", "--no-progress"])
         .arg("--config")
@@ -38,7 +38,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     assert_eq!(poses.len(), frames, "{traj}");
     let kf_text = std::fs::read_to_string(out.join("keyframes.txt")).unwrap();
     let kf_lines: Vec<&str> = kf_text.lines().filter(|l| !l.starts_with('#')).collect();
-    assert!(kf_lines.len() >= 6, "{kf_text}");
+    assert!(kf_lines.len() >= 8, "{kf_text}");
     for line in &kf_lines {
         let fields: Vec<&str> = line.split_whitespace().collect();
         assert_eq!(fields.len(), 9, "{line}");

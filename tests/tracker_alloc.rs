@@ -76,12 +76,12 @@ fn counted_run(renderer: &SimRenderer, frames: &[Frame], warm: usize, cap: Track
 
 #[test]
 fn tracking_keyframes_eviction_and_relocalisation_do_not_allocate() {
-    let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 90, 160, 120, 0.5)).unwrap();
+    let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 110, 160, 120, 0.5)).unwrap();
     let mut frames = track_sim::render_all(&renderer);
-    frames[75].image = FrameImage::Rgb8(ImageRgb8 { width: 160, height: 120, data: vec![0; 160 * 120 * 3] });
-    // A store of 10 keyframes fills during warm-up: the counted insertions evict.
-    let cap = TrackerCapacity { max_keyframes: 10, ba_window: 6, threads: 2 };
-    let (n, outputs) = counted_run(&renderer, &frames, 50, cap);
+    frames[95].image = FrameImage::Rgb8(ImageRgb8 { width: 160, height: 120, data: vec![0; 160 * 120 * 3] });
+    // A store of 11 keyframes fills during warm-up: the counted insertions evict.
+    let cap = TrackerCapacity { max_keyframes: 11, ba_window: 8, threads: 2 };
+    let (n, outputs) = counted_run(&renderer, &frames, 70, cap);
     let keyframes = outputs.iter().filter(|o| o.new_keyframe.is_some()).count();
     let evicted = outputs.iter().filter(|o| o.evicted.is_some()).count();
     assert!(keyframes >= 3, "only {keyframes} keyframe insertions counted");

@@ -38,10 +38,17 @@ pub struct TrackerConfig {
     pub depth_factor: usize,
     /// Dense flow front end (its `output_factor` is replaced by `depth_factor`).
     pub flow: FlowConfig,
+    /// Seed the keyframe-edge flows with the flow the current BA estimate induces.
+    pub seed_edges: bool,
     /// Local window BA (its `max_iterations` and `fixed_poses` are set per use).
     pub ba: BaConfig,
-    /// A frame becomes a keyframe when the mean flow from the last keyframe exceeds this.
+    /// A frame becomes a keyframe when the mean flow from the last keyframe exceeds this: the
+    /// larger of the measured flow (confidence-weighted) and the flow its estimated pose
+    /// induces on the keyframe's depth grid.
     pub keyframe_flow_px: f32,
+    /// A frame also becomes a keyframe when fewer than this fraction of the last keyframe's
+    /// pixels are confidently matched in it, or land in its view (the overlap runs out).
+    pub keyframe_min_overlap: f32,
     /// A new keyframe whose BA-induced mean flow to the previous one is below this is dropped.
     pub prune_flow_px: f32,
     /// Keyframes collected before the initial BA (monocular initialisation).
@@ -54,6 +61,10 @@ pub struct TrackerConfig {
     pub local_rounds: usize,
     /// Gauss-Newton iterations per round of the local BA.
     pub local_iterations: usize,
+    /// Newest window keyframes whose poses the local BA moves; the older ones are held fixed
+    /// (at least two are always fixed: gauge and scale). Fewer free poses tie new keyframes
+    /// to the established map and slow monocular scale drift.
+    pub window_free_poses: usize,
     /// Older keyframes a new keyframe is linked to (each link is two directed edges).
     pub edges_per_keyframe: usize,
     /// Largest BA-induced mean flow between two keyframes that still gives an edge.
@@ -64,6 +75,9 @@ pub struct TrackerConfig {
     pub initial_inv_depth: f32,
     /// Gauss-Newton iterations of the motion-only BA of a frame.
     pub motion_iterations: usize,
+    /// Flow targets closer than this to the image border get no weight (the pooled flow of a
+    /// cell partly out of view is biased).
+    pub border_margin_px: f32,
     /// Scale of the flow confidences into BA weights (inverse variance per weight unit).
     pub weight_scale: f32,
     /// A pooled pixel is confident when both of its axis weights exceed this.
@@ -114,19 +128,23 @@ impl Default for TrackerConfig {
         TrackerConfig {
             depth_factor: 8,
             flow: FlowConfig::default(),
+            seed_edges: true,
             ba: BaConfig::default(),
             keyframe_flow_px: 2.5,
+            keyframe_min_overlap: 0.5,
             prune_flow_px: 1.0,
-            init_keyframes: 6,
+            init_keyframes: 8,
             init_rounds: 3,
             init_iterations: 15,
             local_rounds: 2,
             local_iterations: 4,
+            window_free_poses: 4,
             edges_per_keyframe: 3,
             edge_max_flow_px: 20.0,
             edge_min_overlap: 0.4,
             initial_inv_depth: 0.5,
             motion_iterations: 6,
+            border_margin_px: 1.0,
             weight_scale: 1.0,
             confident_weight: 0.2,
             min_confident_fraction: 0.15,
@@ -170,6 +188,9 @@ impl TrackerConfig {
         if self.init_keyframes < 2 {
             return bad("init_keyframes", "must be at least 2");
         }
+        if self.window_free_poses == 0 {
+            return bad("window_free_poses", "must be at least 1");
+        }
         if self.edges_per_keyframe == 0 {
             return bad("edges_per_keyframe", "must be at least 1");
         }
@@ -207,6 +228,8 @@ impl TrackerConfig {
         let unit = [
             ("prune_flow_px", self.prune_flow_px, f32::MAX),
             ("edge_min_overlap", self.edge_min_overlap, 1.0),
+            ("border_margin_px", self.border_margin_px, 8.0),
+            ("keyframe_min_overlap", self.keyframe_min_overlap, 1.0),
             ("confident_weight", self.confident_weight, 1.0),
             ("min_confident_fraction", self.min_confident_fraction, 1.0),
             ("min_mean_intensity", self.min_mean_intensity, 1.0),

@@ -234,8 +234,6 @@ struct State {
     pending_eviction: Option<EvictedKeyframe>,
 }
 
-/// Pixels with targets further than this outside the image get no weight (depth-grid pixels).
-const OUT_OF_VIEW_MARGIN: f32 = 0.5;
 /// Inverse depth floor when loading a keyframe into BA (1/m).
 const MIN_INV_DEPTH: f32 = 1e-3;
 
@@ -431,8 +429,11 @@ fn induced_flow(low: &PinholeCamera, world_from_i: &Se3, inv_depth: &PlaneF32, w
 }
 
 /// Copies the pooled flow into BA measurements (targets in depth-grid pixels, weights scaled)
-/// and returns the confident fraction (mean of the two weights above `confident`).
-fn write_measurement(res: &FlowResult, weight_scale: f32, confident: f32, target: &mut Image<f32, 2>, weight: &mut Image<f32, 2>) -> f32 {
+/// and returns the confident fraction (mean of the two weights above `confident`). Targets
+/// closer than `margin` to the border get no weight: some of the cell's pixels may have left
+/// the view, and the pooled mean of those that stayed is biased towards the smaller flows
+/// (with forward motion this stretched the map a few percent per keyframe).
+fn write_measurement(res: &FlowResult, weight_scale: f32, confident: f32, margin: f32, target: &mut Image<f32, 2>, weight: &mut Image<f32, 2>) -> f32 {
     let pooled = &res.pooled;
     let (w, h) = (pooled.flow.width(), pooled.flow.height());
     let mut n_conf = 0usize;
@@ -443,7 +444,7 @@ fn write_measurement(res: &FlowResult, weight_scale: f32, confident: f32, target
             let (tx, ty) = (x as f32 + u, y as f32 + v);
             let (mut wx, mut wy) = (pooled.weight_x.data[p], pooled.weight_y.data[p]);
             let finite = tx.is_finite() && ty.is_finite() && wx.is_finite() && wy.is_finite();
-            let in_view = tx >= -OUT_OF_VIEW_MARGIN && ty >= -OUT_OF_VIEW_MARGIN && tx <= w as f32 - 1.0 + OUT_OF_VIEW_MARGIN && ty <= h as f32 - 1.0 + OUT_OF_VIEW_MARGIN;
+            let in_view = tx >= margin && ty >= margin && tx <= w as f32 - 1.0 - margin && ty <= h as f32 - 1.0 - margin;
             if !finite || !in_view {
                 wx = 0.0;
                 wy = 0.0;
@@ -654,7 +655,7 @@ impl State {
             self.seed.dy.data.copy_from_slice(&self.prev_flow.dy.data);
         }
         self.flow_ref_to_current(r, self.have_prev_flow)?;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
         if conf < self.cfg.min_confident_fraction {
             // Nothing to trust: wait for a better frame (the first keyframe stays).
             self.have_prev_flow = false;
@@ -673,9 +674,27 @@ impl State {
             self.counters.ba_failures += 1;
             return Ok(out);
         }
+        let prev = r;
         let s = self.insert_keyframe_slot(frame, &pose);
-        let d = self.cfg.initial_inv_depth;
-        self.kfs.slots[s].inv_depth.data.fill(d);
+        self.splat_depth(prev, s);
+        // Incremental initialisation: link the new keyframe and refine everything collected
+        // so far, so that each new keyframe starts from a better map than constant depth.
+        self.new_edges.clear();
+        let n = self.kfs.len();
+        for back in 1..=self.cfg.edges_per_keyframe.min(n - 1) {
+            let c = self.kfs.order[n - 1 - back];
+            for (f, t) in [(s, c), (c, s)] {
+                if let Some(e) = self.edges.add(f, t, false) {
+                    self.new_edges.push(e);
+                }
+            }
+        }
+        for i in 0..self.new_edges.len() {
+            self.estimate_edge(self.new_edges[i])?;
+        }
+        self.window.clear();
+        self.window.extend_from_slice(&self.kfs.order);
+        self.solve_window(self.cfg.init_iterations, 1);
         self.ref_slot = s;
         self.have_prev_flow = false;
         self.last_pose = pose;
@@ -685,10 +704,10 @@ impl State {
         out.anchor = Some(FrameAnchor { keyframe: self.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: 1.0 });
         if self.kfs.len() >= self.cfg.init_keyframes {
             self.initialise()?;
-            let kf = &self.kfs.slots[s];
-            out.world_from_cam = kf.world_from_cam;
             out.state = TrackingState::Tracking;
         }
+        out.world_from_cam = self.kfs.slots[s].world_from_cam;
+        self.last_pose = out.world_from_cam;
         Ok(out)
     }
 
@@ -799,11 +818,12 @@ impl State {
         let (kf, kt) = (&self.kfs.slots[from], &self.kfs.slots[to]);
         induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &kt.world_from_cam, Some(&mut self.seed));
         let t0 = Instant::now();
-        self.flow.estimate(&kf.frame, &kt.frame, Some(&self.seed), &mut self.res)?;
+        let seed = if self.cfg.seed_edges { Some(&self.seed) } else { None };
+        self.flow.estimate(&kf.frame, &kt.frame, seed, &mut self.res)?;
         self.times.flow += t0.elapsed();
         self.times.flow_estimates += 1;
         let edge = &mut self.edges.edges[e];
-        Ok(write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, &mut edge.target, &mut edge.weight))
+        Ok(write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut edge.target, &mut edge.weight))
     }
 
     /// Loads the window, solves, writes back. A failed solve leaves the state as it was.
@@ -846,8 +866,9 @@ impl State {
     }
 
     fn window_fixed(&self) -> usize {
-        if self.window.len() >= 4 {
-            2
+        let n = self.window.len();
+        if n >= 4 {
+            n.saturating_sub(self.cfg.window_free_poses).max(2)
         } else {
             1
         }
@@ -905,7 +926,8 @@ impl State {
             induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &predicted, Some(&mut self.seed));
         }
         self.flow_ref_to_current(r, true)?;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
+        tracing::trace!(seq = frame.seq, keyframe = self.kfs.slots[r].id, conf, mean_flow_input_px = self.res.stats.mean_flow_input_px, "track: frame flow");
         if conf < self.cfg.min_confident_fraction {
             return Ok(self.lost(out, LostReason::LowConfidence));
         }
@@ -918,8 +940,13 @@ impl State {
         out.state = TrackingState::Tracking;
         out.world_from_cam = pose;
         out.anchor = Some(self.anchor_to(r, &pose));
-        let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
-        if mean_flow > self.cfg.keyframe_flow_px {
+        let measured = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let (induced, in_view) = {
+            let kf = &self.kfs.slots[r];
+            induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &pose, None)
+        };
+        let overlap = in_view.min(conf);
+        if measured.max(induced) > self.cfg.keyframe_flow_px || overlap < self.cfg.keyframe_min_overlap {
             self.add_keyframe(frame, &pose, &mut out)?;
         }
         Ok(out)
@@ -934,7 +961,8 @@ impl State {
     }
 
     /// Initial inverse depth of keyframe `s` from keyframe `prev`: `prev`'s points splatted
-    /// into `s` (nearest pixel, closest wins), holes filled with the median.
+    /// into `s` (bilinear weights, weighted mean: "closest wins" would bias every new keyframe
+    /// closer, and with it the scale), holes filled with the median.
     fn splat_depth(&mut self, prev: usize, s: usize) {
         let low = self.low;
         let (w, h) = (low.width, low.height);
@@ -942,7 +970,10 @@ impl State {
         let rel = ks.world_from_cam.inv_mul(&kp.world_from_cam);
         let rot = rel.rotation.to_rotation_matrix().into_inner();
         let t = rel.translation.vector;
+        // Weighted sums in `scratch_depth`, weights in `scratch` (both depth-grid sized).
         self.scratch_depth.data.fill(0.0);
+        self.scratch.clear();
+        self.scratch.resize(w * h, 0.0);
         for y in 0..h {
             for x in 0..w {
                 let d = kp.inv_depth.data[y * w + x] as f64;
@@ -951,16 +982,28 @@ impl State {
                 if p.z <= 1e-6 {
                     continue;
                 }
-                let (u, v) = ((low.fx * p.x / p.z + low.cx).round(), (low.fy * p.y / p.z + low.cy).round());
-                if u < 0.0 || v < 0.0 || u >= w as f64 || v >= h as f64 {
+                let (u, v) = (low.fx * p.x / p.z + low.cx, low.fy * p.y / p.z + low.cy);
+                let inv = (d / p.z) as f32;
+                if !(inv.is_finite() && u > -1.0 && v > -1.0 && u < w as f64 && v < h as f64) {
                     continue;
                 }
-                let i = v as usize * w + u as usize;
-                let inv = (d / p.z) as f32;
-                if inv.is_finite() && inv > self.scratch_depth.data[i] {
-                    self.scratch_depth.data[i] = inv;
+                let (u0, v0) = (u.floor(), v.floor());
+                let (au, av) = ((u - u0) as f32, (v - v0) as f32);
+                for (dy, wy) in [(0, 1.0 - av), (1, av)] {
+                    for (dx, wx) in [(0, 1.0 - au), (1, au)] {
+                        let (uu, vv) = (u0 as i64 + dx, v0 as i64 + dy);
+                        if uu < 0 || vv < 0 || uu >= w as i64 || vv >= h as i64 {
+                            continue;
+                        }
+                        let i = vv as usize * w + uu as usize;
+                        self.scratch_depth.data[i] += wx * wy * inv;
+                        self.scratch[i] += wx * wy;
+                    }
                 }
             }
+        }
+        for (d, &wgt) in self.scratch_depth.data.iter_mut().zip(&self.scratch) {
+            *d = if wgt > 0.05 { *d / wgt } else { 0.0 };
         }
         self.scratch.clear();
         self.scratch.extend(self.scratch_depth.data.iter().copied().filter(|v| *v > 0.0));
@@ -1004,12 +1047,29 @@ impl State {
             }
         }
         let fixed = self.window_fixed();
-        for _ in 0..self.cfg.local_rounds {
+        let mean_d = |kf: &Keyframe| kf.inv_depth.data.iter().sum::<f32>() / kf.inv_depth.data.len() as f32;
+        let d0 = mean_d(&self.kfs.slots[s]);
+        let dp0 = mean_d(&self.kfs.slots[prev]);
+        let t0 = self.kfs.slots[prev].world_from_cam.inv_mul(&self.kfs.slots[s].world_from_cam).translation.vector.norm();
+        for round in 0..self.cfg.local_rounds {
             for i in 0..self.new_edges.len() {
-                self.estimate_edge(self.new_edges[i])?;
+                let conf = self.estimate_edge(self.new_edges[i])?;
+                let e = &self.edges.edges[self.new_edges[i]];
+                tracing::trace!(round, from = self.kfs.slots[e.from].id, to = self.kfs.slots[e.to].id, conf, "track: edge");
             }
             self.solve_window(self.cfg.local_iterations, fixed);
         }
+        tracing::debug!(
+            kf = self.kfs.slots[s].id,
+            links,
+            d_new_before = d0,
+            d_new_after = mean_d(&self.kfs.slots[s]),
+            d_prev_before = dp0,
+            d_prev_after = mean_d(&self.kfs.slots[prev]),
+            t_before = t0,
+            t_after = self.kfs.slots[prev].world_from_cam.inv_mul(&self.kfs.slots[s].world_from_cam).translation.vector.norm(),
+            "track: keyframe inserted"
+        );
         self.window_covariance(fixed);
         let (kp, ks) = (&self.kfs.slots[prev], &self.kfs.slots[s]);
         let (flow, _) = induced_flow(&self.low, &ks.world_from_cam, &ks.inv_depth, &kp.world_from_cam, None);
@@ -1160,7 +1220,7 @@ impl State {
             self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, Some(&self.seed), &mut self.res)?;
             self.times.flow += t0.elapsed();
             self.times.flow_estimates += 1;
-            let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, &mut self.obs_target, &mut self.obs_weight);
+            let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
             let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
             if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
                 continue;
@@ -1277,7 +1337,7 @@ impl State {
     /// motion-only BA; the pose when the match is verified.
     fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
         self.flow_ref_to_current(c, predicted.is_some())?;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
         let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
         if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
             return Ok(None);
