@@ -2,7 +2,7 @@
 //! test thresholds were measured with.
 //!
 //! ```text
-//! cargo run --release --example track_sim -- WATER TRAJECTORY FRAMES WIDTH HEIGHT SPEED DEPTH_FACTOR [noloop] [threads=N]
+//! cargo run --release --example track_sim -- WATER TRAJECTORY FRAMES WIDTH HEIGHT SPEED DEPTH_FACTOR|auto [noloop] [threads=N] [prefix] [scales] [trace] [set:KEY=VALUE,...]
 //! ```
 
 #[path = "../tests/common/track_sim.rs"]
@@ -28,7 +28,7 @@ fn main() {
     let frames: usize = get(3, "60").parse().unwrap();
     let (w, h): (usize, usize) = (get(4, "160").parse().unwrap(), get(5, "120").parse().unwrap());
     let speed: f64 = get(6, "0.5").parse().unwrap();
-    let factor: usize = get(7, "4").parse().unwrap();
+    let factor: Option<usize> = get(7, "auto").parse().ok();
     let no_loop = a.iter().any(|s| s == "noloop");
     let threads = a.iter().find_map(|s| s.strip_prefix("threads=")).map(|s| s.parse().unwrap()).unwrap_or(2);
     let sim = track_sim::sim_config(water, traj, frames, w, h, speed);
@@ -58,7 +58,7 @@ fn main() {
     }
     if a.iter().any(|s| s == "trace") {
         // Scale of every live keyframe after each insertion (true depth x estimated inverse depth).
-        let f = cfg.depth_factor;
+        let f = cfg.resolved_depth_factor(w, h);
         let gt_depth: Vec<_> = (0..frames).map(|i| renderer.render(i).depth_m).collect();
         let mut tracker = duv::track::Tracker::new(renderer.camera(), &cfg, track_sim::capacity(threads)).unwrap();
         for fr in &images {
@@ -124,7 +124,7 @@ fn main() {
     // Metric scale of each keyframe's depth map (median of true depth x estimated inverse
     // depth at the depth-grid pixel centres): its drift along the run.
     if a.iter().any(|s| s == "scales") {
-        let f = cfg.depth_factor;
+        let f = cfg.resolved_depth_factor(w, h);
         let mut line = String::from("kf depth scale:");
         for k in r.tracker.keyframes() {
             let gt = renderer.render(k.seq as usize).depth_m;

@@ -216,7 +216,18 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
     let kf_dir = args.out.join("keyframes");
     std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
-    eprintln!("duv run: {} -> {}", source.describe(), args.out.display());
+    let grid = tracker.depth_camera();
+    eprintln!(
+        "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads)",
+        source.describe(),
+        args.out.display(),
+        grid.width,
+        grid.height,
+        tracker.depth_factor(),
+        capacity.max_keyframes,
+        capacity.ba_window,
+        capacity.threads
+    );
 
     let total = source.len();
     let mut recorder = TrajectoryRecorder::new();

@@ -33,9 +33,13 @@ impl TrackerCapacity {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrackerConfig {
-    /// Input pixels per inverse-depth pixel (8: 40x30 depth for 320x240 input); also the flow's
-    /// pooled output cell.
-    pub depth_factor: usize,
+    /// Input pixels per inverse-depth pixel, also the flow's pooled output cell; absent: the
+    /// largest of 4, 8, 16, 32 that leaves at least `depth_min_pixels` depth pixels (8 at
+    /// 320x240, 16 at 640x480: a grid of about 40x30, which the pixel thresholds below are
+    /// tuned for and which keeps the BA cost independent of the input size).
+    pub depth_factor: Option<usize>,
+    /// Depth pixels the automatic `depth_factor` keeps at least.
+    pub depth_min_pixels: usize,
     /// Dense flow front end (its `output_factor` is replaced by `depth_factor`).
     pub flow: FlowConfig,
     /// Seed the keyframe-edge flows with the flow the current BA estimate induces.
@@ -126,7 +130,8 @@ pub struct TrackerConfig {
 impl Default for TrackerConfig {
     fn default() -> Self {
         TrackerConfig {
-            depth_factor: 8,
+            depth_factor: None,
+            depth_min_pixels: 1200,
             flow: FlowConfig::default(),
             seed_edges: true,
             ba: BaConfig::default(),
@@ -179,11 +184,21 @@ pub struct ConfigError {
 }
 
 impl TrackerConfig {
+    /// The depth factor for `width x height` input: the configured one, or the automatic choice.
+    pub fn resolved_depth_factor(&self, width: usize, height: usize) -> usize {
+        self.depth_factor.unwrap_or_else(|| {
+            [32usize, 16, 8, 4].into_iter().find(|&f| (width / f) * (height / f) >= self.depth_min_pixels).unwrap_or(4)
+        })
+    }
+
     /// Checks the fields the tracker relies on (flow and BA are checked by their owners).
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |field, problem| Err(ConfigError { field, problem });
-        if !(1..=32).contains(&self.depth_factor) {
+        if self.depth_factor.is_some_and(|f| !(1..=32).contains(&f)) {
             return bad("depth_factor", "must be in 1..=32");
+        }
+        if self.depth_min_pixels == 0 {
+            return bad("depth_min_pixels", "must be at least 1");
         }
         if self.init_keyframes < 2 {
             return bad("init_keyframes", "must be at least 2");

@@ -197,6 +197,8 @@ enum Phase {
 
 struct State {
     cfg: TrackerConfig,
+    /// Input pixels per depth pixel (resolved).
+    factor: usize,
     cap: TrackerCapacity,
     camera: PinholeCamera,
     low: PinholeCamera,
@@ -297,8 +299,13 @@ impl Tracker {
     pub fn depth_camera(&self) -> &PinholeCamera {
         &self.st.low
     }
+    /// The configuration in use (`depth_factor` resolved).
     pub fn config(&self) -> &TrackerConfig {
         &self.st.cfg
+    }
+    /// Input pixels per depth-grid pixel.
+    pub fn depth_factor(&self) -> usize {
+        self.st.factor
     }
     pub fn capacity(&self) -> TrackerCapacity {
         self.st.cap
@@ -349,9 +356,9 @@ impl Tracker {
         let cfg = &st.cfg;
         self.pool.install(|| {
             if kf.has_variance {
-                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
             } else {
-                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, None);
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
             }
         });
@@ -485,10 +492,12 @@ fn scale_translation(pose: &Se3, s: f64) -> Se3 {
 impl State {
     fn new(camera: &PinholeCamera, config: &TrackerConfig, cap: TrackerCapacity) -> Result<Self, TrackError> {
         let mut cfg = config.clone();
-        cfg.flow.output_factor = cfg.depth_factor;
+        let factor = cfg.resolved_depth_factor(camera.width, camera.height);
+        cfg.depth_factor = Some(factor);
+        cfg.flow.output_factor = factor;
         let (w, h) = (camera.width, camera.height);
         let flow = FlowEstimator::new(cfg.flow.clone(), w, h)?;
-        let low = depth_grid_camera(camera, cfg.depth_factor);
+        let low = depth_grid_camera(camera, factor);
         let (lw, lh) = (low.width, low.height);
         let kfs = KeyframeStore::new(cap.max_keyframes, || Keyframe::new(&flow, w, h, lw, lh));
         let links = 2 * cfg.edges_per_keyframe;
@@ -507,8 +516,8 @@ impl State {
             cur: flow.new_frame(),
             cur_thumb: vec![0.0; THUMB_N],
             res: flow.new_result(),
-            seed: FlowField::zeros(lw, lh, cfg.depth_factor),
-            prev_flow: FlowField::zeros(lw, lh, cfg.depth_factor),
+            seed: FlowField::zeros(lw, lh, factor),
+            prev_flow: FlowField::zeros(lw, lh, factor),
             have_prev_flow: false,
             obs_target: Image::new(lw, lh),
             obs_weight: Image::new(lw, lh),
@@ -535,6 +544,7 @@ impl State {
             evicted_slot: None,
             pending_eviction: None,
             flow,
+            factor,
             cfg,
             cap,
         })
@@ -664,7 +674,7 @@ impl State {
         self.prev_flow.dx.data.copy_from_slice(&self.res.pooled.flow.dx.data);
         self.prev_flow.dy.data.copy_from_slice(&self.res.pooled.flow.dy.data);
         self.have_prev_flow = true;
-        let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if mean_flow <= self.cfg.keyframe_flow_px {
             return Ok(out);
         }
@@ -727,7 +737,7 @@ impl State {
         for (g, &v) in kf.guide.iter_mut().zip(&self.grey.data) {
             *g = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
         }
-        block_means(&self.grey.data, w, self.cfg.depth_factor, &mut kf.guide_low);
+        block_means(&self.grey.data, w, self.factor, &mut kf.guide_low);
         thumbnail(&self.grey.data, w, h, &mut kf.thumb);
         self.counters.keyframes_inserted += 1;
         self.times.keyframes += 1;
@@ -940,7 +950,7 @@ impl State {
         out.state = TrackingState::Tracking;
         out.world_from_cam = pose;
         out.anchor = Some(self.anchor_to(r, &pose));
-        let measured = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let measured = self.res.stats.mean_flow_input_px / self.factor as f32;
         let (induced, in_view) = {
             let kf = &self.kfs.slots[r];
             induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &pose, None)
@@ -1201,8 +1211,11 @@ impl State {
             return Ok(false);
         }
         let t0 = Instant::now();
+        let (flow0, ba0) = (self.times.flow, self.times.ba);
         let result = self.loop_closure_inner(s, n);
-        self.times.loop_closure += t0.elapsed();
+        // Exclusive of the flow and BA it ran (counted in those stages).
+        let inner = (self.times.flow - flow0) + (self.times.ba - ba0);
+        self.times.loop_closure += t0.elapsed().saturating_sub(inner);
         result
     }
 
@@ -1221,7 +1234,7 @@ impl State {
             self.times.flow += t0.elapsed();
             self.times.flow_estimates += 1;
             let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
-            let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+            let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
             if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
                 continue;
             }
@@ -1338,7 +1351,7 @@ impl State {
     fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
         self.flow_ref_to_current(c, predicted.is_some())?;
         let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
-        let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
             return Ok(None);
         }
