@@ -125,6 +125,9 @@ pub struct TrackerConfig {
     pub upsample_sigma_px: f32,
     /// Range sigma of the joint bilateral upsampling, intensity units.
     pub upsample_sigma_intensity: f32,
+    /// Weight of the interpolation uncertainty (the weighted spread of the neighbours' inverse
+    /// depths) added to the upsampled variance.
+    pub upsample_spread_gain: f32,
 }
 
 impl Default for TrackerConfig {
@@ -171,6 +174,7 @@ impl Default for TrackerConfig {
             global_iterations: 6,
             upsample_sigma_px: 0.8,
             upsample_sigma_intensity: 0.08,
+            upsample_spread_gain: 1.0,
         }
     }
 }
@@ -250,6 +254,7 @@ impl TrackerConfig {
             ("min_mean_intensity", self.min_mean_intensity, 1.0),
             ("max_mean_intensity", self.max_mean_intensity, 1.0),
             ("min_contrast", self.min_contrast, 1.0),
+            ("upsample_spread_gain", self.upsample_spread_gain, 1e6),
             ("reloc_min_ncc", self.reloc_min_ncc, 1.0),
             ("loop_min_ncc", self.loop_min_ncc, 1.0),
             ("loop_min_confident_fraction", self.loop_min_confident_fraction, 1.0),

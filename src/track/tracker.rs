@@ -356,9 +356,9 @@ impl Tracker {
         let cfg = &st.cfg;
         self.pool.install(|| {
             if kf.has_variance {
-                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
             } else {
-                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, None);
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
             }
         });
@@ -575,7 +575,7 @@ impl State {
         to_grey(&frame.image, &mut self.grey);
         // Health check first: a bad image never reaches the flow or the map.
         let (mean, contrast) = image_health(&self.grey.data, w, h);
-        let bad = if !(mean >= self.cfg.min_mean_intensity) {
+        let bad = if mean.is_nan() || mean < self.cfg.min_mean_intensity {
             Some(LostReason::Black)
         } else if mean > self.cfg.max_mean_intensity {
             Some(LostReason::Saturated)
