@@ -170,7 +170,7 @@ impl Default for TrackerConfig {
             loop_min_interval: 5,
             pose_graph_iterations: 20,
             loop_global_ba: true,
-            global_ba_period: 0,
+            global_ba_period: 15,
             global_iterations: 6,
             upsample_sigma_px: 0.8,
             upsample_sigma_intensity: 0.08,
