@@ -234,6 +234,16 @@ struct State {
     counters: TrackerCounters,
     evicted_slot: Option<usize>,
     pending_eviction: Option<EvictedKeyframe>,
+    /// Deferred stages of the last keyframe insertion.
+    pending: Option<Pending>,
+}
+
+/// What remains of a keyframe insertion: flow/BA rounds, then loop closure / global BA.
+#[derive(Clone, Copy, Debug)]
+struct Pending {
+    slot: usize,
+    fixed: usize,
+    next_round: usize,
 }
 
 /// Inverse depth floor when loading a keyframe into BA (1/m).
@@ -543,6 +553,7 @@ impl State {
             counters: TrackerCounters::default(),
             evicted_slot: None,
             pending_eviction: None,
+            pending: None,
             flow,
             factor,
             cfg,
@@ -561,6 +572,8 @@ impl State {
         }
         self.times.frames += 1;
         self.evicted_slot = None;
+        // One deferred stage of the last keyframe insertion (map work; the frame comes after).
+        let loop_closed = self.run_pending_stage()?;
         let frames_since = frame.seq.saturating_sub(self.last_seq).max(1);
         let mut out = TrackOutput {
             t_ns: frame.t_ns,
@@ -570,7 +583,7 @@ impl State {
             anchor: None,
             new_keyframe: None,
             evicted: None,
-            loop_closed: false,
+            loop_closed,
         };
         to_grey(&frame.image, &mut self.grey);
         // Health check first: a bad image never reaches the flow or the map.
@@ -1032,6 +1045,8 @@ impl State {
     /// Inserts the current frame as a keyframe: links, flow/BA rounds, covariance, pruning,
     /// loop closure.
     fn add_keyframe(&mut self, frame: &Frame, pose: &Se3, out: &mut TrackOutput) -> Result<(), TrackError> {
+        // The previous insertion's deferred stages use the window and its new edges.
+        out.loop_closed |= self.finish_pending()?;
         let prev = self.ref_slot;
         let s = self.insert_keyframe_slot(frame, pose);
         self.splat_depth(prev, s);
@@ -1057,33 +1072,14 @@ impl State {
             }
         }
         let fixed = self.window_fixed();
-        let mean_d = |kf: &Keyframe| kf.inv_depth.data.iter().sum::<f32>() / kf.inv_depth.data.len() as f32;
-        let d0 = mean_d(&self.kfs.slots[s]);
-        let dp0 = mean_d(&self.kfs.slots[prev]);
-        let t0 = self.kfs.slots[prev].world_from_cam.inv_mul(&self.kfs.slots[s].world_from_cam).translation.vector.norm();
-        for round in 0..self.cfg.local_rounds {
-            for i in 0..self.new_edges.len() {
-                let conf = self.estimate_edge(self.new_edges[i])?;
-                let e = &self.edges.edges[self.new_edges[i]];
-                tracing::trace!(round, from = self.kfs.slots[e.from].id, to = self.kfs.slots[e.to].id, conf, "track: edge");
-            }
-            self.solve_window(self.cfg.local_iterations, fixed);
+        self.keyframe_round(s, fixed)?;
+        if self.cfg.local_rounds == 1 {
+            self.window_covariance(fixed);
         }
-        tracing::debug!(
-            kf = self.kfs.slots[s].id,
-            links,
-            d_new_before = d0,
-            d_new_after = mean_d(&self.kfs.slots[s]),
-            d_prev_before = dp0,
-            d_prev_after = mean_d(&self.kfs.slots[prev]),
-            t_before = t0,
-            t_after = self.kfs.slots[prev].world_from_cam.inv_mul(&self.kfs.slots[s].world_from_cam).translation.vector.norm(),
-            "track: keyframe inserted"
-        );
-        self.window_covariance(fixed);
         let (kp, ks) = (&self.kfs.slots[prev], &self.kfs.slots[s]);
         let (flow, _) = induced_flow(&self.low, &ks.world_from_cam, &ks.inv_depth, &kp.world_from_cam, None);
         let refined = ks.world_from_cam;
+        tracing::debug!(kf = ks.id, links, induced_flow_px = flow, "track: keyframe inserted");
         if flow < self.cfg.prune_flow_px {
             // Too close to the previous keyframe: the frame stays a plain frame.
             self.edges.remove_touching(s);
@@ -1098,21 +1094,68 @@ impl State {
         }
         self.ref_slot = s;
         self.last_pose = refined;
-        out.world_from_cam = refined;
-        out.new_keyframe = Some(self.kfs.slots[s].id);
-        out.anchor = Some(FrameAnchor { keyframe: self.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: self.kfs.slots[s].scale_correction });
         self.inserted_since_loop += 1;
         self.inserted_since_global += 1;
-        if self.cfg.loop_closure && self.try_loop_closure(s)? {
-            out.loop_closed = true;
-        } else if self.cfg.global_ba_period > 0 && self.inserted_since_global >= self.cfg.global_ba_period {
-            self.global_ba();
+        // The remaining rounds, then loop closure or the periodic global BA: one stage per
+        // following frame when deferred (latency), all now otherwise.
+        self.pending = Some(Pending { slot: s, fixed, next_round: 1 });
+        if !self.cfg.defer_rounds {
+            while self.pending.is_some() {
+                out.loop_closed |= self.run_pending_stage()?;
+            }
         }
         let kf = &self.kfs.slots[s];
         out.world_from_cam = kf.world_from_cam;
+        out.new_keyframe = Some(kf.id);
         out.anchor = Some(FrameAnchor { keyframe: kf.id, kf_from_cam: Se3::identity(), kf_scale: kf.scale_correction });
         self.last_pose = kf.world_from_cam;
         Ok(())
+    }
+
+    /// One flow/BA round of a keyframe insertion: re-estimate the new edges seeded by the
+    /// current estimate, then solve the window. The last pose follows keyframe `s` if it is
+    /// the reference.
+    fn keyframe_round(&mut self, s: usize, fixed: usize) -> Result<(), TrackError> {
+        for i in 0..self.new_edges.len() {
+            self.estimate_edge(self.new_edges[i])?;
+        }
+        let before = self.kfs.slots[s].world_from_cam;
+        self.solve_window(self.cfg.local_iterations, fixed);
+        if self.ref_slot == s {
+            self.last_pose = self.kfs.slots[s].world_from_cam * before.inv_mul(&self.last_pose);
+        }
+        Ok(())
+    }
+
+    /// Runs the next deferred stage of the last insertion; true when it closed a loop.
+    fn run_pending_stage(&mut self) -> Result<bool, TrackError> {
+        let Some(mut p) = self.pending else { return Ok(false) };
+        if p.next_round < self.cfg.local_rounds {
+            self.keyframe_round(p.slot, p.fixed)?;
+            p.next_round += 1;
+            if p.next_round == self.cfg.local_rounds {
+                self.window_covariance(p.fixed);
+            }
+            self.pending = Some(p);
+            return Ok(false);
+        }
+        self.pending = None;
+        if self.cfg.loop_closure && self.try_loop_closure(p.slot)? {
+            return Ok(true);
+        }
+        if self.cfg.global_ba_period > 0 && self.inserted_since_global >= self.cfg.global_ba_period {
+            self.global_ba();
+        }
+        Ok(false)
+    }
+
+    /// Runs every deferred stage.
+    fn finish_pending(&mut self) -> Result<bool, TrackError> {
+        let mut closed = false;
+        while self.pending.is_some() {
+            closed |= self.run_pending_stage()?;
+        }
+        Ok(closed)
     }
 
     /// Dense BA over every live keyframe with every stored edge (loops included).
