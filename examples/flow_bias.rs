@@ -1,4 +1,9 @@
-//! Flow bias on generated water: pooled flow against the flow the true depth and poses induce.
+//! Flow bias on generated water: pooled flow against the flow the true depth and poses induce,
+//! unseeded or seeded by the true flow times a gain (a scale error of the BA estimate).
+//!
+//! ```text
+//! cargo run --release --example flow_bias -- clear|coastal|turbid [GAP_FRAMES] [SEED_GAIN]
+//! ```
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::track::flow::{FlowConfig, FlowEstimator};
 use nalgebra::Vector3;
@@ -41,7 +46,7 @@ fn main() {
         let c = 8usize;
         let (mut num, mut den, mut wsum, mut err) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         let mut rows = vec![(0.0f64, 0.0f64); ph];
-        for y in 0..ph {
+        for (y, row) in rows.iter_mut().enumerate() {
             for x in 0..pw {
                 let (u, v) = (x * c + c / 2, y * c + c / 2);
                 let z = fa.depth_m.data[v * cam.width + u] as f64;
@@ -58,8 +63,8 @@ fn main() {
                 den += w * (gx * gx + gy * gy);
                 wsum += w;
                 err += w * ((ex - gx).powi(2) + (ey - gy).powi(2)).sqrt();
-                rows[y].0 += w * (ex * gx + ey * gy);
-                rows[y].1 += w * (gx * gx + gy * gy);
+                row.0 += w * (ex * gx + ey * gy);
+                row.1 += w * (gx * gx + gy * gy);
             }
         }
         let rowr: Vec<String> = rows.iter().step_by(5).map(|(n, d)| format!("{:.3}", n / d.max(1e-9))).collect();

@@ -2,7 +2,7 @@
 //! test thresholds were measured with.
 //!
 //! ```text
-//! cargo run --release --example track_sim -- WATER TRAJECTORY FRAMES WIDTH HEIGHT SPEED DEPTH_FACTOR [noloop] [threads=N]
+//! cargo run --release --example track_sim -- WATER TRAJECTORY FRAMES WIDTH HEIGHT SPEED DEPTH_FACTOR|auto [noloop] [threads=N] [prefix] [scales] [trace] [set:KEY=VALUE,...]
 //! ```
 
 #[path = "../tests/common/track_sim.rs"]
@@ -28,7 +28,7 @@ fn main() {
     let frames: usize = get(3, "60").parse().unwrap();
     let (w, h): (usize, usize) = (get(4, "160").parse().unwrap(), get(5, "120").parse().unwrap());
     let speed: f64 = get(6, "0.5").parse().unwrap();
-    let factor: usize = get(7, "4").parse().unwrap();
+    let factor: Option<usize> = get(7, "auto").parse().ok();
     let no_loop = a.iter().any(|s| s == "noloop");
     let threads = a.iter().find_map(|s| s.strip_prefix("threads=")).map(|s| s.parse().unwrap()).unwrap_or(2);
     let sim = track_sim::sim_config(water, traj, frames, w, h, speed);
@@ -58,7 +58,7 @@ fn main() {
     }
     if a.iter().any(|s| s == "trace") {
         // Scale of every live keyframe after each insertion (true depth x estimated inverse depth).
-        let f = cfg.depth_factor;
+        let f = cfg.resolved_depth_factor(w, h);
         let gt_depth: Vec<_> = (0..frames).map(|i| renderer.render(i).depth_m).collect();
         let mut tracker = duv::track::Tracker::new(renderer.camera(), &cfg, track_sim::capacity(threads)).unwrap();
         for fr in &images {
@@ -121,10 +121,49 @@ fn main() {
         }).collect();
         println!("{states}");
     }
+    if a.iter().any(|s| s == "ause") {
+        // AUSE at the depth grid (no upsampling) and at full resolution, scale from the alignment.
+        let ev = duv::eval::trajectory::evaluate_trajectory(&renderer.poses()[..frames], &r.trajectory.frames, &Default::default(), "gt", "est").unwrap();
+        let scale = ev.report.alignment.scale;
+        let f = r.tracker.depth_factor();
+        let opts = duv::eval::AuseOptions::default();
+        let (mut low_sum, mut full_sum, mut rnd_sum, mut n) = (0.0, 0.0, 0.0, 0);
+        let mut inv = duv::core::PlaneF32::new(w, h);
+        let mut var = duv::core::PlaneF32::new(w, h);
+        for k in r.tracker.keyframes() {
+            let Some(v) = k.variance else { continue };
+            let gt = renderer.render(k.seq as usize).depth_m;
+            let (mut e, mut u) = (Vec::new(), Vec::new());
+            for y in 0..k.inv_depth.height {
+                for x in 0..k.inv_depth.width {
+                    let z = gt.data[(y * f + f / 2) * gt.width + x * f + f / 2];
+                    if z > 0.0 {
+                        e.push((1.0 / z as f64 - k.inv_depth.data[y * k.inv_depth.width + x] as f64 / scale).abs());
+                        u.push(v.data[y * k.inv_depth.width + x] as f64);
+                    }
+                }
+            }
+            let Ok(lo) = duv::eval::ause::ause(&e, &u, &opts) else { continue };
+            r.tracker.upsample_keyframe(k.id, &mut inv, &mut var).unwrap();
+            let (mut e2, mut u2) = (Vec::new(), Vec::new());
+            for ((&z, &d), &vv) in gt.data.iter().zip(&inv.data).zip(&var.data) {
+                if z > 0.0 {
+                    e2.push((1.0 / z as f64 - d as f64 / scale).abs());
+                    u2.push(vv as f64);
+                }
+            }
+            let Ok(fu) = duv::eval::ause::ause(&e2, &u2, &opts) else { continue };
+            low_sum += lo.ause;
+            full_sum += fu.ause;
+            rnd_sum += fu.ause_random;
+            n += 1;
+        }
+        println!("AUSE over {n} keyframes: depth grid {:.3}, full resolution {:.3}, random {:.3}", low_sum / n as f64, full_sum / n as f64, rnd_sum / n as f64);
+    }
     // Metric scale of each keyframe's depth map (median of true depth x estimated inverse
     // depth at the depth-grid pixel centres): its drift along the run.
     if a.iter().any(|s| s == "scales") {
-        let f = cfg.depth_factor;
+        let f = cfg.resolved_depth_factor(w, h);
         let mut line = String::from("kf depth scale:");
         for k in r.tracker.keyframes() {
             let gt = renderer.render(k.seq as usize).depth_m;

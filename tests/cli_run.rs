@@ -15,7 +15,8 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
     let cfg = dir.path().join("tracker.toml");
-    // A depth grid of 1/4 suits 160x120 images (40x30, as 1/8 of 320x240).
+    // A depth grid of 1/4 suits 160x120 images (40x30, as 1/8 of 320x240; also the automatic
+    // choice): the config file is read.
     std::fs::write(&cfg, "depth_factor = 4\n").unwrap();
     let frames = 64;
     let res = duv()

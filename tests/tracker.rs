@@ -42,6 +42,15 @@ fn survey_ate_is_within_bound() {
 }
 
 #[test]
+fn periodic_global_ba_runs_and_keeps_the_survey_accurate() {
+    let (renderer, frames) = survey(80);
+    let cfg = duv::track::TrackerConfig { global_ba_period: 2, global_iterations: 3, defer_rounds: false, ..small_tracker_config() };
+    let r = run(&renderer, &frames, &cfg, capacity(2));
+    assert!(r.tracker.counters().global_bas >= 1, "{:?}", r.tracker.counters());
+    assert!(r.ate_percent < SURVEY_ATE_PERCENT, "survey ATE with global BA {:.3} %", r.ate_percent);
+}
+
+#[test]
 fn loop_closure_detects_the_loop_and_lowers_ate() {
     let renderer = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
     let frames = render_all(&renderer);

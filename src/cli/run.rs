@@ -216,7 +216,18 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
     let kf_dir = args.out.join("keyframes");
     std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
-    eprintln!("duv run: {} -> {}", source.describe(), args.out.display());
+    let grid = tracker.depth_camera();
+    eprintln!(
+        "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads)",
+        source.describe(),
+        args.out.display(),
+        grid.width,
+        grid.height,
+        tracker.depth_factor(),
+        capacity.max_keyframes,
+        capacity.ba_window,
+        capacity.threads
+    );
 
     let total = source.len();
     let mut recorder = TrajectoryRecorder::new();
@@ -271,9 +282,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     for &(id, _) in &live {
         write_keyframe_maps(&tracker, id, &kf_dir, &mut inv, &mut var)?;
     }
-    let mut states_text = String::from("# seq timestamp state\n");
-    for (f, s) in recorder.frames().iter().zip(&fin.states) {
-        let _ = writeln!(states_text, "{} {:.9} {}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"));
+    let mut states_text = String::from("# seq timestamp state tracker_ms\n");
+    for ((f, s), dt) in recorder.frames().iter().zip(&fin.states).zip(&latencies) {
+        let _ = writeln!(states_text, "{} {:.9} {} {:.3}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"), dt.as_secs_f64() * 1e3);
     }
     duv::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
 
@@ -281,14 +292,15 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let times = tracker.times();
     let counters = tracker.counters();
     let n = frames_done as f64;
-    latencies.sort();
+    let mut latencies_sorted = latencies.clone();
+    latencies_sorted.sort();
     let secs = track_time.as_secs_f64();
     println!(
         "tracked {frames_done} frames in {secs:.2} s: {:.1} frames/s (tracker only), latency median {:.1} ms, p99 {:.1} ms, max {:.1} ms",
         n / secs.max(1e-9),
-        percentile_ms(&latencies, 0.5),
-        percentile_ms(&latencies, 0.99),
-        percentile_ms(&latencies, 1.0)
+        percentile_ms(&latencies_sorted, 0.5),
+        percentile_ms(&latencies_sorted, 0.99),
+        percentile_ms(&latencies_sorted, 1.0)
     );
     println!(
         "per frame: flow {:.2} ms, BA {:.2} ms, covariance {:.2} ms, loop closure {:.2} ms ({} flow estimates)",

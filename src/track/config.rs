@@ -33,9 +33,13 @@ impl TrackerCapacity {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrackerConfig {
-    /// Input pixels per inverse-depth pixel (8: 40x30 depth for 320x240 input); also the flow's
-    /// pooled output cell.
-    pub depth_factor: usize,
+    /// Input pixels per inverse-depth pixel, also the flow's pooled output cell; absent: the
+    /// largest of 4, 8, 16, 32 that leaves at least `depth_min_pixels` depth pixels (8 at
+    /// 320x240, 16 at 640x480: a grid of about 40x30, which the pixel thresholds below are
+    /// tuned for and which keeps the BA cost independent of the input size).
+    pub depth_factor: Option<usize>,
+    /// Depth pixels the automatic `depth_factor` keeps at least.
+    pub depth_min_pixels: usize,
     /// Dense flow front end (its `output_factor` is replaced by `depth_factor`).
     pub flow: FlowConfig,
     /// Seed the keyframe-edge flows with the flow the current BA estimate induces.
@@ -61,6 +65,9 @@ pub struct TrackerConfig {
     pub local_rounds: usize,
     /// Gauss-Newton iterations per round of the local BA.
     pub local_iterations: usize,
+    /// Run the insertion's later rounds, then its loop search or global BA, one stage per
+    /// following frame (spreads the keyframe cost: lower worst-case frame latency).
+    pub defer_rounds: bool,
     /// Newest window keyframes whose poses the local BA moves; the older ones are held fixed
     /// (at least two are always fixed: gauge and scale). Fewer free poses tie new keyframes
     /// to the established map and slow monocular scale drift.
@@ -113,7 +120,9 @@ pub struct TrackerConfig {
     pub pose_graph_iterations: usize,
     /// Run a dense global BA over every keyframe after each accepted loop (after the pose graph).
     pub loop_global_ba: bool,
-    /// Run a dense global BA over every keyframe after this many insertions (0: only after loops).
+    /// Run a dense global BA over every keyframe after this many insertions (0: only after
+    /// loops). Each run costs one frame of tens of milliseconds (about 70 ms for 56 keyframes
+    /// at 320x240 with 2 iterations), which is why it is off by default.
     pub global_ba_period: usize,
     /// Gauss-Newton iterations of the dense global BA.
     pub global_iterations: usize,
@@ -121,12 +130,16 @@ pub struct TrackerConfig {
     pub upsample_sigma_px: f32,
     /// Range sigma of the joint bilateral upsampling, intensity units.
     pub upsample_sigma_intensity: f32,
+    /// Weight of the interpolation uncertainty (the weighted spread of the neighbours' inverse
+    /// depths) added to the upsampled variance.
+    pub upsample_spread_gain: f32,
 }
 
 impl Default for TrackerConfig {
     fn default() -> Self {
         TrackerConfig {
-            depth_factor: 8,
+            depth_factor: None,
+            depth_min_pixels: 1200,
             flow: FlowConfig::default(),
             seed_edges: true,
             ba: BaConfig::default(),
@@ -138,6 +151,7 @@ impl Default for TrackerConfig {
             init_iterations: 15,
             local_rounds: 2,
             local_iterations: 4,
+            defer_rounds: true,
             window_free_poses: 4,
             edges_per_keyframe: 3,
             edge_max_flow_px: 20.0,
@@ -166,6 +180,7 @@ impl Default for TrackerConfig {
             global_iterations: 6,
             upsample_sigma_px: 0.8,
             upsample_sigma_intensity: 0.08,
+            upsample_spread_gain: 1.0,
         }
     }
 }
@@ -179,11 +194,21 @@ pub struct ConfigError {
 }
 
 impl TrackerConfig {
+    /// The depth factor for `width x height` input: the configured one, or the automatic choice.
+    pub fn resolved_depth_factor(&self, width: usize, height: usize) -> usize {
+        self.depth_factor.unwrap_or_else(|| {
+            [32usize, 16, 8, 4].into_iter().find(|&f| (width / f) * (height / f) >= self.depth_min_pixels).unwrap_or(4)
+        })
+    }
+
     /// Checks the fields the tracker relies on (flow and BA are checked by their owners).
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |field, problem| Err(ConfigError { field, problem });
-        if !(1..=32).contains(&self.depth_factor) {
+        if self.depth_factor.is_some_and(|f| !(1..=32).contains(&f)) {
             return bad("depth_factor", "must be in 1..=32");
+        }
+        if self.depth_min_pixels == 0 {
+            return bad("depth_min_pixels", "must be at least 1");
         }
         if self.init_keyframes < 2 {
             return bad("init_keyframes", "must be at least 2");
@@ -235,6 +260,7 @@ impl TrackerConfig {
             ("min_mean_intensity", self.min_mean_intensity, 1.0),
             ("max_mean_intensity", self.max_mean_intensity, 1.0),
             ("min_contrast", self.min_contrast, 1.0),
+            ("upsample_spread_gain", self.upsample_spread_gain, 1e6),
             ("reloc_min_ncc", self.reloc_min_ncc, 1.0),
             ("loop_min_ncc", self.loop_min_ncc, 1.0),
             ("loop_min_confident_fraction", self.loop_min_confident_fraction, 1.0),

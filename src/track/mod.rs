@@ -19,12 +19,20 @@
 //!   each) to up to `edges_per_keyframe` window keyframes whose induced flow and overlap say
 //!   they see the same scene. Then `local_rounds` rounds of: re-estimate the new edges' flow
 //!   seeded by the current BA estimate, run `local_iterations` Gauss-Newton iterations over
-//!   the sliding window (`ba_window` newest keyframes, the oldest two fixed: gauge and scale).
+//!   the sliding window (`ba_window` newest keyframes; all but the newest `window_free_poses`
+//!   poses fixed, at least two: gauge and scale; every depth free).
 //!   The depth variance of every window keyframe follows from Eq. 4. A new keyframe whose
-//!   refined induced flow to its predecessor is under `prune_flow_px` is dropped again.
-//! - *Initialisation*: the first `init_keyframes` keyframes start from constant inverse depth
-//!   (first pose fixed, the weak depth prior sets the scale) and are refined by
-//!   `init_rounds` flow/BA rounds of `init_iterations` iterations.
+//!   refined induced flow to its predecessor is under `prune_flow_px` (after the first round)
+//!   is dropped again. With `defer_rounds` (default) only the first round runs on the
+//!   keyframe's own frame; the later rounds, then the loop search (or the periodic global
+//!   BA), run one stage at the start of each following frame, so no frame pays for all.
+//! - *Measurements*: pooled flow targets within `border_margin_px` of the image border get no
+//!   weight: the cell's pixels that left the view bias its pooled mean, and with forward
+//!   motion that bias stretched the map by a few percent per keyframe.
+//! - *Initialisation*: the first keyframe starts from constant inverse depth (the weak depth
+//!   prior sets the scale, the first pose is fixed); each of the next `init_keyframes - 1`
+//!   gets a motion-only pose, splatted depth, links, and a BA over everything collected so
+//!   far; then `init_rounds` flow/BA rounds of `init_iterations` iterations over all.
 //! - *Capacity*: `max_keyframes` slots; when full, the most redundant keyframe outside the
 //!   window (its neighbours closest by induced flow) is evicted and re-expressed relative to
 //!   its predecessor ([`EvictedKeyframe`]).

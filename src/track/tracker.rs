@@ -197,6 +197,8 @@ enum Phase {
 
 struct State {
     cfg: TrackerConfig,
+    /// Input pixels per depth pixel (resolved).
+    factor: usize,
     cap: TrackerCapacity,
     camera: PinholeCamera,
     low: PinholeCamera,
@@ -232,6 +234,16 @@ struct State {
     counters: TrackerCounters,
     evicted_slot: Option<usize>,
     pending_eviction: Option<EvictedKeyframe>,
+    /// Deferred stages of the last keyframe insertion.
+    pending: Option<Pending>,
+}
+
+/// What remains of a keyframe insertion: flow/BA rounds, then loop closure / global BA.
+#[derive(Clone, Copy, Debug)]
+struct Pending {
+    slot: usize,
+    fixed: usize,
+    next_round: usize,
 }
 
 /// Inverse depth floor when loading a keyframe into BA (1/m).
@@ -297,8 +309,13 @@ impl Tracker {
     pub fn depth_camera(&self) -> &PinholeCamera {
         &self.st.low
     }
+    /// The configuration in use (`depth_factor` resolved).
     pub fn config(&self) -> &TrackerConfig {
         &self.st.cfg
+    }
+    /// Input pixels per depth-grid pixel.
+    pub fn depth_factor(&self) -> usize {
+        self.st.factor
     }
     pub fn capacity(&self) -> TrackerCapacity {
         self.st.cap
@@ -349,9 +366,9 @@ impl Tracker {
         let cfg = &st.cfg;
         self.pool.install(|| {
             if kf.has_variance {
-                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
             } else {
-                joint_bilateral(&kf.guide, &kf.guide_low, cfg.depth_factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, &kf.inv_depth, inv_depth, None);
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
             }
         });
@@ -485,10 +502,12 @@ fn scale_translation(pose: &Se3, s: f64) -> Se3 {
 impl State {
     fn new(camera: &PinholeCamera, config: &TrackerConfig, cap: TrackerCapacity) -> Result<Self, TrackError> {
         let mut cfg = config.clone();
-        cfg.flow.output_factor = cfg.depth_factor;
+        let factor = cfg.resolved_depth_factor(camera.width, camera.height);
+        cfg.depth_factor = Some(factor);
+        cfg.flow.output_factor = factor;
         let (w, h) = (camera.width, camera.height);
         let flow = FlowEstimator::new(cfg.flow.clone(), w, h)?;
-        let low = depth_grid_camera(camera, cfg.depth_factor);
+        let low = depth_grid_camera(camera, factor);
         let (lw, lh) = (low.width, low.height);
         let kfs = KeyframeStore::new(cap.max_keyframes, || Keyframe::new(&flow, w, h, lw, lh));
         let links = 2 * cfg.edges_per_keyframe;
@@ -507,8 +526,8 @@ impl State {
             cur: flow.new_frame(),
             cur_thumb: vec![0.0; THUMB_N],
             res: flow.new_result(),
-            seed: FlowField::zeros(lw, lh, cfg.depth_factor),
-            prev_flow: FlowField::zeros(lw, lh, cfg.depth_factor),
+            seed: FlowField::zeros(lw, lh, factor),
+            prev_flow: FlowField::zeros(lw, lh, factor),
             have_prev_flow: false,
             obs_target: Image::new(lw, lh),
             obs_weight: Image::new(lw, lh),
@@ -534,7 +553,9 @@ impl State {
             counters: TrackerCounters::default(),
             evicted_slot: None,
             pending_eviction: None,
+            pending: None,
             flow,
+            factor,
             cfg,
             cap,
         })
@@ -551,6 +572,8 @@ impl State {
         }
         self.times.frames += 1;
         self.evicted_slot = None;
+        // One deferred stage of the last keyframe insertion (map work; the frame comes after).
+        let loop_closed = self.run_pending_stage()?;
         let frames_since = frame.seq.saturating_sub(self.last_seq).max(1);
         let mut out = TrackOutput {
             t_ns: frame.t_ns,
@@ -560,12 +583,12 @@ impl State {
             anchor: None,
             new_keyframe: None,
             evicted: None,
-            loop_closed: false,
+            loop_closed,
         };
         to_grey(&frame.image, &mut self.grey);
         // Health check first: a bad image never reaches the flow or the map.
         let (mean, contrast) = image_health(&self.grey.data, w, h);
-        let bad = if !(mean >= self.cfg.min_mean_intensity) {
+        let bad = if mean.is_nan() || mean < self.cfg.min_mean_intensity {
             Some(LostReason::Black)
         } else if mean > self.cfg.max_mean_intensity {
             Some(LostReason::Saturated)
@@ -664,7 +687,7 @@ impl State {
         self.prev_flow.dx.data.copy_from_slice(&self.res.pooled.flow.dx.data);
         self.prev_flow.dy.data.copy_from_slice(&self.res.pooled.flow.dy.data);
         self.have_prev_flow = true;
-        let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if mean_flow <= self.cfg.keyframe_flow_px {
             return Ok(out);
         }
@@ -727,7 +750,7 @@ impl State {
         for (g, &v) in kf.guide.iter_mut().zip(&self.grey.data) {
             *g = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
         }
-        block_means(&self.grey.data, w, self.cfg.depth_factor, &mut kf.guide_low);
+        block_means(&self.grey.data, w, self.factor, &mut kf.guide_low);
         thumbnail(&self.grey.data, w, h, &mut kf.thumb);
         self.counters.keyframes_inserted += 1;
         self.times.keyframes += 1;
@@ -940,7 +963,7 @@ impl State {
         out.state = TrackingState::Tracking;
         out.world_from_cam = pose;
         out.anchor = Some(self.anchor_to(r, &pose));
-        let measured = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let measured = self.res.stats.mean_flow_input_px / self.factor as f32;
         let (induced, in_view) = {
             let kf = &self.kfs.slots[r];
             induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &pose, None)
@@ -1022,6 +1045,8 @@ impl State {
     /// Inserts the current frame as a keyframe: links, flow/BA rounds, covariance, pruning,
     /// loop closure.
     fn add_keyframe(&mut self, frame: &Frame, pose: &Se3, out: &mut TrackOutput) -> Result<(), TrackError> {
+        // The previous insertion's deferred stages use the window and its new edges.
+        out.loop_closed |= self.finish_pending()?;
         let prev = self.ref_slot;
         let s = self.insert_keyframe_slot(frame, pose);
         self.splat_depth(prev, s);
@@ -1047,33 +1072,14 @@ impl State {
             }
         }
         let fixed = self.window_fixed();
-        let mean_d = |kf: &Keyframe| kf.inv_depth.data.iter().sum::<f32>() / kf.inv_depth.data.len() as f32;
-        let d0 = mean_d(&self.kfs.slots[s]);
-        let dp0 = mean_d(&self.kfs.slots[prev]);
-        let t0 = self.kfs.slots[prev].world_from_cam.inv_mul(&self.kfs.slots[s].world_from_cam).translation.vector.norm();
-        for round in 0..self.cfg.local_rounds {
-            for i in 0..self.new_edges.len() {
-                let conf = self.estimate_edge(self.new_edges[i])?;
-                let e = &self.edges.edges[self.new_edges[i]];
-                tracing::trace!(round, from = self.kfs.slots[e.from].id, to = self.kfs.slots[e.to].id, conf, "track: edge");
-            }
-            self.solve_window(self.cfg.local_iterations, fixed);
+        self.keyframe_round(s, fixed)?;
+        if self.cfg.local_rounds == 1 {
+            self.window_covariance(fixed);
         }
-        tracing::debug!(
-            kf = self.kfs.slots[s].id,
-            links,
-            d_new_before = d0,
-            d_new_after = mean_d(&self.kfs.slots[s]),
-            d_prev_before = dp0,
-            d_prev_after = mean_d(&self.kfs.slots[prev]),
-            t_before = t0,
-            t_after = self.kfs.slots[prev].world_from_cam.inv_mul(&self.kfs.slots[s].world_from_cam).translation.vector.norm(),
-            "track: keyframe inserted"
-        );
-        self.window_covariance(fixed);
         let (kp, ks) = (&self.kfs.slots[prev], &self.kfs.slots[s]);
         let (flow, _) = induced_flow(&self.low, &ks.world_from_cam, &ks.inv_depth, &kp.world_from_cam, None);
         let refined = ks.world_from_cam;
+        tracing::debug!(kf = ks.id, links, induced_flow_px = flow, "track: keyframe inserted");
         if flow < self.cfg.prune_flow_px {
             // Too close to the previous keyframe: the frame stays a plain frame.
             self.edges.remove_touching(s);
@@ -1088,21 +1094,68 @@ impl State {
         }
         self.ref_slot = s;
         self.last_pose = refined;
-        out.world_from_cam = refined;
-        out.new_keyframe = Some(self.kfs.slots[s].id);
-        out.anchor = Some(FrameAnchor { keyframe: self.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: self.kfs.slots[s].scale_correction });
         self.inserted_since_loop += 1;
         self.inserted_since_global += 1;
-        if self.cfg.loop_closure && self.try_loop_closure(s)? {
-            out.loop_closed = true;
-        } else if self.cfg.global_ba_period > 0 && self.inserted_since_global >= self.cfg.global_ba_period {
-            self.global_ba();
+        // The remaining rounds, then loop closure or the periodic global BA: one stage per
+        // following frame when deferred (latency), all now otherwise.
+        self.pending = Some(Pending { slot: s, fixed, next_round: 1 });
+        if !self.cfg.defer_rounds {
+            while self.pending.is_some() {
+                out.loop_closed |= self.run_pending_stage()?;
+            }
         }
         let kf = &self.kfs.slots[s];
         out.world_from_cam = kf.world_from_cam;
+        out.new_keyframe = Some(kf.id);
         out.anchor = Some(FrameAnchor { keyframe: kf.id, kf_from_cam: Se3::identity(), kf_scale: kf.scale_correction });
         self.last_pose = kf.world_from_cam;
         Ok(())
+    }
+
+    /// One flow/BA round of a keyframe insertion: re-estimate the new edges seeded by the
+    /// current estimate, then solve the window. The last pose follows keyframe `s` if it is
+    /// the reference.
+    fn keyframe_round(&mut self, s: usize, fixed: usize) -> Result<(), TrackError> {
+        for i in 0..self.new_edges.len() {
+            self.estimate_edge(self.new_edges[i])?;
+        }
+        let before = self.kfs.slots[s].world_from_cam;
+        self.solve_window(self.cfg.local_iterations, fixed);
+        if self.ref_slot == s {
+            self.last_pose = self.kfs.slots[s].world_from_cam * before.inv_mul(&self.last_pose);
+        }
+        Ok(())
+    }
+
+    /// Runs the next deferred stage of the last insertion; true when it closed a loop.
+    fn run_pending_stage(&mut self) -> Result<bool, TrackError> {
+        let Some(mut p) = self.pending else { return Ok(false) };
+        if p.next_round < self.cfg.local_rounds {
+            self.keyframe_round(p.slot, p.fixed)?;
+            p.next_round += 1;
+            if p.next_round == self.cfg.local_rounds {
+                self.window_covariance(p.fixed);
+            }
+            self.pending = Some(p);
+            return Ok(false);
+        }
+        self.pending = None;
+        if self.cfg.loop_closure && self.try_loop_closure(p.slot)? {
+            return Ok(true);
+        }
+        if self.cfg.global_ba_period > 0 && self.inserted_since_global >= self.cfg.global_ba_period {
+            self.global_ba();
+        }
+        Ok(false)
+    }
+
+    /// Runs every deferred stage.
+    fn finish_pending(&mut self) -> Result<bool, TrackError> {
+        let mut closed = false;
+        while self.pending.is_some() {
+            closed |= self.run_pending_stage()?;
+        }
+        Ok(closed)
     }
 
     /// Dense BA over every live keyframe with every stored edge (loops included).
@@ -1201,8 +1254,11 @@ impl State {
             return Ok(false);
         }
         let t0 = Instant::now();
+        let (flow0, ba0) = (self.times.flow, self.times.ba);
         let result = self.loop_closure_inner(s, n);
-        self.times.loop_closure += t0.elapsed();
+        // Exclusive of the flow and BA it ran (counted in those stages).
+        let inner = (self.times.flow - flow0) + (self.times.ba - ba0);
+        self.times.loop_closure += t0.elapsed().saturating_sub(inner);
         result
     }
 
@@ -1221,7 +1277,7 @@ impl State {
             self.times.flow += t0.elapsed();
             self.times.flow_estimates += 1;
             let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
-            let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+            let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
             if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
                 continue;
             }
@@ -1338,7 +1394,7 @@ impl State {
     fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
         self.flow_ref_to_current(c, predicted.is_some())?;
         let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
-        let mean_flow = self.res.stats.mean_flow_input_px / self.cfg.depth_factor as f32;
+        let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
             return Ok(None);
         }

@@ -91,7 +91,7 @@ impl TrajectoryRecorder {
         };
         for ev in chain.iter().rev() {
             let ratio = scale / ev.anchor.kf_scale;
-            pose = pose * scale_translation(&ev.anchor.kf_from_cam, ratio);
+            pose *= scale_translation(&ev.anchor.kf_from_cam, ratio);
             scale = ev.scale_correction * ratio;
         }
         Some((pose, scale))

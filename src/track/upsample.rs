@@ -10,7 +10,9 @@ use rayon::prelude::*;
 
 /// Upsamples `low` (one plane, and optionally a second with the same weights) at `cell` input
 /// pixels per low pixel into `out` / `out2` (full size), with `guide` (full-resolution 8-bit
-/// grey) and `guide_low` (block means at the low grid, [0, 1]). Allocation-free.
+/// grey) and `guide_low` (block means at the low grid, [0, 1]). When the second plane is the
+/// first's variance, `spread_gain` times the weighted spread of the first plane's neighbours
+/// is added to it (interpolation uncertainty). Allocation-free.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn joint_bilateral(
     guide: &[u8],
@@ -18,6 +20,7 @@ pub(crate) fn joint_bilateral(
     cell: usize,
     sigma_px: f32,
     sigma_intensity: f32,
+    spread_gain: f32,
     low: &PlaneF32,
     out: &mut PlaneF32,
     second: Option<(&PlaneF32, &mut PlaneF32)>,
@@ -37,24 +40,30 @@ pub(crate) fn joint_bilateral(
             let x0 = (lx.floor() as isize - 1).clamp(0, lw as isize - 1) as usize;
             let x1 = (lx.floor() as isize + 2).clamp(0, lw as isize - 1) as usize;
             let g = guide[y * w + x] as f32 / 255.0;
-            let (mut wsum, mut a1, mut a2) = (0.0f32, 0.0f32, 0.0f32);
+            let (mut wsum, mut a1, mut s1, mut a2) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
             for qy in y0..=y1 {
                 for qx in x0..=x1 {
                     let (dx, dy) = (qx as f32 - lx, qy as f32 - ly);
                     let q = qy * lw + qx;
                     let dg = guide_low.data[q] - g;
                     let wgt = ((dx * dx + dy * dy) * inv_s + dg * dg * inv_r).exp();
+                    let v = low.data[q];
                     wsum += wgt;
-                    a1 += wgt * low.data[q];
+                    a1 += wgt * v;
+                    s1 += wgt * v * v;
                     if let Some(l2) = low2 {
                         a2 += wgt * l2.data[q];
                     }
                 }
             }
             let inv = if wsum > 0.0 { 1.0 / wsum } else { 0.0 };
-            row1[x] = a1 * inv;
+            let mean = a1 * inv;
+            row1[x] = mean;
             if let Some(r2) = row2.as_deref_mut() {
-                r2[x] = a2 * inv;
+                // The second plane is the variance of the first: add the interpolation's own
+                // uncertainty, the weighted spread of the neighbours it mixed.
+                let spread = (s1 * inv - mean * mean).max(0.0);
+                r2[x] = (a2 * inv + spread_gain * spread).min(f32::MAX);
             }
         }
     };

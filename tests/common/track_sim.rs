@@ -17,9 +17,10 @@ pub fn sim_config(water: WaterPreset, trajectory: TrajectoryKind, frames: usize,
     cfg
 }
 
-/// Tracker parameters for small test images: a depth grid of 1/4 (40x30 at 160x120).
+/// Tracker parameters for small test images: the defaults (the automatic depth factor gives
+/// a grid of 1/4, 40x30 at 160x120).
 pub fn small_tracker_config() -> TrackerConfig {
-    TrackerConfig { depth_factor: 4, ..TrackerConfig::default() }
+    TrackerConfig::default()
 }
 
 pub fn capacity(threads: usize) -> TrackerCapacity {
