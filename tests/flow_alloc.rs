@@ -7,34 +7,10 @@
 use duv::core::PlaneF32;
 use duv::track::flow::synth::{self, Water};
 use duv::track::flow::{FeatureKind, FlowConfig, FlowEstimator, FlowField};
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-
-struct Counting;
-
-static COUNTING: AtomicBool = AtomicBool::new(false);
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-
-unsafe impl GlobalAlloc for Counting {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        if COUNTING.load(Ordering::Relaxed) {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        if COUNTING.load(Ordering::Relaxed) {
-            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-        }
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-}
+use duv::core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
-static GLOBAL: Counting = Counting;
+static GLOBAL: CountingAllocator = CountingAllocator;
 
 /// Frames per measured loop. Each runs dozens of parallel loops: together far more than the
 /// 63 after which rayon's injector would allocate, were the calls made from outside the pool.
@@ -55,11 +31,7 @@ fn frames(w: usize, h: usize) -> Vec<PlaneF32> {
 
 /// Allocations made by `f` on any thread.
 fn count(f: impl FnOnce()) -> usize {
-    ALLOCATIONS.store(0, Ordering::SeqCst);
-    COUNTING.store(true, Ordering::SeqCst);
-    f();
-    COUNTING.store(false, Ordering::SeqCst);
-    ALLOCATIONS.swap(0, Ordering::SeqCst)
+    alloc::count_allocations(CountScope::AllThreads, f)
 }
 
 fn no_allocation_after_warm_up(cfg: FlowConfig, w: usize, h: usize) {

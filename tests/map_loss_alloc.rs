@@ -7,49 +7,12 @@
 //! by its start handler) as well as the calling thread; counting is armed only inside the pool
 //! job, after warm-up, so the one-off job injection into the pool is not counted.
 
-use std::alloc::{GlobalAlloc, Layout, System};
-use std::cell::Cell;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-
 use duv::core::rng::Rng;
 use duv::core::{Image, PinholeCamera, Se3};
 use duv::map::adam::{AdamGroup, AdamGroupConfig};
 use duv::map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
 use duv::map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace};
-
-/// Counts allocations (and reallocations) made on marked threads while armed.
-struct CountingAllocator;
-
-static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
-static ARMED: AtomicBool = AtomicBool::new(false);
-
-thread_local! {
-    static MARKED: Cell<bool> = const { Cell::new(false) };
-}
-
-fn note_allocation() {
-    if ARMED.load(Ordering::Relaxed) && MARKED.with(|c| c.get()) {
-        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
-    }
-}
-
-unsafe impl GlobalAlloc for CountingAllocator {
-    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
-        note_allocation();
-        unsafe { System.alloc(layout) }
-    }
-    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
-        note_allocation();
-        unsafe { System.alloc_zeroed(layout) }
-    }
-    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
-        note_allocation();
-        unsafe { System.realloc(ptr, layout, new_size) }
-    }
-    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
-        unsafe { System.dealloc(ptr, layout) }
-    }
-}
+use duv::core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
@@ -82,7 +45,7 @@ fn a_mapping_iteration_allocates_nothing_after_warm_up() {
     let mut grads = vec![0.0f32; net.param_count()];
     let config = LossConfig::default();
 
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).start_handler(|_| MARKED.with(|c| c.set(true))).build().unwrap();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).start_handler(|_| alloc::mark_current_thread(true)).build().unwrap();
     let mut iteration = || {
         net.forward(&cam, &pose, &mut planes).unwrap();
         let rendered = RenderedView { color: &color, depth: &depth, depth_variance: &var, alpha: &alpha, medium: Some(&planes) };
@@ -95,24 +58,21 @@ fn a_mapping_iteration_allocates_nothing_after_warm_up() {
     };
     let counted = pool.install(|| {
         iteration();
-        MARKED.with(|c| c.set(true));
-        ARMED.store(true, Ordering::SeqCst);
-        let before = ALLOCATIONS.load(Ordering::SeqCst);
+        alloc::mark_current_thread(true);
         let mut totals = [0.0; 3];
-        for t in totals.iter_mut() {
-            *t = iteration();
-        }
-        let after = ALLOCATIONS.load(Ordering::SeqCst);
-        ARMED.store(false, Ordering::SeqCst);
+        let counted = alloc::count_allocations(CountScope::MarkedThreads, || {
+            for t in totals.iter_mut() {
+                *t = iteration();
+            }
+        });
         assert!(totals.iter().all(|t| t.is_finite()));
         // Self-check: allocations inside parallel jobs are seen.
         use rayon::prelude::*;
-        ARMED.store(true, Ordering::SeqCst);
-        let probe = ALLOCATIONS.load(Ordering::SeqCst);
-        (0..64usize).into_par_iter().for_each(|i| drop(std::hint::black_box(vec![0u8; i + 1])));
-        ARMED.store(false, Ordering::SeqCst);
-        assert!(ALLOCATIONS.load(Ordering::SeqCst) - probe >= 64, "the counting allocator misses parallel jobs");
-        after - before
+        let probe = alloc::count_allocations(CountScope::MarkedThreads, || {
+            (0..64usize).into_par_iter().for_each(|i| drop(std::hint::black_box(vec![0u8; i + 1])));
+        });
+        assert!(probe >= 64, "the counting allocator misses parallel jobs");
+        counted
     });
     assert_eq!(counted, 0, "{counted} allocations in 3 mapping iterations after warm-up");
 }

@@ -1,6 +1,7 @@
 //! Plain types every stage shares: time, frames, the camera model, poses, ground-truth
 //! records. Nothing here depends on any stage.
 
+pub mod alloc;
 pub mod camera;
 pub mod frame;
 pub mod keyframe;

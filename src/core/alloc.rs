@@ -1,0 +1,137 @@
+//! A counting global allocator: allocation counts for the zero-allocation tests (house habit 7)
+//! and live / peak heap bytes for the host-memory budget.
+//!
+//! A binary opts in with
+//! ```ignore
+//! #[global_allocator]
+//! static GLOBAL: duv::core::alloc::CountingAllocator = duv::core::alloc::CountingAllocator;
+//! ```
+//! Without that, [`is_installed`] is false and the byte figures stay zero.
+//!
+//! Counting is armed only inside [`count_allocations`]; the byte figures are always kept.
+//! Allocations are counted on every thread ([`CountScope::AllThreads`], so rayon workers are
+//! seen) or only on threads that called [`mark_current_thread`] ([`CountScope::MarkedThreads`],
+//! for tests whose test harness runs other tests beside them).
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicUsize, Ordering};
+
+/// The system allocator with counters in front.
+pub struct CountingAllocator;
+
+static INSTALLED: AtomicBool = AtomicBool::new(false);
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+static LIVE_BYTES: AtomicUsize = AtomicUsize::new(0);
+static PEAK_BYTES: AtomicUsize = AtomicUsize::new(0);
+/// 0: not counting, 1: all threads, 2: marked threads only.
+static ARMED: AtomicU8 = AtomicU8::new(0);
+
+thread_local! {
+    static MARKED: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Which threads [`count_allocations`] sees.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CountScope {
+    AllThreads,
+    MarkedThreads,
+}
+
+#[inline]
+fn note_allocation(bytes: usize) {
+    match ARMED.load(Ordering::Relaxed) {
+        0 => {}
+        1 => {
+            ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        }
+        _ => {
+            if MARKED.try_with(|c| c.get()).unwrap_or(false) {
+                ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+    let live = LIVE_BYTES.fetch_add(bytes, Ordering::Relaxed) + bytes;
+    PEAK_BYTES.fetch_max(live, Ordering::Relaxed);
+}
+
+#[inline]
+fn note_free(bytes: usize) {
+    LIVE_BYTES.fetch_sub(bytes, Ordering::Relaxed);
+}
+
+// SAFETY: every call forwards to `System` with the caller's arguments unchanged; the counters
+// are atomics and thread-locals with const initialisers, which never allocate.
+unsafe impl GlobalAlloc for CountingAllocator {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        INSTALLED.store(true, Ordering::Relaxed);
+        let p = unsafe { System.alloc(layout) };
+        if !p.is_null() {
+            note_allocation(layout.size());
+        }
+        p
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        INSTALLED.store(true, Ordering::Relaxed);
+        let p = unsafe { System.alloc_zeroed(layout) };
+        if !p.is_null() {
+            note_allocation(layout.size());
+        }
+        p
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        let p = unsafe { System.realloc(ptr, layout, new_size) };
+        if !p.is_null() {
+            note_free(layout.size());
+            note_allocation(new_size);
+        }
+        p
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) };
+        note_free(layout.size());
+    }
+}
+
+/// Whether this binary's global allocator is [`CountingAllocator`].
+pub fn is_installed() -> bool {
+    INSTALLED.load(Ordering::Relaxed)
+}
+
+/// Marks (or unmarks) the calling thread for [`CountScope::MarkedThreads`].
+pub fn mark_current_thread(on: bool) {
+    MARKED.with(|c| c.set(on));
+}
+
+/// Allocations (and reallocations) made while `f` runs, on the threads `scope` names.
+/// Not reentrant: one counting section at a time.
+pub fn count_allocations(scope: CountScope, f: impl FnOnce()) -> usize {
+    let before = ALLOCATIONS.load(Ordering::SeqCst);
+    ARMED.store(if scope == CountScope::AllThreads { 1 } else { 2 }, Ordering::SeqCst);
+    f();
+    ARMED.store(0, Ordering::SeqCst);
+    ALLOCATIONS.load(Ordering::SeqCst) - before
+}
+
+/// Allocations made by `f` on the calling thread only.
+pub fn count_allocations_on_this_thread(f: impl FnOnce()) -> usize {
+    let was = MARKED.with(|c| c.replace(true));
+    let n = count_allocations(CountScope::MarkedThreads, f);
+    MARKED.with(|c| c.set(was));
+    n
+}
+
+/// Heap bytes allocated through the counting allocator and not yet freed.
+pub fn live_bytes() -> usize {
+    LIVE_BYTES.load(Ordering::Relaxed)
+}
+
+/// The most [`live_bytes`] seen since start or the last [`reset_peak_bytes`].
+pub fn peak_bytes() -> usize {
+    PEAK_BYTES.load(Ordering::Relaxed)
+}
+
+/// Starts a new peak window at the current live bytes.
+pub fn reset_peak_bytes() {
+    PEAK_BYTES.store(LIVE_BYTES.load(Ordering::Relaxed), Ordering::Relaxed);
+}
