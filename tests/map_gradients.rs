@@ -9,7 +9,7 @@ use duv::core::{Image, PinholeCamera, Se3};
 use duv::eval::image::{ssim as eval_ssim, SsimConvention};
 use duv::map::adam::{AdamGroup, AdamGroupConfig};
 use duv::map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
-use duv::map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
+use duv::map::medium::{MediumConfig, MediumGrid, MediumNet, MediumPlanes, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
 /// Largest accepted relative error on a non-negligible gradient component.
@@ -304,4 +304,104 @@ fn ssim_window_is_the_evaluators() {
     let ours = duv::map::loss::ssim_kernel();
     let theirs = duv::eval::image::gaussian_kernel();
     assert_eq!(ours, theirs);
+}
+
+/// Largest accepted difference between the grid-interpolated medium (1/8 grid) and the exact
+/// per-pixel network, as a fraction of each channel's value, at 320x240 and 70 degrees.
+const GRID_REL_TOL: f64 = 5e-3;
+
+#[test]
+fn medium_grid_gradients_match_central_differences() {
+    // 23x29 on a 3-pixel grid: 9x11 nodes, two node-row bands (8 + 3), the last node column
+    // and row past the border; and the same view on an 8-pixel grid (4x5 nodes).
+    for step in [3usize, 8] {
+        let (w, h) = (23, 29);
+        let (cam, pose) = test_camera(w, h);
+        let config = MediumConfig { head_init_scale: 1.0, seed: 7, ..MediumConfig::default() };
+        let net = MediumNet::<f64>::new(&config).unwrap();
+        let mut rng = Rng::new(9 + step as u64);
+        let upstream = random_image::<MEDIUM_CHANNELS>(w, h, -1.0, 1.0, &mut rng);
+        let mut ws = MediumWorkspace::with_grid(&net, w, h, step);
+        let grid = ws.grid().unwrap();
+        assert_eq!(grid, MediumGrid::new(w, h, step));
+        assert!((grid.nodes_x - 1) * step >= w - 1 && (grid.nodes_y - 1) * step >= h - 1);
+        let mut grads = vec![0.0; net.param_count()];
+        ws.backward(&net, &cam, &pose, &upstream, &mut grads).unwrap();
+        let lay = net.layout();
+        let sample: Vec<usize> = (lay.w1..lay.b1)
+            .step_by(19)
+            .chain(lay.b1..lay.w2)
+            .chain((lay.w2..lay.b2).step_by(31))
+            .chain((lay.w_heads..lay.b_heads).step_by(5))
+            .chain(lay.b_heads..lay.len)
+            .collect();
+        let mut probe = net.clone();
+        let mut planes = MediumPlanes::<f64>::new(w, h);
+        let worst = check_gradient(&format!("medium grid step {step}"), net.params(), &grads, sample.into_iter(), |p| {
+            probe.params_mut().copy_from_slice(p);
+            ws.forward(&probe, &cam, &pose, &mut planes).unwrap();
+            planes.data.iter().zip(&upstream.data).map(|(a, b)| a * b).sum()
+        });
+        println!("medium grid step {step}: max relative error {worst:.2e}");
+    }
+}
+
+#[test]
+fn medium_grid_interpolation_is_exact_at_nodes_and_linear_between() {
+    // The interpolated planes equal the network at every node pixel and are the bilinear mix
+    // of the four nodes around any other pixel (checked against the per-pixel network at the nodes).
+    let (w, h, step) = (41, 26, 8);
+    let (cam, pose) = test_camera(w, h);
+    let net = MediumNet::<f64>::new(&MediumConfig { head_init_scale: 1.0, seed: 3, ..MediumConfig::default() }).unwrap();
+    let mut exact = MediumPlanes::<f64>::new(w, h);
+    net.forward(&cam, &pose, &mut exact).unwrap();
+    let mut ws = MediumWorkspace::with_grid(&net, w, h, step);
+    let mut interp = MediumPlanes::<f64>::new(w, h);
+    ws.forward(&net, &cam, &pose, &mut interp).unwrap();
+    for y in (0..h).step_by(step) {
+        for x in (0..w).step_by(step) {
+            for k in 0..MEDIUM_CHANNELS {
+                let i = (y * w + x) * MEDIUM_CHANNELS + k;
+                assert!((interp.data[i] - exact.data[i]).abs() < 1e-12, "node ({x}, {y}) channel {k}");
+            }
+        }
+    }
+    // Pixel (13, 11) lies in the cell of nodes (8, 8)-(16, 16) at fractions 5/8 and 3/8.
+    let (fx, fy) = (5.0 / 8.0, 3.0 / 8.0);
+    let at = |x: usize, y: usize, k: usize| exact.data[(y * w + x) * MEDIUM_CHANNELS + k];
+    for k in 0..MEDIUM_CHANNELS {
+        let want = (1.0 - fx) * (1.0 - fy) * at(8, 8, k) + fx * (1.0 - fy) * at(16, 8, k) + (1.0 - fx) * fy * at(8, 16, k) + fx * fy * at(16, 16, k);
+        assert!((interp.data[(11 * w + 13) * MEDIUM_CHANNELS + k] - want).abs() < 1e-12, "channel {k}");
+    }
+    // The wrong view size is refused.
+    let small = PinholeCamera::from_hfov(70.0, w - 1, h).unwrap();
+    let mut wrong = MediumPlanes::<f64>::new(w - 1, h);
+    assert!(ws.forward(&net, &small, &pose, &mut wrong).is_err());
+}
+
+#[test]
+fn medium_grid_follows_the_per_pixel_network() {
+    // A network with full-size random heads (more directional variation than a trained
+    // water), 320x240 at 70 degrees, 1/8 grid.
+    let (w, h) = (320, 240);
+    let (cam, pose) = test_camera(w, h);
+    let net = MediumNet::<f32>::new(&MediumConfig { head_init_scale: 1.0, seed: 5, ..MediumConfig::default() }).unwrap();
+    let mut exact = MediumPlanes::<f32>::new(w, h);
+    net.forward(&cam, &pose, &mut exact).unwrap();
+    let mut ws = MediumWorkspace::with_grid(&net, w, h, 8);
+    let mut interp = MediumPlanes::<f32>::new(w, h);
+    ws.forward(&net, &cam, &pose, &mut interp).unwrap();
+    let mut worst = 0.0f64;
+    let mut spread = [(f64::INFINITY, f64::NEG_INFINITY); MEDIUM_CHANNELS];
+    for (a, b) in exact.data.chunks_exact(MEDIUM_CHANNELS).zip(interp.data.chunks_exact(MEDIUM_CHANNELS)) {
+        for k in 0..MEDIUM_CHANNELS {
+            worst = worst.max(((a[k] - b[k]) as f64).abs() / (a[k] as f64).abs());
+            spread[k] = (spread[k].0.min(a[k] as f64), spread[k].1.max(a[k] as f64));
+        }
+    }
+    // The test network must vary over the view, or the comparison says nothing.
+    let max_spread = spread.iter().map(|(lo, hi)| (hi - lo) / hi).fold(0.0, f64::max);
+    println!("medium grid 1/8 vs per pixel: max relative difference {worst:.2e}; largest channel spread over the view {max_spread:.3}");
+    assert!(max_spread > 0.05, "test network is nearly constant over the view: {spread:?}");
+    assert!(worst < GRID_REL_TOL, "grid medium differs by {worst:e} relative");
 }

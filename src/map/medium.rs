@@ -38,10 +38,16 @@
 //! [`BAND_ROWS`] rows into its own slot of the workspace; the bands are then added in a fixed
 //! order, so the result does not depend on the thread count.
 //!
-//! Optimisation left for later: the input depends on the direction only, and the directions of
-//! neighbouring pixels differ by a fraction of a degree, so evaluating the MLP on a coarse grid
-//! (e.g. every 8th pixel) and interpolating bilinearly would cut the cost ~60x at a small,
-//! smooth error. This reference stays exact per pixel.
+//! # Coarse direction grid
+//! The input depends on the direction only, and the directions of neighbouring pixels differ
+//! by a fraction of a degree, so a workspace built with [`MediumWorkspace::with_grid`]
+//! evaluates the MLP only on a [`MediumGrid`] of nodes every `step` pixels (node `(i, j)` at
+//! pixel `(i step, j step)`, the last node at or past the image border) and interpolates the
+//! nine outputs bilinearly in between ([`MediumWorkspace::forward`]). Its backward pass is the
+//! exact adjoint of that interpolation (a separable scatter, rows then columns, into the node
+//! gradients) followed by the MLP backward on the nodes only. `step = 1` is the exact
+//! per-pixel network ([`MediumNet::forward`], the oracle); the mapper's default is
+//! [`MediumConfig::grid_step_px`] = 8, about 1/60 of the MLP evaluations.
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 use rayon::prelude::*;
@@ -113,6 +119,14 @@ pub struct MediumConfig {
     /// Factor on the Glorot range of the heads' initial weights (small: the first medium is
     /// the biases' water, nearly the same in every direction); in [0, 1].
     pub head_init_scale: f64,
+    /// The mapper evaluates the network on a grid of directions every this many pixels and
+    /// interpolates bilinearly (1 = every pixel, exact); 1..=64.
+    #[serde(default = "default_grid_step_px")]
+    pub grid_step_px: usize,
+}
+
+fn default_grid_step_px() -> usize {
+    8
 }
 
 impl Default for MediumConfig {
@@ -125,6 +139,7 @@ impl Default for MediumConfig {
             init_sigma_att: [0.3, 0.15, 0.1],
             init_sigma_bs: [0.25, 0.15, 0.1],
             head_init_scale: 0.01,
+            grid_step_px: default_grid_step_px(),
         }
     }
 }
@@ -150,6 +165,9 @@ impl MediumConfig {
         }
         if !(0.0..=1.0).contains(&self.head_init_scale) {
             return bad("head_init_scale", self.head_init_scale, "must be in [0, 1]");
+        }
+        if !(1..=64).contains(&self.grid_step_px) {
+            return bad("grid_step_px", self.grid_step_px as f64, "must be in 1..=64");
         }
         Ok(())
     }
@@ -321,17 +339,124 @@ pub struct MediumWorkspace<T: Real = f32> {
     max_height: usize,
     param_count: usize,
     band_grads: Vec<T>,
+    grid: Option<GridBuffers<T>>,
+}
+
+/// Where the network is evaluated for a `width x height` view: nodes every `step` pixels,
+/// `nodes_x x nodes_y` of them, the last row and column at or past the image border.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MediumGrid {
+    pub width: usize,
+    pub height: usize,
+    pub step: usize,
+    pub nodes_x: usize,
+    pub nodes_y: usize,
+}
+
+impl MediumGrid {
+    /// The grid of a `width x height` view (`step` >= 1; sizes >= 1).
+    pub fn new(width: usize, height: usize, step: usize) -> Self {
+        let step = step.max(1);
+        MediumGrid { width, height, step, nodes_x: (width.max(1) - 1).div_ceil(step) + 1, nodes_y: (height.max(1) - 1).div_ceil(step) + 1 }
+    }
+
+    /// MLP evaluations per view.
+    pub fn nodes(&self) -> usize {
+        self.nodes_x * self.nodes_y
+    }
+
+    /// The lower node of pixel coordinate `p` and the weight of the upper one.
+    #[inline]
+    fn cell<T: Real>(&self, p: usize, nodes: usize) -> (usize, usize, T) {
+        let i0 = p / self.step;
+        let frac = (p % self.step) as f64 / self.step as f64;
+        (i0, (i0 + 1).min(nodes - 1), T::from_f64(frac))
+    }
+
+    /// Interpolation weight of node `i` at pixel coordinate `p` (0 outside its two cells).
+    #[inline]
+    fn weight<T: Real>(&self, p: usize, i: usize) -> T {
+        let d = (p as f64 - (i * self.step) as f64).abs() / self.step as f64;
+        T::from_f64((1.0 - d).max(0.0))
+    }
+}
+
+/// The node buffers of a grid workspace.
+#[derive(Clone, Debug)]
+struct GridBuffers<T> {
+    grid: MediumGrid,
+    /// Network outputs per node, [`MediumPlanes`] layout at the grid size.
+    nodes: Vec<T>,
+    /// dL/d node outputs.
+    d_nodes: Vec<T>,
+    /// Row pass of the adjoint: per image row, per node column.
+    d_rows: Vec<T>,
 }
 
 impl<T: Real> MediumWorkspace<T> {
-    /// A workspace for `net` and images of up to `max_height` rows.
+    /// A workspace for `net` and images of up to `max_height` rows, exact per pixel.
     pub fn new(net: &MediumNet<T>, max_height: usize) -> Self {
         let bands = max_height.div_ceil(BAND_ROWS);
-        MediumWorkspace { max_height, param_count: net.param_count(), band_grads: vec![T::ZERO; bands * net.param_count()] }
+        MediumWorkspace { max_height, param_count: net.param_count(), band_grads: vec![T::ZERO; bands * net.param_count()], grid: None }
+    }
+
+    /// A workspace for `width x height` views that evaluates `net` every `step` pixels and
+    /// interpolates bilinearly (`step` 1: the same as [`MediumWorkspace::new`]).
+    pub fn with_grid(net: &MediumNet<T>, width: usize, height: usize, step: usize) -> Self {
+        if step <= 1 {
+            return Self::new(net, height);
+        }
+        let grid = MediumGrid::new(width, height, step);
+        let n = grid.nodes() * MEDIUM_CHANNELS;
+        let bands = grid.nodes_y.div_ceil(BAND_ROWS);
+        MediumWorkspace {
+            max_height: height,
+            param_count: net.param_count(),
+            band_grads: vec![T::ZERO; bands * net.param_count()],
+            grid: Some(GridBuffers { grid, nodes: vec![T::ZERO; n], d_nodes: vec![T::ZERO; n], d_rows: vec![T::ZERO; height * grid.nodes_x * MEDIUM_CHANNELS] }),
+        }
     }
 
     pub fn max_height(&self) -> usize {
         self.max_height
+    }
+
+    /// The direction grid, `None` when exact per pixel.
+    pub fn grid(&self) -> Option<MediumGrid> {
+        self.grid.as_ref().map(|g| g.grid)
+    }
+
+    /// The medium of every pixel of the view into `out`: exact per pixel, or interpolated from
+    /// the grid nodes when the workspace has a grid (it must be the camera's size).
+    pub fn forward(&mut self, net: &MediumNet<T>, camera: &PinholeCamera, world_from_cam: &Se3, out: &mut MediumPlanes<T>) -> Result<(), MediumError> {
+        let Some(gb) = self.grid.as_mut() else {
+            return net.forward(camera, world_from_cam, out);
+        };
+        let view = View::new(camera, world_from_cam)?;
+        check_size("medium planes", out, camera)?;
+        let g = gb.grid;
+        check_grid(&g, camera)?;
+        let (lay, l, params) = (&net.layout, net.pe_frequencies, &net.params[..]);
+        gb.nodes.par_chunks_mut(g.nodes_x * MEDIUM_CHANNELS).enumerate().for_each(|(j, row)| {
+            let mut act = Activations::new();
+            for (i, px) in row.chunks_exact_mut(MEDIUM_CHANNELS).enumerate() {
+                px.copy_from_slice(&forward_pixel(params, lay, l, view.direction(i * g.step, j * g.step), &mut act));
+            }
+        });
+        let nodes = &gb.nodes[..];
+        let node = |i: usize, j: usize| &nodes[(j * g.nodes_x + i) * MEDIUM_CHANNELS..(j * g.nodes_x + i + 1) * MEDIUM_CHANNELS];
+        out.data.par_chunks_mut(camera.width * MEDIUM_CHANNELS).enumerate().for_each(|(y, row)| {
+            let (j0, j1, fy) = g.cell::<T>(y, g.nodes_y);
+            for (x, px) in row.chunks_exact_mut(MEDIUM_CHANNELS).enumerate() {
+                let (i0, i1, fx) = g.cell::<T>(x, g.nodes_x);
+                let (a, b, c, d) = (node(i0, j0), node(i1, j0), node(i0, j1), node(i1, j1));
+                let (wa, wb, wc, wd) = ((T::ONE - fx) * (T::ONE - fy), fx * (T::ONE - fy), (T::ONE - fx) * fy, fx * fy);
+                for k in 0..MEDIUM_CHANNELS {
+                    px[k] = wa * a[k] + wb * b[k] + wc * c[k] + wd * d[k];
+                }
+            }
+        });
+        Ok(())
     }
 
     /// Back-propagates `d_planes` (dL/d medium planes, [`MediumPlanes`] layout) through the
@@ -358,6 +483,9 @@ impl<T: Real> MediumWorkspace<T> {
         if h > self.max_height {
             return Err(MediumError::CapacityExceeded { height: h, max_height: self.max_height });
         }
+        if self.grid.is_some() {
+            return self.backward_grid(net, &view, camera, d_planes, grads);
+        }
         let bands = h.div_ceil(BAND_ROWS);
         let p = self.param_count;
         let (lay, l, params) = (&net.layout, net.pe_frequencies, &net.params[..]);
@@ -382,6 +510,83 @@ impl<T: Real> MediumWorkspace<T> {
         }
         Ok(())
     }
+
+    /// The grid backward: the adjoint of the bilinear interpolation (rows, then columns, each
+    /// a gather in a fixed order), then the network backward on the nodes, banded by node rows.
+    fn backward_grid(&mut self, net: &MediumNet<T>, view: &View<'_>, camera: &PinholeCamera, d_planes: &MediumPlanes<T>, grads: &mut [T]) -> Result<(), MediumError> {
+        let Some(gb) = self.grid.as_mut() else {
+            return Ok(());
+        };
+        let g = gb.grid;
+        check_grid(&g, camera)?;
+        let (w, h, nx) = (camera.width, camera.height, g.nodes_x);
+        let c = MEDIUM_CHANNELS;
+        // Row pass: d_rows[y][i] = sum_x weight(x, i) d_planes[y][x].
+        gb.d_rows[..h * nx * c].par_chunks_mut(nx * c).enumerate().for_each(|(y, dst)| {
+            dst.fill(T::ZERO);
+            let row = &d_planes.data[y * w * c..(y + 1) * w * c];
+            for (x, d) in row.chunks_exact(c).enumerate() {
+                let (i0, i1, fx) = g.cell::<T>(x, nx);
+                let w0 = T::ONE - fx;
+                for k in 0..c {
+                    dst[i0 * c + k] += w0 * d[k];
+                }
+                if i1 != i0 {
+                    for k in 0..c {
+                        dst[i1 * c + k] += fx * d[k];
+                    }
+                }
+            }
+        });
+        // Column pass: d_nodes[j] = sum_y weight(y, j) d_rows[y].
+        let d_rows = &gb.d_rows[..];
+        gb.d_nodes.par_chunks_mut(nx * c).enumerate().for_each(|(j, dst)| {
+            dst.fill(T::ZERO);
+            let lo = (j * g.step).saturating_sub(g.step - 1);
+            let hi = (j * g.step + g.step).min(h);
+            for y in lo..hi {
+                let wy = g.weight::<T>(y, j);
+                if wy == T::ZERO {
+                    continue;
+                }
+                for (a, &b) in dst.iter_mut().zip(&d_rows[y * nx * c..(y + 1) * nx * c]) {
+                    *a += wy * b;
+                }
+            }
+        });
+        // Network backward on the nodes.
+        let p = self.param_count;
+        let bands = g.nodes_y.div_ceil(BAND_ROWS);
+        let (lay, l, params) = (&net.layout, net.pe_frequencies, &net.params[..]);
+        let d_nodes = &gb.d_nodes[..];
+        self.band_grads[..bands * p].par_chunks_mut(p).enumerate().for_each(|(band, gr)| {
+            gr.fill(T::ZERO);
+            let mut act = Activations::new();
+            for j in band * BAND_ROWS..((band + 1) * BAND_ROWS).min(g.nodes_y) {
+                for i in 0..nx {
+                    let d_out = &d_nodes[(j * nx + i) * c..(j * nx + i + 1) * c];
+                    if d_out.iter().all(|&v| v == T::ZERO) {
+                        continue;
+                    }
+                    let out = forward_pixel(params, lay, l, view.direction(i * g.step, j * g.step), &mut act);
+                    backward_pixel(params, lay, &act, &out, d_out, gr);
+                }
+            }
+        });
+        for band in self.band_grads[..bands * p].chunks_exact(p) {
+            for (acc, &v) in grads.iter_mut().zip(band) {
+                *acc += v;
+            }
+        }
+        Ok(())
+    }
+}
+
+fn check_grid(grid: &MediumGrid, camera: &PinholeCamera) -> Result<(), MediumError> {
+    if grid.width != camera.width || grid.height != camera.height {
+        return Err(MediumError::SizeMismatch { what: "medium grid workspace", width: grid.width, height: grid.height, expected_width: camera.width, expected_height: camera.height });
+    }
+    Ok(())
 }
 
 /// The per-call view constants: intrinsics and the rotation taking camera rays to the world.
