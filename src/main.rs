@@ -28,6 +28,8 @@ enum Command {
     Eval(cli::eval::EvalArgs),
     /// Refine a Gaussian map and the water offline from a keyframe folder or generated keyframes.
     Refine(cli::refine::RefineArgs),
+    /// Benchmarks that produce the figures (`duv bench map`).
+    Bench(cli::bench::BenchArgs),
     /// Check board profiles and print the capacities they give.
     Board(cli::board::BoardArgs),
     /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
@@ -52,6 +54,7 @@ fn main() -> std::process::ExitCode {
         Command::Sim(a) => cli::sim::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Refine(a) => cli::refine::run(a),
+        Command::Bench(a) => cli::bench::run(a),
         Command::Board(a) => cli::board::run(a),
         Command::Dataset(a) => cli::dataset::run(a),
     };

@@ -1,7 +1,13 @@
 //! `duv run` end to end on a tiny `sim:` source: every output file, with the right line counts,
-//! PFMs readable at full resolution, the eval report; and clear errors for bad sources.
+//! PFMs readable at full resolution, the eval report, the map exports; `duv refine` on the
+//! finished run; and clear errors for bad sources.
 
+use duv::core::MediumParams;
+use duv::io::keyframes::read_keyframe_folder;
 use duv::io::pfm::read_pfm;
+use duv::io::png_io::read_image;
+use duv::map::mapper::Mapper;
+use duv::map::ply::read_ply;
 use std::process::Command;
 
 fn duv() -> Command {
@@ -21,6 +27,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let frames = 64;
     let res = duv()
         .args(["run", "--source", "sim:coastal", "--frames", &frames.to_string(), "--width", "160", "--height", "120", "--no-progress"])
+        .args(["--map-iterations", "4", "--map-final-iterations", "10"])
         .arg("--config")
         .arg(&cfg)
         .arg("--out")
@@ -55,6 +62,44 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("eval/report.json")).unwrap()).unwrap();
     assert_eq!(report["trajectory"]["associated"], frames);
     assert!(report["ause"]["keyframes"].as_u64().unwrap() >= 6, "{}", report["ause"]);
+
+    // The run folder is a keyframe folder: calibration, poses, images, depth, variance.
+    let kfs = read_keyframe_folder(&out).unwrap();
+    assert_eq!(kfs.len(), kf_lines.len());
+    assert!(kfs.iter().all(|k| (k.camera.width, k.camera.height) == (160, 120) && k.image.data.iter().any(|&v| v > 0)));
+
+    // The map exports.
+    assert!(stdout.contains("mapped") && stdout.contains("Gaussians"), "{stdout}");
+    let map = read_ply(&out.join("map.ply"), 1 << 20).unwrap();
+    assert!(map.len() > 1000, "{} Gaussians", map.len());
+    assert!(map.len() <= 50_000, "board cap (boards/sim.toml max_gaussians)");
+    let medium: MediumParams = serde_json::from_str(&std::fs::read_to_string(out.join("medium.json")).unwrap()).unwrap();
+    assert!(medium.beta_d.iter().chain(&medium.beta_b).all(|v| v.is_finite() && *v > 0.0), "{medium:?}");
+    assert!(medium.b_inf.iter().all(|v| *v > 0.0 && *v < 1.0), "{medium:?}");
+    let restored = Mapper::load_checkpoint(&out.join("map.ckpt")).unwrap();
+    assert_eq!(restored.gaussians().len(), map.len());
+    let renders: Vec<_> = std::fs::read_dir(out.join("renders")).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(renders.len(), restored.keyframe_count());
+    assert!(renders.len() >= 6, "{} render panels", renders.len());
+    let panel = read_image(&renders[0]).unwrap();
+    assert_eq!((panel.width(), panel.height()), (5 * 160, 120), "input | render | restored | depth | uncertainty");
+
+    // Offshore refinement reads the finished run.
+    let refined = dir.path().join("refined");
+    let res = duv()
+        .args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--quiet"])
+        .arg("--keyframes")
+        .arg(&out)
+        .arg("--out")
+        .arg(&refined)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&res.stdout);
+    assert!(res.status.success(), "stdout:\n{stdout}\nstderr:\n{}", String::from_utf8_lossy(&res.stderr));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(refined.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["keyframes"].as_array().unwrap().len(), kfs.len());
+    assert!(metrics["mean_psnr_db"].as_f64().unwrap() > 10.0, "{}", metrics["mean_psnr_db"]);
+    assert!(refined.join("map.ply").exists() && refined.join("medium.json").exists());
 }
 
 #[test]

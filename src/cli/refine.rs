@@ -10,21 +10,27 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use duv::core::{Image, ImageRgb8, Keyframe, MediumParams, PlaneF32};
+use duv::core::{ImageRgb8, Keyframe, MediumParams};
 use duv::eval::image::{psnr, ssim, SsimConvention};
 use duv::io::keyframes::read_keyframe_folder;
 use duv::io::png_io::write_rgb8;
 use duv::io::write_atomic;
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::ply::write_ply;
+use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 
 #[derive(clap::Args)]
 pub struct RefineArgs {
-    /// Keyframe folder written by the tracker (calibration.txt, keyframes.txt, keyframes/).
+    /// Keyframe folder written by the tracker (calibration.txt, keyframes.txt, keyframes/), e.g.
+    /// the output folder of `duv run`.
     #[arg(long, conflicts_with = "sim", required_unless_present = "sim")]
     keyframes: Option<PathBuf>,
+    /// The true medium (a generator's `medium.json`) to score the recovered one against
+    /// (with --keyframes; --sim knows its own).
+    #[arg(long, value_name = "FILE")]
+    medium_truth: Option<PathBuf>,
     /// Instead of a folder: generated keyframes with ground-truth poses and depth in this water.
     #[arg(long, value_enum)]
     sim: Option<WaterPreset>,
@@ -86,31 +92,6 @@ struct Metrics {
     iterations: u64,
 }
 
-fn gray_panel(plane: &PlaneF32, valid: &PlaneF32) -> ImageRgb8 {
-    let vals: Vec<f32> = plane.data.iter().zip(&valid.data).filter(|(_, &a)| a > 0.5).map(|(&v, _)| v).collect();
-    let lo = vals.iter().cloned().fold(f32::INFINITY, f32::min);
-    let hi = vals.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-    let span = if hi > lo { hi - lo } else { 1.0 };
-    let mut out = ImageRgb8::new(plane.width, plane.height);
-    for (i, (&v, &a)) in plane.data.iter().zip(&valid.data).enumerate() {
-        let g = if a > 0.5 && lo.is_finite() { (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 };
-        out.data[i * 3..i * 3 + 3].fill(g);
-    }
-    out
-}
-
-fn hconcat(panels: &[&ImageRgb8]) -> ImageRgb8 {
-    let (w, h) = (panels[0].width, panels[0].height);
-    let mut out = ImageRgb8::new(w * panels.len(), h);
-    for (k, p) in panels.iter().enumerate() {
-        for y in 0..h {
-            let dst = (y * out.width + k * w) * 3;
-            out.data[dst..dst + w * 3].copy_from_slice(p.row(y));
-        }
-    }
-    out
-}
-
 pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let (keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
         let mut cfg = SimConfig::preset(water, a.trajectory);
@@ -126,8 +107,10 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         let dir = a.keyframes.as_ref().context("--keyframes or --sim is required")?;
         let k = read_keyframe_folder(dir)?;
         let n = k.len();
-        let truth_path = dir.join("medium.json");
-        let truth = if truth_path.exists() { Some(serde_json::from_str(&duv::io::read_text(&truth_path)?).context("medium.json")?) } else { None };
+        let truth = match &a.medium_truth {
+            Some(p) => Some(serde_json::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?),
+            None => None,
+        };
         (k, vec![None; n], truth)
     };
     anyhow::ensure!(!keyframes.is_empty(), "no keyframes");
@@ -182,9 +165,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
             Some(c) => Some(psnr(&out.restored, &c.to_rgb_f32())?),
             None => None,
         };
-        let valid: PlaneF32 = Image { width: out.alpha.width, height: out.alpha.height, data: out.alpha.data.clone() };
-        let unc = Image { width: out.depth_var.width, height: out.depth_var.height, data: out.depth_var.data.iter().map(|v| v.max(0.0).sqrt()).collect() };
-        let panel = hconcat(&[&kf.image, &out.colour.to_rgb8(), &out.restored.to_rgb8(), &gray_panel(&out.depth, &valid), &gray_panel(&unc, &valid)]);
+        let panel = render_panel(&kf.image, out);
         write_rgb8(&a.out.join("renders").join(format!("{:06}.png", kf.index)), &panel)?;
         per_kf.push(KeyframeMetrics { index: kf.index, psnr_db: p, ssim: s, restored_psnr_db: restored_psnr });
     }

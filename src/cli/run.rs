@@ -1,18 +1,30 @@
-//! `duv run`: track a frame source (a dataset folder or a generated `sim:` sequence), write the
-//! trajectory, the keyframes and their full-resolution inverse depth and variance, and, where
-//! ground truth exists, the evaluation report (ATE with Sim(3) alignment, AUSE of the depth
-//! uncertainty).
+//! `duv run`: track a frame source (a dataset folder or a generated `sim:` sequence), map it,
+//! write the trajectory, the keyframe folder (`duv::io::keyframes` layout: calibration, poses,
+//! images, full-resolution inverse depth and variance, so `duv refine --keyframes OUT` reads a
+//! finished run), the map exports, and, where ground truth exists, the evaluation report (ATE
+//! with Sim(3) alignment, AUSE of the depth uncertainty).
+//!
+//! Mapping runs on the main thread between frames (the threaded pipeline drives the same
+//! [`MappingStage`] from its mapping thread): a keyframe goes to the mapper once `ba_window`
+//! newer keyframes exist (its depth and pose have been through the window BA by then), or when
+//! it is evicted, or at the end of the run; each keyframe buys `--map-iterations` iterations.
+//! At the end the mapper takes the final keyframe poses, runs `--map-final-iterations` more and
+//! exports `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
 
 use anyhow::Context;
 use duv::camera::dataset::{open_dataset, Dataset};
 use duv::config::board::Board;
 use duv::core::pose::se3_to_tum;
-use duv::core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
+use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, StampedPose, Timestamp};
 use duv::eval::report::AuseInput;
 use duv::eval::{build_report, write_report, EvalInputs, EvalOptions};
 use duv::io::pfm::write_pfm;
+use duv::io::png_io::write_rgb8;
+use duv::map::mapper::{MapperCapacity, MapperConfig};
+use duv::map::stage::{MappingBudget, MappingStage};
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::track::{KeyframeView, TrackOutput, Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
+use std::collections::VecDeque;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -51,6 +63,18 @@ pub struct RunArgs {
     /// No progress line on stderr.
     #[arg(long)]
     no_progress: bool,
+    /// Track only: no map, no map exports.
+    #[arg(long)]
+    no_map: bool,
+    /// Mapper iterations after each keyframe handed to mapping.
+    #[arg(long, default_value_t = MappingBudget::default().iterations_per_keyframe)]
+    map_iterations: u64,
+    /// Mapper iterations after the last frame, on the final keyframe poses.
+    #[arg(long, default_value_t = 100)]
+    map_final_iterations: u64,
+    /// Mapper parameters (TOML, `MapperConfig` fields); defaults otherwise.
+    #[arg(long, value_name = "FILE")]
+    map_config: Option<PathBuf>,
 }
 
 /// Where frames come from, with what ground truth.
@@ -185,6 +209,43 @@ fn write_keyframe_maps(tracker: &Tracker, id: u64, dir: &Path, inv: &mut PlaneF3
     Ok(())
 }
 
+/// A keyframe waiting to be handed to mapping: its image (the tracker keeps none).
+struct PendingKeyframe {
+    id: u64,
+    t_ns: Timestamp,
+    image: ImageRgb8,
+}
+
+/// The mapping side of `duv run`: the stage and the keyframes not yet handed over.
+struct RunMapper {
+    stage: MappingStage,
+    pending: VecDeque<PendingKeyframe>,
+    /// Keyframes handed over once this many newer ones exist.
+    lag: usize,
+    camera: PinholeCamera,
+    fed: usize,
+    time: Duration,
+}
+
+impl RunMapper {
+    /// Hands keyframe `p` to mapping with the tracker's current pose and upsampled depth, if
+    /// the tracker still knows it (a pruned keyframe is dropped).
+    fn feed(&mut self, tracker: &Tracker, p: PendingKeyframe, pose: Option<duv::core::Se3>) -> anyhow::Result<()> {
+        let live = tracker.keyframes().find(|k| k.id == p.id).map(|k| k.world_from_cam);
+        let Some(world_from_cam) = pose.or(live) else { return Ok(()) };
+        let mut inv_depth = PlaneF32::new(self.camera.width, self.camera.height);
+        let mut inv_depth_variance = PlaneF32::new(self.camera.width, self.camera.height);
+        tracker.upsample_keyframe(p.id, &mut inv_depth, &mut inv_depth_variance)?;
+        let kf = Keyframe { index: p.id, t_ns: p.t_ns, image: p.image, world_from_cam, camera: self.camera, inv_depth, inv_depth_variance };
+        let t0 = Instant::now();
+        let step = self.stage.on_keyframe(kf).with_context(|| format!("mapping keyframe {}", p.id))?;
+        self.time += t0.elapsed();
+        self.fed += 1;
+        tracing::debug!(keyframe = p.id, added = step.added, iterations = step.iterations, "map.keyframe");
+        Ok(())
+    }
+}
+
 fn tum_line(t_ns: duv::core::Timestamp, pose: &duv::core::Se3) -> String {
     let v = se3_to_tum(pose);
     format!("{:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}", t_ns.as_secs_f64(), v[0], v[1], v[2], v[3], v[4], v[5], v[6])
@@ -216,6 +277,20 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
     let kf_dir = args.out.join("keyframes");
     std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
+    let c = camera;
+    duv::io::write_atomic(&args.out.join("calibration.txt"), format!("{} {} {} {} {} {}\n", c.fx, c.fy, c.cx, c.cy, c.width, c.height).as_bytes())?;
+    let mut mapping = if args.no_map {
+        None
+    } else {
+        let map_config: MapperConfig = match &args.map_config {
+            Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+            None => MapperConfig::default(),
+        };
+        let budget = MappingBudget { iterations_per_keyframe: args.map_iterations, ..MappingBudget::default() };
+        let stage = MappingStage::new(map_config, MapperCapacity::from_board(&board, camera.width, camera.height), budget)?;
+        let lag = capacity.ba_window.max(1);
+        Some(RunMapper { stage, pending: VecDeque::with_capacity(lag + 2), lag, camera, fed: 0, time: Duration::ZERO })
+    };
     let grid = tracker.depth_camera();
     eprintln!(
         "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads)",
@@ -247,9 +322,31 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         latencies.push(dt);
         recorder.record(&out);
         frames_done += 1;
+        if let Some(id) = out.new_keyframe {
+            let image = frame.image.to_rgb8();
+            write_rgb8(&kf_dir.join(format!("{id:06}.png")), &image)?;
+            if let Some(m) = mapping.as_mut() {
+                m.pending.push_back(PendingKeyframe { id, t_ns: frame.t_ns, image });
+            }
+        }
         if out.evicted.is_some() {
             if let Some(ev) = tracker.evicted_keyframe() {
                 write_keyframe_maps(&tracker, ev.id, &kf_dir, &mut inv, &mut var)?;
+                if let Some(m) = mapping.as_mut() {
+                    if let Some(i) = m.pending.iter().position(|p| p.id == ev.id) {
+                        if let Some(p) = m.pending.remove(i) {
+                            let pose = ev.world_from_cam;
+                            m.feed(&tracker, p, Some(pose))?;
+                        }
+                    }
+                }
+            }
+        }
+        if let Some(m) = mapping.as_mut() {
+            while m.pending.len() > m.lag {
+                if let Some(p) = m.pending.pop_front() {
+                    m.feed(&tracker, p, None)?;
+                }
             }
         }
         if last_state != Some(out.state) {
@@ -281,6 +378,36 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
     for &(id, _) in &live {
         write_keyframe_maps(&tracker, id, &kf_dir, &mut inv, &mut var)?;
+    }
+    if let Some(m) = mapping.as_mut() {
+        while let Some(p) = m.pending.pop_front() {
+            m.feed(&tracker, p, None)?;
+        }
+        // Final poses (after loop closures and global BA), then the final optimisation.
+        for k in &fin.keyframes {
+            m.stage.set_keyframe_pose(k.id, k.world_from_cam)?;
+        }
+        let t0 = Instant::now();
+        if m.fed > 0 {
+            m.stage.optimise(args.map_final_iterations, None)?;
+        }
+        m.time += t0.elapsed();
+        let iterations = m.stage.mapper().iteration();
+        if m.fed > 0 {
+            m.stage.export(&args.out).with_context(|| format!("exporting the map to {}", args.out.display()))?;
+        }
+        let medium = m.stage.medium_summary();
+        println!(
+            "mapped {} keyframes: {} iterations in {:.2} s ({:.1} ms per iteration), {} Gaussians (cap {})",
+            m.fed,
+            iterations,
+            m.time.as_secs_f64(),
+            m.time.as_secs_f64() * 1e3 / iterations.max(1) as f64,
+            m.stage.mapper().gaussians().len(),
+            m.stage.mapper().capacity().max_gaussians
+        );
+        let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
+        println!("medium along the last keyframe's axis: beta_D {} beta_B {} B_inf {}", f(medium.beta_d), f(medium.beta_b), f(medium.b_inf));
     }
     let mut states_text = String::from("# seq timestamp state tracker_ms\n");
     for ((f, s), dt) in recorder.frames().iter().zip(&fin.states).zip(&latencies) {
@@ -359,8 +486,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 }
 
 impl RunArgs {
-    /// The arguments `duv run --source SOURCE --out OUT` would get, everything else default
-    /// (used by `duv demo`).
+    /// The arguments `duv run --source SOURCE --out OUT --no-map` would get, everything else
+    /// default (used by `duv demo`, which scores tracking; mapping is `duv refine`'s there).
     pub fn with_defaults(source: String, out: PathBuf, no_progress: bool) -> Self {
         RunArgs {
             source,
@@ -373,6 +500,10 @@ impl RunArgs {
             height: None,
             seed: 1,
             no_progress,
+            no_map: true,
+            map_iterations: MappingBudget::default().iterations_per_keyframe,
+            map_final_iterations: 100,
+            map_config: None,
         }
     }
 }

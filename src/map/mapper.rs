@@ -137,6 +137,9 @@ pub struct MapperConfig {
     pub optimise_medium: bool,
     /// Tile intersections the raster workspace holds per Gaussian of capacity.
     pub intersections_per_gaussian: usize,
+    /// Ablation (paper Table 6): one coefficient for both medium terms, `sigma_bs = sigma_att`
+    /// (the network's `sigma_bs` head is unused).
+    pub single_medium_coefficient: bool,
 }
 
 impl Default for MapperConfig {
@@ -165,6 +168,7 @@ impl Default for MapperConfig {
             optimise_gaussians: true,
             optimise_medium: true,
             intersections_per_gaussian: 8,
+            single_medium_coefficient: false,
         }
     }
 }
@@ -352,7 +356,7 @@ impl Mapper {
         })?;
         Ok(Mapper {
             medium_grads: vec![0.0; medium.param_count()],
-            medium_ws: MediumWorkspace::new(&medium, h),
+            medium_ws: MediumWorkspace::with_grid(&medium, w, h, config.medium.grid_step_px),
             loss_ws: LossWorkspace::new(w, h),
             view: ViewBuffers {
                 out: RenderOutput::new(w, h),
@@ -409,7 +413,40 @@ impl Mapper {
     }
     /// The medium along the optical axis of `world_from_cam` (`medium.json`).
     pub fn medium_summary(&self, world_from_cam: &Se3) -> MediumParams {
-        self.medium.summary_along_axis(world_from_cam)
+        let mut m = self.medium.summary_along_axis(world_from_cam);
+        if self.config.single_medium_coefficient {
+            m.beta_b = m.beta_d;
+        }
+        m
+    }
+
+    /// The medium network's planes for a view, with the single-coefficient tie applied.
+    fn medium_forward(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<(), MapperError> {
+        self.medium_ws.forward(&self.medium, camera, world_from_cam, &mut self.view.planes9)?;
+        if self.config.single_medium_coefficient {
+            for px in self.view.planes9.data.chunks_exact_mut(MEDIUM_CHANNELS) {
+                for c in 0..3 {
+                    px[SIGMA_BS + c] = px[SIGMA_ATT + c];
+                }
+            }
+        }
+        planes_from_nine(&self.view.planes9, &mut self.view.planes);
+        Ok(())
+    }
+
+    /// Replaces the pose of the stored keyframe with index `index` (a correction from
+    /// tracking); `Ok(false)` when no stored keyframe has that index.
+    pub fn set_keyframe_pose(&mut self, index: u64, world_from_cam: Se3) -> Result<bool, MapperError> {
+        if !world_from_cam.to_homogeneous().iter().all(|v| v.is_finite()) {
+            return Err(MapperError::BadKeyframe { index, why: "pose is not finite" });
+        }
+        match self.keyframes.iter_mut().find(|k| k.kf.index == index) {
+            Some(k) => {
+                k.kf.world_from_cam = world_from_cam;
+                Ok(true)
+            }
+            None => Ok(false),
+        }
     }
 
     /// Replaces the map (e.g. a fixed test scene); Adam moments restart at zero.
@@ -432,8 +469,7 @@ impl Mapper {
     /// Renders the map and medium from a pose; the result is valid until the next call.
     pub fn render(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<&RenderOutput, MapperError> {
         self.check_camera(u64::MAX, camera)?;
-        self.medium.forward(camera, world_from_cam, &mut self.view.planes9)?;
-        planes_from_nine(&self.view.planes9, &mut self.view.planes);
+        self.medium_forward(camera, world_from_cam)?;
         self.raster.forward(&self.gaussians, camera, &world_from_cam.inverse(), &self.view.planes, &self.config.render, &mut self.view.out)?;
         Ok(&self.view.out)
     }
@@ -556,9 +592,9 @@ impl Mapper {
         let count = self.keyframes.len();
         let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
         let (camera, pose) = (kf.kf.camera, kf.kf.world_from_cam);
+        self.medium_forward(&camera, &pose)?;
+        let kf = &self.keyframes[slot];
         let v = &mut self.view;
-        self.medium.forward(&camera, &pose, &mut v.planes9)?;
-        planes_from_nine(&v.planes9, &mut v.planes);
         self.raster.forward(&self.gaussians, &camera, &pose.inverse(), &v.planes, &self.config.render, &mut v.out)?;
         let rendered = RenderedView { color: &v.out.colour, depth: &v.out.depth, depth_variance: &v.out.depth_var, alpha: &v.out.alpha, medium: Some(&v.planes9) };
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
@@ -574,6 +610,14 @@ impl Mapper {
         nine_from_planes(&v.planes_grad, &mut v.d_planes9);
         for (d, &l) in v.d_planes9.data.iter_mut().zip(&lg.d_medium.data) {
             *d += l;
+        }
+        if self.config.single_medium_coefficient {
+            for px in v.d_planes9.data.chunks_exact_mut(MEDIUM_CHANNELS) {
+                for c in 0..3 {
+                    px[SIGMA_ATT + c] += px[SIGMA_BS + c];
+                    px[SIGMA_BS + c] = 0.0;
+                }
+            }
         }
         if self.config.optimise_medium {
             self.medium_grads.fill(0.0);

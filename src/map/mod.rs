@@ -8,7 +8,8 @@
 //! renderer with the medium (Eq. 6-9, 11), forward and backward; [`medium`] the medium network
 //! (Eq. 10); [`loss`] the mapping losses and their gradients (Eq. 12-14); [`adam`] the
 //! optimiser; [`mapper`] the mapping stage that ties them together ([`densify`] and
-//! [`schedule`] are its density control and keyframe schedule). [`real`] makes the medium and losses generic over `f32` (runtime) and `f64`
+//! [`schedule`] are its density control and keyframe schedule); [`stage`] is what the pipeline
+//! drives: keyframes in with a per-keyframe budget, and the exports. [`real`] makes the medium and losses generic over `f32` (runtime) and `f64`
 //! (finite-difference gradient checks).
 
 pub mod adam;
@@ -22,3 +23,4 @@ pub mod ply;
 pub mod real;
 pub mod render;
 pub mod schedule;
+pub mod stage;

@@ -1,0 +1,231 @@
+//! `duv bench map`: the mapping figures of issue 4 on generated sequences with ground-truth
+//! poses and depth (the generator's keyframes, `duv::sim::keyframes`).
+//!
+//! Per water (default clear and turbid) and per variant: keyframe PSNR/SSIM of the render
+//! against the input, PSNR of the restored image against the water-free view, the recovered
+//! `beta_D`/`beta_B`/`B_inf` along the first keyframe's axis against the generator's
+//! `medium.json`, ms per iteration and the Gaussian count over time. Variants (the paper's
+//! Tables 5-6): `full`, `no_medium` (medium fixed at ~zero: plain 3DGS), `one_coefficient`
+//! (`sigma_bs = sigma_att`), `no_mahalanobis`, `no_kl`. The ablation runs on `--ablation-water`
+//! only; the other waters run `full` and `no_medium`. Writes `report.json` and `report.md` and
+//! the render panels of every run into `--out`.
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use duv::core::MediumParams;
+use duv::eval::image::{psnr, ssim, SsimConvention};
+use duv::io::png_io::write_rgb8;
+use duv::io::write_atomic;
+use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv::map::stage::render_panel;
+use duv::sim::keyframes::sim_keyframes;
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+
+#[derive(clap::Args)]
+pub struct BenchMapArgs {
+    /// Output folder (report.json, report.md, renders per run).
+    #[arg(long, default_value = "out/bench-map")]
+    out: PathBuf,
+    /// Waters to run (`full` and `no_medium` each).
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [WaterPreset::Clear, WaterPreset::Turbid])]
+    waters: Vec<WaterPreset>,
+    /// The water of the full ablation (all five variants).
+    #[arg(long, value_enum, default_value_t = WaterPreset::Turbid)]
+    ablation_water: WaterPreset,
+    /// Generated frames; every --every-th is a keyframe.
+    #[arg(long, default_value_t = 40)]
+    frames: usize,
+    #[arg(long, default_value_t = 5)]
+    every: usize,
+    #[arg(long, default_value_t = 320)]
+    width: usize,
+    #[arg(long, default_value_t = 240)]
+    height: usize,
+    /// Optimisation iterations per run.
+    #[arg(long, default_value_t = 600)]
+    iterations: u64,
+    /// Gaussian cap of the map.
+    #[arg(long, default_value_t = 50_000)]
+    max_gaussians: usize,
+    /// Mapper config (TOML, `MapperConfig` fields) for the `full` variant; the others change one thing.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Only these variants (comma-separated); all by default.
+    #[arg(long, value_delimiter = ',')]
+    only: Vec<String>,
+}
+
+#[derive(serde::Serialize)]
+struct RunResult {
+    water: String,
+    variant: String,
+    keyframes: usize,
+    iterations: u64,
+    mean_psnr_db: f64,
+    mean_ssim: f64,
+    mean_restored_psnr_db: f64,
+    medium: MediumParams,
+    medium_truth: MediumParams,
+    /// |recovered - truth| / truth, rows beta_D, beta_B, B_inf; columns R G B.
+    medium_rel_error: [[f64; 3]; 3],
+    ms_per_iteration: f64,
+    gaussians_over_time: Vec<(u64, usize)>,
+}
+
+const VARIANTS: [&str; 5] = ["full", "no_medium", "one_coefficient", "no_mahalanobis", "no_kl"];
+
+fn variant_config(base: &MapperConfig, variant: &str) -> MapperConfig {
+    let mut c = base.clone();
+    match variant {
+        "no_medium" => {
+            c.medium.init_c_med = [1e-4; 3];
+            c.medium.init_sigma_att = [1e-6; 3];
+            c.medium.init_sigma_bs = [1e-6; 3];
+            c.medium.head_init_scale = 0.0;
+            c.optimise_medium = false;
+            c.init_compensate_medium = false;
+        }
+        "one_coefficient" => c.single_medium_coefficient = true,
+        "no_mahalanobis" => c.loss.mahalanobis_weight = 0.0,
+        "no_kl" => c.loss.kl_weight = 0.0,
+        _ => {}
+    }
+    c
+}
+
+fn water_name(w: WaterPreset) -> &'static str {
+    match w {
+        WaterPreset::Clear => "clear",
+        WaterPreset::Coastal => "coastal",
+        WaterPreset::Turbid => "turbid",
+    }
+}
+
+pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
+    let base: MapperConfig = match &a.config {
+        Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+        None => MapperConfig::default(),
+    };
+    let mut waters = a.waters.clone();
+    if !waters.contains(&a.ablation_water) {
+        waters.push(a.ablation_water);
+    }
+    let mut results = Vec::new();
+    for &water in &waters {
+        let mut cfg = SimConfig::preset(water, TrajectoryKind::Survey);
+        cfg.frames = a.frames;
+        cfg.width = a.width;
+        cfg.height = a.height;
+        let renderer = SimRenderer::new(&cfg).context("building the generated sequence")?;
+        let truth = *renderer.medium();
+        let kfs = sim_keyframes(&renderer, a.every, usize::MAX);
+        anyhow::ensure!(!kfs.is_empty(), "no keyframes");
+        let variants: Vec<&str> = VARIANTS
+            .iter()
+            .copied()
+            .filter(|v| water == a.ablation_water || matches!(*v, "full" | "no_medium"))
+            .filter(|v| a.only.is_empty() || a.only.iter().any(|o| o == v))
+            .collect();
+        for variant in variants {
+            let config = variant_config(&base, variant);
+            let cam = kfs[0].keyframe.camera;
+            let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: kfs.len(), width: cam.width, height: cam.height };
+            let mut mapper = Mapper::new(config, capacity)?;
+            // Keyframes arrive one by one with iterations in between, as in `duv run`.
+            let per_kf = a.iterations / (2 * kfs.len() as u64).max(1);
+            let mut over_time = vec![(0u64, 0usize)];
+            let start = Instant::now();
+            for s in &kfs {
+                mapper.add_keyframe(s.keyframe.clone())?;
+                for _ in 0..per_kf {
+                    mapper.iterate()?;
+                }
+                over_time.push((mapper.iteration(), mapper.gaussians().len()));
+            }
+            let rest = a.iterations.saturating_sub(mapper.iteration());
+            let every = (rest / 10).max(1);
+            for i in 1..=rest {
+                mapper.iterate()?;
+                if i % every == 0 {
+                    over_time.push((mapper.iteration(), mapper.gaussians().len()));
+                }
+            }
+            let ms_per_iteration = start.elapsed().as_secs_f64() * 1e3 / mapper.iteration().max(1) as f64;
+            let dir = a.out.join(format!("{}-{variant}", water_name(water)));
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            let (mut p_sum, mut s_sum, mut r_sum) = (0.0, 0.0, 0.0);
+            for (slot, s) in kfs.iter().enumerate() {
+                let out = mapper.render_keyframe(slot)?;
+                let input = s.keyframe.image.to_rgb_f32();
+                p_sum += psnr(&out.colour, &input)?;
+                s_sum += ssim(&out.colour, &input, SsimConvention::Skimage)?;
+                r_sum += psnr(&out.restored, &s.clear.to_rgb_f32())?;
+                write_rgb8(&dir.join(format!("{:06}.png", s.keyframe.index)), &render_panel(&s.keyframe.image, out))?;
+            }
+            let n = kfs.len() as f64;
+            let medium = mapper.medium_summary(&kfs[0].keyframe.world_from_cam);
+            let e = |r: [f64; 3], t: [f64; 3]| [0, 1, 2].map(|c| (r[c] - t[c]).abs() / t[c].abs().max(1e-9));
+            let r = RunResult {
+                water: water_name(water).into(),
+                variant: variant.into(),
+                keyframes: kfs.len(),
+                iterations: mapper.iteration(),
+                mean_psnr_db: p_sum / n,
+                mean_ssim: s_sum / n,
+                mean_restored_psnr_db: r_sum / n,
+                medium,
+                medium_truth: truth,
+                medium_rel_error: [e(medium.beta_d, truth.beta_d), e(medium.beta_b, truth.beta_b), e(medium.b_inf, truth.b_inf)],
+                ms_per_iteration,
+                gaussians_over_time: over_time,
+            };
+            println!(
+                "{:8} {:16} PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB  max medium rel.err {:.3}  {:.1} ms/it  {} Gaussians",
+                r.water,
+                r.variant,
+                r.mean_psnr_db,
+                r.mean_ssim,
+                r.mean_restored_psnr_db,
+                r.medium_rel_error.iter().flatten().fold(0.0f64, |m, &v| m.max(v)),
+                r.ms_per_iteration,
+                mapper.gaussians().len()
+            );
+            results.push(r);
+            // Keep the report current while the next run works.
+            write_reports(&a, &results)?;
+        }
+    }
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
+
+fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> {
+    write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(results)?.as_bytes())?;
+    let mut md = format!(
+        "# duv bench map\n\n{}x{}, {} frames, every {}th a keyframe (ground-truth poses and depth), {} iterations, cap {} Gaussians.\n\n",
+        a.width, a.height, a.frames, a.every, a.iterations, a.max_gaussians
+    );
+    md.push_str("| water | variant | PSNR dB | SSIM | restored PSNR dB | beta_D rel.err | beta_B rel.err | B_inf rel.err | ms/it | Gaussians |\n|---|---|---|---|---|---|---|---|---|---|\n");
+    let f = |v: [f64; 3]| format!("{:.2} {:.2} {:.2}", v[0], v[1], v[2]);
+    for r in results {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.2} | {:.4} | {:.2} | {} | {} | {} | {:.1} | {} |",
+            r.water,
+            r.variant,
+            r.mean_psnr_db,
+            r.mean_ssim,
+            r.mean_restored_psnr_db,
+            f(r.medium_rel_error[0]),
+            f(r.medium_rel_error[1]),
+            f(r.medium_rel_error[2]),
+            r.ms_per_iteration,
+            r.gaussians_over_time.last().map_or(0, |g| g.1)
+        );
+    }
+    write_atomic(&a.out.join("report.md"), md.as_bytes())?;
+    Ok(())
+}
