@@ -240,3 +240,47 @@ fn keyframe_folder_round_trip() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn mapping_stage_spends_its_budget_and_exports() {
+    use duv::map::stage::{MappingBudget, MappingStage};
+    let (_r, kfs) = tiny_sequence(WaterPreset::Turbid, 16);
+    assert!(kfs.len() >= 3);
+    let budget = MappingBudget { iterations_per_keyframe: 3, millis_per_keyframe: 0 };
+    let mut stage = MappingStage::new(MapperConfig::default(), capacity(600), budget).unwrap();
+    for (i, k) in kfs.iter().enumerate() {
+        let step = stage.on_keyframe(k.keyframe.clone()).unwrap();
+        assert_eq!(step.iterations, 3);
+        assert_eq!(stage.mapper().iteration(), 3 * (i as u64 + 1));
+        assert!(stage.mapper().gaussians().len() <= 600, "board cap");
+        assert!(step.last.is_some_and(|r| r.psnr_db.is_finite()));
+    }
+    // A time budget stops early: 1 ms cannot hold 1000 iterations of even this tiny map.
+    let mut hurried = MappingStage::new(MapperConfig::default(), capacity(600), MappingBudget { iterations_per_keyframe: 1000, millis_per_keyframe: 1 }).unwrap();
+    let step = hurried.on_keyframe(kfs[0].keyframe.clone()).unwrap();
+    assert!(step.iterations < 1000, "{} iterations in {:?}", step.iterations, step.elapsed);
+    // Pose corrections reach the stored keyframe; unknown indices are reported.
+    let mut moved = kfs[1].keyframe.world_from_cam;
+    moved.translation.vector.x += 0.25;
+    assert!(stage.set_keyframe_pose(kfs[1].keyframe.index, moved).unwrap());
+    assert_eq!(stage.mapper().keyframe(1).unwrap().world_from_cam, moved);
+    assert!(!stage.set_keyframe_pose(9999, moved).unwrap());
+    let g = stage.gaussians_over_time();
+    assert_eq!(g.len(), kfs.len());
+    assert!(g.windows(2).all(|w| w[1].0 == w[0].0 + 3));
+    // The exports: PLY, checkpoint, medium.json with the generator's keys, one panel per keyframe.
+    let dir = tempfile::tempdir().unwrap();
+    stage.export(dir.path()).unwrap();
+    let ply = duv::map::ply::read_ply(&dir.path().join("map.ply"), 600).unwrap();
+    assert_eq!(ply.len(), stage.mapper().gaussians().len());
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("medium.json")).unwrap()).unwrap();
+    for key in ["beta_D", "beta_B", "B_inf"] {
+        assert_eq!(json[key].as_array().map(|a| a.len()), Some(3), "{key}: {json}");
+    }
+    let restored = MappingStage::from_checkpoint(&dir.path().join("map.ckpt"), budget).unwrap();
+    assert_eq!(restored.mapper().gaussians().len(), ply.len());
+    for k in &kfs {
+        let panel = duv::io::png_io::read_image(&dir.path().join("renders").join(format!("{:06}.png", k.keyframe.index))).unwrap();
+        assert_eq!((panel.width(), panel.height()), (5 * 64, 48));
+    }
+}
