@@ -67,6 +67,12 @@ fn main() {
         grads.fill(0.0);
         medium_ws.backward(&net, &cam, &pose, &upstream, &mut grads).unwrap();
     });
+    let mut grid_ws = MediumWorkspace::with_grid(&net, W, H, 8);
+    let t_grid_fwd = time(|| grid_ws.forward(&net, &cam, &pose, &mut planes).unwrap());
+    let t_grid_bwd = time(|| {
+        grads.fill(0.0);
+        grid_ws.backward(&net, &cam, &pose, &upstream, &mut grads).unwrap();
+    });
 
     let threads = rayon::current_num_threads();
     println!("map CPU reference, {W}x{H}, {threads} rayon threads, median of {RUNS} runs");
@@ -75,4 +81,6 @@ fn main() {
     println!("  medium MLP forward (every pixel)                      {t_fwd:8.2} ms");
     println!("  medium MLP backward (recomputes the forward)          {t_bwd:8.2} ms");
     println!("  medium MLP forward + backward                         {:8.2} ms", t_fwd + t_bwd);
+    println!("  medium on the 1/8 grid, forward (MLP + interpolation) {t_grid_fwd:8.2} ms");
+    println!("  medium on the 1/8 grid, backward (adjoint + MLP)      {t_grid_bwd:8.2} ms");
 }

@@ -6,8 +6,8 @@
 //!
 //! Mapping runs on the main thread between frames (the threaded pipeline drives the same
 //! [`MappingStage`] from its mapping thread): a keyframe goes to the mapper once `ba_window`
-//! newer keyframes exist (its depth and pose have been through the window BA by then), or when
-//! it is evicted, or at the end of the run; each keyframe buys `--map-iterations` iterations.
+//! newer keyframes exist and it has a depth covariance (its depth and pose have been through
+//! the window BA by then), or when it is evicted, or at the end of the run; each keyframe buys `--map-iterations` iterations.
 //! At the end the mapper takes the final keyframe poses, runs `--map-final-iterations` more and
 //! exports `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
 
@@ -289,7 +289,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let budget = MappingBudget { iterations_per_keyframe: args.map_iterations, ..MappingBudget::default() };
         let stage = MappingStage::new(map_config, MapperCapacity::from_board(&board, camera.width, camera.height), budget)?;
         let lag = capacity.ba_window.max(1);
-        Some(RunMapper { stage, pending: VecDeque::with_capacity(lag + 2), lag, camera, fed: 0, time: Duration::ZERO })
+        Some(RunMapper { stage, pending: VecDeque::with_capacity(capacity.max_keyframes + 1), lag, camera, fed: 0, time: Duration::ZERO })
     };
     let grid = tracker.depth_camera();
     eprintln!(
@@ -343,7 +343,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             }
         }
         if let Some(m) = mapping.as_mut() {
+            // The oldest pending keyframe goes once it has a depth covariance (before the
+            // tracker's initialisation it has none, and the mapper would seed nothing from it).
             while m.pending.len() > m.lag {
+                let ready = m.pending.front().is_some_and(|p| tracker.keyframes().find(|k| k.id == p.id).is_none_or(|k| k.variance.is_some()));
+                if !ready {
+                    break;
+                }
                 if let Some(p) = m.pending.pop_front() {
                     m.feed(&tracker, p, None)?;
                 }
