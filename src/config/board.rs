@@ -224,6 +224,17 @@ mapping = 1
         let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
         assert_eq!(b.budgets.ba_window, 8);
         assert_eq!(b.camera.pixel_format, PixelFormat::Rgb24);
+        assert_eq!(b.camera.driver_buffers, DEFAULT_DRIVER_BUFFERS);
+    }
+
+    #[test]
+    fn driver_buffers_are_bounded() {
+        let with = |n: u32| MINIMAL.replace("pixel_format = \"rgb24\"", &format!("pixel_format = \"rgb24\"\ndriver_buffers = {n}"));
+        assert_eq!(Board::parse(Path::new("t.toml"), &with(8)).unwrap().camera.driver_buffers, 8);
+        for n in [0, 1, 33] {
+            let e = Board::parse(Path::new("t.toml"), &with(n)).unwrap_err();
+            assert!(e.to_string().contains("camera.driver_buffers"), "{e}");
+        }
     }
 
     #[test]
