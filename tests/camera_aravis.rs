@@ -6,8 +6,9 @@
 //!    pattern;
 //! 2. a camera id that does not exist: an error naming it and listing the cameras seen;
 //! 3. the fake GigE Vision camera `arv-fake-gv-camera-0.8 -i 127.0.0.1` as a subprocess, so
-//!    the real GVCP/GVSP protocol over UDP: frames arrive, and killing the camera mid-run
-//!    ("unplugged") ends the stream with an error naming it.
+//!    the real GVCP/GVSP protocol over UDP, losing 30% of its stream packets (`-r 300`):
+//!    whole frames arrive, incomplete ones are dropped and counted, and killing the camera
+//!    mid-run ("unplugged") ends the stream with an error naming it.
 //!
 //! `Aravis::initialize` succeeds once per process, so everything runs in one `#[test]`, in
 //! sequence. Where `arv-fake-gv-camera-0.8` is missing the third case is skipped with a
@@ -119,7 +120,7 @@ impl Drop for ChildGuard {
 }
 
 fn fake_gige_camera_over_udp(dir: &Path) {
-    let spawned = Command::new(FAKE_GV_CAMERA).args(["-i", "127.0.0.1"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn();
+    let spawned = Command::new(FAKE_GV_CAMERA).args(["-i", "127.0.0.1", "-r", "300"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn();
     let child = match spawned {
         Ok(c) => ChildGuard(c),
         Err(e) if std::env::var("CI").as_deref() != Ok("true") => {
@@ -145,6 +146,12 @@ fn fake_gige_camera_over_udp(dir: &Path) {
     eprintln!("GigE: {}", src.describe());
     let frames = grab(&mut src, 8);
     check_frames(&frames, true);
+    // The camera loses 30% of its packets: incomplete frames are dropped and counted, whole
+    // ones still come through (a frame is 3+ packets: P(no drop before 8 whole ones) < 1e-4).
+    let stats = src.stats();
+    eprintln!("GigE with 30% packet loss: {stats:?}");
+    assert_eq!(stats.delivered, 8);
+    assert!(stats.dropped_corrupt >= 1, "{stats:?}");
     assert!((src.settings().exposure_us.unwrap() - 2000.0).abs() < 1.0);
 
     // Unplug: kill the camera, the stream ends with an error naming it.
