@@ -1,9 +1,20 @@
-//! Frame sources. Everything that delivers images (dataset folders today; V4L2, Aravis and
-//! MCAP replay later) implements [`FrameSource`], so the pipeline never knows which it has.
+//! Frame sources. Everything that delivers images (dataset folders, the generator, V4L2 and
+//! Aravis cameras; MCAP replay lives in `replay/`) implements [`FrameSource`], so the pipeline
+//! never knows which it has. [`open_source`] turns a `--source` spec into one.
 
+#[cfg(feature = "aravis")]
+pub mod aravis;
 pub mod dataset;
+pub mod live;
+pub mod pixel;
+pub mod sim;
+mod source;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
 
-use crate::core::{Frame, PinholeCamera};
+pub use source::{open_source, SOURCE_KINDS};
+
+use crate::core::{Frame, PinholeCamera, StampedPose};
 use std::path::PathBuf;
 
 /// Errors of the `camera` module.
@@ -39,6 +50,37 @@ pub enum CameraError {
     ImageSize { path: PathBuf, width: usize, height: usize, expected_width: usize, expected_height: usize },
     #[error("{root}: this dataset has no depth")]
     NoDepth { root: PathBuf },
+    /// The spec names a source kind this binary was built without.
+    #[error("source {spec:?}: this build has no {kind} support; rebuild with `--features {feature}`")]
+    FeatureDisabled { spec: String, kind: &'static str, feature: &'static str },
+    /// `mcap:FILE` is read by the replay module, not by the camera module.
+    #[error("source {spec:?}: MCAP logs are read by the replay module (`duv replay`), not by camera::open_source")]
+    HandledByReplay { spec: String },
+    /// A live camera could not be opened, configured or read: missing, unplugged, busy, or
+    /// refusing a setting the board asks for. `device` names it (`/dev/video0`, `aravis:Fake_1`).
+    #[error("camera {device}: {problem}")]
+    Device { device: String, problem: String },
+    /// A live camera delivered frames but every one of the last `count` was corrupt.
+    #[error("camera {device}: the last {count} frames were all corrupt (last: {last})")]
+    CorruptStream { device: String, count: u32, last: String },
+}
+
+impl CameraError {
+    /// True when the source cannot deliver more frames after this error (a camera gone or
+    /// misconfigured); false when only one frame was bad and the next call may succeed.
+    pub fn ends_stream(&self) -> bool {
+        !matches!(self, CameraError::BadFrame { .. } | CameraError::ImageSize { .. } | CameraError::Io(_))
+    }
+}
+
+/// Counters a source keeps about what it delivered and what it dropped.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SourceStats {
+    /// Frames returned by `next_frame`.
+    pub delivered: u64,
+    /// Frames the source received but dropped because they were corrupt (wrong size,
+    /// truncated JPEG, incomplete transfer, driver error flag).
+    pub dropped_corrupt: u64,
 }
 
 /// A source of time-stamped frames with a known camera model.
@@ -50,4 +92,12 @@ pub trait FrameSource: Send {
     fn next_frame(&mut self) -> Result<Option<Frame>, CameraError>;
     /// One line for logs: what this source is.
     fn describe(&self) -> String;
+    /// Delivered and dropped-frame counters (all zero for sources that never drop).
+    fn stats(&self) -> SourceStats {
+        SourceStats::default()
+    }
+    /// `world_from_cam` ground truth of the frames, where the source knows it (the generator).
+    fn ground_truth(&self) -> Option<&[StampedPose]> {
+        None
+    }
 }

@@ -12,7 +12,8 @@
 //! exports `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
 
 use anyhow::Context;
-use duv::camera::dataset::{open_dataset, Dataset};
+use duv::camera::dataset::{open_dataset, Dataset, DATASET_KINDS};
+use duv::camera::{open_source, FrameSource};
 use duv::config::board::Board;
 use duv::core::pose::se3_to_tum;
 use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, StampedPose, Timestamp};
@@ -32,8 +33,9 @@ use std::time::{Duration, Instant};
 #[derive(clap::Args)]
 pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
-    /// in `duv dataset`), or `sim:WATER[-TRAJECTORY]` generated in memory, e.g. `sim:coastal`,
-    /// `sim:turbid-loop` (water: clear, coastal, turbid; trajectory: survey, loop, hover).
+    /// in `duv dataset`), `sim:WATER[-TRAJECTORY]` generated in memory, e.g. `sim:coastal`,
+    /// `sim:turbid-loop` (water: clear, coastal, turbid; trajectory: survey, loop, hover), or a
+    /// live camera `v4l2:/dev/video0,calib=FILE`, `aravis:ID,calib=FILE` (board settings).
     #[arg(long)]
     source: String,
     /// Output folder (created if missing).
@@ -81,6 +83,8 @@ pub struct RunArgs {
 enum Source {
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv::core::camera::UndistortMap, ImageRgb8)> },
+    /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
+    Live { source: Box<dyn FrameSource>, next: usize, count: usize },
 }
 
 /// `WATER[-TRAJECTORY]` of a `sim:` spec.
@@ -117,6 +121,10 @@ impl Source {
             return Ok(Source::Sim { renderer: Box::new(renderer), next: 0, count });
         }
         anyhow::ensure!(args.width.is_none() && args.height.is_none(), "--width/--height apply to sim: sources only");
+        if !DATASET_KINDS.split(", ").any(|k| args.source.split(':').next() == Some(k)) {
+            let source = open_source(&args.source, board)?;
+            return Ok(Source::Live { source, next: 0, count: args.frames.unwrap_or(usize::MAX) });
+        }
         let dataset = open_dataset(&args.source)?;
         let count = args.frames.unwrap_or(usize::MAX).min(dataset.frames.len());
         let undistort = dataset.camera.distortion.is_some().then(|| {
@@ -132,12 +140,13 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => *renderer.camera(),
             Source::Dataset { dataset, .. } => dataset.camera.undistorted(),
+            Source::Live { source, .. } => *source.camera(),
         }
     }
 
     fn len(&self) -> usize {
         match self {
-            Source::Sim { count, .. } | Source::Dataset { count, .. } => *count,
+            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Live { count, .. } => *count,
         }
     }
 
@@ -172,6 +181,13 @@ impl Source {
                     Err(e) => tracing::warn!("skipping a frame: {e}"),
                 }
             },
+            Source::Live { source, next, count } => {
+                if *next >= *count {
+                    return Ok(None);
+                }
+                *next += 1;
+                Ok(source.next_frame()?)
+            }
         }
     }
 
@@ -179,6 +195,7 @@ impl Source {
         match self {
             Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),
             Source::Dataset { dataset, .. } => dataset.ground_truth.clone(),
+            Source::Live { source, .. } => source.ground_truth().map(<[_]>::to_vec),
         }
     }
 
@@ -187,6 +204,7 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => Some(renderer.render(seq as usize).depth_m),
             Source::Dataset { dataset, .. } => dataset.load_depth_for_frame(seq as usize).ok().flatten(),
+            Source::Live { .. } => None,
         }
     }
 
@@ -197,6 +215,7 @@ impl Source {
                 format!("sim {:?} water, {:?} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
             }
             Source::Dataset { dataset, .. } => dataset.describe(),
+            Source::Live { source, .. } => source.describe(),
         }
     }
 }

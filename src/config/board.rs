@@ -62,6 +62,17 @@ pub struct CameraConfig {
     /// Fixed exposure time in microseconds; absent for the camera's auto exposure.
     #[serde(default)]
     pub exposure_us: Option<u32>,
+    /// Buffers a live camera's driver fills ahead of capture (V4L2 mmap buffers, Aravis
+    /// stream buffers), 2 to 32.
+    #[serde(default = "default_driver_buffers")]
+    pub driver_buffers: u32,
+}
+
+/// [`CameraConfig::driver_buffers`] when the board does not say.
+pub const DEFAULT_DRIVER_BUFFERS: u32 = 4;
+
+fn default_driver_buffers() -> u32 {
+    DEFAULT_DRIVER_BUFFERS
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -135,6 +146,9 @@ impl Board {
         }
         if c.exposure_us == Some(0) {
             return Err(invalid("camera.exposure_us", "0".into(), "must be > 0 (omit it for auto exposure)"));
+        }
+        if !(2..=32).contains(&c.driver_buffers) {
+            return Err(invalid("camera.driver_buffers", c.driver_buffers.to_string(), "must be in 2..=32"));
         }
         let b = &self.budgets;
         let positive: [(&'static str, u32); 8] = [
@@ -210,6 +224,17 @@ mapping = 1
         let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
         assert_eq!(b.budgets.ba_window, 8);
         assert_eq!(b.camera.pixel_format, PixelFormat::Rgb24);
+        assert_eq!(b.camera.driver_buffers, DEFAULT_DRIVER_BUFFERS);
+    }
+
+    #[test]
+    fn driver_buffers_are_bounded() {
+        let with = |n: u32| MINIMAL.replace("pixel_format = \"rgb24\"", &format!("pixel_format = \"rgb24\"\ndriver_buffers = {n}"));
+        assert_eq!(Board::parse(Path::new("t.toml"), &with(8)).unwrap().camera.driver_buffers, 8);
+        for n in [0, 1, 33] {
+            let e = Board::parse(Path::new("t.toml"), &with(n)).unwrap_err();
+            assert!(e.to_string().contains("camera.driver_buffers"), "{e}");
+        }
     }
 
     #[test]
