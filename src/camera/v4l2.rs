@@ -66,7 +66,7 @@ fn gcd(a: u32, b: u32) -> u32 {
 /// A driver time stamp (`struct timeval`) in nanoseconds; `None` when it is unset (zero) or
 /// negative, which drivers without time stamps deliver.
 pub fn driver_time_ns(sec: i64, usec: i64) -> Option<Timestamp> {
-    if sec < 0 || usec < 0 || usec >= 1_000_000 || (sec == 0 && usec == 0) {
+    if sec < 0 || !(0..1_000_000).contains(&usec) || (sec == 0 && usec == 0) {
         return None;
     }
     Some(Timestamp::from_ns(sec.checked_mul(1_000_000_000)?.checked_add(usec * 1000)?))
