@@ -168,7 +168,11 @@ impl FrameSource for V4l2Source {
     }
 
     fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
-        let mut image = self.decoder.blank_image();
+        let mut frame = Frame { t_ns: Timestamp::ZERO, seq: 0, image: self.decoder.blank_image() };
+        Ok(self.next_frame_into(&mut frame)?.then_some(frame))
+    }
+
+    fn next_frame_into(&mut self, frame: &mut Frame) -> Result<bool, CameraError> {
         loop {
             let (buf, meta) = match CaptureStream::next(&mut self.stream) {
                 Ok(x) => x,
@@ -186,7 +190,7 @@ impl FrameSource for V4l2Source {
             let problem = if meta.flags.contains(BufferFlags::ERROR) {
                 Some("the driver flagged the buffer as corrupt".to_string())
             } else {
-                self.decoder.decode_into(&buf[..used], &mut image).err().map(|e| e.to_string())
+                self.decoder.decode_into(&buf[..used], &mut frame.image).err().map(|e| e.to_string())
             };
             let t_ns = driver_time_ns(meta.timestamp.sec, meta.timestamp.usec);
             if let Some(problem) = problem {
@@ -201,7 +205,8 @@ impl FrameSource for V4l2Source {
             self.seq += 1;
             self.decoder.delivered();
             tracing::trace!(seq, t_ns = t_ns.t_ns(), driver_seq = meta.sequence, "v4l2 frame");
-            return Ok(Some(Frame { t_ns, seq, image }));
+            (frame.t_ns, frame.seq) = (t_ns, seq);
+            return Ok(true);
         }
     }
 
