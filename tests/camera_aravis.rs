@@ -3,7 +3,7 @@
 //! 1. the in-process fake interface (`aravis:Fake_1`): pixel formats Mono8, RGB8 and BayerRG8,
 //!    the board's region, frame rate and exposure read back from the camera, frames of the
 //!    right size and kind with increasing camera time stamps and the fake camera's test
-//!    pattern;
+//!    pattern, and no allocation per frame in `next_frame_into` once warm;
 //! 2. a camera id that does not exist: an error naming it and listing the cameras seen;
 //! 3. the fake GigE Vision camera `arv-fake-gv-camera-0.8 -i 127.0.0.1` as a subprocess, so
 //!    the real GVCP/GVSP protocol over UDP, losing 30% of its stream packets (`-r 300`):
@@ -21,9 +21,13 @@ use duv::camera::live::LiveSpec;
 use duv::camera::{CameraError, FrameSource, SourceStats};
 use duv::config::board::{Board, PixelFormat};
 use duv::core::{Frame, FrameImage};
+use duv::core::alloc::{count_allocations_on_this_thread, is_installed, CountingAllocator};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
 
 const FAKE_GV_CAMERA: &str = "arv-fake-gv-camera-0.8";
 const W: u32 = 64;
@@ -87,6 +91,20 @@ fn in_process_fake_camera(dir: &Path) {
     let median_ms = dt[dt.len() / 2] as f64 * 1e-6;
     assert!((25.0..100.0).contains(&median_ms), "median frame interval {median_ms} ms at 20 fps");
     assert_eq!(src.stats(), SourceStats { delivered: 6, dropped_corrupt: 0 });
+    // Steady state: capture into a reused frame allocates nothing on the Rust side (Aravis's
+    // own C allocations are not seen by the counting allocator).
+    assert!(is_installed());
+    let mut frame = frames[0].clone();
+    let mut ok = true;
+    let allocations = count_allocations_on_this_thread(|| {
+        for _ in 0..5 {
+            ok &= matches!(src.next_frame_into(&mut frame), Ok(true));
+        }
+    });
+    assert!(ok, "next_frame_into failed");
+    assert_eq!(allocations, 0);
+    assert_eq!(frame.seq, 10);
+    assert_eq!(src.stats().delivered, 11);
     drop(src);
 
     // RGB8 and BayerRG8 become colour frames; auto exposure when the board gives none.

@@ -194,7 +194,11 @@ impl FrameSource for AravisSource {
     }
 
     fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
-        let mut image = self.decoder.blank_image();
+        let mut frame = Frame { t_ns: Timestamp::ZERO, seq: 0, image: self.decoder.blank_image() };
+        Ok(self.next_frame_into(&mut frame)?.then_some(frame))
+    }
+
+    fn next_frame_into(&mut self, frame: &mut Frame) -> Result<bool, CameraError> {
         loop {
             let Some(buffer) = self.stream.timeout_pop_buffer(self.timeout.as_micros() as u64) else {
                 return Err(CameraError::Device {
@@ -212,7 +216,7 @@ impl FrameSource for AravisSource {
                     // SAFETY: Aravis owns `len` bytes at `ptr` for as long as `buffer` lives,
                     // and the stream thread does not touch a buffer that has been popped.
                     let data = unsafe { std::slice::from_raw_parts(ptr as *const u8, len) };
-                    problem = self.decoder.decode_into(data, &mut image).err().map(|e| e.to_string());
+                    problem = self.decoder.decode_into(data, &mut frame.image).err().map(|e| e.to_string());
                 }
             }
             let t_ns = match buffer.timestamp() {
@@ -232,7 +236,8 @@ impl FrameSource for AravisSource {
             self.seq += 1;
             self.decoder.delivered();
             tracing::trace!(seq, t_ns = t_ns.t_ns(), "aravis frame");
-            return Ok(Some(Frame { t_ns, seq, image }));
+            (frame.t_ns, frame.seq) = (t_ns, seq);
+            return Ok(true);
         }
     }
 

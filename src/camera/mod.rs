@@ -92,6 +92,19 @@ pub trait FrameSource: Send {
     fn next_frame(&mut self) -> Result<Option<Frame>, CameraError>;
     /// One line for logs: what this source is.
     fn describe(&self) -> String;
+    /// Like [`FrameSource::next_frame`], into `frame`, reusing its image buffer where the
+    /// source can: the live cameras then decode without allocating (on the Rust side) once
+    /// `frame` has the right size. Returns `false` at end of stream; after an error or `false`
+    /// the contents of `frame` are unspecified.
+    fn next_frame_into(&mut self, frame: &mut Frame) -> Result<bool, CameraError> {
+        match self.next_frame()? {
+            Some(f) => {
+                *frame = f;
+                Ok(true)
+            }
+            None => Ok(false),
+        }
+    }
     /// Delivered and dropped-frame counters (all zero for sources that never drop).
     fn stats(&self) -> SourceStats {
         SourceStats::default()

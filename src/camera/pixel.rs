@@ -168,7 +168,7 @@ pub fn bayer_rg8_to_rgb8(src: &[u8], width: usize, height: usize, stride_bytes: 
         let bottom = &src[(2 * cy + 1) * stride_bytes..];
         for cx in 0..width / 2 {
             let r = top[2 * cx];
-            let g = ((top[2 * cx + 1] as u16 + bottom[2 * cx] as u16 + 1) / 2) as u8;
+            let g = (top[2 * cx + 1] as u16 + bottom[2 * cx] as u16).div_ceil(2) as u8;
             let b = bottom[2 * cx + 1];
             for (dy, dx) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
                 let i = ((2 * cy + dy) * width + 2 * cx + dx) * 3;
@@ -206,7 +206,7 @@ pub fn mjpeg_to_rgb8(src: &[u8], width: usize, height: usize, dst: &mut ImageRgb
     let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(ColorSpace::RGB).set_strict_mode(true);
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(data, options);
     decoder.decode_headers().map_err(|e| PixelError::Jpeg { problem: format!("{e:?}") })?;
-    let (w, h) = decoder.dimensions().map(|(w, h)| (w as usize, h as usize)).unwrap_or((0, 0));
+    let (w, h) = decoder.dimensions().unwrap_or((0, 0));
     if w != width || h != height {
         return Err(PixelError::JpegSize { width: w, height: h, expected_width: width, expected_height: height });
     }

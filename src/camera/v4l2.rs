@@ -66,7 +66,7 @@ fn gcd(a: u32, b: u32) -> u32 {
 /// A driver time stamp (`struct timeval`) in nanoseconds; `None` when it is unset (zero) or
 /// negative, which drivers without time stamps deliver.
 pub fn driver_time_ns(sec: i64, usec: i64) -> Option<Timestamp> {
-    if sec < 0 || usec < 0 || usec >= 1_000_000 || (sec == 0 && usec == 0) {
+    if sec < 0 || !(0..1_000_000).contains(&usec) || (sec == 0 && usec == 0) {
         return None;
     }
     Some(Timestamp::from_ns(sec.checked_mul(1_000_000_000)?.checked_add(usec * 1000)?))
@@ -168,7 +168,11 @@ impl FrameSource for V4l2Source {
     }
 
     fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
-        let mut image = self.decoder.blank_image();
+        let mut frame = Frame { t_ns: Timestamp::ZERO, seq: 0, image: self.decoder.blank_image() };
+        Ok(self.next_frame_into(&mut frame)?.then_some(frame))
+    }
+
+    fn next_frame_into(&mut self, frame: &mut Frame) -> Result<bool, CameraError> {
         loop {
             let (buf, meta) = match CaptureStream::next(&mut self.stream) {
                 Ok(x) => x,
@@ -186,7 +190,7 @@ impl FrameSource for V4l2Source {
             let problem = if meta.flags.contains(BufferFlags::ERROR) {
                 Some("the driver flagged the buffer as corrupt".to_string())
             } else {
-                self.decoder.decode_into(&buf[..used], &mut image).err().map(|e| e.to_string())
+                self.decoder.decode_into(&buf[..used], &mut frame.image).err().map(|e| e.to_string())
             };
             let t_ns = driver_time_ns(meta.timestamp.sec, meta.timestamp.usec);
             if let Some(problem) = problem {
@@ -201,7 +205,8 @@ impl FrameSource for V4l2Source {
             self.seq += 1;
             self.decoder.delivered();
             tracing::trace!(seq, t_ns = t_ns.t_ns(), driver_seq = meta.sequence, "v4l2 frame");
-            return Ok(Some(Frame { t_ns, seq, image }));
+            (frame.t_ns, frame.seq) = (t_ns, seq);
+            return Ok(true);
         }
     }
 
