@@ -1,0 +1,116 @@
+// One least-significant-digit radix pass (8 bits) over (u64 key, u32 value) pairs, three
+// kernels (CPU reference: `radix_sort_pairs` / `sort_pass`, src/map/render/sort.rs, the same
+// shape and the same 4096-element blocks):
+//   histogram  one workgroup per block: digit counts -> hist[block * 256 + digit]
+//   scan       one workgroup: exclusive scan in digit-major order (block b's digit-d elements
+//              follow those of blocks < b and precede digit d + 1), in place
+//   scatter    one workgroup per block: stable scatter to dst
+// Keys are u64 stored as vec2<u32> (lo, hi), the little-endian layout of a Rust u64.
+// Integer atomics on workgroup memory only; no float atomics.
+
+const WG: u32 = 256u;
+const RADIX: u32 = 256u;
+const SORT_BLOCK: u32 = 4096u;
+
+struct SortParams {
+    n: u32,
+    shift: u32,
+    blocks: u32,
+    pad: u32,
+}
+
+var<immediate> params: SortParams;
+
+@group(0) @binding(0) var<storage, read> src_keys: array<vec2<u32>>;
+@group(0) @binding(1) var<storage, read> src_values: array<u32>;
+@group(0) @binding(2) var<storage, read_write> hist: array<u32>;
+@group(0) @binding(3) var<storage, read_write> dst_keys: array<vec2<u32>>;
+@group(0) @binding(4) var<storage, read_write> dst_values: array<u32>;
+
+var<workgroup> counts: array<atomic<u32>, 256>;
+var<workgroup> digit_offset: array<u32, 256>;
+var<workgroup> chunk_digits: array<u32, 256>;
+
+fn digit_of(key: vec2<u32>) -> u32 {
+    if (params.shift < 32u) {
+        return (key.x >> params.shift) & (RADIX - 1u);
+    }
+    return (key.y >> (params.shift - 32u)) & (RADIX - 1u);
+}
+
+@compute @workgroup_size(256)
+fn histogram(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    atomicStore(&counts[t], 0u);
+    workgroupBarrier();
+    let base = wg.x * SORT_BLOCK;
+    for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
+        let i = base + k * WG + t;
+        if (i < params.n) {
+            atomicAdd(&counts[digit_of(src_keys[i])], 1u);
+        }
+    }
+    workgroupBarrier();
+    hist[wg.x * RADIX + t] = atomicLoad(&counts[t]);
+}
+
+@compute @workgroup_size(256)
+fn scan(@builtin(local_invocation_index) t: u32) {
+    // Thread t owns digit t: its total over all blocks.
+    var total = 0u;
+    for (var b = 0u; b < params.blocks; b = b + 1u) {
+        total = total + hist[b * RADIX + t];
+    }
+    digit_offset[t] = total;
+    workgroupBarrier();
+    if (t == 0u) {
+        var running = 0u;
+        for (var d = 0u; d < RADIX; d = d + 1u) {
+            let c = digit_offset[d];
+            digit_offset[d] = running;
+            running = running + c;
+        }
+    }
+    workgroupBarrier();
+    var running = digit_offset[t];
+    for (var b = 0u; b < params.blocks; b = b + 1u) {
+        let c = hist[b * RADIX + t];
+        hist[b * RADIX + t] = running;
+        running = running + c;
+    }
+}
+
+@compute @workgroup_size(256)
+fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    digit_offset[t] = hist[wg.x * RADIX + t];
+    let base = wg.x * SORT_BLOCK;
+    for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
+        let i = base + k * WG + t;
+        let valid = i < params.n;
+        var d = RADIX; // sentinel: matches no digit
+        var key = vec2<u32>(0u, 0u);
+        if (valid) {
+            key = src_keys[i];
+            d = digit_of(key);
+        }
+        workgroupBarrier();
+        chunk_digits[t] = d;
+        workgroupBarrier();
+        // Stable rank: same-digit elements earlier in this chunk.
+        var rank = 0u;
+        for (var u = 0u; u < t; u = u + 1u) {
+            rank = rank + select(0u, 1u, chunk_digits[u] == d);
+        }
+        // Thread t also counts digit t in this chunk, to advance its offset afterwards.
+        var here = 0u;
+        for (var u = 0u; u < WG; u = u + 1u) {
+            here = here + select(0u, 1u, chunk_digits[u] == t);
+        }
+        if (valid) {
+            let slot = digit_offset[d] + rank;
+            dst_keys[slot] = key;
+            dst_values[slot] = src_values[i];
+        }
+        workgroupBarrier();
+        digit_offset[t] = digit_offset[t] + here;
+    }
+}
