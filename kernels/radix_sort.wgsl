@@ -4,7 +4,8 @@
 //   histogram  one workgroup per block: digit counts -> hist[block * 256 + digit]
 //   scan       one workgroup: exclusive scan in digit-major order (block b's digit-d elements
 //              follow those of blocks < b and precede digit d + 1), in place
-//   scatter    one workgroup per block: stable scatter to dst
+//   scatter    one workgroup per block, 256-element chunks in order: stable scatter to dst,
+//              the rank within a chunk from per-digit thread bitmasks (popcounts)
 // Keys are u64 stored as vec2<u32> (lo, hi), the little-endian layout of a Rust u64.
 // Integer atomics on workgroup memory only; no float atomics.
 
@@ -29,7 +30,8 @@ var<immediate> params: SortParams;
 
 var<workgroup> counts: array<atomic<u32>, 256>;
 var<workgroup> digit_offset: array<u32, 256>;
-var<workgroup> chunk_digits: array<u32, 256>;
+// Per digit, a 256-bit mask (8 words) of the chunk's threads holding that digit.
+var<workgroup> masks: array<atomic<u32>, 2048>;
 
 fn digit_of(key: vec2<u32>) -> u32 {
     if (params.shift < 32u) {
@@ -83,32 +85,38 @@ fn scan(@builtin(local_invocation_index) t: u32) {
 fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
     digit_offset[t] = hist[wg.x * RADIX + t];
     let base = wg.x * SORT_BLOCK;
+    let word = t >> 5u;
+    let bit = 1u << (t & 31u);
     for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
+        // Clear this chunk's digit masks: thread t owns digit t's 8 words.
+        for (var w = 0u; w < 8u; w = w + 1u) {
+            atomicStore(&masks[t * 8u + w], 0u);
+        }
         let i = base + k * WG + t;
         let valid = i < params.n;
-        var d = RADIX; // sentinel: matches no digit
+        var d = 0u;
         var key = vec2<u32>(0u, 0u);
+        workgroupBarrier();
         if (valid) {
             key = src_keys[i];
             d = digit_of(key);
+            atomicOr(&masks[d * 8u + word], bit);
         }
         workgroupBarrier();
-        chunk_digits[t] = d;
-        workgroupBarrier();
-        // Stable rank: same-digit elements earlier in this chunk.
-        var rank = 0u;
-        for (var u = 0u; u < t; u = u + 1u) {
-            rank = rank + select(0u, 1u, chunk_digits[u] == d);
-        }
-        // Thread t also counts digit t in this chunk, to advance its offset afterwards.
-        var here = 0u;
-        for (var u = 0u; u < WG; u = u + 1u) {
-            here = here + select(0u, 1u, chunk_digits[u] == t);
-        }
+        // Stable rank: same-digit elements earlier in this chunk (bits below t in d's mask).
         if (valid) {
+            var rank = countOneBits(atomicLoad(&masks[d * 8u + word]) & (bit - 1u));
+            for (var w = 0u; w < word; w = w + 1u) {
+                rank = rank + countOneBits(atomicLoad(&masks[d * 8u + w]));
+            }
             let slot = digit_offset[d] + rank;
             dst_keys[slot] = key;
             dst_values[slot] = src_values[i];
+        }
+        // Thread t counts digit t in this chunk, to advance its offset.
+        var here = 0u;
+        for (var w = 0u; w < 8u; w = w + 1u) {
+            here = here + countOneBits(atomicLoad(&masks[t * 8u + w]));
         }
         workgroupBarrier();
         digit_offset[t] = digit_offset[t] + here;

@@ -22,3 +22,4 @@ pub mod ply;
 pub mod real;
 pub mod render;
 pub mod schedule;
+pub mod vulkan;
