@@ -84,14 +84,14 @@ fn scan(@builtin(local_invocation_index) t: u32) {
 @compute @workgroup_size(256)
 fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
     digit_offset[t] = hist[wg.x * RADIX + t];
+    // Thread t clears digit t's 8 mask words once; afterwards each thread clears the word it set.
+    for (var w = 0u; w < 8u; w = w + 1u) {
+        atomicStore(&masks[t * 8u + w], 0u);
+    }
     let base = wg.x * SORT_BLOCK;
     let word = t >> 5u;
     let bit = 1u << (t & 31u);
     for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
-        // Clear this chunk's digit masks: thread t owns digit t's 8 words.
-        for (var w = 0u; w < 8u; w = w + 1u) {
-            atomicStore(&masks[t * 8u + w], 0u);
-        }
         let i = base + k * WG + t;
         let valid = i < params.n;
         var d = 0u;
@@ -103,22 +103,35 @@ fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index
             atomicOr(&masks[d * 8u + word], bit);
         }
         workgroupBarrier();
-        // Stable rank: same-digit elements earlier in this chunk (bits below t in d's mask).
+        var slot = 0u;
+        var last = false;
         if (valid) {
-            var rank = countOneBits(atomicLoad(&masks[d * 8u + word]) & (bit - 1u));
-            for (var w = 0u; w < word; w = w + 1u) {
-                rank = rank + countOneBits(atomicLoad(&masks[d * 8u + w]));
+            // Stable rank: same-digit elements earlier in this chunk (bits below t in d's
+            // mask); the last of its digit (no bit above t) advances the digit's offset.
+            var rank = 0u;
+            var above = 0u;
+            for (var w = 0u; w < 8u; w = w + 1u) {
+                let m = atomicLoad(&masks[d * 8u + w]);
+                if (w < word) {
+                    rank = rank + countOneBits(m);
+                } else if (w == word) {
+                    rank = rank + countOneBits(m & (bit - 1u));
+                    above = above | (m & ~(bit | (bit - 1u)));
+                } else {
+                    above = above | m;
+                }
             }
-            let slot = digit_offset[d] + rank;
+            slot = digit_offset[d] + rank;
+            last = above == 0u;
             dst_keys[slot] = key;
             dst_values[slot] = src_values[i];
         }
-        // Thread t counts digit t in this chunk, to advance its offset.
-        var here = 0u;
-        for (var w = 0u; w < 8u; w = w + 1u) {
-            here = here + countOneBits(atomicLoad(&masks[t * 8u + w]));
-        }
         workgroupBarrier();
-        digit_offset[t] = digit_offset[t] + here;
+        if (valid) {
+            atomicStore(&masks[d * 8u + word], 0u);
+            if (last) {
+                digit_offset[d] = slot + 1u;
+            }
+        }
     }
 }

@@ -398,3 +398,31 @@ fn gpu_forward_render_matches_raster_workspace() {
     eprintln!("arena peak {} MiB of {} MiB", ctx.arena_peak_bytes() >> 20, ctx.arena_capacity_bytes() >> 20);
     ctx.arena_reset_to(arena_mark);
 }
+
+/// No kernel uses float atomics (integer workgroup atomics only, in an order-independent
+/// way), so two runs on one device give bit-identical images.
+#[test]
+fn forward_is_bit_identical_over_two_runs() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("forward_is_bit_identical_over_two_runs") else { return };
+    let (w, h) = (96, 72);
+    let cam = camera(w, h, 90.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(41);
+    let n = 2000;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (1.0, 8.0), (0.7, 8.0), (-2.0, 4.0));
+    let medium = random_medium(&mut rng, w, h);
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: n, max_intersections: 16 * n };
+    let arena_mark = ctx.arena_used_bytes();
+    let mut gpu = GpuForwardRenderer::new(&mut ctx, capacity).unwrap();
+    let mut runs = [RenderOutput::new(w, h), RenderOutput::new(w, h)];
+    for out in runs.iter_mut() {
+        gpu.forward(&mut ctx, &g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), out).unwrap();
+    }
+    let bits = |o: &RenderOutput| -> Vec<u32> {
+        o.colour.data.iter().chain(&o.restored.data).chain(&o.depth.data).chain(&o.depth_var.data).chain(&o.alpha.data).map(|v| v.to_bits()).collect()
+    };
+    assert_eq!(bits(&runs[0]), bits(&runs[1]), "two GPU renders differ");
+    assert_eq!(runs[0].isect_end, runs[1].isect_end);
+    assert!(runs[0].alpha.data.iter().any(|&a| a > 0.5), "the scene must cover pixels");
+    ctx.arena_reset_to(arena_mark);
+}

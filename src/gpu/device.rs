@@ -124,6 +124,11 @@ pub struct GpuContext {
     last_kernel: Option<Kernel>,
 }
 
+// SAFETY: the context owns its Vulkan objects and the arena mapping; every use goes through
+// `&mut self` (recording, submission, writes) or `&self` reads while the queue is idle, so
+// moving it to another thread (the mapping thread) is sound. It is not `Sync`.
+unsafe impl Send for GpuContext {}
+
 fn vk_err(call: &'static str) -> impl Fn(vk::Result) -> GpuError {
     move |result| GpuError::Vulkan { call, result }
 }

@@ -1,5 +1,5 @@
-//! The mapper's render stages on the Vulkan device (`gpu/`), each the kernel twin of a CPU
-//! reference in [`super::render`] with the same name and buffer order:
+//! The mapper's stages on the Vulkan device (`gpu/`), each the kernel twin of a CPU
+//! reference in [`super::render`] / [`super::adam`] with the same name and buffer order:
 //!
 //! | stage | kernel | CPU reference |
 //! |---|---|---|
@@ -7,11 +7,14 @@
 //! | tile counts prefix sum | `prefix_sum.*` (via `gpu::ops`) | `exclusive_scan` |
 //! | tile binning | `map_gaussian_to_intersects` | `emit_intersections` |
 //! | depth/tile key sort | `radix_sort.*` (via `gpu::ops`) | `radix_sort_pairs` |
+//! | tile ranges, index maps | `tile_ranges.{tile_ranges, gather_sorted, invert_permutation}` | `tile_ranges`, `gather_sorted_gaussians`, `invert_permutation` |
 //! | rasterise forward with the medium | `rasterize.rasterize` | `rasterize_forward` |
 //! | Adam | `adam.adam_step` | `AdamGroup::step` |
-//! | tile ranges, index maps | `tile_ranges.{tile_ranges, gather_sorted, invert_permutation}` | `tile_ranges`, `gather_sorted_gaussians`, `invert_permutation` |
 //!
-//! [`GpuProjection`], [`GpuBinning`] and [`GpuRasterForward`] own their buffers, allocated once from the arena for a fixed capacity.
+//! [`GpuProjection`], [`GpuBinning`] and [`GpuRasterForward`] own their buffers, allocated
+//! once from the arena for a fixed capacity; [`GpuForwardRenderer`] runs them all as
+//! `RasterWorkspace::forward` does. No kernel uses float atomics, so results are
+//! bit-identical from run to run on one device. Backward kernels are not written yet.
 
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
