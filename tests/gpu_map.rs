@@ -17,7 +17,7 @@ use duv::map::render::{
 };
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
-    record_adam_step, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterForward, VulkanRenderError, SETUP_WORDS, SPLAT_FLOATS,
+    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterForward, VulkanRenderError, SETUP_WORDS, SPLAT_FLOATS,
 };
 use render_scene::{camera, random_gaussians, random_medium, world_from_cam};
 
@@ -425,4 +425,29 @@ fn forward_is_bit_identical_over_two_runs() {
     assert_eq!(runs[0].isect_end, runs[1].isect_end);
     assert!(runs[0].alpha.data.iter().any(|&a| a > 0.5), "the scene must cover pixels");
     ctx.arena_reset_to(arena_mark);
+}
+
+#[test]
+fn no_vulkan_device_falls_back_to_the_cpu_reference_and_other_errors_do_not() {
+    // Pure policy: no device needed.
+    let (w, h) = (48, 32);
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: 100, max_intersections: 1000 };
+    let unavailable = Err(duv::gpu::GpuError::NoDevice { seen: String::new() });
+    let mut backend = ForwardBackend::from_open_result(unavailable, capacity).unwrap();
+    assert!(!backend.is_vulkan());
+    let cam = camera(w, h, 40.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(2);
+    let g = random_gaussians(&mut rng, 50, 100, &cam, &world_from_cam, (1.0, 4.0), (1.0, 4.0), (0.0, 3.0));
+    let medium = random_medium(&mut rng, w, h);
+    let (mut a, mut b) = (RenderOutput::new(w, h), RenderOutput::new(w, h));
+    backend.forward(&g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), &mut a).unwrap();
+    RasterWorkspace::new(capacity).unwrap().forward(&g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), &mut b).unwrap();
+    assert_eq!(a, b, "the fallback is the CPU reference");
+    // A device that exists but was asked for wrongly is an error, not a silent fallback.
+    let wrong = Err(duv::gpu::GpuError::NoMatchingDevice { env: duv::gpu::DEVICE_ENV, wanted: "nope".into(), seen: "0: llvmpipe".into() });
+    match ForwardBackend::from_open_result(wrong, capacity) {
+        Err(VulkanRenderError::Gpu(duv::gpu::GpuError::NoMatchingDevice { wanted, .. })) => assert_eq!(wanted, "nope"),
+        other => panic!("expected NoMatchingDevice, got {}", if other.is_ok() { "a backend".to_string() } else { "another error".into() }),
+    }
 }

@@ -74,7 +74,7 @@ impl Arena {
     pub(crate) fn alloc<T>(&mut self, what: &'static str, len: usize) -> Result<GpuBuffer<T>, GpuError> {
         let bytes = (len.max(1) * std::mem::size_of::<T>()) as u64;
         let offset = self.top.div_ceil(self.alignment) * self.alignment;
-        let end = offset.checked_add(bytes).unwrap_or(u64::MAX);
+        let end = offset.saturating_add(bytes);
         if end > self.capacity {
             return Err(GpuError::ArenaFull {
                 what,

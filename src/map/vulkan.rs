@@ -14,7 +14,8 @@
 //! [`GpuProjection`], [`GpuBinning`] and [`GpuRasterForward`] own their buffers, allocated
 //! once from the arena for a fixed capacity; [`GpuForwardRenderer`] runs them all as
 //! `RasterWorkspace::forward` does. No kernel uses float atomics, so results are
-//! bit-identical from run to run on one device. Backward kernels are not written yet.
+//! bit-identical from run to run on one device. [`ForwardBackend`] is the CPU fallback when
+//! no Vulkan device exists. Backward kernels are not written yet.
 
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
@@ -474,5 +475,55 @@ impl GpuForwardRenderer {
             self.projection.staging_offsets = offsets;
         }
         Ok(RenderStats { visible, intersections: n_isects })
+    }
+}
+
+/// Where the forward render runs: the Vulkan kernels, or the CPU reference when no Vulkan
+/// device exists at all (one warning when that is decided).
+pub enum ForwardBackend {
+    Vulkan { ctx: Box<GpuContext>, renderer: Box<GpuForwardRenderer> },
+    Cpu(Box<crate::map::render::RasterWorkspace>),
+}
+
+impl ForwardBackend {
+    /// Opens the device with `options` and allocates the renderer; no Vulkan loader or device
+    /// gives the CPU reference with one warning, any other failure is an error.
+    pub fn open(options: &crate::gpu::GpuOptions, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
+        Self::from_open_result(GpuContext::new(options), capacity)
+    }
+
+    /// The fallback policy of [`ForwardBackend::open`], for a given outcome of opening the device.
+    pub fn from_open_result(opened: Result<GpuContext, GpuError>, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
+        match opened {
+            Ok(mut ctx) => {
+                let renderer = GpuForwardRenderer::new(&mut ctx, capacity)?;
+                Ok(ForwardBackend::Vulkan { ctx: Box::new(ctx), renderer: Box::new(renderer) })
+            }
+            Err(e) if e.is_unavailable() => {
+                tracing::warn!("map: {e}; rendering on the CPU reference instead of Vulkan");
+                Ok(ForwardBackend::Cpu(Box::new(crate::map::render::RasterWorkspace::new(capacity)?)))
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub fn is_vulkan(&self) -> bool {
+        matches!(self, ForwardBackend::Vulkan { .. })
+    }
+
+    /// One forward render on whichever backend this is.
+    pub fn forward(
+        &mut self,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        out: &mut RenderOutput,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        match self {
+            ForwardBackend::Vulkan { ctx, renderer } => renderer.forward(ctx, gaussians, camera, cam_from_world, medium, config, out),
+            ForwardBackend::Cpu(ws) => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+        }
     }
 }
