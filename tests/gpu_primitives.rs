@@ -5,6 +5,7 @@
 mod gpu_common;
 
 use duv::core::rng::Rng;
+use duv::gpu::{GpuContext, GpuError, GpuOptions};
 use duv::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, SCAN_BLOCK, SORT_BLOCK};
 use duv::map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
 
@@ -129,4 +130,50 @@ fn radix_sort_matches_a_stable_sort() {
     }
     let rows: Vec<String> = ctx.profile().rows().map(|(k, d, ms)| format!("{} x{d}: {ms:.2} ms", k.name())).collect();
     eprintln!("kernel times: {}", rows.join(", "));
+}
+
+#[test]
+fn device_choice_and_pipeline_cache_on_disk() {
+    let Some(ctx) = gpu_common::gpu_or_skip("device_choice_and_pipeline_cache_on_disk") else { return };
+    let name = ctx.info().name.clone();
+    drop(ctx);
+    let dir = tempfile::tempdir().unwrap();
+    let options = |device: Option<&str>| GpuOptions {
+        arena_bytes: 1 << 20,
+        device: device.map(str::to_owned),
+        pipeline_cache_dir: Some(dir.path().to_path_buf()),
+    };
+    // By index and by a case-insensitive substring of the name.
+    let by_index = GpuContext::new(&options(Some("0"))).unwrap();
+    let file = by_index.info().pipeline_cache_file.clone().expect("cache file");
+    assert!(file.starts_with(dir.path()));
+    let file_name = file.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(file_name.starts_with(&format!("pipelines-{:04x}-{:04x}-", by_index.info().vendor_id, by_index.info().device_id)), "{file_name}");
+    assert!(std::fs::metadata(&file).unwrap().len() > 0, "pipeline cache written at start-up");
+    drop(by_index);
+    let substring = name.split_whitespace().next().unwrap().to_uppercase();
+    let by_name = GpuContext::new(&options(Some(&substring))).unwrap();
+    assert_eq!(by_name.info().name, name);
+    assert_eq!(by_name.info().pipeline_cache_file.as_ref(), Some(&file), "same device, same cache file (reused)");
+    drop(by_name);
+    match GpuContext::new(&options(Some("no-such-gpu"))) {
+        Err(GpuError::NoMatchingDevice { wanted, seen, .. }) => {
+            assert_eq!(wanted, "no-such-gpu");
+            assert!(seen.contains(&name), "the error lists the devices seen: {seen}");
+        }
+        Err(e) => panic!("expected NoMatchingDevice, got {e}"),
+        Ok(_) => panic!("a device matched 'no-such-gpu'"),
+    }
+    // The arena is the budget: more than it holds is refused, naming the buffer.
+    let mut small = GpuContext::new(&options(None)).unwrap();
+    match small.alloc::<u32>("too big", (1 << 20) / 4 + 1) {
+        Err(GpuError::ArenaFull { what, .. }) => assert_eq!(what, "too big"),
+        other => panic!("expected ArenaFull, got {other:?}"),
+    }
+    // A dispatch with the wrong number of buffers names the kernel.
+    let b = small.alloc::<u32>("b", 16).unwrap();
+    small.begin().unwrap();
+    let err = small.dispatch(duv::gpu::Kernel::RadixSortScan, &[b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
+    assert!(err.to_string().contains("radix_sort.scan"), "{err}");
+    small.submit_and_wait().unwrap();
 }
