@@ -11,6 +11,7 @@ pub mod camera;
 pub mod config;
 pub mod core;
 pub mod eval;
+pub mod gpu;
 pub mod io;
 pub mod map;
 pub mod sim;

@@ -168,19 +168,7 @@ impl AdamGroup {
             return Err(AdamError::NonFiniteGradient { index, value: grads[index] });
         }
         self.steps += 1;
-        let c = &self.config;
-        let t = self.steps as i32;
-        let bias1 = 1.0 - c.beta1.powi(t);
-        let bias2 = 1.0 - c.beta2.powi(t);
-        let k = StepConstants {
-            beta1: c.beta1 as f32,
-            one_minus_beta1: (1.0 - c.beta1) as f32,
-            beta2: c.beta2 as f32,
-            one_minus_beta2: (1.0 - c.beta2) as f32,
-            step_size: (c.lr / bias1) as f32,
-            inv_sqrt_bias2: (1.0 / bias2.sqrt()) as f32,
-            eps: c.eps as f32,
-        };
+        let k = StepConstants::new(&self.config, self.steps);
         let (m, v) = (&mut self.m[..n], &mut self.v[..n]);
         if n <= CHUNK {
             adam_update(&k, params, grads, m, v);
@@ -266,14 +254,34 @@ impl AdamGroup {
     }
 }
 
-struct StepConstants {
-    beta1: f32,
-    one_minus_beta1: f32,
-    beta2: f32,
-    one_minus_beta2: f32,
-    step_size: f32,
-    inv_sqrt_bias2: f32,
-    eps: f32,
+/// The f32 constants of step `steps` (1-based) of a group: what the per-value update and the
+/// `adam.adam_step` kernel (its immediate block, in this field order) use.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepConstants {
+    pub beta1: f32,
+    pub one_minus_beta1: f32,
+    pub beta2: f32,
+    pub one_minus_beta2: f32,
+    pub step_size: f32,
+    pub inv_sqrt_bias2: f32,
+    pub eps: f32,
+}
+
+impl StepConstants {
+    pub fn new(c: &AdamGroupConfig, steps: u64) -> Self {
+        let t = steps as i32;
+        let bias1 = 1.0 - c.beta1.powi(t);
+        let bias2 = 1.0 - c.beta2.powi(t);
+        StepConstants {
+            beta1: c.beta1 as f32,
+            one_minus_beta1: (1.0 - c.beta1) as f32,
+            beta2: c.beta2 as f32,
+            one_minus_beta2: (1.0 - c.beta2) as f32,
+            step_size: (c.lr / bias1) as f32,
+            inv_sqrt_bias2: (1.0 / bias2.sqrt()) as f32,
+            eps: c.eps as f32,
+        }
+    }
 }
 
 /// The per-value update; the kernel's body.

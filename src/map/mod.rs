@@ -24,3 +24,4 @@ pub mod real;
 pub mod render;
 pub mod schedule;
 pub mod stage;
+pub mod vulkan;

@@ -67,6 +67,7 @@ pub use raster_fwd::{blend_pixel, depth_value, rasterize_forward, PixelForward, 
 pub use sort::{bits_for, radix_sort_pairs, sort_histogram_len, RADIX, RADIX_BITS, SORT_BLOCK};
 pub use tiles::{gather_sorted_gaussians, invert_permutation, tile_ranges};
 pub use workspace::{RasterWorkspace, RenderStats};
+pub(crate) use workspace::{check_output, check_rgb, check_size, validate_gaussians};
 
 use crate::core::{CameraModelError, ImageRgbF32, PlaneF32};
 
@@ -216,7 +217,7 @@ impl MediumPlanes {
     pub fn pixel(&self, x: usize, y: usize) -> PixelMedium<f32> {
         PixelMedium { c_med: self.c_med.pixel(x, y), sigma_att: self.sigma_att.pixel(x, y), sigma_bs: self.sigma_bs.pixel(x, y) }
     }
-    fn planes(&self) -> [(&'static str, &ImageRgbF32); 3] {
+    pub(crate) fn planes(&self) -> [(&'static str, &ImageRgbF32); 3] {
         [("c_med", &self.c_med), ("sigma_att", &self.sigma_att), ("sigma_bs", &self.sigma_bs)]
     }
 }

@@ -275,14 +275,14 @@ fn raster_inputs<'a>(
     }
 }
 
-fn check_size(what: &'static str, width: usize, height: usize, grid: &TileGrid) -> Result<(), RenderError> {
+pub(crate) fn check_size(what: &'static str, width: usize, height: usize, grid: &TileGrid) -> Result<(), RenderError> {
     if width != grid.width || height != grid.height {
         return Err(RenderError::SizeMismatch { what, width, height, expected_width: grid.width, expected_height: grid.height });
     }
     Ok(())
 }
 
-fn check_output(out: &RenderOutput, grid: &TileGrid) -> Result<(), RenderError> {
+pub(crate) fn check_output(out: &RenderOutput, grid: &TileGrid) -> Result<(), RenderError> {
     check_size("render output", out.colour.width, out.colour.height, grid)?;
     check_size("render output", out.restored.width, out.restored.height, grid)?;
     for p in [&out.depth, &out.depth_var, &out.alpha, &out.final_t] {
@@ -302,7 +302,7 @@ fn check_output(out: &RenderOutput, grid: &TileGrid) -> Result<(), RenderError> 
 
 /// First non-finite (or, with `non_negative`, negative) value of an image, as an error naming
 /// the pixel and channel.
-fn check_rgb<const C: usize>(what: &'static str, img: &Image<f32, C>, non_negative: bool) -> Result<(), RenderError> {
+pub(crate) fn check_rgb<const C: usize>(what: &'static str, img: &Image<f32, C>, non_negative: bool) -> Result<(), RenderError> {
     let bad = |v: f32| !v.is_finite() || (non_negative && v < 0.0);
     if let Some(i) = img.data.par_iter().position_first(|&v| bad(v)) {
         let value = img.data[i];
@@ -313,7 +313,7 @@ fn check_rgb<const C: usize>(what: &'static str, img: &Image<f32, C>, non_negati
     Ok(())
 }
 
-fn validate_gaussians(gaussians: &Gaussians) -> Result<(), RenderError> {
+pub(crate) fn validate_gaussians(gaussians: &Gaussians) -> Result<(), RenderError> {
     if let Some((index, group)) = gaussians.find_non_finite() {
         return Err(RenderError::NonFiniteGaussian { index, field: group.name() });
     }

@@ -1,0 +1,137 @@
+// One least-significant-digit radix pass (8 bits) over (u64 key, u32 value) pairs, three
+// kernels (CPU reference: `radix_sort_pairs` / `sort_pass`, src/map/render/sort.rs, the same
+// shape and the same 4096-element blocks):
+//   histogram  one workgroup per block: digit counts -> hist[block * 256 + digit]
+//   scan       one workgroup: exclusive scan in digit-major order (block b's digit-d elements
+//              follow those of blocks < b and precede digit d + 1), in place
+//   scatter    one workgroup per block, 256-element chunks in order: stable scatter to dst,
+//              the rank within a chunk from per-digit thread bitmasks (popcounts)
+// Keys are u64 stored as vec2<u32> (lo, hi), the little-endian layout of a Rust u64.
+// Integer atomics on workgroup memory only; no float atomics.
+
+const WG: u32 = 256u;
+const RADIX: u32 = 256u;
+const SORT_BLOCK: u32 = 4096u;
+
+struct SortParams {
+    n: u32,
+    shift: u32,
+    blocks: u32,
+    pad: u32,
+}
+
+var<immediate> params: SortParams;
+
+@group(0) @binding(0) var<storage, read> src_keys: array<vec2<u32>>;
+@group(0) @binding(1) var<storage, read> src_values: array<u32>;
+@group(0) @binding(2) var<storage, read_write> hist: array<u32>;
+@group(0) @binding(3) var<storage, read_write> dst_keys: array<vec2<u32>>;
+@group(0) @binding(4) var<storage, read_write> dst_values: array<u32>;
+
+var<workgroup> counts: array<atomic<u32>, 256>;
+var<workgroup> digit_offset: array<u32, 256>;
+// Per digit, a 256-bit mask (8 words) of the chunk's threads holding that digit.
+var<workgroup> masks: array<atomic<u32>, 2048>;
+
+fn digit_of(key: vec2<u32>) -> u32 {
+    if (params.shift < 32u) {
+        return (key.x >> params.shift) & (RADIX - 1u);
+    }
+    return (key.y >> (params.shift - 32u)) & (RADIX - 1u);
+}
+
+@compute @workgroup_size(256)
+fn histogram(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    atomicStore(&counts[t], 0u);
+    workgroupBarrier();
+    let base = wg.x * SORT_BLOCK;
+    for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
+        let i = base + k * WG + t;
+        if (i < params.n) {
+            atomicAdd(&counts[digit_of(src_keys[i])], 1u);
+        }
+    }
+    workgroupBarrier();
+    hist[wg.x * RADIX + t] = atomicLoad(&counts[t]);
+}
+
+@compute @workgroup_size(256)
+fn scan(@builtin(local_invocation_index) t: u32) {
+    // Thread t owns digit t: its total over all blocks.
+    var total = 0u;
+    for (var b = 0u; b < params.blocks; b = b + 1u) {
+        total = total + hist[b * RADIX + t];
+    }
+    digit_offset[t] = total;
+    workgroupBarrier();
+    if (t == 0u) {
+        var running = 0u;
+        for (var d = 0u; d < RADIX; d = d + 1u) {
+            let c = digit_offset[d];
+            digit_offset[d] = running;
+            running = running + c;
+        }
+    }
+    workgroupBarrier();
+    var running = digit_offset[t];
+    for (var b = 0u; b < params.blocks; b = b + 1u) {
+        let c = hist[b * RADIX + t];
+        hist[b * RADIX + t] = running;
+        running = running + c;
+    }
+}
+
+@compute @workgroup_size(256)
+fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    digit_offset[t] = hist[wg.x * RADIX + t];
+    // Thread t clears digit t's 8 mask words once; afterwards each thread clears the word it set.
+    for (var w = 0u; w < 8u; w = w + 1u) {
+        atomicStore(&masks[t * 8u + w], 0u);
+    }
+    let base = wg.x * SORT_BLOCK;
+    let word = t >> 5u;
+    let bit = 1u << (t & 31u);
+    for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
+        let i = base + k * WG + t;
+        let valid = i < params.n;
+        var d = 0u;
+        var key = vec2<u32>(0u, 0u);
+        workgroupBarrier();
+        if (valid) {
+            key = src_keys[i];
+            d = digit_of(key);
+            atomicOr(&masks[d * 8u + word], bit);
+        }
+        workgroupBarrier();
+        var slot = 0u;
+        var last = false;
+        if (valid) {
+            // Stable rank: same-digit elements earlier in this chunk (bits below t in d's
+            // mask); the last of its digit (no bit above t) advances the digit's offset.
+            var rank = 0u;
+            var above = 0u;
+            for (var w = 0u; w < 8u; w = w + 1u) {
+                let m = atomicLoad(&masks[d * 8u + w]);
+                if (w < word) {
+                    rank = rank + countOneBits(m);
+                } else if (w == word) {
+                    rank = rank + countOneBits(m & (bit - 1u));
+                    above = above | (m & ~(bit | (bit - 1u)));
+                } else {
+                    above = above | m;
+                }
+            }
+            slot = digit_offset[d] + rank;
+            last = above == 0u;
+            dst_keys[slot] = key;
+            dst_values[slot] = src_values[i];
+        }
+        workgroupBarrier();
+        if (valid) {
+            atomicStore(&masks[d * 8u + word], 0u);
+            if (last) {
+                digit_offset[d] = slot + 1u;
+            }
+        }
+    }
+}

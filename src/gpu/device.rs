@@ -1,0 +1,739 @@
+//! The Vulkan device: selection, the arena, every pipeline, recording, submission and the
+//! per-kernel timestamp profile.
+//!
+//! Recording: [`GpuContext::begin`], then any number of [`GpuContext::dispatch`] /
+//! [`GpuContext::fill`] / [`GpuContext::copy`] (each followed by a full compute barrier, so
+//! dispatches run in order), then [`GpuContext::submit_and_wait`]. Bindings are pushed with
+//! `VK_KHR_push_descriptor` (no descriptor pools, no allocation per dispatch); small
+//! parameters go in the kernel's immediate (push-constant) block.
+
+use std::path::PathBuf;
+
+use ash::vk;
+use bytemuck::Pod;
+
+use super::arena::{Arena, GpuBuffer, GpuRange};
+use super::kernels::{BindingKind, Kernel, KERNEL_COUNT};
+use super::GpuError;
+
+/// Environment variable that picks a device: an index into the enumeration order or a
+/// case-insensitive substring of the device name.
+pub const DEVICE_ENV: &str = "DUV_VULKAN_DEVICE";
+/// Dispatches one submission can time (two timestamps each).
+pub const MAX_DISPATCHES: usize = 1024;
+const MAX_BINDINGS: usize = 16;
+
+/// How to open the device.
+#[derive(Clone, Debug)]
+pub struct GpuOptions {
+    /// Size of the one GPU arena, bytes (the board's `budgets.gpu_mb`).
+    pub arena_bytes: u64,
+    /// Device choice (index or name substring); `None` reads [`DEVICE_ENV`].
+    pub device: Option<String>,
+    /// Folder of the on-disk pipeline cache; `None` disables it.
+    pub pipeline_cache_dir: Option<PathBuf>,
+}
+
+impl GpuOptions {
+    /// An arena of `gpu_mb` MiB, the device from [`DEVICE_ENV`], the pipeline cache in
+    /// `$XDG_CACHE_HOME/duv` (or `~/.cache/duv`) when a home exists.
+    pub fn with_budget_mb(gpu_mb: u32) -> Self {
+        let cache = std::env::var_os("XDG_CACHE_HOME")
+            .map(PathBuf::from)
+            .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
+            .map(|d| d.join("duv"));
+        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache }
+    }
+}
+
+/// What was selected, for logs and reports.
+#[derive(Clone, Debug)]
+pub struct DeviceInfo {
+    pub name: String,
+    pub device_type: String,
+    pub vendor_id: u32,
+    pub device_id: u32,
+    pub driver_version: u32,
+    /// `driverName driverInfo` (Vulkan 1.2 driver properties), empty when not reported.
+    pub driver: String,
+    pub api_version: (u32, u32, u32),
+    /// Nanoseconds per timestamp tick; `None` when the queue has no timestamps.
+    pub timestamp_period_ns: Option<f32>,
+    pub subgroup_size: u32,
+    /// Where the pipeline cache lives, when enabled.
+    pub pipeline_cache_file: Option<PathBuf>,
+}
+
+impl std::fmt::Display for DeviceInfo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (a, b, c) = self.api_version;
+        write!(f, "{} ({}, Vulkan {a}.{b}.{c}, driver {}, subgroup {})", self.name, self.device_type, self.driver, self.subgroup_size)
+    }
+}
+
+/// Time per kernel from the timestamp queries, summed over submissions.
+#[derive(Clone, Debug)]
+pub struct KernelProfile {
+    pub dispatches: [u64; KERNEL_COUNT],
+    pub total_ns: [f64; KERNEL_COUNT],
+}
+
+impl Default for KernelProfile {
+    fn default() -> Self {
+        KernelProfile { dispatches: [0; KERNEL_COUNT], total_ns: [0.0; KERNEL_COUNT] }
+    }
+}
+
+impl KernelProfile {
+    /// `(kernel, dispatches, total ms)` of every kernel that ran.
+    pub fn rows(&self) -> impl Iterator<Item = (Kernel, u64, f64)> + '_ {
+        Kernel::all().filter(|k| self.dispatches[*k as usize] > 0).map(|k| (k, self.dispatches[k as usize], self.total_ns[k as usize] * 1e-6))
+    }
+}
+
+struct Pipeline {
+    set_layout: vk::DescriptorSetLayout,
+    layout: vk::PipelineLayout,
+    pipeline: vk::Pipeline,
+}
+
+/// The open device with its arena and pipelines. One per mapper; not shared between threads.
+pub struct GpuContext {
+    _entry: ash::Entry,
+    instance: ash::Instance,
+    device: ash::Device,
+    push_descriptor: ash::khr::push_descriptor::Device,
+    queue: vk::Queue,
+    command_pool: vk::CommandPool,
+    command_buffer: vk::CommandBuffer,
+    fence: vk::Fence,
+    query_pool: Option<vk::QueryPool>,
+    memory: vk::DeviceMemory,
+    buffer: vk::Buffer,
+    mapped: *mut u8,
+    arena: Arena,
+    pipeline_cache: vk::PipelineCache,
+    pipelines: Vec<Pipeline>,
+    max_groups: [u32; 3],
+    info: DeviceInfo,
+    recording: bool,
+    recorded: usize,
+    recorded_kernels: [Kernel; MAX_DISPATCHES],
+    timestamps: Box<[u64; 2 * MAX_DISPATCHES]>,
+    profile: KernelProfile,
+    last_kernel: Option<Kernel>,
+}
+
+// SAFETY: the context owns its Vulkan objects and the arena mapping; every use goes through
+// `&mut self` (recording, submission, writes) or `&self` reads while the queue is idle, so
+// moving it to another thread (the mapping thread) is sound. It is not `Sync`.
+unsafe impl Send for GpuContext {}
+
+fn vk_err(call: &'static str) -> impl Fn(vk::Result) -> GpuError {
+    move |result| GpuError::Vulkan { call, result }
+}
+
+fn type_rank(t: vk::PhysicalDeviceType) -> u32 {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
+        vk::PhysicalDeviceType::CPU => 3,
+        _ => 4,
+    }
+}
+
+fn type_name(t: vk::PhysicalDeviceType) -> &'static str {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => "discrete GPU",
+        vk::PhysicalDeviceType::INTEGRATED_GPU => "integrated GPU",
+        vk::PhysicalDeviceType::VIRTUAL_GPU => "virtual GPU",
+        vk::PhysicalDeviceType::CPU => "CPU",
+        _ => "other",
+    }
+}
+
+struct Candidate {
+    index: usize,
+    physical: vk::PhysicalDevice,
+    name: String,
+    rank: u32,
+    queue_family: u32,
+    timestamp_bits: u32,
+}
+
+impl GpuContext {
+    /// Opens the device, allocates the arena and builds every pipeline.
+    pub fn new(options: &GpuOptions) -> Result<Self, GpuError> {
+        let entry = unsafe { ash::Entry::load() }.map_err(|e| GpuError::NoLoader { reason: e.to_string() })?;
+        let app = vk::ApplicationInfo::default()
+            .application_name(c"duv")
+            .engine_name(c"duv")
+            .api_version(vk::API_VERSION_1_2);
+        let instance = match unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) } {
+            Ok(i) => i,
+            Err(vk::Result::ERROR_INCOMPATIBLE_DRIVER) => return Err(GpuError::NoDevice { seen: String::new() }),
+            Err(result) => return Err(GpuError::Vulkan { call: "vkCreateInstance", result }),
+        };
+        // From here on a failure must destroy the instance.
+        match Self::open(entry, instance, options) {
+            Ok(ctx) => Ok(ctx),
+            Err((instance, e)) => {
+                unsafe { instance.destroy_instance(None) };
+                Err(e)
+            }
+        }
+    }
+
+    fn pick(instance: &ash::Instance, wanted: Option<&str>) -> Result<Candidate, GpuError> {
+        let physicals = unsafe { instance.enumerate_physical_devices() }.map_err(vk_err("vkEnumeratePhysicalDevices"))?;
+        let mut seen = Vec::new();
+        let mut usable = Vec::new();
+        for (index, &physical) in physicals.iter().enumerate() {
+            let props = unsafe { instance.get_physical_device_properties(physical) };
+            let name = props.device_name_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default();
+            seen.push(format!("{index}: {name} ({})", type_name(props.device_type)));
+            if props.api_version < vk::API_VERSION_1_1 {
+                continue;
+            }
+            let exts = unsafe { instance.enumerate_device_extension_properties(physical) }.unwrap_or_default();
+            let has_push = exts.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::khr::push_descriptor::NAME));
+            if !has_push {
+                continue;
+            }
+            let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+            // Prefer a compute-only queue family, else any with compute.
+            let family = families
+                .iter()
+                .enumerate()
+                .filter(|(_, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
+                .min_by_key(|(_, f)| f.queue_flags.contains(vk::QueueFlags::GRAPHICS) as u32);
+            if let Some((qf, f)) = family {
+                usable.push(Candidate {
+                    index,
+                    physical,
+                    name,
+                    rank: type_rank(props.device_type),
+                    queue_family: qf as u32,
+                    timestamp_bits: f.timestamp_valid_bits,
+                });
+            }
+        }
+        let seen = seen.join("; ");
+        match wanted {
+            Some(w) => {
+                let found = match w.trim().parse::<usize>() {
+                    Ok(i) => usable.into_iter().find(|c| c.index == i),
+                    Err(_) => {
+                        let w_lower = w.to_lowercase();
+                        usable.into_iter().find(|c| c.name.to_lowercase().contains(&w_lower))
+                    }
+                };
+                found.ok_or(GpuError::NoMatchingDevice { env: DEVICE_ENV, wanted: w.to_owned(), seen })
+            }
+            None => usable.into_iter().min_by_key(|c| (c.rank, c.index)).ok_or(GpuError::NoDevice { seen }),
+        }
+    }
+
+    #[allow(clippy::result_large_err)]
+    fn open(entry: ash::Entry, instance: ash::Instance, options: &GpuOptions) -> Result<Self, (ash::Instance, GpuError)> {
+        let wanted = options.device.clone().or_else(|| std::env::var(DEVICE_ENV).ok().filter(|s| !s.trim().is_empty()));
+        let cand = match Self::pick(&instance, wanted.as_deref()) {
+            Ok(c) => c,
+            Err(e) => return Err((instance, e)),
+        };
+        let queue_priorities = [1.0f32];
+        let queue_info = [vk::DeviceQueueCreateInfo::default().queue_family_index(cand.queue_family).queue_priorities(&queue_priorities)];
+        let ext_names = [ash::khr::push_descriptor::NAME.as_ptr()];
+        let device_info = vk::DeviceCreateInfo::default().queue_create_infos(&queue_info).enabled_extension_names(&ext_names);
+        let device = match unsafe { instance.create_device(cand.physical, &device_info, None) } {
+            Ok(d) => d,
+            Err(result) => return Err((instance, GpuError::Vulkan { call: "vkCreateDevice", result })),
+        };
+        let mut ctx = GpuContext::skeleton(entry, instance, device, &cand, options.arena_bytes);
+        // Drop now cleans up whatever exists.
+        match ctx.init(&cand, options) {
+            Ok(()) => Ok(ctx),
+            Err(e) => {
+                // Destroy everything but the instance, which the caller destroys.
+                let instance = ctx.instance.clone();
+                ctx.destroy_device_objects();
+                std::mem::forget(ctx);
+                Err((instance, e))
+            }
+        }
+    }
+
+    fn skeleton(entry: ash::Entry, instance: ash::Instance, device: ash::Device, cand: &Candidate, arena_bytes: u64) -> Self {
+        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
+        let queue = unsafe { device.get_device_queue(cand.queue_family, 0) };
+        GpuContext {
+            _entry: entry,
+            instance,
+            device,
+            push_descriptor,
+            queue,
+            command_pool: vk::CommandPool::null(),
+            command_buffer: vk::CommandBuffer::null(),
+            fence: vk::Fence::null(),
+            query_pool: None,
+            memory: vk::DeviceMemory::null(),
+            buffer: vk::Buffer::null(),
+            mapped: std::ptr::null_mut(),
+            arena: Arena::new(arena_bytes, 256),
+            pipeline_cache: vk::PipelineCache::null(),
+            pipelines: Vec::with_capacity(KERNEL_COUNT),
+            max_groups: [0; 3],
+            info: DeviceInfo {
+                name: cand.name.clone(),
+                device_type: String::new(),
+                vendor_id: 0,
+                device_id: 0,
+                driver_version: 0,
+                driver: String::new(),
+                api_version: (0, 0, 0),
+                timestamp_period_ns: None,
+                subgroup_size: 0,
+                pipeline_cache_file: None,
+            },
+            recording: false,
+            recorded: 0,
+            recorded_kernels: [Kernel::all().next().expect("at least one kernel"); MAX_DISPATCHES],
+            timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
+            profile: KernelProfile::default(),
+            last_kernel: None,
+        }
+    }
+
+    fn init(&mut self, cand: &Candidate, options: &GpuOptions) -> Result<(), GpuError> {
+        let (instance, device) = (&self.instance, &self.device);
+        // Properties (1.1 subgroup, 1.2 driver).
+        let mut driver_props = vk::PhysicalDeviceDriverProperties::default();
+        let mut subgroup_props = vk::PhysicalDeviceSubgroupProperties::default();
+        let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut driver_props).push_next(&mut subgroup_props);
+        unsafe { instance.get_physical_device_properties2(cand.physical, &mut props2) };
+        let props = props2.properties;
+        let limits = props.limits;
+        let driver = format!(
+            "{} {}",
+            driver_props.driver_name_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default(),
+            driver_props.driver_info_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default()
+        )
+        .trim()
+        .to_owned();
+        self.info.device_type = type_name(props.device_type).to_owned();
+        self.info.vendor_id = props.vendor_id;
+        self.info.device_id = props.device_id;
+        self.info.driver_version = props.driver_version;
+        self.info.driver = driver;
+        self.info.api_version =
+            (vk::api_version_major(props.api_version), vk::api_version_minor(props.api_version), vk::api_version_patch(props.api_version));
+        self.info.subgroup_size = subgroup_props.subgroup_size;
+        let timestamps = cand.timestamp_bits > 0 && limits.timestamp_period > 0.0;
+        self.info.timestamp_period_ns = timestamps.then_some(limits.timestamp_period);
+        self.max_groups = limits.max_compute_work_group_count;
+        self.arena = Arena::new(self.arena.capacity(), limits.min_storage_buffer_offset_alignment.max(256));
+
+        // Command pool, buffer, fence, queries.
+        self.command_pool = unsafe {
+            device.create_command_pool(
+                &vk::CommandPoolCreateInfo::default()
+                    .queue_family_index(cand.queue_family)
+                    .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER),
+                None,
+            )
+        }
+        .map_err(vk_err("vkCreateCommandPool"))?;
+        self.command_buffer = unsafe {
+            device.allocate_command_buffers(
+                &vk::CommandBufferAllocateInfo::default()
+                    .command_pool(self.command_pool)
+                    .level(vk::CommandBufferLevel::PRIMARY)
+                    .command_buffer_count(1),
+            )
+        }
+        .map_err(vk_err("vkAllocateCommandBuffers"))?[0];
+        self.fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?;
+        if timestamps {
+            self.query_pool = Some(
+                unsafe {
+                    device.create_query_pool(
+                        &vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(2 * MAX_DISPATCHES as u32),
+                        None,
+                    )
+                }
+                .map_err(vk_err("vkCreateQueryPool"))?,
+            );
+        }
+
+        // The arena: one buffer, one allocation, mapped once.
+        let capacity = self.arena.capacity();
+        if capacity > limits.max_storage_buffer_range as u64 * 16 {
+            return Err(GpuError::ArenaTooLarge { requested: capacity, limit: limits.max_storage_buffer_range as u64 * 16 });
+        }
+        self.buffer = unsafe {
+            device.create_buffer(
+                &vk::BufferCreateInfo::default()
+                    .size(capacity.max(256))
+                    .usage(vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST)
+                    .sharing_mode(vk::SharingMode::EXCLUSIVE),
+                None,
+            )
+        }
+        .map_err(vk_err("vkCreateBuffer (arena)"))?;
+        let req = unsafe { device.get_buffer_memory_requirements(self.buffer) };
+        let mem_props = unsafe { instance.get_physical_device_memory_properties(cand.physical) };
+        let host = vk::MemoryPropertyFlags::HOST_VISIBLE | vk::MemoryPropertyFlags::HOST_COHERENT;
+        let find = |flags: vk::MemoryPropertyFlags| {
+            (0..mem_props.memory_type_count).find(|&i| {
+                req.memory_type_bits & (1 << i) != 0 && mem_props.memory_types[i as usize].property_flags.contains(flags) && {
+                    let heap = mem_props.memory_types[i as usize].heap_index as usize;
+                    mem_props.memory_heaps[heap].size >= req.size
+                }
+            })
+        };
+        let type_index = find(host | vk::MemoryPropertyFlags::DEVICE_LOCAL).or_else(|| find(host)).ok_or(GpuError::NoMemoryType)?;
+        self.memory = unsafe {
+            device.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(req.size).memory_type_index(type_index), None)
+        }
+        .map_err(vk_err("vkAllocateMemory (arena)"))?;
+        unsafe { device.bind_buffer_memory(self.buffer, self.memory, 0) }.map_err(vk_err("vkBindBufferMemory (arena)"))?;
+        self.mapped = unsafe { device.map_memory(self.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
+            .map_err(vk_err("vkMapMemory (arena)"))? as *mut u8;
+
+        // Pipeline cache keyed by vendor, device, driver version and the cache UUID.
+        let uuid: String = props.pipeline_cache_uuid.iter().map(|b| format!("{b:02x}")).collect();
+        let cache_file = options.pipeline_cache_dir.as_ref().map(|d| {
+            d.join(format!("pipelines-{:04x}-{:04x}-{:08x}-{uuid}.bin", props.vendor_id, props.device_id, props.driver_version))
+        });
+        let initial = cache_file.as_ref().and_then(|f| std::fs::read(f).ok()).unwrap_or_default();
+        let cache_info = vk::PipelineCacheCreateInfo::default().initial_data(&initial);
+        self.pipeline_cache = match unsafe { device.create_pipeline_cache(&cache_info, None) } {
+            Ok(c) => c,
+            // A corrupt or foreign cache file: start empty.
+            Err(_) => unsafe { device.create_pipeline_cache(&vk::PipelineCacheCreateInfo::default(), None) }
+                .map_err(vk_err("vkCreatePipelineCache"))?,
+        };
+        self.info.pipeline_cache_file = cache_file;
+
+        for kernel in Kernel::all() {
+            let p = self.build_pipeline(kernel)?;
+            self.pipelines.push(p);
+        }
+        // A cache that cannot be written costs start-up time only: warn, go on.
+        if let Err(e) = self.save_pipeline_cache() {
+            tracing::warn!("gpu: {e}");
+        }
+        tracing::info!(device = %self.info, arena_mb = capacity / (1024 * 1024), "gpu: device open");
+        Ok(())
+    }
+
+    fn build_pipeline(&self, kernel: Kernel) -> Result<Pipeline, GpuError> {
+        let info = kernel.info();
+        let name = kernel.name();
+        let kerr = |call: &'static str| move |result| GpuError::Kernel { kernel: name, call, result };
+        let device = &self.device;
+        let mut bindings = [vk::DescriptorSetLayoutBinding::default(); MAX_BINDINGS];
+        assert!(info.bindings.len() <= MAX_BINDINGS, "{name}: more than {MAX_BINDINGS} bindings");
+        for (slot, b) in bindings.iter_mut().zip(info.bindings) {
+            *slot = vk::DescriptorSetLayoutBinding::default()
+                .binding(b.binding)
+                .descriptor_type(match b.kind {
+                    BindingKind::Uniform => vk::DescriptorType::UNIFORM_BUFFER,
+                    _ => vk::DescriptorType::STORAGE_BUFFER,
+                })
+                .descriptor_count(1)
+                .stage_flags(vk::ShaderStageFlags::COMPUTE);
+        }
+        let set_layout = unsafe {
+            device.create_descriptor_set_layout(
+                &vk::DescriptorSetLayoutCreateInfo::default()
+                    .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
+                    .bindings(&bindings[..info.bindings.len()]),
+                None,
+            )
+        }
+        .map_err(kerr("vkCreateDescriptorSetLayout"))?;
+        let ranges = [vk::PushConstantRange::default().stage_flags(vk::ShaderStageFlags::COMPUTE).offset(0).size(info.immediate_bytes)];
+        let set_layouts = [set_layout];
+        let mut layout_info = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+        if info.immediate_bytes > 0 {
+            layout_info = layout_info.push_constant_ranges(&ranges);
+        }
+        let layout = unsafe { device.create_pipeline_layout(&layout_info, None) }.map_err(kerr("vkCreatePipelineLayout"))?;
+        let code = ash::util::read_spv(&mut std::io::Cursor::new(info.spirv)).map_err(|_| GpuError::Kernel {
+            kernel: name,
+            call: "read SPIR-V",
+            result: vk::Result::ERROR_INVALID_SHADER_NV,
+        })?;
+        let module = unsafe { device.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&code), None) }
+            .map_err(kerr("vkCreateShaderModule"))?;
+        let entry = std::ffi::CString::new(info.entry).expect("entry point name");
+        let stage = vk::PipelineShaderStageCreateInfo::default().stage(vk::ShaderStageFlags::COMPUTE).module(module).name(entry.as_c_str());
+        let create = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout)];
+        let result = unsafe { device.create_compute_pipelines(self.pipeline_cache, &create, None) };
+        unsafe { device.destroy_shader_module(module, None) };
+        let pipeline = result.map_err(|(_, r)| GpuError::Kernel { kernel: name, call: "vkCreateComputePipelines", result: r })?[0];
+        Ok(Pipeline { set_layout, layout, pipeline })
+    }
+
+    /// Writes the pipeline cache to disk (unique temp file, then rename).
+    pub fn save_pipeline_cache(&self) -> Result<(), GpuError> {
+        let Some(file) = &self.info.pipeline_cache_file else { return Ok(()) };
+        let data = unsafe { self.device.get_pipeline_cache_data(self.pipeline_cache) }.map_err(vk_err("vkGetPipelineCacheData"))?;
+        let io = |source| GpuError::PipelineCacheIo { path: file.display().to_string(), source };
+        if let Some(dir) = file.parent() {
+            std::fs::create_dir_all(dir).map_err(io)?;
+        }
+        // Unique temporary name: several contexts (test threads, processes) may save at once.
+        static SAVES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let seq = SAVES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let tmp = file.with_extension(format!("tmp.{}.{seq}", std::process::id()));
+        std::fs::write(&tmp, &data).map_err(io)?;
+        std::fs::rename(&tmp, file).map_err(io)
+    }
+
+    pub fn info(&self) -> &DeviceInfo {
+        &self.info
+    }
+
+    /// Allocates `len` elements from the arena (start-up only: the arena never grows).
+    pub fn alloc<T: Pod>(&mut self, what: &'static str, len: usize) -> Result<GpuBuffer<T>, GpuError> {
+        self.arena.alloc(what, len)
+    }
+    /// Bytes of the arena in use, the peak so far and the capacity (the budget).
+    pub fn arena_used_bytes(&self) -> u64 {
+        self.arena.used()
+    }
+    pub fn arena_peak_bytes(&self) -> u64 {
+        self.arena.peak()
+    }
+    pub fn arena_capacity_bytes(&self) -> u64 {
+        self.arena.capacity()
+    }
+    /// Frees every buffer allocated after `mark` (an earlier [`GpuContext::arena_used_bytes`]).
+    pub fn arena_reset_to(&mut self, mark: u64) {
+        self.arena.reset_to(mark)
+    }
+
+    fn check_idle(&self, what: &'static str) -> Result<(), GpuError> {
+        if self.recording {
+            return Err(GpuError::NotRecording { what });
+        }
+        Ok(())
+    }
+
+    /// Copies `data` into the start of `buf` (host-visible memory; the queue must be idle,
+    /// which it is outside `begin()`/`submit_and_wait()`).
+    pub fn write<T: Pod>(&mut self, buf: &GpuBuffer<T>, data: &[T]) -> Result<(), GpuError> {
+        self.check_idle("write")?;
+        if data.len() > buf.len {
+            return Err(GpuError::OutOfRange { what: buf.what, requested: data.len(), len: buf.len });
+        }
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.mapped.add(buf.offset as usize), bytes.len()) };
+        Ok(())
+    }
+
+    /// Copies the first `out.len()` elements of `buf` to `out`.
+    pub fn read<T: Pod>(&self, buf: &GpuBuffer<T>, out: &mut [T]) -> Result<(), GpuError> {
+        self.check_idle("read")?;
+        if out.len() > buf.len {
+            return Err(GpuError::OutOfRange { what: buf.what, requested: out.len(), len: buf.len });
+        }
+        let bytes: &mut [u8] = bytemuck::cast_slice_mut(out);
+        unsafe { std::ptr::copy_nonoverlapping(self.mapped.add(buf.offset as usize), bytes.as_mut_ptr(), bytes.len()) };
+        Ok(())
+    }
+
+    /// Starts recording a submission.
+    pub fn begin(&mut self) -> Result<(), GpuError> {
+        let d = &self.device;
+        unsafe {
+            d.reset_command_buffer(self.command_buffer, vk::CommandBufferResetFlags::empty()).map_err(vk_err("vkResetCommandBuffer"))?;
+            d.begin_command_buffer(
+                self.command_buffer,
+                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
+            )
+            .map_err(vk_err("vkBeginCommandBuffer"))?;
+            if let Some(q) = self.query_pool {
+                d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32);
+            }
+        }
+        self.recording = true;
+        self.recorded = 0;
+        self.last_kernel = None;
+        Ok(())
+    }
+
+    fn barrier(&self) {
+        let mb = [vk::MemoryBarrier::default()
+            .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
+            .dst_access_mask(vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_READ | vk::AccessFlags::TRANSFER_WRITE)];
+        let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
+        unsafe { self.device.cmd_pipeline_barrier(self.command_buffer, stages, stages, vk::DependencyFlags::empty(), &mb, &[], &[]) };
+    }
+
+    /// Records `kernel` over `groups` workgroups with `buffers` bound in the order of the
+    /// kernel's bindings and `immediates` (its `var<immediate>` block, exactly its size).
+    pub fn dispatch(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
+        let name = kernel.name();
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: name });
+        }
+        let info = kernel.info();
+        if buffers.len() != info.bindings.len() {
+            return Err(GpuError::BindingCount { kernel: name, expected: info.bindings.len(), got: buffers.len() });
+        }
+        if immediates.len() != info.immediate_bytes as usize {
+            return Err(GpuError::Immediates { kernel: name, expected: info.immediate_bytes, got: immediates.len() });
+        }
+        for (g, max) in groups.iter().zip(self.max_groups) {
+            if *g > max {
+                return Err(GpuError::TooManyWorkgroups { kernel: name, groups: *g, max });
+            }
+        }
+        if self.recorded >= MAX_DISPATCHES {
+            return Err(GpuError::TooManyDispatches { kernel: name, capacity: MAX_DISPATCHES });
+        }
+        if groups.contains(&0) {
+            return Ok(());
+        }
+        let mut infos = [vk::DescriptorBufferInfo::default(); MAX_BINDINGS];
+        for ((slot, range), b) in infos.iter_mut().zip(buffers).zip(info.bindings) {
+            if range.size == 0 {
+                return Err(GpuError::EmptyBinding { kernel: name, binding: b.binding, name: b.name });
+            }
+            *slot = vk::DescriptorBufferInfo { buffer: self.buffer, offset: range.offset, range: range.size };
+        }
+        let mut writes = [vk::WriteDescriptorSet::default(); MAX_BINDINGS];
+        for (i, (w, b)) in writes.iter_mut().zip(info.bindings).enumerate() {
+            *w = vk::WriteDescriptorSet::default()
+                .dst_binding(b.binding)
+                .descriptor_type(match b.kind {
+                    BindingKind::Uniform => vk::DescriptorType::UNIFORM_BUFFER,
+                    _ => vk::DescriptorType::STORAGE_BUFFER,
+                })
+                .buffer_info(std::slice::from_ref(&infos[i]));
+        }
+        let p = &self.pipelines[kernel as usize];
+        let cb = self.command_buffer;
+        let slot = self.recorded as u32;
+        unsafe {
+            if let Some(q) = self.query_pool {
+                self.device.cmd_write_timestamp(cb, vk::PipelineStageFlags::TOP_OF_PIPE, q, 2 * slot);
+            }
+            self.device.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, p.pipeline);
+            self.push_descriptor.cmd_push_descriptor_set(cb, vk::PipelineBindPoint::COMPUTE, p.layout, 0, &writes[..info.bindings.len()]);
+            if !immediates.is_empty() {
+                self.device.cmd_push_constants(cb, p.layout, vk::ShaderStageFlags::COMPUTE, 0, immediates);
+            }
+            self.device.cmd_dispatch(cb, groups[0], groups[1], groups[2]);
+            if let Some(q) = self.query_pool {
+                self.device.cmd_write_timestamp(cb, vk::PipelineStageFlags::BOTTOM_OF_PIPE, q, 2 * slot + 1);
+            }
+        }
+        self.barrier();
+        self.recorded_kernels[self.recorded] = kernel;
+        self.recorded += 1;
+        self.last_kernel = Some(kernel);
+        Ok(())
+    }
+
+    /// Records filling `range` with the u32 `value` (size a multiple of 4).
+    pub fn fill(&mut self, range: GpuRange, value: u32) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: "fill" });
+        }
+        unsafe { self.device.cmd_fill_buffer(self.command_buffer, self.buffer, range.offset, range.size, value) };
+        self.barrier();
+        Ok(())
+    }
+
+    /// Records a copy of `src` into `dst` (the smaller of the two sizes).
+    pub fn copy(&mut self, src: GpuRange, dst: GpuRange) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: "copy" });
+        }
+        let region = [vk::BufferCopy { src_offset: src.offset, dst_offset: dst.offset, size: src.size.min(dst.size) }];
+        unsafe { self.device.cmd_copy_buffer(self.command_buffer, self.buffer, self.buffer, &region) };
+        self.barrier();
+        Ok(())
+    }
+
+    /// Submits what was recorded, waits for it and adds the dispatch times to the profile.
+    pub fn submit_and_wait(&mut self) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: "submit_and_wait" });
+        }
+        self.recording = false;
+        let name = self.last_kernel.map(|k| k.name()).unwrap_or("(no kernel)");
+        let kerr = |call: &'static str| move |result| GpuError::Kernel { kernel: name, call, result };
+        let d = &self.device;
+        unsafe {
+            d.end_command_buffer(self.command_buffer).map_err(vk_err("vkEndCommandBuffer"))?;
+            let cbs = [self.command_buffer];
+            let submit = [vk::SubmitInfo::default().command_buffers(&cbs)];
+            d.queue_submit(self.queue, &submit, self.fence).map_err(kerr("vkQueueSubmit"))?;
+            d.wait_for_fences(&[self.fence], true, u64::MAX).map_err(kerr("vkWaitForFences (last kernel recorded)"))?;
+            d.reset_fences(&[self.fence]).map_err(vk_err("vkResetFences"))?;
+        }
+        if let (Some(q), Some(period)) = (self.query_pool, self.info.timestamp_period_ns) {
+            let n = self.recorded;
+            if n > 0 {
+                let ts = &mut self.timestamps[..2 * n];
+                unsafe { d.get_query_pool_results(q, 0, ts, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
+                    .map_err(vk_err("vkGetQueryPoolResults"))?;
+                for i in 0..n {
+                    let k = self.recorded_kernels[i] as usize;
+                    let ticks = self.timestamps[2 * i + 1].wrapping_sub(self.timestamps[2 * i]);
+                    self.profile.dispatches[k] += 1;
+                    self.profile.total_ns[k] += ticks as f64 * period as f64;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Per-kernel times so far.
+    pub fn profile(&self) -> &KernelProfile {
+        &self.profile
+    }
+    pub fn reset_profile(&mut self) {
+        self.profile = KernelProfile::default();
+    }
+
+    fn destroy_device_objects(&mut self) {
+        unsafe {
+            let d = &self.device;
+            let _ = d.device_wait_idle();
+            for p in self.pipelines.drain(..) {
+                d.destroy_pipeline(p.pipeline, None);
+                d.destroy_pipeline_layout(p.layout, None);
+                d.destroy_descriptor_set_layout(p.set_layout, None);
+            }
+            d.destroy_pipeline_cache(self.pipeline_cache, None);
+            if !self.mapped.is_null() {
+                d.unmap_memory(self.memory);
+            }
+            d.destroy_buffer(self.buffer, None);
+            d.free_memory(self.memory, None);
+            if let Some(q) = self.query_pool.take() {
+                d.destroy_query_pool(q, None);
+            }
+            d.destroy_fence(self.fence, None);
+            d.destroy_command_pool(self.command_pool, None);
+            d.destroy_device(None);
+        }
+    }
+}
+
+impl Drop for GpuContext {
+    fn drop(&mut self) {
+        if let Err(e) = self.save_pipeline_cache() {
+            tracing::warn!("gpu: {e}");
+        }
+        self.destroy_device_objects();
+        unsafe { self.instance.destroy_instance(None) };
+    }
+}

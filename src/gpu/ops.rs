@@ -1,0 +1,134 @@
+//! Generic primitives recorded into the current submission: the exclusive prefix sum
+//! (`kernels/prefix_sum.wgsl`) and the LSD radix sort of `(u64 key, u32 value)` pairs
+//! (`kernels/radix_sort.wgsl`). Scratch buffers come from the arena once, sized for the
+//! largest input ([`ScanScratch::new`], [`SortScratch::new`]).
+
+use super::arena::GpuBuffer;
+use super::device::GpuContext;
+use super::kernels::Kernel;
+use super::GpuError;
+
+/// Elements per prefix-sum workgroup (256 threads, two elements each).
+pub const SCAN_BLOCK: usize = 512;
+/// Elements per radix-sort workgroup.
+pub const SORT_BLOCK: usize = 4096;
+/// Digit values per radix pass (8 bits).
+pub const RADIX: usize = 256;
+
+fn groups(n: usize) -> [u32; 3] {
+    [n as u32, 1, 1]
+}
+
+/// Scratch of [`record_exclusive_scan`] for up to `max_n` elements.
+#[derive(Clone, Copy, Debug)]
+pub struct ScanScratch {
+    pub max_n: usize,
+    /// Per block `(sum lo, sum hi)`, then `(offset, sum hi)`.
+    pub block_sums: GpuBuffer<[u32; 2]>,
+    /// `[failed, needed_lo, needed_hi, total_lo]`.
+    pub status: GpuBuffer<u32>,
+}
+
+impl ScanScratch {
+    pub fn new(ctx: &mut GpuContext, max_n: usize) -> Result<Self, GpuError> {
+        Ok(ScanScratch {
+            max_n,
+            block_sums: ctx.alloc("scan block sums", max_n.div_ceil(SCAN_BLOCK).max(1))?,
+            status: ctx.alloc("scan status", 4)?,
+        })
+    }
+
+    /// After the submission: `Ok(total)`, or `Err(needed)` when the total exceeded the limit
+    /// (then the offsets were not written).
+    pub fn result(&self, ctx: &GpuContext) -> Result<Result<u64, u64>, GpuError> {
+        let mut s = [0u32; 4];
+        ctx.read(&self.status, &mut s)?;
+        let total = s[1] as u64 | ((s[2] as u64) << 32);
+        Ok(if s[0] == 0 { Ok(total) } else { Err(total) })
+    }
+}
+
+/// Records the exclusive prefix sum of `counts[..n]` into `offsets[..=n]` (`offsets[n]` the
+/// total) unless the total exceeds `limit`, in which case the status flags it and the offsets
+/// stay unwritten. CPU reference: `map::render::exclusive_scan`.
+pub fn record_exclusive_scan(
+    ctx: &mut GpuContext,
+    counts: &GpuBuffer<u32>,
+    n: usize,
+    offsets: &GpuBuffer<u32>,
+    scratch: &ScanScratch,
+    limit: u32,
+) -> Result<(), GpuError> {
+    if n > scratch.max_n || n > counts.len() {
+        return Err(GpuError::OutOfRange { what: counts.what(), requested: n, len: scratch.max_n.min(counts.len()) });
+    }
+    if offsets.len() < n + 1 {
+        return Err(GpuError::OutOfRange { what: offsets.what(), requested: n + 1, len: offsets.len() });
+    }
+    let blocks = n.div_ceil(SCAN_BLOCK);
+    let params = [n as u32, limit, blocks as u32, 0];
+    let imm = bytemuck::bytes_of(&params);
+    let counts_r = counts.slice_range(0, n.max(1))?;
+    let bufs = [counts_r, scratch.block_sums.range(), offsets.range(), scratch.status.range()];
+    ctx.dispatch(Kernel::PrefixSumReduce, &[bufs[0], bufs[1]], imm, groups(blocks))?;
+    ctx.dispatch(Kernel::PrefixSumScanBlocks, &[bufs[1], bufs[2], bufs[3]], imm, groups(1))?;
+    ctx.dispatch(Kernel::PrefixSumScanAdd, &[bufs[0], bufs[1], bufs[2], bufs[3]], imm, groups(blocks))?;
+    Ok(())
+}
+
+/// Scratch of [`record_radix_sort`] for up to `max_n` pairs.
+#[derive(Clone, Copy, Debug)]
+pub struct SortScratch {
+    pub max_n: usize,
+    pub keys_tmp: GpuBuffer<u64>,
+    pub values_tmp: GpuBuffer<u32>,
+    pub histograms: GpuBuffer<u32>,
+}
+
+impl SortScratch {
+    pub fn new(ctx: &mut GpuContext, max_n: usize) -> Result<Self, GpuError> {
+        Ok(SortScratch {
+            max_n,
+            keys_tmp: ctx.alloc("sort keys (ping-pong)", max_n)?,
+            values_tmp: ctx.alloc("sort values (ping-pong)", max_n)?,
+            histograms: ctx.alloc("sort histograms", max_n.div_ceil(SORT_BLOCK).max(1) * RADIX)?,
+        })
+    }
+}
+
+/// Records a stable ascending sort of `keys[..n]` (only the low `key_bits` bits may be set)
+/// with `values[..n]` alongside; the result is in `keys` / `values`. CPU reference:
+/// `map::render::radix_sort_pairs`.
+pub fn record_radix_sort(
+    ctx: &mut GpuContext,
+    keys: &GpuBuffer<u64>,
+    values: &GpuBuffer<u32>,
+    n: usize,
+    key_bits: u32,
+    scratch: &SortScratch,
+) -> Result<(), GpuError> {
+    if n > scratch.max_n || n > keys.len() || n > values.len() {
+        return Err(GpuError::OutOfRange { what: keys.what(), requested: n, len: scratch.max_n.min(keys.len()).min(values.len()) });
+    }
+    if n < 2 {
+        return Ok(());
+    }
+    let blocks = n.div_ceil(SORT_BLOCK);
+    let passes = key_bits.min(64).div_ceil(8);
+    let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
+    let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
+    let hist = scratch.histograms.slice_range(0, blocks * RADIX)?;
+    for pass in 0..passes {
+        let (src, dst) = if pass % 2 == 0 { (a, b) } else { (b, a) };
+        let params = [n as u32, pass * 8, blocks as u32, 0];
+        let imm = bytemuck::bytes_of(&params);
+        ctx.dispatch(Kernel::RadixSortHistogram, &[src.0, hist], imm, groups(blocks))?;
+        ctx.dispatch(Kernel::RadixSortScan, &[hist], imm, groups(1))?;
+        ctx.dispatch(Kernel::RadixSortScatter, &[src.0, src.1, hist, dst.0, dst.1], imm, groups(blocks))?;
+    }
+    if passes % 2 == 1 {
+        ctx.copy(b.0, a.0)?;
+        ctx.copy(b.1, a.1)?;
+    }
+    Ok(())
+}

@@ -1,0 +1,529 @@
+//! The mapper's stages on the Vulkan device (`gpu/`), each the kernel twin of a CPU
+//! reference in [`super::render`] / [`super::adam`] with the same name and buffer order:
+//!
+//! | stage | kernel | CPU reference |
+//! |---|---|---|
+//! | projection | `project_forward.project_forward` | `project_gaussians` |
+//! | tile counts prefix sum | `prefix_sum.*` (via `gpu::ops`) | `exclusive_scan` |
+//! | tile binning | `map_gaussian_to_intersects` | `emit_intersections` |
+//! | depth/tile key sort | `radix_sort.*` (via `gpu::ops`) | `radix_sort_pairs` |
+//! | tile ranges, index maps | `tile_ranges.{tile_ranges, gather_sorted, invert_permutation}` | `tile_ranges`, `gather_sorted_gaussians`, `invert_permutation` |
+//! | rasterise forward with the medium | `rasterize.rasterize` | `rasterize_forward` |
+//! | Adam | `adam.adam_step` | `AdamGroup::step` |
+//!
+//! [`GpuProjection`], [`GpuBinning`] and [`GpuRasterForward`] own their buffers, allocated
+//! once from the arena for a fixed capacity; [`GpuForwardRenderer`] runs them all as
+//! `RasterWorkspace::forward` does. No kernel uses float atomics, so results are
+//! bit-identical from run to run on one device. [`ForwardBackend`] is the CPU fallback when
+//! no Vulkan device exists. Backward kernels are not written yet.
+
+use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
+use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
+use crate::map::adam::StepConstants;
+use crate::map::gaussians::{Gaussians, PARAMS_PER_GAUSSIAN};
+use crate::core::{PinholeCamera, Se3};
+use crate::map::render::{
+    bits_for, check_output, check_rgb, check_size, validate_gaussians, DepthMode, MediumPlanes, ProjectedSplat, ProjectionSetup,
+    RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, TileGrid, TileRect,
+};
+
+/// Floats per projected splat on the GPU (the field order of [`ProjectedSplat`]).
+pub const SPLAT_FLOATS: usize = 11;
+/// Words of the `Setup` struct of `project_forward.wgsl`.
+pub const SETUP_WORDS: usize = 32;
+
+/// The `Setup` struct of `project_forward.wgsl` as words: the [`ProjectionSetup`] floats, then
+/// `n, width, height, tile_size, tiles_x, tiles_y` as u32.
+pub fn projection_setup_words(s: &ProjectionSetup<f32>, grid: &TileGrid, n: usize) -> [u32; SETUP_WORDS] {
+    let r = &s.cam_from_world_rot;
+    let floats = [
+        r[0][0],
+        r[0][1],
+        r[0][2],
+        r[1][0],
+        r[1][1],
+        r[1][2],
+        r[2][0],
+        r[2][1],
+        r[2][2],
+        s.cam_from_world_trans[0],
+        s.cam_from_world_trans[1],
+        s.cam_from_world_trans[2],
+        s.cam_centre_in_world[0],
+        s.cam_centre_in_world[1],
+        s.cam_centre_in_world[2],
+        s.fx,
+        s.fy,
+        s.cx,
+        s.cy,
+        s.lim_x[0],
+        s.lim_x[1],
+        s.lim_y[0],
+        s.lim_y[1],
+        s.near_z,
+        s.blur,
+    ];
+    let mut w = [0u32; SETUP_WORDS];
+    for (o, f) in w.iter_mut().zip(floats) {
+        *o = f.to_bits();
+    }
+    let ints = [n, grid.width, grid.height, grid.tile_size, grid.tiles_x, grid.tiles_y, 0];
+    for (o, v) in w[floats.len()..].iter_mut().zip(ints) {
+        *o = v as u32;
+    }
+    w
+}
+
+/// Projection and tile-count scan buffers for up to `capacity` Gaussians.
+pub struct GpuProjection {
+    pub capacity: usize,
+    pub setup: GpuBuffer<u32>,
+    /// [`PARAMS_PER_GAUSSIAN`] floats per Gaussian, [`crate::map::gaussians::GaussianParam::to_array`] order.
+    pub params: GpuBuffer<f32>,
+    pub splats: GpuBuffer<f32>,
+    pub rects: GpuBuffer<[u32; 4]>,
+    pub tiles_touched: GpuBuffer<u32>,
+    /// `capacity + 1` exclusive offsets of the tile counts.
+    pub isect_offsets: GpuBuffer<u32>,
+    pub scan: ScanScratch,
+    /// Host staging of the parameters and the offsets (allocated once).
+    staging: Vec<f32>,
+    staging_offsets: Vec<u32>,
+}
+
+impl GpuProjection {
+    pub fn new(ctx: &mut GpuContext, capacity: usize) -> Result<Self, GpuError> {
+        Ok(GpuProjection {
+            capacity,
+            setup: ctx.alloc("projection setup", SETUP_WORDS)?,
+            params: ctx.alloc("Gaussian parameters", capacity * PARAMS_PER_GAUSSIAN)?,
+            splats: ctx.alloc("projected splats", capacity * SPLAT_FLOATS)?,
+            rects: ctx.alloc("tile rectangles", capacity)?,
+            tiles_touched: ctx.alloc("tiles touched", capacity)?,
+            isect_offsets: ctx.alloc("intersection offsets", capacity + 1)?,
+            scan: ScanScratch::new(ctx, capacity)?,
+            staging: vec![0.0; capacity * PARAMS_PER_GAUSSIAN],
+            staging_offsets: vec![0; capacity + 1],
+        })
+    }
+
+    /// Uploads the map (SoA on the host, AoS on the GPU).
+    pub fn upload(&mut self, ctx: &mut GpuContext, gaussians: &Gaussians) -> Result<(), GpuError> {
+        let n = gaussians.len();
+        if n > self.capacity {
+            return Err(GpuError::OutOfRange { what: "Gaussian parameters", requested: n, len: self.capacity });
+        }
+        for i in 0..n {
+            self.staging[i * PARAMS_PER_GAUSSIAN..(i + 1) * PARAMS_PER_GAUSSIAN].copy_from_slice(&gaussians.get(i).to_array());
+        }
+        ctx.write(&self.params, &self.staging[..n * PARAMS_PER_GAUSSIAN])
+    }
+
+    /// Records `project_forward` over `n` Gaussians (setup written by
+    /// [`GpuProjection::write_setup`]), then the exclusive scan of the tile counts with
+    /// `max_intersections` as the limit.
+    pub fn record(&self, ctx: &mut GpuContext, n: usize, max_intersections: usize) -> Result<(), GpuError> {
+        if n > self.capacity {
+            return Err(GpuError::OutOfRange { what: "projected splats", requested: n, len: self.capacity });
+        }
+        if n == 0 {
+            return Ok(());
+        }
+        let bufs = [self.setup.range(), self.params.range(), self.splats.range(), self.rects.range(), self.tiles_touched.range()];
+        ctx.dispatch(Kernel::ProjectForwardProjectForward, &bufs, &[], [n.div_ceil(256) as u32, 1, 1])?;
+        record_exclusive_scan(ctx, &self.tiles_touched, n, &self.isect_offsets, &self.scan, max_intersections.min(u32::MAX as usize) as u32)
+    }
+
+    /// Writes the camera/pose setup for `n` Gaussians (before `begin()`).
+    pub fn write_setup(&self, ctx: &mut GpuContext, setup: &ProjectionSetup<f32>, grid: &TileGrid, n: usize) -> Result<(), GpuError> {
+        ctx.write(&self.setup, &projection_setup_words(setup, grid, n))
+    }
+
+    /// Reads the splats, rectangles and counts of `n` Gaussians back (tests, debugging).
+    pub fn read(
+        &self,
+        ctx: &GpuContext,
+        n: usize,
+        splats: &mut [ProjectedSplat<f32>],
+        rects: &mut [TileRect],
+        tiles_touched: &mut [u32],
+    ) -> Result<(), GpuError> {
+        let mut raw = vec![0.0f32; n * SPLAT_FLOATS];
+        ctx.read(&self.splats, &mut raw)?;
+        for (s, r) in splats[..n].iter_mut().zip(raw.chunks_exact(SPLAT_FLOATS)) {
+            *s = ProjectedSplat {
+                mean2d: [r[0], r[1]],
+                conic: [r[2], r[3], r[4]],
+                z: r[5],
+                opacity: r[6],
+                colour: [r[7], r[8], r[9]],
+                q_max: r[10],
+            };
+        }
+        let mut raw_rects = vec![[0u32; 4]; n];
+        ctx.read(&self.rects, &mut raw_rects)?;
+        for (r, w) in rects[..n].iter_mut().zip(&raw_rects) {
+            *r = TileRect { x0: w[0], y0: w[1], x1: w[2], y1: w[3] };
+        }
+        ctx.read(&self.tiles_touched, &mut tiles_touched[..n])
+    }
+}
+
+/// Tile binning, sort and ranges for up to `max_intersections` intersections on a grid of
+/// up to `max_tiles` tiles.
+pub struct GpuBinning {
+    pub max_intersections: usize,
+    pub max_tiles: usize,
+    pub keys: GpuBuffer<u64>,
+    pub values: GpuBuffer<u32>,
+    pub isect_gaussian: GpuBuffer<u32>,
+    pub sort: SortScratch,
+    /// `num_tiles + 1` CSR offsets into the sorted intersections.
+    pub tile_offsets: GpuBuffer<u32>,
+    pub sorted_gaussian: GpuBuffer<u32>,
+    pub slot_to_sorted: GpuBuffer<u32>,
+}
+
+impl GpuBinning {
+    pub fn new(ctx: &mut GpuContext, max_intersections: usize, max_tiles: usize) -> Result<Self, GpuError> {
+        Ok(GpuBinning {
+            max_intersections,
+            max_tiles,
+            keys: ctx.alloc("intersection keys", max_intersections)?,
+            values: ctx.alloc("intersection slots", max_intersections)?,
+            isect_gaussian: ctx.alloc("intersection Gaussians", max_intersections)?,
+            sort: SortScratch::new(ctx, max_intersections)?,
+            tile_offsets: ctx.alloc("tile offsets", max_tiles + 1)?,
+            sorted_gaussian: ctx.alloc("sorted Gaussians", max_intersections)?,
+            slot_to_sorted: ctx.alloc("slot to sorted", max_intersections)?,
+        })
+    }
+
+    /// Records, for `n` projected Gaussians with `n_isects` intersections (the scan's total,
+    /// read after the projection submission): emit the keys, sort them, tile ranges, gather
+    /// and invert. CPU references: `emit_intersections`, `radix_sort_pairs`, `tile_ranges`,
+    /// `gather_sorted_gaussians`, `invert_permutation`.
+    pub fn record(&self, ctx: &mut GpuContext, proj: &GpuProjection, grid: &TileGrid, n: usize, n_isects: usize) -> Result<(), GpuError> {
+        let num_tiles = grid.num_tiles();
+        if num_tiles > self.max_tiles {
+            return Err(GpuError::OutOfRange { what: "tile offsets", requested: num_tiles + 1, len: self.max_tiles + 1 });
+        }
+        if n_isects > self.max_intersections {
+            return Err(GpuError::OutOfRange { what: "intersection keys", requested: n_isects, len: self.max_intersections });
+        }
+        if n > 0 && n_isects > 0 {
+            let params = [n as u32, grid.tiles_x as u32, 0, 0];
+            let bufs = [
+                proj.splats.range(),
+                proj.rects.range(),
+                proj.isect_offsets.range(),
+                proj.scan.status.range(),
+                self.keys.range(),
+                self.values.range(),
+                self.isect_gaussian.range(),
+            ];
+            ctx.dispatch(Kernel::MapGaussianToIntersectsMapGaussianToIntersects, &bufs, bytemuck::bytes_of(&params), [
+                n.div_ceil(256) as u32,
+                1,
+                1,
+            ])?;
+            let key_bits = 32 + bits_for(num_tiles.saturating_sub(1) as u64);
+            record_radix_sort(ctx, &self.keys, &self.values, n_isects, key_bits, &self.sort)?;
+        }
+        let params = [n_isects as u32, num_tiles as u32, 0, 0];
+        let imm = bytemuck::bytes_of(&params);
+        ctx.dispatch(Kernel::TileRangesTileRanges, &[self.keys.range(), self.tile_offsets.range()], imm, [
+            (num_tiles + 1).div_ceil(256) as u32,
+            1,
+            1,
+        ])?;
+        if n_isects > 0 {
+            let groups = [n_isects.div_ceil(256) as u32, 1, 1];
+            let gather = [self.values.range(), self.isect_gaussian.range(), self.sorted_gaussian.range()];
+            ctx.dispatch(Kernel::TileRangesGatherSorted, &gather, imm, groups)?;
+            ctx.dispatch(Kernel::TileRangesInvertPermutation, &[self.values.range(), self.slot_to_sorted.range()], imm, groups)?;
+        }
+        Ok(())
+    }
+}
+
+/// Rasterisation forward buffers for images up to `max_pixels` pixels: the medium planes
+/// (inputs) and every output of [`crate::map::render::RenderOutput`].
+pub struct GpuRasterForward {
+    pub max_pixels: usize,
+    pub c_med: GpuBuffer<f32>,
+    pub sigma_att: GpuBuffer<f32>,
+    pub sigma_bs: GpuBuffer<f32>,
+    pub colour: GpuBuffer<f32>,
+    pub restored: GpuBuffer<f32>,
+    /// Per pixel `[depth, depth_var, alpha, final_t]`.
+    pub scalars: GpuBuffer<[f32; 4]>,
+    pub isect_end: GpuBuffer<u32>,
+    /// Host staging of the scalars (allocated once).
+    staging: Vec<[f32; 4]>,
+}
+
+impl GpuRasterForward {
+    pub fn new(ctx: &mut GpuContext, max_pixels: usize) -> Result<Self, GpuError> {
+        Ok(GpuRasterForward {
+            max_pixels,
+            c_med: ctx.alloc("medium c_med", max_pixels * 3)?,
+            sigma_att: ctx.alloc("medium sigma_att", max_pixels * 3)?,
+            sigma_bs: ctx.alloc("medium sigma_bs", max_pixels * 3)?,
+            colour: ctx.alloc("rendered colour", max_pixels * 3)?,
+            restored: ctx.alloc("restored colour", max_pixels * 3)?,
+            scalars: ctx.alloc("depth, variance, alpha, final T", max_pixels)?,
+            isect_end: ctx.alloc("isect end", max_pixels)?,
+            staging: vec![[0.0; 4]; max_pixels],
+        })
+    }
+
+    /// Uploads the per-pixel medium planes.
+    pub fn upload_medium(&self, ctx: &mut GpuContext, medium: &MediumPlanes) -> Result<(), GpuError> {
+        ctx.write(&self.c_med, &medium.c_med.data)?;
+        ctx.write(&self.sigma_att, &medium.sigma_att.data)?;
+        ctx.write(&self.sigma_bs, &medium.sigma_bs.data)
+    }
+
+    /// Records `rasterize` over the grid. CPU reference: `rasterize_forward`.
+    pub fn record(
+        &self,
+        ctx: &mut GpuContext,
+        splats: &GpuBuffer<f32>,
+        bin: &GpuBinning,
+        grid: &TileGrid,
+        intrinsics: [f32; 4],
+        depth_mode: DepthMode,
+    ) -> Result<(), GpuError> {
+        if grid.width * grid.height > self.max_pixels {
+            return Err(GpuError::OutOfRange { what: "rendered colour", requested: grid.width * grid.height, len: self.max_pixels });
+        }
+        let [fx, fy, cx, cy] = intrinsics;
+        let mode = match depth_mode {
+            DepthMode::InverseDepth => 0u32,
+            DepthMode::Depth => 1,
+        };
+        let params = [fx.to_bits(), fy.to_bits(), cx.to_bits(), cy.to_bits(), grid.width as u32, grid.height as u32, grid.tiles_x as u32, mode];
+        let bufs = [
+            splats.range(),
+            bin.sorted_gaussian.range(),
+            bin.tile_offsets.range(),
+            self.c_med.range(),
+            self.sigma_att.range(),
+            self.sigma_bs.range(),
+            self.colour.range(),
+            self.restored.range(),
+            self.scalars.range(),
+            self.isect_end.range(),
+        ];
+        ctx.dispatch(Kernel::RasterizeRasterize, &bufs, bytemuck::bytes_of(&params), [grid.tiles_x as u32, grid.tiles_y as u32, 1])
+    }
+
+    /// Reads the outputs of a `width x height` render into `out`.
+    pub fn read(&mut self, ctx: &GpuContext, out: &mut RenderOutput) -> Result<(), GpuError> {
+        let n = out.width() * out.height();
+        ctx.read(&self.colour, &mut out.colour.data)?;
+        ctx.read(&self.restored, &mut out.restored.data)?;
+        let scalars = &mut self.staging[..n];
+        ctx.read(&self.scalars, scalars)?;
+        for (i, s) in scalars.iter().enumerate() {
+            out.depth.data[i] = s[0];
+            out.depth_var.data[i] = s[1];
+            out.alpha.data[i] = s[2];
+            out.final_t.data[i] = s[3];
+        }
+        ctx.read(&self.isect_end, &mut out.isect_end)
+    }
+}
+
+/// Records one Adam step over `n` values (`values`, `grads`, first and second moments `m`,
+/// `v`, same layout). CPU reference: `AdamGroup::step` (the per-value update), constants from
+/// [`StepConstants::new`].
+pub fn record_adam_step(
+    ctx: &mut GpuContext,
+    values: &GpuBuffer<f32>,
+    grads: &GpuBuffer<f32>,
+    m: &GpuBuffer<f32>,
+    v: &GpuBuffer<f32>,
+    n: usize,
+    k: &StepConstants,
+) -> Result<(), GpuError> {
+    for b in [values, grads, m, v] {
+        if b.len() < n {
+            return Err(GpuError::OutOfRange { what: b.what(), requested: n, len: b.len() });
+        }
+    }
+    if n == 0 {
+        return Ok(());
+    }
+    let params = [
+        k.beta1.to_bits(),
+        k.one_minus_beta1.to_bits(),
+        k.beta2.to_bits(),
+        k.one_minus_beta2.to_bits(),
+        k.step_size.to_bits(),
+        k.inv_sqrt_bias2.to_bits(),
+        k.eps.to_bits(),
+        n as u32,
+    ];
+    let groups = n.div_ceil(256);
+    let gx = groups.min(65535);
+    let bufs = [values.range(), grads.range(), m.range(), v.range()];
+    ctx.dispatch(Kernel::AdamAdamStep, &bufs, bytemuck::bytes_of(&params), [gx as u32, groups.div_ceil(gx) as u32, 1])
+}
+
+/// Why a GPU render failed: bad input or a full buffer (the same [`RenderError`] the CPU
+/// reference reports), or the device.
+#[derive(Debug, thiserror::Error)]
+pub enum VulkanRenderError {
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+/// The forward render on the GPU, every buffer allocated once for a [`RasterCapacity`]:
+/// projection + tile-count scan (one submission; the total is read back, as the CPU reference
+/// checks it before emitting), then binning, sort, ranges and rasterisation (a second one).
+pub struct GpuForwardRenderer {
+    pub capacity: RasterCapacity,
+    pub projection: GpuProjection,
+    pub binning: GpuBinning,
+    pub raster: GpuRasterForward,
+}
+
+impl GpuForwardRenderer {
+    pub fn new(ctx: &mut GpuContext, capacity: RasterCapacity) -> Result<Self, GpuError> {
+        let grid = TileGrid::new(capacity.width, capacity.height);
+        Ok(GpuForwardRenderer {
+            capacity,
+            projection: GpuProjection::new(ctx, capacity.max_gaussians)?,
+            binning: GpuBinning::new(ctx, capacity.max_intersections, grid.num_tiles())?,
+            raster: GpuRasterForward::new(ctx, capacity.width * capacity.height)?,
+        })
+    }
+
+    /// Renders `gaussians` seen from `cam_from_world` through `medium` into `out`, as
+    /// [`crate::map::render::RasterWorkspace::forward`] does on the CPU (same validation,
+    /// same errors; [`RenderError::TileOverflow`] reports the size needed).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        out: &mut RenderOutput,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        let _span = tracing::debug_span!("map.gpu_forward", gaussians = gaussians.len()).entered();
+        if camera.width == 0 || camera.height == 0 {
+            return Err(RenderError::EmptyImage { width: camera.width, height: camera.height }.into());
+        }
+        let setup = ProjectionSetup::<f32>::new(camera, cam_from_world, config)?;
+        let grid = TileGrid::new(camera.width, camera.height);
+        if camera.width > self.capacity.width || camera.height > self.capacity.height {
+            return Err(RenderError::CapacityExceeded {
+                what: "image pixels",
+                requested: camera.width * camera.height,
+                capacity: self.capacity.width * self.capacity.height,
+            }
+            .into());
+        }
+        let n = gaussians.len();
+        if n > self.capacity.max_gaussians {
+            return Err(RenderError::CapacityExceeded { what: "Gaussians", requested: n, capacity: self.capacity.max_gaussians }.into());
+        }
+        check_size("medium planes", medium.width(), medium.height(), &grid)?;
+        for (_, plane) in medium.planes() {
+            check_size("medium planes", plane.width, plane.height, &grid)?;
+        }
+        check_output(out, &grid)?;
+        validate_gaussians(gaussians)?;
+        for (what, plane) in medium.planes() {
+            check_rgb(what, plane, what != "c_med")?;
+        }
+
+        self.projection.upload(ctx, gaussians)?;
+        self.projection.write_setup(ctx, &setup, &grid, n)?;
+        self.raster.upload_medium(ctx, medium)?;
+        ctx.begin()?;
+        self.projection.record(ctx, n, self.capacity.max_intersections)?;
+        ctx.submit_and_wait()?;
+        let n_isects = if n == 0 {
+            0
+        } else {
+            match self.projection.scan.result(ctx)? {
+                Ok(total) => total as usize,
+                Err(needed) => return Err(RenderError::TileOverflow { needed, capacity: self.capacity.max_intersections }.into()),
+            }
+        };
+        // With no intersection, tile_ranges still writes the (empty) ranges.
+        ctx.begin()?;
+        self.binning.record(ctx, &self.projection, &grid, n, n_isects)?;
+        let intrinsics = [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32];
+        self.raster.record(ctx, &self.projection.splats, &self.binning, &grid, intrinsics, config.depth_mode)?;
+        ctx.submit_and_wait()?;
+        self.raster.read(ctx, out)?;
+        let mut visible = 0;
+        if n > 0 {
+            // Visible Gaussians: those with a non-empty tile range in the offsets.
+            let mut offsets = std::mem::take(&mut self.projection.staging_offsets);
+            ctx.read(&self.projection.isect_offsets, &mut offsets[..n + 1])?;
+            visible = offsets[..n + 1].windows(2).filter(|p| p[1] > p[0]).count();
+            self.projection.staging_offsets = offsets;
+        }
+        Ok(RenderStats { visible, intersections: n_isects })
+    }
+}
+
+/// Where the forward render runs: the Vulkan kernels, or the CPU reference when no Vulkan
+/// device exists at all (one warning when that is decided).
+pub enum ForwardBackend {
+    Vulkan { ctx: Box<GpuContext>, renderer: Box<GpuForwardRenderer> },
+    Cpu(Box<crate::map::render::RasterWorkspace>),
+}
+
+impl ForwardBackend {
+    /// Opens the device with `options` and allocates the renderer; no Vulkan loader or device
+    /// gives the CPU reference with one warning, any other failure is an error.
+    pub fn open(options: &crate::gpu::GpuOptions, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
+        Self::from_open_result(GpuContext::new(options), capacity)
+    }
+
+    /// The fallback policy of [`ForwardBackend::open`], for a given outcome of opening the device.
+    pub fn from_open_result(opened: Result<GpuContext, GpuError>, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
+        match opened {
+            Ok(mut ctx) => {
+                let renderer = GpuForwardRenderer::new(&mut ctx, capacity)?;
+                Ok(ForwardBackend::Vulkan { ctx: Box::new(ctx), renderer: Box::new(renderer) })
+            }
+            Err(e) if e.is_unavailable() => {
+                tracing::warn!("map: {e}; rendering on the CPU reference instead of Vulkan");
+                Ok(ForwardBackend::Cpu(Box::new(crate::map::render::RasterWorkspace::new(capacity)?)))
+            }
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    pub fn is_vulkan(&self) -> bool {
+        matches!(self, ForwardBackend::Vulkan { .. })
+    }
+
+    /// One forward render on whichever backend this is.
+    pub fn forward(
+        &mut self,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        out: &mut RenderOutput,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        match self {
+            ForwardBackend::Vulkan { ctx, renderer } => renderer.forward(ctx, gaussians, camera, cam_from_world, medium, config, out),
+            ForwardBackend::Cpu(ws) => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+        }
+    }
+}

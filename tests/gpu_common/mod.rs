@@ -1,0 +1,32 @@
+//! Shared helper of the GPU test binaries (`tests/gpu_*.rs`): opens the Vulkan device with
+//! the `sim` board's GPU budget and logs device, driver and features. No device at all: a
+//! loud skip locally, a failure when `CI` is set (CI runs on lavapipe, `.ci/run` installs it).
+#![allow(dead_code)]
+
+use std::path::Path;
+
+use duv::config::Board;
+use duv::gpu::{GpuContext, GpuOptions};
+
+/// The device, or `None` (after a loud message) when no Vulkan device exists and `CI` is
+/// unset. Any other failure (a kernel that does not build, the arena) fails the test.
+pub fn gpu_or_skip(test: &str) -> Option<GpuContext> {
+    let board = Board::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("boards/sim.toml")).expect("boards/sim.toml");
+    let mut options = GpuOptions::with_budget_mb(board.budgets.gpu_mb);
+    options.pipeline_cache_dir = Some(std::env::temp_dir().join("duv-test-pipeline-cache"));
+    match GpuContext::new(&options) {
+        Ok(ctx) => {
+            eprintln!("[{test}] Vulkan device: {}; arena {} MiB", ctx.info(), ctx.arena_capacity_bytes() >> 20);
+            Some(ctx)
+        }
+        Err(e) if e.is_unavailable() && std::env::var_os("CI").is_none() => {
+            eprintln!("\n############################################################");
+            eprintln!("## [{test}] SKIPPED: no Vulkan device ({e})");
+            eprintln!("## install lavapipe (apt-get install mesa-vulkan-drivers) to run it");
+            eprintln!("############################################################\n");
+            None
+        }
+        Err(e) if e.is_unavailable() => panic!("[{test}] CI is set and no Vulkan device was found: {e}"),
+        Err(e) => panic!("[{test}] opening the Vulkan device failed: {e}"),
+    }
+}

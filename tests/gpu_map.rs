@@ -1,0 +1,452 @@
+//! The mapper's stages on the Vulkan device (lavapipe in CI) against their CPU references in
+//! `map`: projection (EWA) with the tile-count scan, tile binning + sort + ranges, the
+//! rasteriser forward with the medium, Adam. Sizes cross workgroup (256 threads) and tile
+//! (16 px) boundaries.
+
+mod gpu_common;
+#[path = "common/render_scene.rs"]
+mod render_scene;
+
+use duv::core::rng::Rng;
+use duv::gpu::{BindingKind, Kernel};
+use duv::map::gaussians::{GaussianParam, Gaussians, PARAMS_PER_GAUSSIAN};
+use duv::map::render::{
+    bits_for, emit_intersections, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
+    sort_histogram_len, tile_ranges, DepthMode, ProjectedSplat, ProjectionSetup, RasterCapacity, RasterInputs, RasterWorkspace, RenderConfig, RenderError, RenderOutput, TileGrid, TileRect,
+    rasterize_forward,
+};
+use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
+use duv::map::vulkan::{
+    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterForward, VulkanRenderError, SETUP_WORDS, SPLAT_FLOATS,
+};
+use render_scene::{camera, random_gaussians, random_medium, world_from_cam};
+
+/// Forward values (pixels, conic entries, depth, opacity, colour): `|gpu - cpu| <= tol *
+/// max(1, |cpu|)`. The GPU's exp/log/sqrt are not the host's correctly rounded ones.
+const FORWARD_TOL: f64 = 1e-4;
+/// Rendered images (colour, restored, depth, variance, alpha, final T): max abs error.
+const RASTER_FORWARD_TOL: f64 = 1e-4;
+/// Adam: parameters and moments, `|gpu - cpu| <= tol * max(1e-3, |cpu|)` (the GPU may fuse
+/// multiply-adds and its sqrt is not correctly rounded).
+const ADAM_REL_TOL: f64 = 1e-5;
+
+fn close(a: f32, b: f32) -> bool {
+    ((a - b).abs() as f64) <= FORWARD_TOL * (b.abs() as f64).max(1.0)
+}
+
+fn splat_values(s: &ProjectedSplat<f32>) -> [f32; SPLAT_FLOATS] {
+    [s.mean2d[0], s.mean2d[1], s.conic[0], s.conic[1], s.conic[2], s.z, s.opacity, s.colour[0], s.colour[1], s.colour[2], s.q_max]
+}
+
+#[test]
+fn kernel_table_matches_the_host_layouts() {
+    // Pure table checks: no device needed.
+    let project = Kernel::ProjectForwardProjectForward.info();
+    assert_eq!(project.workgroup_size, [256, 1, 1]);
+    let names: Vec<&str> = project.bindings.iter().map(|b| b.name).collect();
+    assert_eq!(names, ["setup", "params", "splats", "rects", "tiles_touched"]);
+    assert_eq!(project.bindings[0].bytes as usize, SETUP_WORDS * 4, "Setup struct vs projection_setup_words");
+    assert_eq!(project.bindings[0].kind, BindingKind::StorageRead);
+    assert_eq!(project.bindings[3].bytes, 16, "rects are vec4<u32> = [u32; 4]");
+    assert_eq!(project.bindings[3].kind, BindingKind::StorageReadWrite);
+    let sort = Kernel::RadixSortScatter.info();
+    assert_eq!(sort.bindings[0].bytes, 8, "sort keys are vec2<u32> = u64");
+    assert_eq!(sort.immediate_bytes, 16);
+    assert_eq!(Kernel::PrefixSumScanAdd.info().immediate_bytes, 16);
+    assert_eq!(PARAMS_PER_GAUSSIAN, 23, "params layout of project_forward.wgsl");
+    for k in Kernel::all() {
+        assert!(!k.info().spirv.is_empty() && k.info().spirv.len() % 4 == 0, "{}: SPIR-V", k.name());
+    }
+}
+
+#[test]
+fn projection_matches_project_gaussians() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("projection_matches_project_gaussians") else { return };
+    let (w, h) = (150, 97); // 10 x 7 tiles, partial tiles on both axes
+    let cam = camera(w, h, 120.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(5);
+    let n_random = 256 * 12 + 37;
+    let mut g = random_gaussians(&mut rng, n_random, n_random + 8, &cam, &world_from_cam, (0.5, 6.0), (0.5, 12.0), (-4.0, 5.0));
+    // Culled cases: behind the camera, opacity below 1/255, zero rotation; plus one far off
+    // to the side (projected, but no tile).
+    let base = g.get(0);
+    let behind = (world_from_cam * nalgebra::Point3::new(0.0, 0.0, -1.0)).coords;
+    let side = (world_from_cam * nalgebra::Point3::new(40.0, 0.0, 2.0)).coords;
+    for p in [
+        GaussianParam { mean: [behind.x as f32, behind.y as f32, behind.z as f32], ..base },
+        GaussianParam { opacity_logit: -8.0, ..base },
+        GaussianParam { rotation: [0.0; 4], ..base },
+        GaussianParam { mean: [side.x as f32, side.y as f32, side.z as f32], ..base },
+    ] {
+        g.push(&p).unwrap();
+    }
+    let n = g.len();
+    let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+    let grid = TileGrid::new(w, h);
+
+    let mut cpu_splats = vec![ProjectedSplat::default(); n];
+    let mut cpu_rects = vec![TileRect::default(); n];
+    let mut cpu_counts = vec![0u32; n];
+    project_gaussians(&g, &setup, &grid, &mut cpu_splats, &mut cpu_rects, &mut cpu_counts);
+
+    let mut proj = GpuProjection::new(&mut ctx, n).unwrap();
+    proj.upload(&mut ctx, &g).unwrap();
+    proj.write_setup(&mut ctx, &setup, &grid, n).unwrap();
+    ctx.begin().unwrap();
+    proj.record(&mut ctx, n, 1 << 24).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut gpu_splats = vec![ProjectedSplat::default(); n];
+    let mut gpu_rects = vec![TileRect::default(); n];
+    let mut gpu_counts = vec![0u32; n];
+    proj.read(&ctx, n, &mut gpu_splats, &mut gpu_rects, &mut gpu_counts).unwrap();
+
+    let mut worst = 0.0f64;
+    let mut visible = 0;
+    for i in 0..n {
+        let (a, b) = (splat_values(&gpu_splats[i]), splat_values(&cpu_splats[i]));
+        for k in 0..SPLAT_FLOATS {
+            assert!(close(a[k], b[k]), "Gaussian {i}, splat field {k}: GPU {} vs CPU {}", a[k], b[k]);
+            worst = worst.max((a[k] - b[k]).abs() as f64 / (b[k].abs() as f64).max(1.0));
+        }
+        assert_eq!(gpu_rects[i], cpu_rects[i], "Gaussian {i}: tile rectangle");
+        assert_eq!(gpu_counts[i], cpu_counts[i], "Gaussian {i}: tiles touched");
+        visible += (cpu_counts[i] > 0) as usize;
+    }
+    // Behind the camera, opacity below 1/255, zero rotation, off to the side: no tile.
+    assert_eq!(gpu_counts[n_random..], [0, 0, 0, 0], "the four culled Gaussians");
+    assert!(visible > n_random / 2, "scene too sparse: {visible} of {n} visible");
+    eprintln!("projection: {n} Gaussians, {visible} visible, worst scaled error {worst:.2e}");
+
+    // The tile-count scan recorded after the projection.
+    let mut cpu_offsets = vec![0u32; n + 1];
+    let mut sums = vec![0u64; scan_blocks(n)];
+    let total = exclusive_scan(&cpu_counts, &mut cpu_offsets, &mut sums, 1 << 24).unwrap();
+    assert_eq!(proj.scan.result(&ctx).unwrap(), Ok(total));
+    let mut gpu_offsets = vec![0u32; n + 1];
+    ctx.read(&proj.isect_offsets, &mut gpu_offsets).unwrap();
+    assert_eq!(gpu_offsets, cpu_offsets);
+}
+
+/// Every CPU stage up to the rasteriser's inputs.
+struct CpuStages {
+    splats: Vec<ProjectedSplat<f32>>,
+    rects: Vec<TileRect>,
+    offsets: Vec<u32>,
+    total: usize,
+    keys: Vec<u64>,
+    slots: Vec<u32>,
+    isect_gaussian: Vec<u32>,
+    tile_offsets: Vec<u32>,
+    sorted_gaussian: Vec<u32>,
+    slot_to_sorted: Vec<u32>,
+}
+
+fn cpu_stages(g: &Gaussians, setup: &ProjectionSetup<f32>, grid: &TileGrid) -> CpuStages {
+    let n = g.len();
+    let mut splats = vec![ProjectedSplat::default(); n];
+    let mut rects = vec![TileRect::default(); n];
+    let mut counts = vec![0u32; n];
+    project_gaussians(g, setup, grid, &mut splats, &mut rects, &mut counts);
+    let mut offsets = vec![0u32; n + 1];
+    let mut sums = vec![0u64; scan_blocks(n)];
+    let total = exclusive_scan(&counts, &mut offsets, &mut sums, u32::MAX as u64).unwrap() as usize;
+    let mut keys = vec![0u64; total];
+    let mut slots = vec![0u32; total];
+    let mut isect_gaussian = vec![0u32; total];
+    emit_intersections(&splats, &rects, &offsets, grid, &mut keys, &mut slots, &mut isect_gaussian);
+    let (mut kt, mut vt, mut hist) = (vec![0u64; total], vec![0u32; total], vec![0u32; sort_histogram_len(total)]);
+    radix_sort_pairs(&mut keys, &mut slots, &mut kt, &mut vt, &mut hist, 32 + bits_for(grid.num_tiles() as u64 - 1));
+    let mut tile_offsets = vec![0u32; grid.num_tiles() + 1];
+    tile_ranges(&keys, &mut tile_offsets);
+    let mut sorted_gaussian = vec![0u32; total];
+    gather_sorted_gaussians(&slots, &isect_gaussian, &mut sorted_gaussian);
+    let mut slot_to_sorted = vec![0u32; total];
+    invert_permutation(&slots, &mut slot_to_sorted);
+    CpuStages { splats, rects, offsets, total, keys, slots, isect_gaussian, tile_offsets, sorted_gaussian, slot_to_sorted }
+}
+
+#[test]
+fn binning_sort_and_tile_ranges_match_the_cpu_stages() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("binning_sort_and_tile_ranges_match_the_cpu_stages") else { return };
+    let (w, h) = (203, 141); // 13 x 9 tiles, partial tiles on both axes
+    let cam = camera(w, h, 150.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(9);
+    let n = 256 * 9 + 101;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (0.5, 6.0), (0.5, 20.0), (-3.0, 5.0));
+    let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+    let grid = TileGrid::new(w, h);
+    let cpu = cpu_stages(&g, &setup, &grid);
+    let CpuStages { splats, rects, offsets, total, keys, slots, isect_gaussian, tile_offsets, sorted_gaussian, slot_to_sorted, .. } = cpu;
+    assert!(total > 4096 * 2, "want several sort blocks, got {total} intersections");
+    // GPU stages from the CPU projection (so that every kernel sees the same input).
+    let proj = GpuProjection::new(&mut ctx, n).unwrap();
+    let raw: Vec<f32> = splats.iter().flat_map(splat_values).collect();
+    ctx.write(&proj.splats, &raw).unwrap();
+    let raw_rects: Vec<[u32; 4]> = rects.iter().map(|r| [r.x0, r.y0, r.x1, r.y1]).collect();
+    ctx.write(&proj.rects, &raw_rects).unwrap();
+    ctx.write(&proj.isect_offsets, &offsets).unwrap();
+    ctx.write(&proj.scan.status, &[0u32; 4]).unwrap();
+    let bin = GpuBinning::new(&mut ctx, total + 1000, grid.num_tiles()).unwrap();
+    ctx.begin().unwrap();
+    bin.record(&mut ctx, &proj, &grid, n, total).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let read_u32 = |ctx: &duv::gpu::GpuContext, b: &duv::gpu::GpuBuffer<u32>, len: usize| {
+        let mut v = vec![0u32; len];
+        ctx.read(b, &mut v).unwrap();
+        v
+    };
+    let mut gpu_keys = vec![0u64; total];
+    ctx.read(&bin.keys, &mut gpu_keys).unwrap();
+    assert_eq!(gpu_keys, keys, "sorted keys");
+    assert_eq!(read_u32(&ctx, &bin.values, total), slots, "sorted slots");
+    assert_eq!(read_u32(&ctx, &bin.isect_gaussian, total), isect_gaussian, "intersection Gaussians (unsorted slots)");
+    assert_eq!(read_u32(&ctx, &bin.tile_offsets, grid.num_tiles() + 1), tile_offsets, "tile offsets");
+    assert_eq!(read_u32(&ctx, &bin.sorted_gaussian, total), sorted_gaussian, "sorted Gaussians");
+    assert_eq!(read_u32(&ctx, &bin.slot_to_sorted, total), slot_to_sorted, "slot to sorted");
+    let rows: Vec<String> = ctx.profile().rows().map(|(k, d, ms)| format!("{} x{d}: {ms:.2} ms", k.name())).collect();
+    eprintln!("{total} intersections; kernel times: {}", rows.join(", "));
+}
+
+#[test]
+fn binning_writes_nothing_after_an_overflow() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("binning_writes_nothing_after_an_overflow") else { return };
+    let (w, h) = (64, 48);
+    let cam = camera(w, h, 60.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(3);
+    let n = 300;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (0.5, 4.0), (2.0, 10.0), (0.0, 3.0));
+    let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+    let grid = TileGrid::new(w, h);
+    let mut proj = GpuProjection::new(&mut ctx, n).unwrap();
+    let bin = GpuBinning::new(&mut ctx, 64, grid.num_tiles()).unwrap();
+    proj.upload(&mut ctx, &g).unwrap();
+    proj.write_setup(&mut ctx, &setup, &grid, n).unwrap();
+    ctx.write(&bin.keys, &[u64::MAX; 64]).unwrap();
+    ctx.begin().unwrap();
+    proj.record(&mut ctx, n, bin.max_intersections).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let needed = match proj.scan.result(&ctx).unwrap() {
+        Err(needed) => needed,
+        Ok(total) => panic!("{total} intersections fit in 64: the test needs an overflow"),
+    };
+    // The CPU projection gives the same size needed.
+    let (mut s, mut r, mut c) = (vec![ProjectedSplat::default(); n], vec![TileRect::default(); n], vec![0u32; n]);
+    project_gaussians(&g, &setup, &grid, &mut s, &mut r, &mut c);
+    assert_eq!(needed, c.iter().map(|&v| v as u64).sum::<u64>());
+    // Binning after the flagged scan writes no key even if asked to.
+    ctx.begin().unwrap();
+    bin.record(&mut ctx, &proj, &grid, n, 64).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut keys = vec![0u64; 64];
+    ctx.read(&bin.keys, &mut keys).unwrap();
+    assert!(keys.iter().all(|&k| k == u64::MAX), "keys written after an overflow");
+}
+
+#[test]
+fn rasterize_forward_matches_the_cpu_rasteriser() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("rasterize_forward_matches_the_cpu_rasteriser") else { return };
+    for (mode, seed) in [(DepthMode::InverseDepth, 21), (DepthMode::Depth, 22)] {
+        let (w, h) = (117, 83); // 8 x 6 tiles, partial tiles on both axes
+        let cam = camera(w, h, 100.0);
+        let world_from_cam = world_from_cam();
+        let mut rng = Rng::new(seed);
+        // Enough overlap that some tiles hold more than one 256-splat batch and blending
+        // terminates early (T < 1e-4) in places.
+        let n = 1500;
+        let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (0.5, 6.0), (1.0, 14.0), (-1.0, 6.0));
+        let medium = random_medium(&mut rng, w, h);
+        let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+        let grid = TileGrid::new(w, h);
+        let cpu = cpu_stages(&g, &setup, &grid);
+        let longest = cpu.tile_offsets.windows(2).map(|p| p[1] - p[0]).max().unwrap();
+        assert!(longest > 256, "want a tile with more than one batch, longest has {longest}");
+        let intrinsics = [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32];
+        let inputs = RasterInputs {
+            splats: &cpu.splats,
+            sorted_gaussian: &cpu.sorted_gaussian,
+            tile_offsets: &cpu.tile_offsets,
+            grid,
+            intrinsics,
+            depth_mode: mode,
+        };
+        let mut want = RenderOutput::new(w, h);
+        rasterize_forward(&inputs, &medium, &mut want);
+
+        let arena_mark = ctx.arena_used_bytes();
+        let proj = GpuProjection::new(&mut ctx, n).unwrap();
+        let bin = GpuBinning::new(&mut ctx, cpu.total, grid.num_tiles()).unwrap();
+        let mut raster = GpuRasterForward::new(&mut ctx, w * h).unwrap();
+        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_values).collect();
+        ctx.write(&proj.splats, &raw).unwrap();
+        ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();
+        ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
+        raster.upload_medium(&mut ctx, &medium).unwrap();
+        ctx.begin().unwrap();
+        raster.record(&mut ctx, &proj.splats, &bin, &grid, intrinsics, mode).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut got = RenderOutput::new(w, h);
+        raster.read(&ctx, &mut got).unwrap();
+        ctx.arena_reset_to(arena_mark);
+
+        let planes: [(&str, &[f32], &[f32]); 6] = [
+            ("colour", &got.colour.data, &want.colour.data),
+            ("restored", &got.restored.data, &want.restored.data),
+            ("depth", &got.depth.data, &want.depth.data),
+            ("depth_var", &got.depth_var.data, &want.depth_var.data),
+            ("alpha", &got.alpha.data, &want.alpha.data),
+            ("final_t", &got.final_t.data, &want.final_t.data),
+        ];
+        for (name, a, b) in planes {
+            let (i, err) = a.iter().zip(b).map(|(x, y)| (x - y).abs() as f64).enumerate().fold((0, 0.0), |m, (i, e)| if e > m.1 { (i, e) } else { m });
+            eprintln!("{mode:?} {name}: max abs error {err:.2e}");
+            assert!(err <= RASTER_FORWARD_TOL, "{mode:?} {name}: max abs error {err:.3e} at element {i} (GPU {}, CPU {})", a[i], b[i]);
+        }
+        let ends_differ = got.isect_end.iter().zip(&want.isect_end).filter(|(a, b)| a != b).count();
+        assert_eq!(ends_differ, 0, "{mode:?}: {ends_differ} pixels stop blending at a different splat");
+    }
+}
+
+#[test]
+fn adam_step_matches_adam_group() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("adam_step_matches_adam_group") else { return };
+    // 65535 * 256 + 3 * 256 + 5 values: more workgroups than one grid dimension holds.
+    let items = (65535 * 256 + 3 * 256 + 5) / 3 + 1;
+    let stride = 3;
+    let n = items * stride;
+    let config = AdamGroupConfig { lr: 0.01, ..AdamGroupConfig::default() };
+    let mut group = AdamGroup::new(config, stride, items, items).unwrap();
+    let mut rng = Rng::new(17);
+    let mut cpu_params: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect();
+    let arena_mark = ctx.arena_used_bytes();
+    let values = ctx.alloc::<f32>("params", n).unwrap();
+    let grads = ctx.alloc::<f32>("grads", n).unwrap();
+    let m = ctx.alloc::<f32>("adam m", n).unwrap();
+    let v = ctx.alloc::<f32>("adam v", n).unwrap();
+    ctx.write(&values, &cpu_params).unwrap();
+    ctx.begin().unwrap();
+    ctx.fill(m.range(), 0).unwrap();
+    ctx.fill(v.range(), 0).unwrap();
+    ctx.submit_and_wait().unwrap();
+    for step in 1..=3u64 {
+        let g: Vec<f32> = (0..n).map(|i| if i % 7 == 0 { 0.0 } else { rng.range(-2.0, 2.0) as f32 }).collect();
+        group.step(&mut cpu_params, &g).unwrap();
+        ctx.write(&grads, &g).unwrap();
+        ctx.begin().unwrap();
+        record_adam_step(&mut ctx, &values, &grads, &m, &v, n, &StepConstants::new(&config, step)).unwrap();
+        ctx.submit_and_wait().unwrap();
+    }
+    let (cpu_m, cpu_v) = group.moments();
+    for (name, buf, want) in [("params", &values, &cpu_params[..]), ("m", &m, &cpu_m[..n]), ("v", &v, &cpu_v[..n])] {
+        let mut got = vec![0.0f32; n];
+        ctx.read(buf, &mut got).unwrap();
+        let (i, err) = got
+            .iter()
+            .zip(want)
+            .map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(1e-3))
+            .enumerate()
+            .fold((0, 0.0), |acc, (i, e)| if e > acc.1 { (i, e) } else { acc });
+        eprintln!("adam {name}: max scaled error {err:.2e}");
+        assert!(err <= ADAM_REL_TOL, "adam {name}[{i}]: GPU {} vs CPU {} (scaled error {err:.2e})", got[i], want[i]);
+    }
+    ctx.arena_reset_to(arena_mark);
+}
+
+#[test]
+fn gpu_forward_render_matches_raster_workspace() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("gpu_forward_render_matches_raster_workspace") else { return };
+    let (w, h) = (160, 120);
+    let cam = camera(w, h, 140.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(31);
+    let n = 256 * 11 + 9;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (1.0, 10.0), (0.7, 6.0), (-2.0, 3.0));
+    let medium = random_medium(&mut rng, w, h);
+    let config = RenderConfig::default();
+    let cam_from_world = world_from_cam.inverse();
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: n, max_intersections: 8 * n };
+    let mut ws = RasterWorkspace::new(capacity).unwrap();
+    let mut want = RenderOutput::new(w, h);
+    let cpu_stats = ws.forward(&g, &cam, &cam_from_world, &medium, &config, &mut want).unwrap();
+    let arena_mark = ctx.arena_used_bytes();
+    let mut gpu = GpuForwardRenderer::new(&mut ctx, capacity).unwrap();
+    let mut got = RenderOutput::new(w, h);
+    let gpu_stats = gpu.forward(&mut ctx, &g, &cam, &cam_from_world, &medium, &config, &mut got).unwrap();
+    assert_eq!((gpu_stats.visible, gpu_stats.intersections), (cpu_stats.visible, cpu_stats.intersections));
+    for (name, a, b) in [
+        ("colour", &got.colour.data, &want.colour.data),
+        ("restored", &got.restored.data, &want.restored.data),
+        ("depth", &got.depth.data, &want.depth.data),
+        ("alpha", &got.alpha.data, &want.alpha.data),
+    ] {
+        let err = a.iter().zip(b.iter()).map(|(x, y)| (x - y).abs() as f64).fold(0.0, f64::max);
+        eprintln!("whole forward {name}: max abs error {err:.2e}");
+        assert!(err <= RASTER_FORWARD_TOL, "whole forward {name}: max abs error {err:.3e}");
+    }
+    // Too small an intersection buffer: the same overflow report as the CPU reference.
+    let small = RasterCapacity { max_intersections: cpu_stats.intersections - 1, ..capacity };
+    let mut gpu_small = GpuForwardRenderer::new(&mut ctx, small).unwrap();
+    match gpu_small.forward(&mut ctx, &g, &cam, &cam_from_world, &medium, &config, &mut got) {
+        Err(VulkanRenderError::Render(RenderError::TileOverflow { needed, capacity })) => {
+            assert_eq!((needed as usize, capacity), (cpu_stats.intersections, cpu_stats.intersections - 1));
+        }
+        other => panic!("expected a tile overflow, got {other:?}"),
+    }
+    eprintln!("arena peak {} MiB of {} MiB", ctx.arena_peak_bytes() >> 20, ctx.arena_capacity_bytes() >> 20);
+    ctx.arena_reset_to(arena_mark);
+}
+
+/// No kernel uses float atomics (integer workgroup atomics only, in an order-independent
+/// way), so two runs on one device give bit-identical images.
+#[test]
+fn forward_is_bit_identical_over_two_runs() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("forward_is_bit_identical_over_two_runs") else { return };
+    let (w, h) = (96, 72);
+    let cam = camera(w, h, 90.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(41);
+    let n = 2000;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (1.0, 8.0), (0.7, 8.0), (-2.0, 4.0));
+    let medium = random_medium(&mut rng, w, h);
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: n, max_intersections: 16 * n };
+    let arena_mark = ctx.arena_used_bytes();
+    let mut gpu = GpuForwardRenderer::new(&mut ctx, capacity).unwrap();
+    let mut runs = [RenderOutput::new(w, h), RenderOutput::new(w, h)];
+    for out in runs.iter_mut() {
+        gpu.forward(&mut ctx, &g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), out).unwrap();
+    }
+    let bits = |o: &RenderOutput| -> Vec<u32> {
+        o.colour.data.iter().chain(&o.restored.data).chain(&o.depth.data).chain(&o.depth_var.data).chain(&o.alpha.data).map(|v| v.to_bits()).collect()
+    };
+    assert_eq!(bits(&runs[0]), bits(&runs[1]), "two GPU renders differ");
+    assert_eq!(runs[0].isect_end, runs[1].isect_end);
+    assert!(runs[0].alpha.data.iter().any(|&a| a > 0.5), "the scene must cover pixels");
+    ctx.arena_reset_to(arena_mark);
+}
+
+#[test]
+fn no_vulkan_device_falls_back_to_the_cpu_reference_and_other_errors_do_not() {
+    // Pure policy: no device needed.
+    let (w, h) = (48, 32);
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: 100, max_intersections: 1000 };
+    let unavailable = Err(duv::gpu::GpuError::NoDevice { seen: String::new() });
+    let mut backend = ForwardBackend::from_open_result(unavailable, capacity).unwrap();
+    assert!(!backend.is_vulkan());
+    let cam = camera(w, h, 40.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(2);
+    let g = random_gaussians(&mut rng, 50, 100, &cam, &world_from_cam, (1.0, 4.0), (1.0, 4.0), (0.0, 3.0));
+    let medium = random_medium(&mut rng, w, h);
+    let (mut a, mut b) = (RenderOutput::new(w, h), RenderOutput::new(w, h));
+    backend.forward(&g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), &mut a).unwrap();
+    RasterWorkspace::new(capacity).unwrap().forward(&g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), &mut b).unwrap();
+    assert_eq!(a, b, "the fallback is the CPU reference");
+    // A device that exists but was asked for wrongly is an error, not a silent fallback.
+    let wrong = Err(duv::gpu::GpuError::NoMatchingDevice { env: duv::gpu::DEVICE_ENV, wanted: "nope".into(), seen: "0: llvmpipe".into() });
+    match ForwardBackend::from_open_result(wrong, capacity) {
+        Err(VulkanRenderError::Gpu(duv::gpu::GpuError::NoMatchingDevice { wanted, .. })) => assert_eq!(wanted, "nope"),
+        other => panic!("expected NoMatchingDevice, got {}", if other.is_ok() { "a backend".to_string() } else { "another error".into() }),
+    }
+}

@@ -1,0 +1,179 @@
+//! GPU prefix sum and radix sort on the Vulkan device (lavapipe in CI) against plain CPU
+//! algorithms and against the CPU references of the same name (`map::render`), with sizes that
+//! cross workgroup boundaries. Integer kernels: results must be exactly equal.
+
+mod gpu_common;
+
+use duv::core::rng::Rng;
+use duv::gpu::{GpuContext, GpuError, GpuOptions};
+use duv::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, SCAN_BLOCK, SORT_BLOCK};
+use duv::map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
+
+/// Sizes crossing the 512-element scan block and (300 007 > 512 * 512) the one-workgroup
+/// scan of the block sums, which then loops over more than one chunk.
+const SCAN_SIZES: [usize; 4] = [1, SCAN_BLOCK * 16 + 123, SCAN_BLOCK * 3, 300_007];
+
+fn plain_exclusive_scan(counts: &[u32]) -> Vec<u32> {
+    let mut out = Vec::with_capacity(counts.len() + 1);
+    let mut acc = 0u32;
+    for &c in counts {
+        out.push(acc);
+        acc += c;
+    }
+    out.push(acc);
+    out
+}
+
+#[test]
+fn prefix_sum_matches_a_sequential_scan() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("prefix_sum_matches_a_sequential_scan") else { return };
+    let max_n = *SCAN_SIZES.iter().max().unwrap();
+    let counts_buf = ctx.alloc::<u32>("counts", max_n).unwrap();
+    let offsets_buf = ctx.alloc::<u32>("offsets", max_n + 1).unwrap();
+    let scratch = ScanScratch::new(&mut ctx, max_n).unwrap();
+    let mut rng = Rng::new(7);
+    for &n in &SCAN_SIZES {
+        let counts: Vec<u32> = (0..n).map(|_| rng.below(40) as u32).collect();
+        ctx.write(&counts_buf, &counts).unwrap();
+        ctx.begin().unwrap();
+        record_exclusive_scan(&mut ctx, &counts_buf, n, &offsets_buf, &scratch, u32::MAX).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut got = vec![0u32; n + 1];
+        ctx.read(&offsets_buf, &mut got).unwrap();
+        let want = plain_exclusive_scan(&counts);
+        assert_eq!(scratch.result(&ctx).unwrap(), Ok(want[n] as u64), "n = {n}: total");
+        if let Some(i) = (0..=n).find(|&i| got[i] != want[i]) {
+            panic!("n = {n}: offsets[{i}] = {} on the GPU, {} sequentially", got[i], want[i]);
+        }
+        // The CPU reference of the same name agrees too.
+        let mut cpu = vec![0u32; n + 1];
+        let mut sums = vec![0u64; scan_blocks(n)];
+        assert_eq!(exclusive_scan(&counts, &mut cpu, &mut sums, u32::MAX as u64), Ok(want[n] as u64));
+        assert_eq!(cpu, got, "n = {n}: GPU vs map::render::exclusive_scan");
+    }
+}
+
+#[test]
+fn prefix_sum_overflow_reports_the_size_needed_and_writes_nothing() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("prefix_sum_overflow_reports_the_size_needed_and_writes_nothing") else { return };
+    let n = SCAN_BLOCK * 4 + 5;
+    let counts_buf = ctx.alloc::<u32>("counts", n).unwrap();
+    let offsets_buf = ctx.alloc::<u32>("offsets", n + 1).unwrap();
+    let scratch = ScanScratch::new(&mut ctx, n).unwrap();
+    let counts = vec![3u32; n];
+    let needed = 3 * n as u64;
+    ctx.write(&counts_buf, &counts).unwrap();
+    ctx.write(&offsets_buf, &vec![0xdead_beef; n + 1]).unwrap();
+    ctx.begin().unwrap();
+    record_exclusive_scan(&mut ctx, &counts_buf, n, &offsets_buf, &scratch, (needed - 1) as u32).unwrap();
+    ctx.submit_and_wait().unwrap();
+    assert_eq!(scratch.result(&ctx).unwrap(), Err(needed));
+    let mut got = vec![0u32; n + 1];
+    ctx.read(&offsets_buf, &mut got).unwrap();
+    assert!(got.iter().all(|&v| v == 0xdead_beef), "offsets written despite the overflow");
+    // Totals past 2^32 are reported exactly (carry into the high word).
+    let big = vec![u32::MAX / 2; 5];
+    ctx.write(&counts_buf, &big).unwrap();
+    ctx.begin().unwrap();
+    record_exclusive_scan(&mut ctx, &counts_buf, 5, &offsets_buf, &scratch, u32::MAX).unwrap();
+    ctx.submit_and_wait().unwrap();
+    assert_eq!(scratch.result(&ctx).unwrap(), Err(5 * (u32::MAX / 2) as u64));
+}
+
+/// Keys shaped like the renderer's: a tile id in the high bits over a depth bit pattern, with
+/// many exact duplicates so that stability is tested.
+fn splat_like_keys(rng: &mut Rng, n: usize, tiles: u64) -> Vec<u64> {
+    (0..n)
+        .map(|_| {
+            let tile = rng.below(tiles);
+            let z = 0.5f32 + rng.below(64) as f32 * 0.25;
+            (tile << 32) | z.to_bits() as u64
+        })
+        .collect()
+}
+
+#[test]
+fn radix_sort_matches_a_stable_sort() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("radix_sort_matches_a_stable_sort") else { return };
+    // (n, tiles): 43-bit keys (6 passes, even) and 40-bit keys (5 passes: the final copy).
+    let cases = [(SORT_BLOCK * 5 + 123, 1200u64), (SORT_BLOCK * 2 + 1, 200), (2, 3), (777, 256)];
+    let max_n = cases.iter().map(|c| c.0).max().unwrap();
+    let keys_buf = ctx.alloc::<u64>("keys", max_n).unwrap();
+    let values_buf = ctx.alloc::<u32>("values", max_n).unwrap();
+    let scratch = SortScratch::new(&mut ctx, max_n).unwrap();
+    let mut rng = Rng::new(11);
+    for &(n, tiles) in &cases {
+        let keys = splat_like_keys(&mut rng, n, tiles);
+        let values: Vec<u32> = (0..n as u32).collect();
+        let key_bits = 32 + (64 - (tiles - 1).leading_zeros()).max(1);
+        ctx.write(&keys_buf, &keys).unwrap();
+        ctx.write(&values_buf, &values).unwrap();
+        ctx.begin().unwrap();
+        record_radix_sort(&mut ctx, &keys_buf, &values_buf, n, key_bits, &scratch).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut got_k = vec![0u64; n];
+        let mut got_v = vec![0u32; n];
+        ctx.read(&keys_buf, &mut got_k).unwrap();
+        ctx.read(&values_buf, &mut got_v).unwrap();
+        // Plain stable sort of the pairs.
+        let mut want: Vec<(u64, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
+        want.sort_by_key(|p| p.0);
+        let got: Vec<(u64, u32)> = got_k.iter().copied().zip(got_v.iter().copied()).collect();
+        if let Some(i) = (0..n).find(|&i| got[i] != want[i]) {
+            panic!("n = {n}, {key_bits}-bit keys: element {i} is {:?} on the GPU, {:?} by a stable sort", got[i], want[i]);
+        }
+        // The CPU reference of the same name agrees too.
+        let (mut ck, mut cv) = (keys.clone(), values.clone());
+        let (mut kt, mut vt, mut h) = (vec![0u64; n], vec![0u32; n], vec![0u32; sort_histogram_len(n)]);
+        radix_sort_pairs(&mut ck, &mut cv, &mut kt, &mut vt, &mut h, key_bits);
+        assert_eq!((ck, cv), (got_k, got_v), "n = {n}: GPU vs map::render::radix_sort_pairs");
+    }
+    let rows: Vec<String> = ctx.profile().rows().map(|(k, d, ms)| format!("{} x{d}: {ms:.2} ms", k.name())).collect();
+    eprintln!("kernel times: {}", rows.join(", "));
+}
+
+#[test]
+fn device_choice_and_pipeline_cache_on_disk() {
+    let Some(ctx) = gpu_common::gpu_or_skip("device_choice_and_pipeline_cache_on_disk") else { return };
+    let name = ctx.info().name.clone();
+    drop(ctx);
+    let dir = tempfile::tempdir().unwrap();
+    let options = |device: Option<&str>| GpuOptions {
+        arena_bytes: 1 << 20,
+        device: device.map(str::to_owned),
+        pipeline_cache_dir: Some(dir.path().to_path_buf()),
+    };
+    // By index and by a case-insensitive substring of the name.
+    let by_index = GpuContext::new(&options(Some("0"))).unwrap();
+    let file = by_index.info().pipeline_cache_file.clone().expect("cache file");
+    assert!(file.starts_with(dir.path()));
+    let file_name = file.file_name().unwrap().to_string_lossy().into_owned();
+    assert!(file_name.starts_with(&format!("pipelines-{:04x}-{:04x}-", by_index.info().vendor_id, by_index.info().device_id)), "{file_name}");
+    assert!(std::fs::metadata(&file).unwrap().len() > 0, "pipeline cache written at start-up");
+    drop(by_index);
+    let substring = name.split_whitespace().next().unwrap().to_uppercase();
+    let by_name = GpuContext::new(&options(Some(&substring))).unwrap();
+    assert_eq!(by_name.info().name, name);
+    assert_eq!(by_name.info().pipeline_cache_file.as_ref(), Some(&file), "same device, same cache file (reused)");
+    drop(by_name);
+    match GpuContext::new(&options(Some("no-such-gpu"))) {
+        Err(GpuError::NoMatchingDevice { wanted, seen, .. }) => {
+            assert_eq!(wanted, "no-such-gpu");
+            assert!(seen.contains(&name), "the error lists the devices seen: {seen}");
+        }
+        Err(e) => panic!("expected NoMatchingDevice, got {e}"),
+        Ok(_) => panic!("a device matched 'no-such-gpu'"),
+    }
+    // The arena is the budget: more than it holds is refused, naming the buffer.
+    let mut small = GpuContext::new(&options(None)).unwrap();
+    match small.alloc::<u32>("too big", (1 << 20) / 4 + 1) {
+        Err(GpuError::ArenaFull { what, .. }) => assert_eq!(what, "too big"),
+        other => panic!("expected ArenaFull, got {other:?}"),
+    }
+    // A dispatch with the wrong number of buffers names the kernel.
+    let b = small.alloc::<u32>("b", 16).unwrap();
+    small.begin().unwrap();
+    let err = small.dispatch(duv::gpu::Kernel::RadixSortScan, &[b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
+    assert!(err.to_string().contains("radix_sort.scan"), "{err}");
+    small.submit_and_wait().unwrap();
+}
