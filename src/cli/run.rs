@@ -12,10 +12,19 @@ use duv::eval::report::AuseInput;
 use duv::eval::{build_report, write_report, EvalInputs, EvalOptions};
 use duv::io::pfm::write_pfm;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{KeyframeView, TrackOutput, Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
+use duv::camera::{CameraError, FrameSource};
+use duv::log::ReadLimits;
+use duv::pipeline::{resume, MapStage, NoMapping, PipelineConfig};
+use duv::replay::McapSource;
+use duv::track::{KeyframeView, Tracker, TrackerCapacity, TrackerConfig};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Logged frames a resumed run tracks again to relocalise in the recorded frame.
+const RELOCALISATION_FRAMES: usize = 24;
 
 #[derive(clap::Args)]
 pub struct RunArgs {
@@ -29,10 +38,10 @@ pub struct RunArgs {
     out: PathBuf,
     /// Board profile: capacities (keyframes, BA window), threads, and the sim image size.
     #[arg(long, default_value = "boards/sim.toml")]
-    board: PathBuf,
+    pub board: PathBuf,
     /// Track at most this many frames (a `sim:` source generates this many).
     #[arg(long)]
-    frames: Option<usize>,
+    pub frames: Option<usize>,
     /// Disable loop closure (and with it the pose graph and the global BA after loops).
     #[arg(long)]
     no_loop_closure: bool,
@@ -51,12 +60,26 @@ pub struct RunArgs {
     /// No progress line on stderr.
     #[arg(long)]
     no_progress: bool,
+    /// Pace the source at its time stamps divided by this factor (1 = recorded timing).
+    #[arg(long)]
+    pub speed: Option<f64>,
+    /// Single-threaded, no drops, seeded: bit-identical output for the same input.
+    #[arg(long)]
+    pub deterministic: bool,
+    /// Start over: an output folder with a log is refused instead of resumed.
+    #[arg(long)]
+    pub no_resume: bool,
+    /// Print `tracked SEQ T_NS` per frame and `synced SEGMENT MESSAGES BYTES` per fsync on
+    /// stdout (the crash harness reads them).
+    #[arg(long, hide = true)]
+    announce: bool,
 }
 
 /// Where frames come from, with what ground truth.
 enum Source {
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv::core::camera::UndistortMap, ImageRgb8)> },
+    Mcap { replay: Box<McapSource>, count: usize },
 }
 
 /// `WATER[-TRAJECTORY]` of a `sim:` spec.
@@ -78,7 +101,12 @@ fn parse_sim_preset(spec: &str) -> anyhow::Result<(WaterPreset, TrajectoryKind)>
 }
 
 impl Source {
-    fn open(args: &RunArgs, board: &Board) -> anyhow::Result<Source> {
+    /// `start`: the first frame index (resume continues after the recorded frames).
+    fn open(args: &RunArgs, board: &Board, start: usize) -> anyhow::Result<Source> {
+        if let Some(path) = args.source.strip_prefix("mcap:") {
+            let replay = McapSource::open(Path::new(path), ReadLimits::default()).with_context(|| format!("source {}", args.source))?.with_max_frames(args.frames);
+            return Ok(Source::Mcap { replay: Box::new(replay), count: args.frames.unwrap_or(usize::MAX) });
+        }
         if let Some(preset) = args.source.strip_prefix("sim:") {
             let (water, trajectory) = parse_sim_preset(preset)?;
             let mut cfg = SimConfig::preset(water, trajectory);
@@ -90,7 +118,7 @@ impl Source {
             cfg.seed = args.seed;
             let renderer = SimRenderer::new(&cfg).with_context(|| format!("source {}", args.source))?;
             let count = renderer.len();
-            return Ok(Source::Sim { renderer: Box::new(renderer), next: 0, count });
+            return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count });
         }
         anyhow::ensure!(args.width.is_none() && args.height.is_none(), "--width/--height apply to sim: sources only");
         let dataset = open_dataset(&args.source)?;
@@ -100,7 +128,7 @@ impl Source {
             let buf = ImageRgb8::new(dataset.camera.width, dataset.camera.height);
             (map, buf)
         });
-        Ok(Source::Dataset { dataset: Box::new(dataset), next: 0, count, undistort })
+        Ok(Source::Dataset { dataset: Box::new(dataset), next: start, count, undistort })
     }
 
     /// Camera of the frames handed to the tracker (undistorted).
@@ -108,12 +136,13 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => *renderer.camera(),
             Source::Dataset { dataset, .. } => dataset.camera.undistorted(),
+            Source::Mcap { replay, .. } => *replay.camera(),
         }
     }
 
     fn len(&self) -> usize {
         match self {
-            Source::Sim { count, .. } | Source::Dataset { count, .. } => *count,
+            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Mcap { count, .. } => *count,
         }
     }
 
@@ -148,6 +177,7 @@ impl Source {
                     Err(e) => tracing::warn!("skipping a frame: {e}"),
                 }
             },
+            Source::Mcap { replay, .. } => Ok(replay.next_frame()?),
         }
     }
 
@@ -155,6 +185,7 @@ impl Source {
         match self {
             Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),
             Source::Dataset { dataset, .. } => dataset.ground_truth.clone(),
+            Source::Mcap { .. } => None,
         }
     }
 
@@ -163,6 +194,7 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => Some(renderer.render(seq as usize).depth_m),
             Source::Dataset { dataset, .. } => dataset.load_depth_for_frame(seq as usize).ok().flatten(),
+            Source::Mcap { .. } => None,
         }
     }
 
@@ -173,7 +205,27 @@ impl Source {
                 format!("sim {:?} water, {:?} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
             }
             Source::Dataset { dataset, .. } => dataset.describe(),
+            Source::Mcap { replay, .. } => replay.describe(),
         }
+    }
+}
+
+/// A [`Source`] as the pipeline's [`FrameSource`].
+struct RunSource {
+    inner: Source,
+    camera: PinholeCamera,
+    spec: String,
+}
+
+impl FrameSource for RunSource {
+    fn camera(&self) -> &PinholeCamera {
+        &self.camera
+    }
+    fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
+        self.inner.next().map_err(|e| CameraError::BadSpec { spec: self.spec.clone(), problem: format!("{e:#}") })
+    }
+    fn describe(&self) -> String {
+        self.inner.describe()
     }
 }
 
@@ -211,14 +263,26 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if args.no_loop_closure {
         cfg.loop_closure = false;
     }
-    let mut source = Source::open(&args, &board)?;
+    // A log in the output folder means a previous run stopped (or lost power) there: recover
+    // it, reload the map checkpoint, relocalise, and continue in a new segment.
+    let log_dir = args.out.join("log");
+    if args.no_resume {
+        anyhow::ensure!(duv::log::list_segments(&log_dir)?.is_empty(), "--no-resume: {} already holds a log; choose another --out", log_dir.display());
+    }
+    let resume_state = if args.no_resume { None } else { resume::prepare(&args.out, ReadLimits::default(), RELOCALISATION_FRAMES)? };
+    let start = match &resume_state {
+        Some(r) if r.poses_recorded > 0 && !args.source.starts_with("mcap:") => r.last_seq as usize + 1,
+        _ => 0,
+    };
+    let source = Source::open(&args, &board, start)?;
     let camera = source.camera();
+    let plan = duv::pipeline::budget::plan(&board, camera.width, camera.height)?;
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
     let kf_dir = args.out.join("keyframes");
     std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
     let grid = tracker.depth_camera();
     eprintln!(
-        "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads)",
+        "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads; host plan {:.1} of {} MiB)",
         source.describe(),
         args.out.display(),
         grid.width,
@@ -226,52 +290,83 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         tracker.depth_factor(),
         capacity.max_keyframes,
         capacity.ba_window,
-        capacity.threads
+        capacity.threads,
+        plan.total_bytes as f64 / (1 << 20) as f64,
+        board.budgets.host_mb
     );
 
+    let mut pcfg = PipelineConfig::from_board(&board, args.out.clone());
+    pcfg.pace_speed = args.speed;
+    pcfg.deterministic = args.deterministic;
+    // Recorded and generated sources lose nothing by waiting; paced replay behaves live.
+    pcfg.lossless_frames = args.speed.is_none();
+    pcfg.announce = args.announce;
+    let one = |k: &str, v: String| [(k.to_string(), v)].into_iter().collect();
+    pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));
+    pcfg.log.metadata.push(("duv.run".into(), one("source", args.source.clone())));
+    let mut map: Box<dyn MapStage> = Box::new(NoMapping::default());
+    if let Some(r) = &resume_state {
+        for rep in &r.recovered {
+            eprintln!("recovered {}: {} messages kept, {} of {} bytes ({})", rep.segment.display(), rep.messages_kept, rep.bytes_after, rep.bytes_before, rep.damage);
+        }
+        if let Some((path, bytes)) = &r.checkpoint {
+            map.restore(bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            eprintln!("map checkpoint {} reloaded", path.display());
+        }
+        pcfg.world_from_tracker = resume::relocalise(&mut tracker, r)?;
+        match &pcfg.world_from_tracker {
+            Some(a) => eprintln!("resumed after frame {} ({} poses recorded): relocalised on {} logged frames, scale {:.4}", r.last_seq, r.poses_recorded, r.recent.len(), a.scaling()),
+            None => eprintln!("resumed after frame {}: relocalisation failed, continuing in a new frame", r.last_seq),
+        }
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    duv::pipeline::stop_on_signals(&stop)?;
     let total = source.len();
-    let mut recorder = TrajectoryRecorder::new();
-    let mut latencies: Vec<Duration> = Vec::with_capacity(total.min(1 << 20));
+    let run_source = RunSource { inner: source, camera, spec: args.source.clone() };
+    if !args.no_progress {
+        eprintln!("tracking {} frames...", if total == usize::MAX { "all".to_string() } else { total.saturating_sub(start).to_string() });
+    }
+    let result = duv::pipeline::run(run_source, tracker, map, &pcfg, stop)?;
+    let source = result.source.inner;
+    let tracker = result.tracker;
+    let recorder = result.recorder;
+    let latencies = result.track_times;
+    let frames_done = recorder.frames().len();
+    let track_time: Duration = latencies.iter().sum();
     let mut inv = PlaneF32::new(camera.width, camera.height);
     let mut var = PlaneF32::new(camera.width, camera.height);
-    let mut last_state: Option<TrackingState> = None;
-    let mut frames_done = 0usize;
-    let progress_every = Duration::from_millis(500);
-    let mut last_progress = Instant::now();
-    let mut track_time = Duration::ZERO;
-    while let Some(frame) = source.next()? {
-        let t0 = Instant::now();
-        let out: TrackOutput = tracker.track(&frame)?;
-        let dt = t0.elapsed();
-        track_time += dt;
-        latencies.push(dt);
-        recorder.record(&out);
-        frames_done += 1;
-        if out.evicted.is_some() {
-            if let Some(ev) = tracker.evicted_keyframe() {
-                write_keyframe_maps(&tracker, ev.id, &kf_dir, &mut inv, &mut var)?;
-            }
-        }
-        if last_state != Some(out.state) {
-            eprintln!("\rframe {:>6}: {}{:30}", out.seq, out.state.name(), "");
-            last_state = Some(out.state);
-        }
-        if out.loop_closed {
-            eprintln!("\rframe {:>6}: loop closed{:30}", out.seq, "");
-        }
-        if !args.no_progress && (last_progress.elapsed() >= progress_every || frames_done == total) {
-            last_progress = Instant::now();
-            let fps = frames_done as f64 / track_time.as_secs_f64().max(1e-9);
-            eprint!("\rframe {frames_done}/{total}  keyframes {}  {:.1} frames/s  {}   ", tracker.num_keyframes(), fps, out.state.name());
-        }
-    }
-    if !args.no_progress {
-        eprintln!();
+    println!(
+        "pipeline: {} frames captured, {} tracked, {} dropped (frame queue), {} keyframes dropped (mapping queue), {} log records dropped; log {} messages in {} segment(s){}{}",
+        result.frames_captured,
+        frames_done,
+        result.frame_queue.dropped,
+        result.keyframe_queue.dropped,
+        result.log_queue.dropped,
+        result.log.messages,
+        result.log.segments,
+        result.log_error.as_ref().map(|e| format!("; LOGGING STOPPED: {e}")).unwrap_or_default(),
+        if result.interrupted { "; interrupted" } else { "" }
+    );
+    if frames_done == 0 && resume_state.is_some() {
+        println!("nothing left to track after frame {}", start.saturating_sub(1));
+        return Ok(());
     }
     anyhow::ensure!(frames_done > 0, "the source delivered no frame");
+    let mut e2e: Vec<Duration> = result.latencies.clone();
+    e2e.sort();
+    println!("frame-in to pose-out latency median {:.1} ms, p99 {:.1} ms", percentile_ms(&e2e, 0.5), percentile_ms(&e2e, 0.99));
 
     // Final trajectory and keyframes.
-    let fin = recorder.finish(&tracker);
+    let mut fin = recorder.finish(&tracker);
+    if let Some(a) = &pcfg.world_from_tracker {
+        // Resumed: express everything in the recorded map frame.
+        for f in &mut fin.frames {
+            f.world_from_cam = duv::core::pose::sim3_apply_to_pose(a, &f.world_from_cam);
+        }
+        for k in &mut fin.keyframes {
+            k.world_from_cam = duv::core::pose::sim3_apply_to_pose(a, &k.world_from_cam);
+        }
+    }
     duv::io::tum::write_trajectory(&args.out.join("trajectory.txt"), &fin.frames)?;
     let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
     for k in &fin.keyframes {
@@ -373,6 +468,10 @@ impl RunArgs {
             height: None,
             seed: 1,
             no_progress,
+            speed: None,
+            deterministic: false,
+            no_resume: false,
+            announce: false,
         }
     }
 }
