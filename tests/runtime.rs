@@ -104,7 +104,7 @@ fn replay_is_deterministic_paced_and_accurate() {
     run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r2).args(["--deterministic", "--no-progress"]));
     let t1 = std::fs::read(r1.join("trajectory.txt")).unwrap();
     let t2 = std::fs::read(r2.join("trajectory.txt")).unwrap();
-    assert_eq!(t1.iter().filter(|&&b| b == b'\n').count(), 60);
+    assert_eq!(String::from_utf8_lossy(&t1).lines().filter(|l| !l.starts_with('#')).count(), 60);
     assert!(t1 == t2, "deterministic replays differ");
     assert_eq!(std::fs::read(r1.join("keyframes.txt")).unwrap(), std::fs::read(r2.join("keyframes.txt")).unwrap());
 
@@ -113,7 +113,7 @@ fn replay_is_deterministic_paced_and_accurate() {
     let replay_ate = ate(&read_trajectory(&r1.join("trajectory.txt")), &gt);
     let path_len: f64 = gt.windows(2).map(|w| (w[1] - w[0]).norm()).sum();
     eprintln!("replay ATE {replay_ate:.4} m over a {path_len:.2} m path");
-    assert!(replay_ate < 0.05 * path_len, "replay ATE {replay_ate} m, path {path_len} m");
+    assert!(replay_ate < 0.01 * path_len, "replay ATE {replay_ate} m, path {path_len} m");
 
     // Paced replay at recorded timing x2: 20 frames span 1.9 s of recorded time.
     let t0 = Instant::now();
@@ -155,9 +155,9 @@ fn a_board_too_small_for_the_resolution_is_refused_with_numbers() {
 fn disk_full_stops_logging_and_tracking_continues() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
-    // A file-size limit makes every write past 400 KiB fail (EFBIG), like a full disk.
+    // A file-size limit makes every write past 1200 KiB fail (EFBIG), like a full disk.
     let mut c = Command::new("bash");
-    c.current_dir(root()).env("RUST_LOG", "error").arg("-c").arg("ulimit -f 400; trap '' XFSZ; exec \"$0\" \"$@\"").arg(DUV);
+    c.current_dir(root()).env("RUST_LOG", "error").arg("-c").arg("ulimit -f 1200; trap '' XFSZ; exec \"$0\" \"$@\"").arg(DUV);
     c.args(["run", "--source", "sim:coastal", "--width", W, "--height", H, "--frames", "40", "--no-progress", "--out"]).arg(&out);
     let text = run_ok(&mut c);
     assert!(text.contains("LOGGING STOPPED"), "{text}");
