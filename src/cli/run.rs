@@ -24,7 +24,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 /// Logged frames a resumed run tracks again to relocalise in the recorded frame.
-const RELOCALISATION_FRAMES: usize = 24;
+const RELOCALISATION_FRAMES: usize = 20;
 
 #[derive(clap::Args)]
 pub struct RunArgs {

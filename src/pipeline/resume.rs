@@ -14,7 +14,7 @@ use crate::log::schema::{decode_calibration, decode_frame, decode_pose, StateMes
 use crate::log::{list_segments, recover_folder, ReadLimits, RecoveryReport, SegmentReader, Topic};
 use crate::track::Tracker;
 use nalgebra::Vector3;
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// What a previous run left behind.
@@ -26,7 +26,7 @@ pub struct ResumeState {
     pub last_t_ns: Timestamp,
     /// Poses recorded in all segments.
     pub poses_recorded: u64,
-    /// The last logged frames that have a recorded pose, oldest first: (frame, pose, tracked).
+    /// The last logged frames that have a recorded pose, oldest first: (frame, pose, not lost).
     pub recent: Vec<(Frame, Se3, bool)>,
     pub camera: Option<PinholeCamera>,
     /// Newest checkpoint that verified.
@@ -41,7 +41,8 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
         return Ok(None);
     }
     let recovered = recover_folder(&log_dir, limits)?;
-    let mut frames: VecDeque<(u64, Vec<u8>, u64)> = VecDeque::with_capacity(keep_frames * 4 + 1);
+    // By seq: a frame logged by a run killed before tracking it is logged again by the next.
+    let mut frames: BTreeMap<u64, (Vec<u8>, u64)> = BTreeMap::new();
     let mut poses: BTreeMap<u64, (Se3, bool)> = BTreeMap::new();
     let mut camera = None;
     let mut poses_recorded = 0u64;
@@ -54,9 +55,9 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
             let seq = sequence as u64;
             match topic {
                 Topic::CameraImage => {
-                    frames.push_back((seq, data, log_time_ns));
+                    frames.insert(seq, (data, log_time_ns));
                     while frames.len() > keep_frames * 4 {
-                        frames.pop_front();
+                        frames.pop_first();
                     }
                 }
                 Topic::CameraCalibration => camera = decode_calibration(&data).ok(),
@@ -76,7 +77,8 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
                 Topic::State => {
                     if let Ok(s) = serde_json::from_slice::<StateMessage>(&data) {
                         if let Some(p) = poses.get_mut(&s.seq) {
-                            p.1 = s.tracked;
+                            // Lost frames hold a prediction, not a measurement.
+                            p.1 = !s.state.starts_with("lost");
                         }
                     }
                 }
@@ -88,7 +90,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
         return Ok(Some(ResumeState { log_dir, recovered, last_seq: 0, last_t_ns: Timestamp::from_ns(0), poses_recorded: 0, recent: Vec::new(), camera, checkpoint: None }));
     };
     let mut recent = Vec::new();
-    for (seq, data, t) in frames {
+    for (seq, (data, t)) in frames {
         let Some(&(pose, tracked)) = poses.get(&seq) else { continue };
         match decode_frame(&data, seq, t) {
             Ok(f) => recent.push((f, pose, tracked)),
@@ -106,19 +108,40 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
 /// tracker's frame to the recorded one, `None` when too few frames were tracked in both runs
 /// (the run then continues in a new frame, which the caller reports).
 pub fn relocalise(tracker: &mut Tracker, state: &ResumeState) -> Result<Option<Sim3>, PipelineError> {
-    let mut src: Vec<Vector3<f64>> = Vec::new();
-    let mut dst: Vec<Vector3<f64>> = Vec::new();
+    // Per warm-up frame: the recorded pose, whether it was measured, and the new tracker's
+    // live pose and state.
+    let mut live: Vec<(u64, Se3, bool, Se3, bool)> = Vec::new();
     tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
-        for (frame, recorded, recorded_tracked) in &state.recent {
+        for (frame, recorded, recorded_measured) in &state.recent {
             let out = tracker.track(frame)?;
             let usable = !matches!(out.state, crate::track::TrackingState::Lost(_));
-            if usable && *recorded_tracked {
-                src.push(out.world_from_cam.translation.vector);
-                dst.push(recorded.translation.vector);
+            if usable {
+                live.push((frame.seq, *recorded, *recorded_measured, out.world_from_cam, out.state.is_tracked()));
             }
         }
         Ok(())
     })?;
+    // Preferred pairs: recorded poses that were measured (not provisional initialisation
+    // poses, which would carry their scale error into every later resume), against the new
+    // tracker's refined keyframe poses or its measured live poses.
+    let refined: BTreeMap<u64, Se3> = tracker.keyframes().map(|k| (k.seq, k.world_from_cam)).collect();
+    let mut src: Vec<Vector3<f64>> = Vec::new();
+    let mut dst: Vec<Vector3<f64>> = Vec::new();
+    for (seq, recorded, measured, new_pose, new_measured) in &live {
+        let new_pose = match refined.get(seq) {
+            Some(p) => Some(p),
+            None => new_measured.then_some(new_pose),
+        };
+        if let (true, Some(p)) = (*measured, new_pose) {
+            src.push(p.translation.vector);
+            dst.push(recorded.translation.vector);
+        }
+    }
+    if src.len() < 4 {
+        // Fall back to every frame both runs gave a pose.
+        src = live.iter().map(|l| l.3.translation.vector).collect();
+        dst = live.iter().map(|l| l.1.translation.vector).collect();
+    }
     if src.len() < 4 {
         tracing::warn!(pairs = src.len(), "resume: too few frames tracked to relocalise in the recorded frame");
         return Ok(None);
