@@ -102,6 +102,7 @@ fn python_with_mcap() -> Option<PathBuf> {
 fn python_check(files: &[PathBuf]) -> Option<serde_json::Value> {
     let Some(py) = python_with_mcap() else {
         assert!(std::env::var("CI").as_deref() != Ok("true"), "CI=true but no Python with the `mcap` package (run .ci/run, or set DUV_PYTHON)");
+        assert!(std::env::var_os("DUV_PYTHON").is_none(), "DUV_PYTHON is set but cannot import the `mcap` package");
         eprintln!("SKIPPED the Python cross-check: no Python with the `mcap` package (pip install mcap, or run .ci/run)");
         return None;
     };
