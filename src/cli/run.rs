@@ -332,6 +332,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let recorder = result.recorder;
     let latencies = result.track_times;
     let frames_done = recorder.frames().len();
+    // State changes, as the tracking thread saw them.
+    let mut last_state = None;
+    for f in recorder.frames() {
+        if last_state != Some(f.state) {
+            eprintln!("frame {:>6}: {}", f.seq, f.state.name());
+            last_state = Some(f.state);
+        }
+    }
     let track_time: Duration = latencies.iter().sum();
     let mut inv = PlaneF32::new(camera.width, camera.height);
     let mut var = PlaneF32::new(camera.width, camera.height);
