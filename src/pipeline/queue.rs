@@ -255,4 +255,71 @@ mod tests {
         let h = std::thread::spawn(move || std::iter::from_fn(|| q2.pop()).collect::<Vec<_>>());
         assert_eq!(h.join().unwrap(), vec![1, 2]);
     }
+
+    /// A producer at full speed against a consumer that takes 2 ms per item: the producer is
+    /// never held up, the queue never exceeds its capacity, every drop is counted, and what
+    /// the consumer gets is in order and ends with the newest item (drop oldest).
+    #[test]
+    fn slow_consumer_never_blocks_the_producer_and_drops_are_counted() {
+        for policy in [FullPolicy::DropOldest, FullPolicy::DropNewest] {
+            let q = Arc::new(BoundedQueue::new("slow", 4, 0, policy));
+            let c = q.clone();
+            let consumer = std::thread::spawn(move || {
+                let mut got = Vec::new();
+                while let Some(v) = c.pop() {
+                    got.push(v);
+                    std::thread::sleep(Duration::from_millis(2));
+                }
+                got
+            });
+            let mut worst = Duration::ZERO;
+            for i in 0..500u32 {
+                let t0 = std::time::Instant::now();
+                q.push(i, 0);
+                worst = worst.max(t0.elapsed());
+                assert!(q.stats().depth <= 4);
+            }
+            q.close();
+            let got = consumer.join().unwrap();
+            let s = q.stats();
+            // Pushing never waits for the consumer (a generous bound for a loaded machine;
+            // the consumer alone needs 2 ms per item).
+            assert!(worst < Duration::from_millis(50), "{policy:?}: a push took {worst:?}");
+            assert!(s.dropped > 300, "{policy:?}: only {} dropped", s.dropped);
+            assert_eq!(s.pushed - (if policy == FullPolicy::DropOldest { s.dropped } else { 0 }), got.len() as u64, "{policy:?}");
+            assert_eq!(got.len() as u64 + s.dropped, 500, "{policy:?}");
+            assert!(got.windows(2).all(|w| w[0] < w[1]), "{policy:?}: out of order");
+            if policy == FullPolicy::DropOldest {
+                assert_eq!(*got.last().unwrap(), 499);
+            } else {
+                assert_eq!(got[0], 0);
+            }
+        }
+    }
+
+    /// The byte-bounded log queue under a slow writer: bytes never exceed the budget.
+    #[test]
+    fn byte_bounded_queue_under_a_slow_consumer_stays_within_budget() {
+        let q = Arc::new(BoundedQueue::new("log", 1 << 16, 10_000, FullPolicy::DropNewest));
+        let c = q.clone();
+        let consumer = std::thread::spawn(move || {
+            let mut n = 0u64;
+            while c.pop().is_some() {
+                n += 1;
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            n
+        });
+        let mut max_bytes = 0;
+        for i in 0..300usize {
+            q.push(i, 1000 + (i % 7) * 300);
+            max_bytes = max_bytes.max(q.stats().depth_bytes);
+        }
+        q.close();
+        let n = consumer.join().unwrap();
+        let s = q.stats();
+        assert!(max_bytes <= 10_000, "{max_bytes} bytes queued");
+        assert_eq!(n + s.dropped, 300);
+        assert!(s.dropped > 0);
+    }
 }
