@@ -262,18 +262,15 @@ fn crash_harness(assert_ate: bool) {
                     let outcome = read_segment(path, ReadLimits::default(), |_| {}).unwrap();
                     assert!(outcome.messages >= messages, "kill {kills}: {} has {} readable messages, {messages} were synced", path.display(), outcome.messages);
                 }
-                // Data lost: from the last pose that reached the disk to the kill.
+                // Data lost: the age at the kill of the oldest pose this process announced
+                // that did not reach the disk (0 when every announced pose is on disk).
                 let on_disk = logged_poses(&out.join("log"));
-                let last_on_disk = on_disk.keys().next_back().copied();
-                // Nothing announced by this process: nothing of it to lose.
-                let lost = match (last_on_disk, h.tracked.first()) {
-                    (_, None) => 0.0,
-                    (Some(seq), Some(&(_, first))) => {
-                        let at = h.tracked.iter().find(|(s, _)| *s == seq).map(|&(_, at)| at).unwrap_or(first);
-                        killed_at.duration_since(at).as_secs_f64()
-                    }
-                    (None, Some(&(_, first))) => killed_at.duration_since(first).as_secs_f64(),
-                };
+                let lost = h
+                    .tracked
+                    .iter()
+                    .find(|(seq, _)| !on_disk.contains_key(seq))
+                    .map(|&(_, at)| killed_at.duration_since(at).as_secs_f64())
+                    .unwrap_or(0.0);
                 losses_s.push(lost);
                 continue;
             }
