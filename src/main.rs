@@ -4,6 +4,10 @@ mod cli;
 
 use clap::{Parser, Subcommand};
 
+/// Live and peak heap bytes for the host-memory budget in the health telemetry.
+#[global_allocator]
+static GLOBAL: duv::core::alloc::CountingAllocator = duv::core::alloc::CountingAllocator;
+
 /// Dense underwater visual SLAM: monocular tracking with depth uncertainty and a
 /// Gaussian-splat map of the seabed with the water modelled.
 #[derive(Parser)]
@@ -32,6 +36,10 @@ enum Command {
     Bench(cli::bench::BenchArgs),
     /// Check board profiles and print the capacities they give.
     Board(cli::board::BoardArgs),
+    /// Summarise an MCAP log: topics, counts, time span, gaps, recovered segments.
+    Inspect(cli::inspect::InspectArgs),
+    /// Replay a recorded MCAP log through the pipeline (recorded timing, --speed, --deterministic).
+    Replay(cli::replay::ReplayArgs),
     /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
     Dataset(cli::dataset::DatasetArgs),
 }
@@ -57,6 +65,8 @@ fn main() -> std::process::ExitCode {
         Command::Bench(a) => cli::bench::run(a),
         Command::Board(a) => cli::board::run(a),
         Command::Dataset(a) => cli::dataset::run(a),
+        Command::Inspect(a) => cli::inspect::run(a),
+        Command::Replay(a) => cli::replay::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -62,7 +62,12 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     // 3. Track it: `duv run --source tum:SEQUENCE --out OUT/run`, which prints and writes the
     //    eval report (ATE, RPE, AUSE of the depth uncertainty) against the ground truth.
     eprintln!("[3/4] tracking the sequence (duv run --source {spec} --out {})", args.out.join("run").display());
-    super::run::run(super::run::RunArgs::with_defaults(spec.clone(), args.out.join("run"), args.no_progress))
+    // A fresh run: a log left by an earlier demo would otherwise be resumed.
+    let run_dir = args.out.join("run");
+    if run_dir.exists() {
+        std::fs::remove_dir_all(&run_dir).with_context(|| format!("clearing {}", run_dir.display()))?;
+    }
+    super::run::run(super::run::RunArgs::with_defaults(spec.clone(), run_dir, args.no_progress))
         .context("tracking the demo sequence")?;
 
     // 4. What the water costs: each captured frame against the same view without water. A

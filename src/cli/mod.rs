@@ -6,6 +6,8 @@ pub mod board;
 pub mod dataset;
 pub mod demo;
 pub mod eval;
+pub mod inspect;
 pub mod refine;
+pub mod replay;
 pub mod run;
 pub mod sim;

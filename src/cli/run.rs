@@ -1,41 +1,39 @@
-//! `duv run`: track a frame source (a dataset folder or a generated `sim:` sequence), map it,
-//! write the trajectory, the keyframe folder (`duv::io::keyframes` layout: calibration, poses,
-//! images, full-resolution inverse depth and variance, so `duv refine --keyframes OUT` reads a
-//! finished run), the map exports, and, where ground truth exists, the evaluation report (ATE
-//! with Sim(3) alignment, AUSE of the depth uncertainty).
-//!
-//! Mapping runs on the main thread between frames (the threaded pipeline drives the same
-//! [`MappingStage`] from its mapping thread): a keyframe goes to the mapper once `ba_window`
-//! newer keyframes exist and it has a depth covariance (its depth and pose have been through
-//! the window BA by then), or when it is evicted, or at the end of the run; each keyframe buys `--map-iterations` iterations.
-//! At the end the mapper takes the final keyframe poses, runs `--map-final-iterations` more and
-//! exports `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
+//! `duv run`: track a frame source (a dataset folder or a generated `sim:` sequence), write the
+//! trajectory, the keyframes and their full-resolution inverse depth and variance, and, where
+//! ground truth exists, the evaluation report (ATE with Sim(3) alignment, AUSE of the depth
+//! uncertainty).
 
 use anyhow::Context;
 use duv::camera::dataset::{open_dataset, Dataset, DATASET_KINDS};
-use duv::camera::{open_source, FrameSource};
 use duv::config::board::Board;
 use duv::core::pose::se3_to_tum;
-use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, StampedPose, Timestamp};
+use duv::core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
 use duv::eval::report::AuseInput;
 use duv::eval::{build_report, write_report, EvalInputs, EvalOptions};
 use duv::io::pfm::write_pfm;
-use duv::io::png_io::write_rgb8;
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv::camera::{open_source, CameraError, FrameSource};
+use duv::log::ReadLimits;
 use duv::map::mapper::{MapperCapacity, MapperConfig};
 use duv::map::stage::{MappingBudget, MappingStage};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{KeyframeView, TrackOutput, Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
-use std::collections::VecDeque;
+use duv::pipeline::mapping::StageMapping;
+use duv::pipeline::{resume, MapStage, NoMapping, PipelineConfig};
+use duv::replay::McapSource;
+use duv::track::{KeyframeView, Tracker, TrackerCapacity, TrackerConfig};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+/// Logged frames a resumed run tracks again to relocalise in the recorded frame.
+const RELOCALISATION_FRAMES: usize = 20;
 
 #[derive(clap::Args)]
 pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
-    /// in `duv dataset`), `sim:WATER[-TRAJECTORY]` generated in memory, e.g. `sim:coastal`,
-    /// `sim:turbid-loop` (water: clear, coastal, turbid; trajectory: survey, loop, hover), or a
-    /// live camera `v4l2:/dev/video0,calib=FILE`, `aravis:ID,calib=FILE` (board settings).
+    /// in `duv dataset`), or `sim:WATER[-TRAJECTORY]` generated in memory, e.g. `sim:coastal`,
+    /// `sim:turbid-loop` (water: clear, coastal, turbid; trajectory: survey, loop, hover).
     #[arg(long)]
     source: String,
     /// Output folder (created if missing).
@@ -43,10 +41,10 @@ pub struct RunArgs {
     out: PathBuf,
     /// Board profile: capacities (keyframes, BA window), threads, and the sim image size.
     #[arg(long, default_value = "boards/sim.toml")]
-    board: PathBuf,
+    pub board: PathBuf,
     /// Track at most this many frames (a `sim:` source generates this many).
     #[arg(long)]
-    frames: Option<usize>,
+    pub frames: Option<usize>,
     /// Disable loop closure (and with it the pose graph and the global BA after loops).
     #[arg(long)]
     no_loop_closure: bool,
@@ -65,12 +63,28 @@ pub struct RunArgs {
     /// No progress line on stderr.
     #[arg(long)]
     no_progress: bool,
+    /// Pace the source at its time stamps divided by this factor (1 = recorded timing).
+    #[arg(long)]
+    pub speed: Option<f64>,
+    /// Single-threaded, no drops, seeded: bit-identical output for the same input.
+    #[arg(long)]
+    pub deterministic: bool,
+    /// Start over: an output folder with a log is refused instead of resumed.
+    #[arg(long)]
+    pub no_resume: bool,
+    /// Print `tracked SEQ T_NS` per frame and `synced SEGMENT MESSAGES BYTES` per fsync on
+    /// stdout (the crash harness reads them).
+    #[arg(long, hide = true)]
+    announce: bool,
     /// Track only: no map, no map exports.
     #[arg(long)]
     no_map: bool,
     /// Mapper iterations after each keyframe handed to mapping.
     #[arg(long, default_value_t = MappingBudget::default().iterations_per_keyframe)]
     map_iterations: u64,
+    /// Mapper iterations while the mapping thread waits for the next keyframe (at most).
+    #[arg(long, default_value_t = 30)]
+    map_idle_iterations: u64,
     /// Mapper iterations after the last frame, on the final keyframe poses.
     #[arg(long, default_value_t = 100)]
     map_final_iterations: u64,
@@ -83,6 +97,7 @@ pub struct RunArgs {
 enum Source {
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv::core::camera::UndistortMap, ImageRgb8)> },
+    Mcap { replay: Box<McapSource>, count: usize },
     /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
     Live { source: Box<dyn FrameSource>, next: usize, count: usize },
 }
@@ -106,7 +121,12 @@ fn parse_sim_preset(spec: &str) -> anyhow::Result<(WaterPreset, TrajectoryKind)>
 }
 
 impl Source {
-    fn open(args: &RunArgs, board: &Board) -> anyhow::Result<Source> {
+    /// `start`: the first frame index (resume continues after the recorded frames).
+    fn open(args: &RunArgs, board: &Board, start: usize) -> anyhow::Result<Source> {
+        if let Some(path) = args.source.strip_prefix("mcap:") {
+            let replay = McapSource::open(Path::new(path), ReadLimits::default()).with_context(|| format!("source {}", args.source))?.with_max_frames(args.frames);
+            return Ok(Source::Mcap { replay: Box::new(replay), count: args.frames.unwrap_or(usize::MAX) });
+        }
         if let Some(preset) = args.source.strip_prefix("sim:") {
             let (water, trajectory) = parse_sim_preset(preset)?;
             let mut cfg = SimConfig::preset(water, trajectory);
@@ -118,7 +138,7 @@ impl Source {
             cfg.seed = args.seed;
             let renderer = SimRenderer::new(&cfg).with_context(|| format!("source {}", args.source))?;
             let count = renderer.len();
-            return Ok(Source::Sim { renderer: Box::new(renderer), next: 0, count });
+            return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count });
         }
         anyhow::ensure!(args.width.is_none() && args.height.is_none(), "--width/--height apply to sim: sources only");
         if !DATASET_KINDS.split(", ").any(|k| args.source.split(':').next() == Some(k)) {
@@ -132,7 +152,7 @@ impl Source {
             let buf = ImageRgb8::new(dataset.camera.width, dataset.camera.height);
             (map, buf)
         });
-        Ok(Source::Dataset { dataset: Box::new(dataset), next: 0, count, undistort })
+        Ok(Source::Dataset { dataset: Box::new(dataset), next: start, count, undistort })
     }
 
     /// Camera of the frames handed to the tracker (undistorted).
@@ -140,13 +160,14 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => *renderer.camera(),
             Source::Dataset { dataset, .. } => dataset.camera.undistorted(),
+            Source::Mcap { replay, .. } => *replay.camera(),
             Source::Live { source, .. } => *source.camera(),
         }
     }
 
     fn len(&self) -> usize {
         match self {
-            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Live { count, .. } => *count,
+            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Mcap { count, .. } | Source::Live { count, .. } => *count,
         }
     }
 
@@ -181,6 +202,7 @@ impl Source {
                     Err(e) => tracing::warn!("skipping a frame: {e}"),
                 }
             },
+            Source::Mcap { replay, .. } => Ok(replay.next_frame()?),
             Source::Live { source, next, count } => {
                 if *next >= *count {
                     return Ok(None);
@@ -195,6 +217,7 @@ impl Source {
         match self {
             Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),
             Source::Dataset { dataset, .. } => dataset.ground_truth.clone(),
+            Source::Mcap { .. } => None,
             Source::Live { source, .. } => source.ground_truth().map(<[_]>::to_vec),
         }
     }
@@ -204,7 +227,7 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => Some(renderer.render(seq as usize).depth_m),
             Source::Dataset { dataset, .. } => dataset.load_depth_for_frame(seq as usize).ok().flatten(),
-            Source::Live { .. } => None,
+            Source::Mcap { .. } | Source::Live { .. } => None,
         }
     }
 
@@ -215,8 +238,28 @@ impl Source {
                 format!("sim {:?} water, {:?} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
             }
             Source::Dataset { dataset, .. } => dataset.describe(),
+            Source::Mcap { replay, .. } => replay.describe(),
             Source::Live { source, .. } => source.describe(),
         }
+    }
+}
+
+/// A [`Source`] as the pipeline's [`FrameSource`].
+struct RunSource {
+    inner: Source,
+    camera: PinholeCamera,
+    spec: String,
+}
+
+impl FrameSource for RunSource {
+    fn camera(&self) -> &PinholeCamera {
+        &self.camera
+    }
+    fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
+        self.inner.next().map_err(|e| CameraError::BadSpec { spec: self.spec.clone(), problem: format!("{e:#}") })
+    }
+    fn describe(&self) -> String {
+        self.inner.describe()
     }
 }
 
@@ -226,43 +269,6 @@ fn write_keyframe_maps(tracker: &Tracker, id: u64, dir: &Path, inv: &mut PlaneF3
     write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
     write_pfm(&dir.join(format!("{id:06}_variance.pfm")), var)?;
     Ok(())
-}
-
-/// A keyframe waiting to be handed to mapping: its image (the tracker keeps none).
-struct PendingKeyframe {
-    id: u64,
-    t_ns: Timestamp,
-    image: ImageRgb8,
-}
-
-/// The mapping side of `duv run`: the stage and the keyframes not yet handed over.
-struct RunMapper {
-    stage: MappingStage,
-    pending: VecDeque<PendingKeyframe>,
-    /// Keyframes handed over once this many newer ones exist.
-    lag: usize,
-    camera: PinholeCamera,
-    fed: usize,
-    time: Duration,
-}
-
-impl RunMapper {
-    /// Hands keyframe `p` to mapping with the tracker's current pose and upsampled depth, if
-    /// the tracker still knows it (a pruned keyframe is dropped).
-    fn feed(&mut self, tracker: &Tracker, p: PendingKeyframe, pose: Option<duv::core::Se3>) -> anyhow::Result<()> {
-        let live = tracker.keyframes().find(|k| k.id == p.id).map(|k| k.world_from_cam);
-        let Some(world_from_cam) = pose.or(live) else { return Ok(()) };
-        let mut inv_depth = PlaneF32::new(self.camera.width, self.camera.height);
-        let mut inv_depth_variance = PlaneF32::new(self.camera.width, self.camera.height);
-        tracker.upsample_keyframe(p.id, &mut inv_depth, &mut inv_depth_variance)?;
-        let kf = Keyframe { index: p.id, t_ns: p.t_ns, image: p.image, world_from_cam, camera: self.camera, inv_depth, inv_depth_variance };
-        let t0 = Instant::now();
-        let step = self.stage.on_keyframe(kf).with_context(|| format!("mapping keyframe {}", p.id))?;
-        self.time += t0.elapsed();
-        self.fed += 1;
-        tracing::debug!(keyframe = p.id, added = step.added, iterations = step.iterations, "map.keyframe");
-        Ok(())
-    }
 }
 
 fn tum_line(t_ns: duv::core::Timestamp, pose: &duv::core::Se3) -> String {
@@ -291,28 +297,26 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if args.no_loop_closure {
         cfg.loop_closure = false;
     }
-    let mut source = Source::open(&args, &board)?;
+    // A log in the output folder means a previous run stopped (or lost power) there: recover
+    // it, reload the map checkpoint, relocalise, and continue in a new segment.
+    let log_dir = args.out.join("log");
+    if args.no_resume {
+        anyhow::ensure!(duv::log::list_segments(&log_dir)?.is_empty(), "--no-resume: {} already holds a log; choose another --out", log_dir.display());
+    }
+    let resume_state = if args.no_resume { None } else { resume::prepare(&args.out, ReadLimits::default(), RELOCALISATION_FRAMES)? };
+    let start = match &resume_state {
+        Some(r) if r.poses_recorded > 0 && !args.source.starts_with("mcap:") => r.last_seq as usize + 1,
+        _ => 0,
+    };
+    let source = Source::open(&args, &board, start)?;
     let camera = source.camera();
+    let plan = duv::pipeline::budget::plan(&board, camera.width, camera.height)?;
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
     let kf_dir = args.out.join("keyframes");
     std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
-    let c = camera;
-    duv::io::write_atomic(&args.out.join("calibration.txt"), format!("{} {} {} {} {} {}\n", c.fx, c.fy, c.cx, c.cy, c.width, c.height).as_bytes())?;
-    let mut mapping = if args.no_map {
-        None
-    } else {
-        let map_config: MapperConfig = match &args.map_config {
-            Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
-            None => MapperConfig::default(),
-        };
-        let budget = MappingBudget { iterations_per_keyframe: args.map_iterations, ..MappingBudget::default() };
-        let stage = MappingStage::new(map_config, MapperCapacity::from_board(&board, camera.width, camera.height), budget)?;
-        let lag = capacity.ba_window.max(1);
-        Some(RunMapper { stage, pending: VecDeque::with_capacity(capacity.max_keyframes + 1), lag, camera, fed: 0, time: Duration::ZERO })
-    };
     let grid = tracker.depth_camera();
     eprintln!(
-        "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads)",
+        "duv run: {} -> {} (depth grid {}x{}, 1/{}; {} keyframes, BA window {}, {} threads; host plan {:.1} of {} MiB)",
         source.describe(),
         args.out.display(),
         grid.width,
@@ -320,83 +324,114 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         tracker.depth_factor(),
         capacity.max_keyframes,
         capacity.ba_window,
-        capacity.threads
+        capacity.threads,
+        plan.total_bytes as f64 / (1 << 20) as f64,
+        board.budgets.host_mb
     );
 
+    let mut pcfg = PipelineConfig::from_board(&board, args.out.clone());
+    pcfg.pace_speed = args.speed;
+    pcfg.deterministic = args.deterministic;
+    // Recorded and generated sources lose nothing by waiting; paced replay behaves live.
+    pcfg.lossless_frames = args.speed.is_none();
+    pcfg.announce = args.announce;
+    let one = |k: &str, v: String| [(k.to_string(), v)].into_iter().collect();
+    pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));
+    pcfg.log.metadata.push(("duv.run".into(), one("source", args.source.clone())));
+    let c = camera;
+    duv::io::write_atomic(&args.out.join("calibration.txt"), format!("{} {} {} {} {} {}\n", c.fx, c.fy, c.cx, c.cy, c.width, c.height).as_bytes())?;
+    let mut map: Box<dyn MapStage> = if args.no_map {
+        Box::new(NoMapping::default())
+    } else {
+        let map_config: MapperConfig = match &args.map_config {
+            Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+            None => MapperConfig::default(),
+        };
+        let budget = MappingBudget { iterations_per_keyframe: args.map_iterations, ..MappingBudget::default() };
+        let stage = MappingStage::new(map_config, MapperCapacity::from_board(&board, camera.width, camera.height), budget)?;
+        let scratch = args.out.join("checkpoints").join("map-scratch.ckpt");
+        std::fs::create_dir_all(args.out.join("checkpoints"))?;
+        Box::new(StageMapping::new(stage, kf_dir.clone(), scratch, args.map_idle_iterations, args.map_final_iterations))
+    };
+    if let Some(r) = &resume_state {
+        for rep in &r.recovered {
+            eprintln!("recovered {}: {} messages kept, {} of {} bytes ({})", rep.segment.display(), rep.messages_kept, rep.bytes_after, rep.bytes_before, rep.damage);
+        }
+        if let Some((path, bytes)) = &r.checkpoint {
+            map.restore(bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            eprintln!("map checkpoint {} reloaded", path.display());
+        }
+        pcfg.world_from_tracker = resume::relocalise(&mut tracker, r)?;
+        match &pcfg.world_from_tracker {
+            Some(a) => eprintln!("resumed after frame {} ({} poses recorded): relocalised on {} logged frames, scale {:.4}", r.last_seq, r.poses_recorded, r.recent.len(), a.scaling()),
+            None => eprintln!("resumed after frame {}: relocalisation failed, continuing in a new frame", r.last_seq),
+        }
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    duv::pipeline::stop_on_signals(&stop)?;
     let total = source.len();
-    let mut recorder = TrajectoryRecorder::new();
-    let mut latencies: Vec<Duration> = Vec::with_capacity(total.min(1 << 20));
+    let run_source = RunSource { inner: source, camera, spec: args.source.clone() };
+    if !args.no_progress {
+        eprintln!("tracking {} frames...", if total == usize::MAX { "all".to_string() } else { total.saturating_sub(start).to_string() });
+    }
+    let result = duv::pipeline::run(run_source, tracker, map, &pcfg, stop)?;
+    let source = result.source.inner;
+    let tracker = result.tracker;
+    let recorder = result.recorder;
+    let mut map = result.map;
+    let latencies = result.track_times;
+    let frames_done = recorder.frames().len();
+    // State changes, as the tracking thread saw them.
+    let mut last_state = None;
+    for f in recorder.frames() {
+        if last_state != Some(f.state) {
+            eprintln!("frame {:>6}: {}", f.seq, f.state.name());
+            last_state = Some(f.state);
+        }
+    }
+    let track_time: Duration = latencies.iter().sum();
     let mut inv = PlaneF32::new(camera.width, camera.height);
     let mut var = PlaneF32::new(camera.width, camera.height);
-    let mut last_state: Option<TrackingState> = None;
-    let mut frames_done = 0usize;
-    let progress_every = Duration::from_millis(500);
-    let mut last_progress = Instant::now();
-    let mut track_time = Duration::ZERO;
-    while let Some(frame) = source.next()? {
-        let t0 = Instant::now();
-        let out: TrackOutput = tracker.track(&frame)?;
-        let dt = t0.elapsed();
-        track_time += dt;
-        latencies.push(dt);
-        recorder.record(&out);
-        frames_done += 1;
-        if let Some(id) = out.new_keyframe {
-            let image = frame.image.to_rgb8();
-            write_rgb8(&kf_dir.join(format!("{id:06}.png")), &image)?;
-            if let Some(m) = mapping.as_mut() {
-                m.pending.push_back(PendingKeyframe { id, t_ns: frame.t_ns, image });
-            }
-        }
-        if out.evicted.is_some() {
-            if let Some(ev) = tracker.evicted_keyframe() {
-                write_keyframe_maps(&tracker, ev.id, &kf_dir, &mut inv, &mut var)?;
-                if let Some(m) = mapping.as_mut() {
-                    if let Some(i) = m.pending.iter().position(|p| p.id == ev.id) {
-                        if let Some(p) = m.pending.remove(i) {
-                            let pose = ev.world_from_cam;
-                            m.feed(&tracker, p, Some(pose))?;
-                        }
-                    }
-                }
-            }
-        }
-        if let Some(m) = mapping.as_mut() {
-            // The oldest pending keyframe goes once it has a depth covariance (before the
-            // tracker's initialisation it has none, and the mapper would seed nothing from it).
-            while m.pending.len() > m.lag {
-                let ready = m.pending.front().is_some_and(|p| tracker.keyframes().find(|k| k.id == p.id).is_none_or(|k| k.variance.is_some()));
-                if !ready {
-                    break;
-                }
-                if let Some(p) = m.pending.pop_front() {
-                    m.feed(&tracker, p, None)?;
-                }
-            }
-        }
-        if last_state != Some(out.state) {
-            eprintln!("\rframe {:>6}: {}{:30}", out.seq, out.state.name(), "");
-            last_state = Some(out.state);
-        }
-        if out.loop_closed {
-            eprintln!("\rframe {:>6}: loop closed{:30}", out.seq, "");
-        }
-        if !args.no_progress && (last_progress.elapsed() >= progress_every || frames_done == total) {
-            last_progress = Instant::now();
-            let fps = frames_done as f64 / track_time.as_secs_f64().max(1e-9);
-            eprint!("\rframe {frames_done}/{total}  keyframes {}  {:.1} frames/s  {}   ", tracker.num_keyframes(), fps, out.state.name());
-        }
-    }
-    if !args.no_progress {
-        eprintln!();
+    println!(
+        "pipeline: {} frames captured, {} tracked, {} dropped (frame queue), {} keyframes dropped (mapping queue), {} log records dropped; log {} messages in {} segment(s){}{}",
+        result.frames_captured,
+        frames_done,
+        result.frame_queue.dropped,
+        result.keyframe_queue.dropped,
+        result.log_queue.dropped,
+        result.log.messages,
+        result.log.segments,
+        result.log_error.as_ref().map(|e| format!("; LOGGING STOPPED: {e}")).unwrap_or_default(),
+        if result.interrupted { "; interrupted" } else { "" }
+    );
+    if frames_done == 0 && resume_state.is_some() {
+        println!("nothing left to track after frame {}", start.saturating_sub(1));
+        return Ok(());
     }
     anyhow::ensure!(frames_done > 0, "the source delivered no frame");
+    let mut e2e: Vec<Duration> = result.latencies.clone();
+    e2e.sort();
+    println!("frame-in to pose-out latency median {:.1} ms, p99 {:.1} ms", percentile_ms(&e2e, 0.5), percentile_ms(&e2e, 0.99));
 
     // Final trajectory and keyframes.
-    let fin = recorder.finish(&tracker);
+    let mut fin = recorder.finish(&tracker);
+    if let Some(a) = &pcfg.world_from_tracker {
+        // Resumed: express everything in the recorded map frame.
+        for f in &mut fin.frames {
+            f.world_from_cam = duv::core::pose::sim3_apply_to_pose(a, &f.world_from_cam);
+        }
+        for k in &mut fin.keyframes {
+            k.world_from_cam = duv::core::pose::sim3_apply_to_pose(a, &k.world_from_cam);
+        }
+    }
     duv::io::tum::write_trajectory(&args.out.join("trajectory.txt"), &fin.frames)?;
     let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
     for k in &fin.keyframes {
+        // With mapping on, the keyframe folder lists the keyframes mapping received (their
+        // images are written as they arrive), so `duv refine --keyframes` can read it.
+        if !args.no_map && !kf_dir.join(format!("{:06}.png", k.id)).exists() {
+            continue;
+        }
         let _ = writeln!(kf_text, "{} {}", k.id, tum_line(k.t_ns, &k.world_from_cam));
     }
     duv::io::write_atomic(&args.out.join("keyframes.txt"), kf_text.as_bytes())?;
@@ -404,41 +439,16 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     for &(id, _) in &live {
         write_keyframe_maps(&tracker, id, &kf_dir, &mut inv, &mut var)?;
     }
-    if let Some(m) = mapping.as_mut() {
-        while let Some(p) = m.pending.pop_front() {
-            m.feed(&tracker, p, None)?;
-        }
-        // Final poses (after loop closures and global BA), then the final optimisation.
-        for k in &fin.keyframes {
-            m.stage.set_keyframe_pose(k.id, k.world_from_cam)?;
-        }
-        let t0 = Instant::now();
-        if m.fed > 0 {
-            m.stage.optimise(args.map_final_iterations, None)?;
-        }
-        m.time += t0.elapsed();
-        let iterations = m.stage.mapper().iteration();
-        if m.fed > 0 {
-            m.stage.export(&args.out).with_context(|| format!("exporting the map to {}", args.out.display()))?;
-        }
-        let medium = m.stage.medium_summary();
-        println!(
-            "mapped {} keyframes: {} iterations in {:.2} s ({:.1} ms per iteration), {} Gaussians (cap {})",
-            m.fed,
-            iterations,
-            m.time.as_secs_f64(),
-            m.time.as_secs_f64() * 1e3 / iterations.max(1) as f64,
-            m.stage.mapper().gaussians().len(),
-            m.stage.mapper().capacity().max_gaussians
-        );
-        let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
-        println!("medium along the last keyframe's axis: beta_D {} beta_B {} B_inf {}", f(medium.beta_d), f(medium.beta_b), f(medium.b_inf));
-    }
     let mut states_text = String::from("# seq timestamp state tracker_ms\n");
     for ((f, s), dt) in recorder.frames().iter().zip(&fin.states).zip(&latencies) {
         let _ = writeln!(states_text, "{} {:.9} {} {:.3}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"), dt.as_secs_f64() * 1e3);
     }
     duv::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
+    // The map: final keyframe poses, a last optimisation, the exports.
+    let final_poses: Vec<(u64, duv::core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
+    if let Some(summary) = map.finish(&final_poses, &args.out).map_err(|e| anyhow::anyhow!("mapping: {e}"))? {
+        println!("{summary}");
+    }
 
     // Timing.
     let times = tracker.times();
@@ -511,8 +521,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 }
 
 impl RunArgs {
-    /// The arguments `duv run --source SOURCE --out OUT --no-map` would get, everything else
-    /// default (used by `duv demo`, which scores tracking; mapping is `duv refine`'s there).
+    /// The arguments `duv run --source SOURCE --out OUT` would get, everything else default
+    /// (used by `duv demo`).
     pub fn with_defaults(source: String, out: PathBuf, no_progress: bool) -> Self {
         RunArgs {
             source,
@@ -525,8 +535,13 @@ impl RunArgs {
             height: None,
             seed: 1,
             no_progress,
+            speed: None,
+            deterministic: false,
+            no_resume: false,
+            announce: false,
             no_map: true,
             map_iterations: MappingBudget::default().iterations_per_keyframe,
+            map_idle_iterations: 30,
             map_final_iterations: 100,
             map_config: None,
         }

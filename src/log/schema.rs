@@ -1,0 +1,436 @@
+//! Topics, their schemas, and the encoding of [`LogItem`]s into MCAP messages.
+//!
+//! Images, calibration, poses, transforms and point clouds use the Foxglove protobuf schemas
+//! from the `foxglove` crate, so a log opens in Foxglove with the camera, the trajectory and the
+//! Gaussian centres visible. Our own records (tracking state, health) are JSON with a JSON
+//! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
+
+use super::LogError;
+use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, Se3, Timestamp};
+use foxglove::messages as fg;
+use foxglove::Encode;
+use nalgebra::{Quaternion, Translation3, UnitQuaternion};
+use serde::{Deserialize, Serialize};
+
+/// Frame id of the world (the tracker's map frame).
+pub const WORLD_FRAME: &str = "world";
+/// Frame id of the camera.
+pub const CAMERA_FRAME: &str = "camera";
+
+/// Every topic the log writes. `sequence` in the MCAP message header is the frame `seq` for
+/// per-frame topics and the keyframe id for keyframe topics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Topic {
+    CameraImage,
+    CameraCalibration,
+    Pose,
+    Transform,
+    State,
+    KeyframeImage,
+    KeyframeInvDepth,
+    KeyframeVariance,
+    KeyframePose,
+    MapGaussians,
+    MapCheckpoint,
+    Health,
+}
+
+pub const ALL_TOPICS: [Topic; 12] = [
+    Topic::CameraImage,
+    Topic::CameraCalibration,
+    Topic::Pose,
+    Topic::Transform,
+    Topic::State,
+    Topic::KeyframeImage,
+    Topic::KeyframeInvDepth,
+    Topic::KeyframeVariance,
+    Topic::KeyframePose,
+    Topic::MapGaussians,
+    Topic::MapCheckpoint,
+    Topic::Health,
+];
+
+/// Schema of a topic: name, schema encoding, schema bytes, message encoding.
+pub struct TopicSchema {
+    pub name: String,
+    pub encoding: String,
+    pub data: Vec<u8>,
+    pub message_encoding: String,
+}
+
+const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"}}}"#;
+const HEALTH_SCHEMA: &str = r#"{"title":"duv.Health","type":"object","description":"once a second: queue depths and drops, per-stage latency, budget headroom, host memory"}"#;
+
+fn foxglove_schema<T: Encode>() -> TopicSchema {
+    let s = T::get_schema().expect("foxglove messages carry their schema");
+    TopicSchema { name: s.name, encoding: s.encoding, data: s.data.into_owned(), message_encoding: T::get_message_encoding() }
+}
+
+fn json_schema(name: &str, schema: &str) -> TopicSchema {
+    TopicSchema { name: name.into(), encoding: "jsonschema".into(), data: schema.as_bytes().to_vec(), message_encoding: "json".into() }
+}
+
+impl Topic {
+    pub fn name(self) -> &'static str {
+        match self {
+            Topic::CameraImage => "/camera/image",
+            Topic::CameraCalibration => "/camera/calibration",
+            Topic::Pose => "/slam/pose",
+            Topic::Transform => "/tf",
+            Topic::State => "/slam/state",
+            Topic::KeyframeImage => "/keyframe/image",
+            Topic::KeyframeInvDepth => "/keyframe/inv_depth",
+            Topic::KeyframeVariance => "/keyframe/variance",
+            Topic::KeyframePose => "/keyframe/pose",
+            Topic::MapGaussians => "/map/gaussians",
+            Topic::MapCheckpoint => "/map/checkpoint",
+            Topic::Health => "/health",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Topic> {
+        ALL_TOPICS.into_iter().find(|t| t.name() == name)
+    }
+
+    /// The schema; `None` for the schemaless checkpoint channel.
+    pub fn schema(self) -> Option<TopicSchema> {
+        Some(match self {
+            Topic::CameraImage | Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance => foxglove_schema::<fg::RawImage>(),
+            Topic::CameraCalibration => foxglove_schema::<fg::CameraCalibration>(),
+            Topic::Pose | Topic::KeyframePose => foxglove_schema::<fg::PoseInFrame>(),
+            Topic::Transform => foxglove_schema::<fg::FrameTransform>(),
+            Topic::MapGaussians => foxglove_schema::<fg::PointCloud>(),
+            Topic::State => json_schema("duv.TrackingState", STATE_SCHEMA),
+            Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
+            Topic::MapCheckpoint => return None,
+        })
+    }
+
+    /// Message encoding of a schemaless topic.
+    pub fn schemaless_encoding(self) -> &'static str {
+        "duv.map_checkpoint"
+    }
+
+    /// Index into per-topic tables.
+    pub fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// A pose with its tracking state, as the tracker reported it live.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseRecord {
+    pub t_ns: Timestamp,
+    pub seq: u64,
+    pub world_from_cam: Se3,
+    /// Short state name (`tracking`, `lost (black frame)`, ...).
+    pub state: &'static str,
+    /// Whether the pose was measured (tracking or relocalised).
+    pub tracked: bool,
+    /// The keyframe the pose was measured against.
+    pub keyframe: Option<u64>,
+    /// Id of the keyframe this frame became.
+    pub new_keyframe: Option<u64>,
+    pub loop_closed: bool,
+}
+
+/// The JSON body of a `/slam/state` message.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StateMessage {
+    pub seq: u64,
+    pub t_ns: i64,
+    pub state: String,
+    pub tracked: bool,
+    pub keyframe: Option<u64>,
+    pub new_keyframe: Option<u64>,
+    pub loop_closed: bool,
+}
+
+/// What the other stages hand to the log writer.
+#[derive(Clone, Debug)]
+pub enum LogItem {
+    /// An input frame, as delivered by the source.
+    Frame(Frame),
+    Calibration { t_ns: Timestamp, camera: PinholeCamera },
+    Pose(PoseRecord),
+    Keyframe(Box<Keyframe>),
+    /// A map checkpoint: the mapper's bytes and the Gaussian centres (world frame) for display.
+    Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8> },
+    /// A health record, already JSON.
+    Health { t_ns: Timestamp, json: String },
+}
+
+impl LogItem {
+    /// Bytes this item holds (what the byte-bounded log queue counts).
+    pub fn approx_bytes(&self) -> usize {
+        let base = std::mem::size_of::<LogItem>();
+        base + match self {
+            LogItem::Frame(f) => match &f.image {
+                FrameImage::Rgb8(i) => i.data.len(),
+                FrameImage::Gray8(i) => i.data.len(),
+            },
+            LogItem::Calibration { .. } | LogItem::Pose(_) => 0,
+            LogItem::Keyframe(k) => k.image.data.len() + 4 * (k.inv_depth.data.len() + k.inv_depth_variance.data.len()),
+            LogItem::Map { centres_in_world, checkpoint, .. } => 12 * centres_in_world.len() + checkpoint.len(),
+            LogItem::Health { json, .. } => json.len(),
+        }
+    }
+
+    pub fn t_ns(&self) -> Timestamp {
+        match self {
+            LogItem::Frame(f) => f.t_ns,
+            LogItem::Calibration { t_ns, .. } | LogItem::Map { t_ns, .. } | LogItem::Health { t_ns, .. } => *t_ns,
+            LogItem::Pose(p) => p.t_ns,
+            LogItem::Keyframe(k) => k.t_ns,
+        }
+    }
+}
+
+/// Foxglove time stamp of `t_ns` (negative times clamp to 0).
+pub fn fg_time(t_ns: Timestamp) -> fg::Timestamp {
+    let ns = t_ns.t_ns().max(0) as u64;
+    fg::Timestamp::new((ns / 1_000_000_000).min(u32::MAX as u64) as u32, (ns % 1_000_000_000) as u32)
+}
+
+fn fg_pose(p: &Se3) -> fg::Pose {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    fg::Pose {
+        position: Some(fg::Vector3 { x: t.x, y: t.y, z: t.z }),
+        orientation: Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w }),
+    }
+}
+
+/// The pose a `foxglove.Pose` holds; `None` when a part is missing or not finite.
+pub fn se3_from_fg(p: &fg::Pose) -> Option<Se3> {
+    let t = p.position.as_ref()?;
+    let q = p.orientation.as_ref()?;
+    let v = [t.x, t.y, t.z, q.x, q.y, q.z, q.w];
+    if v.iter().any(|x| !x.is_finite()) || (q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) < 1e-12 {
+        return None;
+    }
+    Some(Se3::from_parts(Translation3::new(t.x, t.y, t.z), UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z))))
+}
+
+fn encode<T: Encode>(msg: &T, what: &'static str, out: &mut Vec<u8>) -> Result<(), LogError> {
+    out.clear();
+    msg.encode(out).map_err(|e| LogError::Encode { what, problem: e.to_string() })
+}
+
+fn raw_image(t_ns: Timestamp, frame_id: &str, width: usize, height: usize, encoding: &str, step: usize, data: &[u8]) -> fg::RawImage {
+    fg::RawImage {
+        timestamp: Some(fg_time(t_ns)),
+        frame_id: frame_id.into(),
+        width: width as u32,
+        height: height as u32,
+        encoding: encoding.into(),
+        step: step as u32,
+        data: foxglove::bytes::Bytes::copy_from_slice(data),
+    }
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    let mut b = Vec::with_capacity(v.len() * 4);
+    for x in v {
+        b.extend_from_slice(&x.to_le_bytes());
+    }
+    b
+}
+
+/// One encoded MCAP message: topic, header sequence, log time, body in the caller's buffer.
+pub struct Encoded {
+    pub topic: Topic,
+    pub sequence: u32,
+    pub log_time_ns: u64,
+}
+
+/// Encodes `item` into one or more messages; `emit` gets each with its body.
+pub fn encode_item(item: &LogItem, scratch: &mut Vec<u8>, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+    let log_time_ns = item.t_ns().t_ns().max(0) as u64;
+    match item {
+        LogItem::Frame(f) => {
+            let msg = match &f.image {
+                FrameImage::Rgb8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "rgb8", i.width * 3, &i.data),
+                FrameImage::Gray8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "mono8", i.width, &i.data),
+            };
+            encode(&msg, "frame", scratch)?;
+            emit(Encoded { topic: Topic::CameraImage, sequence: f.seq as u32, log_time_ns }, scratch)
+        }
+        LogItem::Calibration { t_ns, camera } => {
+            let (fx, fy, cx, cy) = (camera.fx, camera.fy, camera.cx, camera.cy);
+            let (model, d) = match &camera.distortion {
+                Some(rt) => ("plumb_bob".to_string(), vec![rt.k1, rt.k2, rt.p1, rt.p2, rt.k3]),
+                None => (String::new(), Vec::new()),
+            };
+            let msg = fg::CameraCalibration {
+                timestamp: Some(fg_time(*t_ns)),
+                frame_id: CAMERA_FRAME.into(),
+                width: camera.width as u32,
+                height: camera.height as u32,
+                distortion_model: model,
+                d,
+                k: vec![fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+                r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                p: vec![fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            };
+            encode(&msg, "calibration", scratch)?;
+            emit(Encoded { topic: Topic::CameraCalibration, sequence: 0, log_time_ns }, scratch)
+        }
+        LogItem::Pose(p) => {
+            let sequence = p.seq as u32;
+            let msg = fg::PoseInFrame { timestamp: Some(fg_time(p.t_ns)), frame_id: WORLD_FRAME.into(), pose: Some(fg_pose(&p.world_from_cam)) };
+            encode(&msg, "pose", scratch)?;
+            emit(Encoded { topic: Topic::Pose, sequence, log_time_ns }, scratch)?;
+            let t = p.world_from_cam.translation.vector;
+            let q = p.world_from_cam.rotation.quaternion();
+            let tf = fg::FrameTransform {
+                timestamp: Some(fg_time(p.t_ns)),
+                parent_frame_id: WORLD_FRAME.into(),
+                child_frame_id: CAMERA_FRAME.into(),
+                translation: Some(fg::Vector3 { x: t.x, y: t.y, z: t.z }),
+                rotation: Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w }),
+            };
+            encode(&tf, "transform", scratch)?;
+            emit(Encoded { topic: Topic::Transform, sequence, log_time_ns }, scratch)?;
+            let state = StateMessage {
+                seq: p.seq,
+                t_ns: p.t_ns.t_ns(),
+                state: p.state.to_string(),
+                tracked: p.tracked,
+                keyframe: p.keyframe,
+                new_keyframe: p.new_keyframe,
+                loop_closed: p.loop_closed,
+            };
+            scratch.clear();
+            serde_json::to_writer(&mut *scratch, &state).map_err(|e| LogError::Encode { what: "state", problem: e.to_string() })?;
+            emit(Encoded { topic: Topic::State, sequence, log_time_ns }, scratch)
+        }
+        LogItem::Keyframe(k) => {
+            let sequence = k.index as u32;
+            let (w, h) = (k.image.width, k.image.height);
+            encode(&raw_image(k.t_ns, CAMERA_FRAME, w, h, "rgb8", w * 3, &k.image.data), "keyframe image", scratch)?;
+            emit(Encoded { topic: Topic::KeyframeImage, sequence, log_time_ns }, scratch)?;
+            let (dw, dh) = (k.inv_depth.width, k.inv_depth.height);
+            encode(&raw_image(k.t_ns, CAMERA_FRAME, dw, dh, "32FC1", dw * 4, &f32_bytes(&k.inv_depth.data)), "keyframe inverse depth", scratch)?;
+            emit(Encoded { topic: Topic::KeyframeInvDepth, sequence, log_time_ns }, scratch)?;
+            let (vw, vh) = (k.inv_depth_variance.width, k.inv_depth_variance.height);
+            encode(&raw_image(k.t_ns, CAMERA_FRAME, vw, vh, "32FC1", vw * 4, &f32_bytes(&k.inv_depth_variance.data)), "keyframe variance", scratch)?;
+            emit(Encoded { topic: Topic::KeyframeVariance, sequence, log_time_ns }, scratch)?;
+            let msg = fg::PoseInFrame { timestamp: Some(fg_time(k.t_ns)), frame_id: WORLD_FRAME.into(), pose: Some(fg_pose(&k.world_from_cam)) };
+            encode(&msg, "keyframe pose", scratch)?;
+            emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
+        }
+        LogItem::Map { t_ns, centres_in_world, checkpoint } => {
+            let mut data = Vec::with_capacity(centres_in_world.len() * 12);
+            for c in centres_in_world {
+                for v in c {
+                    data.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+            let field = |name: &str, offset: u32| fg::PackedElementField { name: name.into(), offset, r#type: fg::packed_element_field::NumericType::Float32 as i32 };
+            let msg = fg::PointCloud {
+                timestamp: Some(fg_time(*t_ns)),
+                frame_id: WORLD_FRAME.into(),
+                pose: Some(fg_pose(&Se3::identity())),
+                point_stride: 12,
+                fields: vec![field("x", 0), field("y", 4), field("z", 8)],
+                data: data.into(),
+            };
+            encode(&msg, "map point cloud", scratch)?;
+            emit(Encoded { topic: Topic::MapGaussians, sequence: 0, log_time_ns }, scratch)?;
+            emit(Encoded { topic: Topic::MapCheckpoint, sequence: 0, log_time_ns }, checkpoint)
+        }
+        LogItem::Health { json, .. } => emit(Encoded { topic: Topic::Health, sequence: 0, log_time_ns }, json.as_bytes()),
+    }
+}
+
+/// Decodes a `foxglove.RawImage` (`rgb8` or `mono8`) into a frame.
+pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+    use foxglove::Decode;
+    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    let t_ns = match img.timestamp {
+        Some(t) => Timestamp::from_ns(t.sec() as i64 * 1_000_000_000 + t.nsec() as i64),
+        None => Timestamp::from_ns(log_time_ns as i64),
+    };
+    let image = match img.encoding.as_str() {
+        "rgb8" => {
+            if img.step as usize != w * 3 {
+                return Err(format!("rgb8 step {} for width {w}", img.step));
+            }
+            FrameImage::Rgb8(crate::core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| format!("{} bytes for a {w}x{h} rgb8 image", img.data.len()))?)
+        }
+        "mono8" => {
+            if img.step as usize != w {
+                return Err(format!("mono8 step {} for width {w}", img.step));
+            }
+            FrameImage::Gray8(crate::core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| format!("{} bytes for a {w}x{h} mono8 image", img.data.len()))?)
+        }
+        other => return Err(format!("unsupported image encoding {other:?}")),
+    };
+    Ok(Frame { t_ns, seq, image })
+}
+
+/// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
+/// holds undistorted frames).
+pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, String> {
+    use foxglove::Decode;
+    let c = fg::CameraCalibration::decode(data).map_err(|e| e.to_string())?;
+    if c.k.len() != 9 {
+        return Err(format!("K has {} entries, expected 9", c.k.len()));
+    }
+    PinholeCamera::new(c.k[0], c.k[4], c.k[2], c.k[5], c.width as usize, c.height as usize).map_err(|e| e.to_string())
+}
+
+/// Decodes a `foxglove.PoseInFrame`.
+pub fn decode_pose(data: &[u8]) -> Result<Se3, String> {
+    use foxglove::Decode;
+    let p = fg::PoseInFrame::decode(data).map_err(|e| e.to_string())?;
+    p.pose.as_ref().and_then(se3_from_fg).ok_or_else(|| "pose missing or not finite".to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::ImageRgb8;
+
+    #[test]
+    fn frame_and_pose_round_trip() {
+        let mut img = ImageRgb8::new(5, 3);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = (i * 7 % 251) as u8;
+        }
+        let frame = Frame { t_ns: Timestamp::from_ns(1_500_000_123), seq: 42, image: FrameImage::Rgb8(img) };
+        let mut scratch = Vec::new();
+        let mut got = Vec::new();
+        encode_item(&LogItem::Frame(frame.clone()), &mut scratch, |e, b| {
+            got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.len(), 1);
+        assert_eq!((got[0].0, got[0].1, got[0].2), (Topic::CameraImage, 42, 1_500_000_123));
+        assert_eq!(decode_frame(&got[0].3, 42, 0).unwrap(), frame);
+
+        let pose = Se3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
+        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false };
+        got.clear();
+        encode_item(&LogItem::Pose(rec), &mut scratch, |e, b| {
+            got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), vec![Topic::Pose, Topic::Transform, Topic::State]);
+        let back = decode_pose(&got[0].3).unwrap();
+        assert!((back.translation.vector - pose.translation.vector).norm() < 1e-12);
+        assert!(back.rotation.angle_to(&pose.rotation) < 1e-12);
+        let state: StateMessage = serde_json::from_slice(&got[2].3).unwrap();
+        assert_eq!((state.seq, state.state.as_str(), state.keyframe), (3, "tracking", Some(1)));
+        assert_eq!(Topic::from_name("/slam/pose"), Some(Topic::Pose));
+        assert_eq!(Topic::CameraImage.schema().unwrap().name, "foxglove.RawImage");
+        assert_eq!(Topic::Pose.schema().unwrap().name, "foxglove.PoseInFrame");
+        assert_eq!(Topic::Transform.schema().unwrap().name, "foxglove.FrameTransform");
+        assert_eq!(Topic::MapGaussians.schema().unwrap().name, "foxglove.PointCloud");
+        assert_eq!(Topic::CameraCalibration.schema().unwrap().encoding, "protobuf");
+    }
+}

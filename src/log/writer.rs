@@ -1,0 +1,309 @@
+//! Segment files: one MCAP writer at a time, chunks closed and fsynced on a timer, rotation by
+//! size and age, and a write error (disk full, device gone) that stops logging cleanly.
+
+use super::schema::{encode_item, LogItem, Topic, ALL_TOPICS};
+use super::{list_segments, segment_name, LogError};
+use crate::core::{PinholeCamera, Timestamp};
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// Where and how the log is written.
+#[derive(Clone, Debug)]
+pub struct LogConfig {
+    /// Folder of the segment files (created if missing).
+    pub dir: PathBuf,
+    /// A segment is closed once it holds this many bytes.
+    pub segment_max_bytes: u64,
+    /// A segment is closed once it has been open this long.
+    pub segment_max_age: Duration,
+    /// The open chunk is closed and the file fsynced at least this often.
+    pub chunk_interval: Duration,
+    /// Metadata records written at the start of every segment (board, config, run).
+    pub metadata: Vec<(String, BTreeMap<String, String>)>,
+}
+
+impl LogConfig {
+    pub fn new(dir: impl Into<PathBuf>) -> Self {
+        LogConfig {
+            dir: dir.into(),
+            segment_max_bytes: 256 << 20,
+            segment_max_age: Duration::from_secs(600),
+            chunk_interval: Duration::from_millis(500),
+            metadata: Vec::new(),
+        }
+    }
+}
+
+/// What the writer did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LogStats {
+    pub messages: u64,
+    /// Bytes in finished or synced segment files.
+    pub bytes: u64,
+    pub segments: u32,
+    /// Chunks closed and fsynced.
+    pub syncs: u64,
+    /// Items dropped because logging had stopped after a write error.
+    pub dropped_after_failure: u64,
+    /// The write error that stopped logging.
+    pub failure: Option<String>,
+}
+
+/// A file that counts its position (the MCAP writer needs `Seek`).
+struct CountingFile {
+    inner: BufWriter<File>,
+    pos: u64,
+}
+
+impl Write for CountingFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.pos += n as u64;
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+impl Seek for CountingFile {
+    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
+        self.pos = self.inner.seek(to)?;
+        Ok(self.pos)
+    }
+}
+
+struct OpenSegment {
+    path: PathBuf,
+    writer: mcap::Writer<CountingFile>,
+    /// A second handle on the file, for fsync.
+    sync: File,
+    opened: Instant,
+    last_sync: Instant,
+    /// Channel id per topic, registered on first use.
+    channels: [Option<u16>; ALL_TOPICS.len()],
+    messages: u64,
+}
+
+/// Writes [`LogItem`]s into `segment-NNNNNN.mcap` files in [`LogConfig::dir`].
+pub struct SegmentWriter {
+    cfg: LogConfig,
+    open: Option<OpenSegment>,
+    next_index: u32,
+    stats: LogStats,
+    failed: bool,
+    last_calibration: Option<(Timestamp, PinholeCamera)>,
+    scratch: Vec<u8>,
+    /// Called after every fsync with (segment path, messages in it, file bytes).
+    on_sync: Option<Box<dyn FnMut(&Path, u64, u64) + Send>>,
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> LogError + '_ {
+    move |source| LogError::Io { path: path.to_path_buf(), source }
+}
+
+impl SegmentWriter {
+    /// A writer whose first segment follows the newest existing one in the folder.
+    pub fn create(cfg: LogConfig) -> Result<Self, LogError> {
+        std::fs::create_dir_all(&cfg.dir).map_err(io_err(&cfg.dir))?;
+        let next_index = list_segments(&cfg.dir)?.last().map(|(i, _)| i + 1).unwrap_or(0);
+        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, scratch: Vec::new(), on_sync: None })
+    }
+
+    /// Reports every fsync (the crash harness reads this to know what must survive).
+    pub fn set_on_sync(&mut self, f: impl FnMut(&Path, u64, u64) + Send + 'static) {
+        self.on_sync = Some(Box::new(f));
+    }
+
+    pub fn stats(&self) -> &LogStats {
+        &self.stats
+    }
+
+    /// Whether a write error has stopped logging.
+    pub fn has_failed(&self) -> bool {
+        self.failed
+    }
+
+    /// Path of the segment being written.
+    pub fn current_segment(&self) -> Option<&Path> {
+        self.open.as_ref().map(|o| o.path.as_path())
+    }
+
+    fn open_segment(&mut self) -> Result<(), LogError> {
+        let path = self.cfg.dir.join(segment_name(self.next_index));
+        self.next_index += 1;
+        // Not create_new: a previous run may have left a file of that index only if recovery
+        // failed to rename it, and then it is overwritten on purpose.
+        let file = std::fs::OpenOptions::new().write(true).create(true).truncate(true).open(&path).map_err(io_err(&path))?;
+        let sync = file.try_clone().map_err(io_err(&path))?;
+        let out = CountingFile { inner: BufWriter::with_capacity(1 << 20, file), pos: 0 };
+        let options = mcap::WriteOptions::new().compression(None).profile("").library(concat!("duv-slam ", env!("CARGO_PKG_VERSION"))).chunk_size(Some(4 << 20));
+        let writer = options.create(out).map_err(|source| LogError::Mcap { path: path.clone(), source })?;
+        let now = Instant::now();
+        let mut seg = OpenSegment { path, writer, sync, opened: now, last_sync: now, channels: [None; ALL_TOPICS.len()], messages: 0 };
+        for (name, map) in &self.cfg.metadata {
+            seg.writer
+                .write_metadata(&mcap::records::Metadata { name: name.clone(), metadata: map.clone() })
+                .map_err(|source| LogError::Mcap { path: seg.path.clone(), source })?;
+        }
+        self.stats.segments += 1;
+        tracing::info!(segment = %seg.path.display(), "log segment opened");
+        self.open = Some(seg);
+        // Every segment carries the calibration so it can be replayed on its own.
+        if let Some((t_ns, camera)) = self.last_calibration {
+            self.write_inner(&LogItem::Calibration { t_ns, camera })?;
+        }
+        Ok(())
+    }
+
+    fn channel(seg: &mut OpenSegment, topic: Topic) -> Result<u16, LogError> {
+        if let Some(id) = seg.channels[topic.index()] {
+            return Ok(id);
+        }
+        let map_err = |source| LogError::Mcap { path: seg.path.clone(), source };
+        let id = match topic.schema() {
+            Some(s) => {
+                let schema_id = seg.writer.add_schema(&s.name, &s.encoding, &s.data).map_err(map_err)?;
+                seg.writer.add_channel(schema_id, topic.name(), &s.message_encoding, &BTreeMap::new()).map_err(map_err)?
+            }
+            None => seg.writer.add_channel(0, topic.name(), topic.schemaless_encoding(), &BTreeMap::new()).map_err(map_err)?,
+        };
+        seg.channels[topic.index()] = Some(id);
+        Ok(id)
+    }
+
+    fn write_inner(&mut self, item: &LogItem) -> Result<(), LogError> {
+        if self.open.is_none() {
+            self.open_segment()?;
+        }
+        let seg = self.open.as_mut().expect("opened above");
+        let mut written = 0u64;
+        encode_item(item, &mut self.scratch, |e, body| {
+            let channel_id = Self::channel(seg, e.topic)?;
+            let header = mcap::records::MessageHeader { channel_id, sequence: e.sequence, log_time: e.log_time_ns, publish_time: e.log_time_ns };
+            seg.writer.write_to_known_channel(&header, body).map_err(|source| LogError::Mcap { path: seg.path.clone(), source })?;
+            written += 1;
+            Ok(())
+        })?;
+        seg.messages += written;
+        self.stats.messages += written;
+        Ok(())
+    }
+
+    /// Writes one item. A write error stops logging: it is returned once (and logged at
+    /// ERROR), the open segment is left as it is on disk (recoverable up to its last synced
+    /// chunk), and every later item is dropped and counted.
+    pub fn write(&mut self, item: &LogItem) -> Result<(), LogError> {
+        if self.failed {
+            self.stats.dropped_after_failure += 1;
+            return Ok(());
+        }
+        let result = self.write_inner(item).and_then(|()| self.rotate_if_due(false));
+        if let LogItem::Calibration { t_ns, camera } = item {
+            self.last_calibration = Some((*t_ns, *camera));
+        }
+        self.check(result)
+    }
+
+    /// Closes the chunk and fsyncs when [`LogConfig::chunk_interval`] has passed; rotates an
+    /// old segment. Call it regularly (the writer thread does, between items).
+    pub fn tick(&mut self) -> Result<(), LogError> {
+        if self.failed {
+            return Ok(());
+        }
+        let due = self.open.as_ref().is_some_and(|s| s.last_sync.elapsed() >= self.cfg.chunk_interval);
+        let result = if due { self.sync_now() } else { Ok(()) }.and_then(|()| self.rotate_if_due(false));
+        self.check(result)
+    }
+
+    fn check(&mut self, result: Result<(), LogError>) -> Result<(), LogError> {
+        if let Err(e) = &result {
+            if matches!(e, LogError::Encode { .. }) {
+                return result;
+            }
+            self.failed = true;
+            self.stats.failure = Some(e.to_string());
+            tracing::error!("logging stopped: {e}");
+            if let Some(seg) = self.open.take() {
+                // Dropping the writer would try to finish the file; forget it instead so the
+                // file stays exactly as far as it was written (recovery reads it on the next
+                // start).
+                std::mem::forget(seg.writer);
+            }
+        }
+        result
+    }
+
+    /// Closes the open chunk, flushes and fsyncs the segment.
+    pub fn sync_now(&mut self) -> Result<(), LogError> {
+        let Some(seg) = self.open.as_mut() else { return Ok(()) };
+        let fail = |path: &Path, problem: String| LogError::WriteFailed { path: path.to_path_buf(), bytes_written: 0, problem };
+        seg.writer.flush().map_err(|e| fail(&seg.path, e.to_string()))?;
+        seg.sync.sync_data().map_err(|e| fail(&seg.path, e.to_string()))?;
+        seg.last_sync = Instant::now();
+        self.stats.syncs += 1;
+        let bytes = seg.sync.metadata().map(|m| m.len()).unwrap_or(0);
+        if let Some(f) = self.on_sync.as_mut() {
+            f(&seg.path, seg.messages, bytes);
+        }
+        Ok(())
+    }
+
+    fn rotate_if_due(&mut self, force: bool) -> Result<(), LogError> {
+        let Some(seg) = self.open.as_ref() else { return Ok(()) };
+        let pos = seg.writer_pos();
+        if force || pos >= self.cfg.segment_max_bytes || seg.opened.elapsed() >= self.cfg.segment_max_age {
+            self.close_segment()?;
+        }
+        Ok(())
+    }
+
+    fn close_segment(&mut self) -> Result<(), LogError> {
+        let Some(mut seg) = self.open.take() else { return Ok(()) };
+        let fail = |path: &Path, problem: String| LogError::WriteFailed { path: path.to_path_buf(), bytes_written: 0, problem };
+        if let Err(e) = seg.writer.finish() {
+            let err = fail(&seg.path, e.to_string());
+            std::mem::forget(seg.writer);
+            return Err(err);
+        }
+        let out = seg.writer.into_inner();
+        drop(out);
+        seg.sync.sync_all().map_err(|e| fail(&seg.path, e.to_string()))?;
+        let bytes = seg.sync.metadata().map(|m| m.len()).unwrap_or(0);
+        self.stats.bytes += bytes;
+        self.stats.syncs += 1;
+        if let Some(f) = self.on_sync.as_mut() {
+            f(&seg.path, seg.messages, bytes);
+        }
+        sync_dir(&self.cfg.dir);
+        tracing::info!(segment = %seg.path.display(), bytes, messages = seg.messages, "log segment closed");
+        Ok(())
+    }
+
+    /// Closes the open segment (summary, footer, fsync) and returns the statistics.
+    pub fn finish(mut self) -> (LogStats, Result<(), LogError>) {
+        let r = if self.failed { Ok(()) } else { self.close_segment() };
+        let r = self.check(r);
+        (self.stats.clone(), r)
+    }
+}
+
+impl OpenSegment {
+    fn writer_pos(&self) -> u64 {
+        // The writer keeps the file position up to date in CountingFile; reading it needs
+        // the inner writer, which mcap does not expose, so ask the OS for the synced length
+        // plus what BufWriter holds is not needed: the metadata length is a lower bound that
+        // is exact after every chunk close.
+        self.sync.metadata().map(|m| m.len()).unwrap_or(0)
+    }
+}
+
+/// fsyncs a directory so a rename or a new file in it survives power loss (best effort).
+pub fn sync_dir(dir: &Path) {
+    if let Ok(d) = File::open(dir) {
+        let _ = d.sync_all();
+    }
+}

@@ -1,0 +1,138 @@
+//! The mapper (`map::stage::MappingStage`, the CPU reference) bound to the pipeline's mapping
+//! thread through [`MapStage`].
+//!
+//! - A keyframe from tracking is written into the run's keyframe folder (`keyframes/NNNNNN.png`,
+//!   `_invdepth.pfm`, `_variance.pfm`, the layout `duv refine --keyframes` reads) and handed to
+//!   the stage, which optimises within its per-keyframe budget.
+//! - While no keyframe waits, `step` runs one more iteration, at most `idle_iterations` after
+//!   each keyframe (so a deterministic run, which steps until idle, ends).
+//! - Checkpoints are the mapper's own checkpoint bytes (Gaussians, medium weights, Adam moments);
+//!   `restore` rebuilds the stage from them.
+//! - `finish` sets the final keyframe poses, optimises `final_iterations` more and exports
+//!   `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
+
+use super::MapStage;
+use crate::core::{Keyframe, Se3};
+use crate::io::pfm::write_pfm;
+use crate::io::png_io::write_rgb8;
+use crate::map::stage::{MappingBudget, MappingStage};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// [`MappingStage`] as the pipeline's mapping stage.
+pub struct StageMapping {
+    stage: MappingStage,
+    budget: MappingBudget,
+    keyframe_dir: PathBuf,
+    scratch: PathBuf,
+    idle_iterations: u64,
+    idle_left: u64,
+    final_iterations: u64,
+    fed: usize,
+    dirty: bool,
+    time: Duration,
+}
+
+impl StageMapping {
+    /// `keyframe_dir` receives every keyframe handed over; `scratch` is a file path the
+    /// checkpoint bytes pass through.
+    pub fn new(stage: MappingStage, keyframe_dir: PathBuf, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
+        let budget = stage.budget();
+        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO }
+    }
+
+    pub fn stage(&self) -> &MappingStage {
+        &self.stage
+    }
+
+    /// Keyframes handed over so far.
+    pub fn keyframes_fed(&self) -> usize {
+        self.fed
+    }
+}
+
+impl MapStage for StageMapping {
+    fn add_keyframe(&mut self, kf: Keyframe) -> Result<(), String> {
+        let id = kf.index;
+        let dir = &self.keyframe_dir;
+        std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+        write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image).map_err(|e| e.to_string())?;
+        write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth).map_err(|e| e.to_string())?;
+        write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance).map_err(|e| e.to_string())?;
+        let t0 = Instant::now();
+        self.stage.on_keyframe(kf).map_err(|e| format!("mapping keyframe {id}: {e}"))?;
+        self.time += t0.elapsed();
+        self.fed += 1;
+        self.idle_left = self.idle_iterations;
+        self.dirty = true;
+        Ok(())
+    }
+
+    fn step(&mut self) -> Result<bool, String> {
+        if self.idle_left == 0 || self.fed == 0 {
+            return Ok(false);
+        }
+        let t0 = Instant::now();
+        self.stage.optimise(1, None).map_err(|e| e.to_string())?;
+        self.time += t0.elapsed();
+        self.idle_left -= 1;
+        self.dirty = true;
+        Ok(true)
+    }
+
+    fn checkpoint(&mut self) -> Option<(Vec<u8>, Vec<[f32; 3]>)> {
+        if !std::mem::take(&mut self.dirty) {
+            return None;
+        }
+        let mapper = self.stage.mapper();
+        if let Err(e) = mapper.save_checkpoint(&self.scratch) {
+            tracing::warn!("map checkpoint not written: {e}");
+            return None;
+        }
+        let bytes = match std::fs::read(&self.scratch) {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::warn!("map checkpoint {} unreadable: {e}", self.scratch.display());
+                return None;
+            }
+        };
+        let g = mapper.gaussians();
+        let centres = (0..g.len()).map(|i| g.get(i).mean).collect();
+        Some((bytes, centres))
+    }
+
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
+        crate::io::write_atomic(&self.scratch, bytes).map_err(|e| e.to_string())?;
+        self.stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
+        self.fed = self.stage.mapper().keyframe_count();
+        Ok(())
+    }
+
+    fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path) -> Result<Option<String>, String> {
+        if self.fed == 0 {
+            return Ok(Some("mapped 0 keyframes: no map exported".into()));
+        }
+        for (id, pose) in final_poses {
+            self.stage.set_keyframe_pose(*id, *pose).map_err(|e| e.to_string())?;
+        }
+        let t0 = Instant::now();
+        self.stage.optimise(self.final_iterations, None).map_err(|e| e.to_string())?;
+        self.time += t0.elapsed();
+        self.stage.export(out).map_err(|e| format!("exporting the map to {}: {e}", out.display()))?;
+        let iterations = self.stage.mapper().iteration();
+        let m = self.stage.medium_summary();
+        let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
+        Ok(Some(format!(
+            "mapped {} keyframes: {} iterations in {:.2} s ({:.1} ms per iteration), {} Gaussians (cap {}); medium along the last keyframe's axis: beta_D {} beta_B {} B_inf {}",
+            self.fed,
+            iterations,
+            self.time.as_secs_f64(),
+            self.time.as_secs_f64() * 1e3 / iterations.max(1) as f64,
+            self.stage.mapper().gaussians().len(),
+            self.stage.mapper().capacity().max_gaussians,
+            f(m.beta_d),
+            f(m.beta_b),
+            f(m.b_inf)
+        )))
+    }
+}

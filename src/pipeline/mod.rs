@@ -1,0 +1,657 @@
+//! The onboard pipeline: one named thread per stage, bounded queues between them, end of
+//! stream passed down, clean shutdown on SIGINT/SIGTERM, health telemetry once a second.
+//!
+//! ```text
+//!  capture ──frames (drop oldest)──> tracking ──keyframes (drop newest)──> mapping
+//!     │                                 │                                     │
+//!     └───────────── log records (bounded in bytes, drop newest) ─────────────┴──> logging
+//! ```
+//!
+//! Every capacity comes from the board ([`budget::plan`] refuses a board that cannot hold the
+//! resolution). Tracking never waits on mapping or logging: both edges refuse and count when
+//! full. The caller's thread publishes health and watches the shutdown flag.
+//! `deterministic` runs every stage in order on the caller's thread (no drops, no timing):
+//! the same input gives bit-identical output.
+
+pub mod budget;
+pub mod checkpoints;
+pub mod mapping;
+pub mod queue;
+pub mod resume;
+
+use crate::camera::FrameSource;
+use crate::config::board::Board;
+use crate::core::{Frame, Keyframe, PlaneF32, Se3, Sim3, Timestamp};
+use crate::log::{LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
+use crate::track::{TrackOutput, Tracker, TrajectoryRecorder};
+use queue::{BoundedQueue, FullPolicy, Pushed, QueueStats};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+pub use budget::BudgetPlan;
+pub use checkpoints::CheckpointStore;
+
+/// Errors of the pipeline.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    #[error("board {board:?} refused: {problem}")]
+    Budget { board: String, problem: String },
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: corrupt checkpoint: {problem}")]
+    BadCheckpoint { path: PathBuf, problem: String },
+    #[error(transparent)]
+    Log(#[from] crate::log::LogError),
+    #[error(transparent)]
+    Track(#[from] crate::track::TrackError),
+    #[error("frame source: {0}")]
+    Source(#[from] crate::camera::CameraError),
+    #[error("stage {stage} failed: {problem}")]
+    Stage { stage: &'static str, problem: String },
+    #[error("resume from {path}: {problem}")]
+    Resume { path: PathBuf, problem: String },
+}
+
+/// The mapping stage as the pipeline drives it. The mapper binds to this at merge; tests and
+/// tracking-only runs use [`NoMapping`].
+pub trait MapStage: Send {
+    /// A keyframe from tracking.
+    fn add_keyframe(&mut self, kf: Keyframe) -> Result<(), String>;
+    /// One unit of optimisation when no keyframe is waiting; `false` when idle.
+    fn step(&mut self) -> Result<bool, String>;
+    /// A checkpoint to persist now: (bytes, Gaussian centres in the world frame).
+    fn checkpoint(&mut self) -> Option<(Vec<u8>, Vec<[f32; 3]>)>;
+    /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), String>;
+    /// After the run: the final keyframe poses (after loop closures and global BA), a last
+    /// optimisation and the exports into `out`; a one-line summary for the operator.
+    fn finish(&mut self, _final_poses: &[(u64, Se3)], _out: &Path) -> Result<Option<String>, String> {
+        Ok(None)
+    }
+}
+
+/// A mapping stage that keeps the keyframe poses it was sent (its checkpoint is their list):
+/// tracking-only runs, and the stand-in until the mapper is bound.
+#[derive(Default)]
+pub struct NoMapping {
+    pub keyframes: Vec<(u64, i64, [f64; 7])>,
+    dirty: bool,
+}
+
+impl MapStage for NoMapping {
+    fn add_keyframe(&mut self, kf: Keyframe) -> Result<(), String> {
+        self.keyframes.push((kf.index, kf.t_ns.t_ns(), crate::core::pose::se3_to_tum(&kf.world_from_cam)));
+        self.dirty = true;
+        Ok(())
+    }
+    fn step(&mut self) -> Result<bool, String> {
+        Ok(false)
+    }
+    fn checkpoint(&mut self) -> Option<(Vec<u8>, Vec<[f32; 3]>)> {
+        if !std::mem::take(&mut self.dirty) {
+            return None;
+        }
+        let bytes = serde_json::to_vec(&self.keyframes).ok()?;
+        let centres = self.keyframes.iter().map(|k| [k.2[0] as f32, k.2[1] as f32, k.2[2] as f32]).collect();
+        Some((bytes, centres))
+    }
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
+        self.keyframes = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+        Ok(())
+    }
+}
+
+/// How the pipeline runs.
+#[derive(Clone, Debug)]
+pub struct PipelineConfig {
+    /// Output folder: the log goes to `out/log/`, map checkpoints to `out/checkpoints/`.
+    pub out_dir: PathBuf,
+    pub frame_queue: usize,
+    pub keyframe_queue: usize,
+    pub log_queue_bytes: usize,
+    pub log: LogConfig,
+    /// Pace the source at its time stamps divided by this factor (replay); `None`: as fast
+    /// as the source delivers.
+    pub pace_speed: Option<f64>,
+    /// Single-threaded, no drops (bit-identical output).
+    pub deterministic: bool,
+    /// Capture waits for room in the frame queue instead of dropping the oldest frame: for
+    /// unpaced recorded sources (datasets, generated sequences, replay without `--speed`),
+    /// whose frames are not lost by waiting. Live and paced sources drop oldest.
+    pub lossless_frames: bool,
+    pub health_interval: Duration,
+    pub checkpoint_interval: Duration,
+    /// Print one line per fsync and per tracked frame on stdout (the crash harness reads it).
+    pub announce: bool,
+    /// Applied to every pose before it leaves the pipeline (resume: the new tracker's frame
+    /// to the recorded map frame).
+    pub world_from_tracker: Option<Sim3>,
+    /// The board's frame period (health: latency headroom).
+    pub frame_period_ms: f64,
+    /// The board's host memory budget (health: memory headroom).
+    pub host_budget_mb: f64,
+}
+
+impl PipelineConfig {
+    /// Capacities from the board, log into `out_dir/log`.
+    pub fn from_board(board: &Board, out_dir: PathBuf) -> Self {
+        let mut log = LogConfig::new(out_dir.join("log"));
+        log.metadata.push(("duv.board".into(), [("toml".to_string(), toml::to_string(board).unwrap_or_default())].into_iter().collect()));
+        PipelineConfig {
+            out_dir,
+            frame_queue: board.budgets.frame_queue as usize,
+            keyframe_queue: board.budgets.keyframe_queue as usize,
+            log_queue_bytes: board.budgets.log_queue_mb as usize * (1 << 20),
+            log,
+            pace_speed: None,
+            deterministic: false,
+            lossless_frames: false,
+            health_interval: Duration::from_secs(1),
+            checkpoint_interval: Duration::from_secs(5),
+            announce: false,
+            world_from_tracker: None,
+            frame_period_ms: 1e3 / board.camera.fps,
+            host_budget_mb: board.budgets.host_mb as f64,
+        }
+    }
+}
+
+/// Per-stage latency figures, milliseconds.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct LatencyMs {
+    pub p50: f64,
+    pub p99: f64,
+    pub max: f64,
+}
+
+fn latency_of(v: &mut [f64]) -> LatencyMs {
+    if v.is_empty() {
+        return LatencyMs::default();
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
+    LatencyMs { p50: at(0.5), p99: at(0.99), max: v[v.len() - 1] }
+}
+
+/// One health record (published once a second on `/health`).
+#[derive(Clone, Debug, Serialize)]
+pub struct Health {
+    pub uptime_s: f64,
+    pub frames_captured: u64,
+    pub frames_tracked: u64,
+    pub keyframes: u64,
+    pub frame_queue: QueueStats,
+    pub keyframe_queue: QueueStats,
+    pub log_queue: QueueStats,
+    /// Frame-in to pose-out latency over the last interval.
+    pub track_latency_ms: LatencyMs,
+    /// The board's frame period minus the p99 latency: negative means falling behind.
+    pub frame_budget_headroom_ms: f64,
+    pub host_live_mb: f64,
+    pub host_peak_mb: f64,
+    pub host_budget_mb: f64,
+    pub host_headroom_mb: f64,
+    pub counting_allocator: bool,
+    pub log_failure: Option<String>,
+}
+
+/// What a finished run hands back.
+pub struct PipelineResult<S> {
+    pub source: S,
+    pub tracker: Tracker,
+    pub recorder: TrajectoryRecorder,
+    /// Frame-in (capture) to pose-out latency of every tracked frame.
+    pub latencies: Vec<Duration>,
+    /// Tracker-only time of every tracked frame.
+    pub track_times: Vec<Duration>,
+    pub frames_captured: u64,
+    pub frame_queue: QueueStats,
+    pub keyframe_queue: QueueStats,
+    pub log_queue: QueueStats,
+    pub log: LogStats,
+    pub log_error: Option<String>,
+    /// The mapping stage, handed back for [`MapStage::finish`].
+    pub map: Box<dyn MapStage>,
+    /// Shutdown came from a signal, not the end of the source.
+    pub interrupted: bool,
+    pub wall: Duration,
+}
+
+struct Shared {
+    stop: Arc<AtomicBool>,
+    frames_captured: AtomicU64,
+    frames_tracked: AtomicU64,
+    keyframes: AtomicU64,
+    latest_t_ns: AtomicI64,
+    /// Latencies (ms) since the last health record.
+    recent_ms: Mutex<Vec<f64>>,
+    log_failure: Mutex<Option<String>>,
+}
+
+fn pose_record(out: &TrackOutput, world_from_tracker: Option<&Sim3>) -> PoseRecord {
+    let world_from_cam = apply(world_from_tracker, &out.world_from_cam);
+    PoseRecord {
+        t_ns: out.t_ns,
+        seq: out.seq,
+        world_from_cam,
+        state: out.state.name(),
+        tracked: out.state.is_tracked(),
+        keyframe: out.anchor.map(|a| a.keyframe),
+        new_keyframe: out.new_keyframe,
+        loop_closed: out.loop_closed,
+    }
+}
+
+fn apply(align: Option<&Sim3>, pose: &Se3) -> Se3 {
+    match align {
+        Some(a) => crate::core::pose::sim3_apply_to_pose(a, pose),
+        None => *pose,
+    }
+}
+
+/// The keyframe the tracker just inserted, at full resolution, for mapping and the log.
+fn keyframe_of(tracker: &Tracker, frame: &Frame, id: u64, world_from_tracker: Option<&Sim3>) -> Option<Keyframe> {
+    let cam = *tracker.camera();
+    let view = tracker.keyframes().find(|k| k.id == id)?;
+    let world_from_cam = apply(world_from_tracker, &view.world_from_cam);
+    let mut inv = PlaneF32::new(cam.width, cam.height);
+    let mut var = PlaneF32::new(cam.width, cam.height);
+    if let Err(e) = tracker.upsample_keyframe(id, &mut inv, &mut var) {
+        tracing::debug!("keyframe {id}: no depth yet: {e}");
+        return None;
+    }
+    if let Some(a) = world_from_tracker {
+        // Inverse depth scales with 1/s, its variance with 1/s^2.
+        let s = a.scaling() as f32;
+        inv.data.iter_mut().for_each(|d| *d /= s);
+        var.data.iter_mut().for_each(|v| *v /= s * s);
+    }
+    Some(Keyframe { index: id, t_ns: frame.t_ns, image: frame.image.to_rgb8(), world_from_cam, camera: cam, inv_depth: inv, inv_depth_variance: var })
+}
+
+/// Installs SIGINT/SIGTERM handlers that set `stop` (the run then ends like end of stream).
+pub fn stop_on_signals(stop: &Arc<AtomicBool>) -> Result<(), PipelineError> {
+    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(sig, stop.clone()).map_err(|source| PipelineError::Io { path: PathBuf::from("<signal handler>"), source })?;
+    }
+    Ok(())
+}
+
+fn spawn<T: Send + 'static>(name: &str, f: impl FnOnce() -> T + Send + 'static) -> Result<std::thread::JoinHandle<T>, PipelineError> {
+    std::thread::Builder::new().name(name.into()).spawn(f).map_err(|source| PipelineError::Io { path: PathBuf::from(format!("<thread {name}>")), source })
+}
+
+fn join<T>(h: std::thread::JoinHandle<T>, stage: &'static str) -> Result<T, PipelineError> {
+    h.join().map_err(|_| PipelineError::Stage { stage, problem: "thread panicked".into() })
+}
+
+/// Paces frames at their time stamps / `speed`.
+struct Pacer {
+    speed: f64,
+    start: Option<(Instant, Timestamp)>,
+}
+
+impl Pacer {
+    fn wait(&mut self, t_ns: Timestamp, stop: &AtomicBool) {
+        let (t0, first) = *self.start.get_or_insert((Instant::now(), t_ns));
+        let due = Duration::from_secs_f64((t_ns.secs_since(first) / self.speed).max(0.0));
+        while !stop.load(Ordering::Relaxed) {
+            let now = t0.elapsed();
+            if now >= due {
+                break;
+            }
+            std::thread::sleep((due - now).min(Duration::from_millis(50)));
+        }
+    }
+}
+
+/// Runs `source` through tracking, mapping and logging until the source ends or `stop` is
+/// set, then closes the log. `map`: the mapping stage.
+pub fn run<S: FrameSource + 'static>(
+    mut source: S,
+    tracker: Tracker,
+    map: Box<dyn MapStage>,
+    cfg: &PipelineConfig,
+    stop: Arc<AtomicBool>,
+) -> Result<PipelineResult<S>, PipelineError> {
+    let started = Instant::now();
+    let mut writer = SegmentWriter::create(cfg.log.clone())?;
+    if cfg.announce {
+        writer.set_on_sync(|path, messages, bytes| println!("synced {} {messages} {bytes}", path.display()));
+    }
+    let checkpoints = CheckpointStore::new(cfg.out_dir.join("checkpoints"), 3);
+    let camera = *source.camera();
+    writer.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera }).ok();
+    if cfg.deterministic {
+        return run_deterministic(source, tracker, map, cfg, writer, checkpoints, stop, started);
+    }
+
+    let frames: Arc<BoundedQueue<(Frame, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::DropOldest));
+    let keyframes: Arc<BoundedQueue<Keyframe>> = Arc::new(BoundedQueue::new("keyframes", cfg.keyframe_queue, 0, FullPolicy::DropNewest));
+    let log_q: Arc<BoundedQueue<LogItem>> = Arc::new(BoundedQueue::new("log", 1 << 16, cfg.log_queue_bytes, FullPolicy::DropNewest));
+    let shared = Arc::new(Shared {
+        stop: stop.clone(),
+        frames_captured: AtomicU64::new(0),
+        frames_tracked: AtomicU64::new(0),
+        keyframes: AtomicU64::new(0),
+        latest_t_ns: AtomicI64::new(0),
+        recent_ms: Mutex::new(Vec::with_capacity(4096)),
+        log_failure: Mutex::new(None),
+    });
+    let log_push = |q: &BoundedQueue<LogItem>, item: LogItem| {
+        let b = item.approx_bytes();
+        let _ = q.push(item, b);
+    };
+
+    // Logging.
+    let logging = {
+        let q = log_q.clone();
+        let sh = shared.clone();
+        let tick = cfg.log.chunk_interval / 4;
+        spawn("logging", move || {
+            let _span = tracing::info_span!("log").entered();
+            let mut first_error: Option<String> = None;
+            loop {
+                match q.pop_timeout(tick) {
+                    Ok(Some(item)) => {
+                        if let Err(e) = writer.write(&item) {
+                            first_error.get_or_insert_with(|| e.to_string());
+                            *sh.log_failure.lock().unwrap_or_else(|p| p.into_inner()) = Some(e.to_string());
+                        }
+                    }
+                    Ok(None) => {}
+                    Err(()) => break,
+                }
+                if let Err(e) = writer.tick() {
+                    first_error.get_or_insert_with(|| e.to_string());
+                    *sh.log_failure.lock().unwrap_or_else(|p| p.into_inner()) = Some(e.to_string());
+                }
+            }
+            let (stats, r) = writer.finish();
+            if let Err(e) = r {
+                first_error.get_or_insert_with(|| e.to_string());
+            }
+            (stats, first_error)
+        })?
+    };
+
+    // Mapping.
+    let mapping = {
+        let kq = keyframes.clone();
+        let lq = log_q.clone();
+        let interval = cfg.checkpoint_interval;
+        let mut map = map;
+        spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
+            let _span = tracing::info_span!("map").entered();
+            let mut last_ckpt = Instant::now();
+            let mut last_t = Timestamp::from_ns(0);
+            let save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
+                if let Some((bytes, centres)) = map.checkpoint() {
+                    checkpoints.save(&bytes)?;
+                    log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: centres, checkpoint: bytes });
+                }
+                Ok(())
+            };
+            loop {
+                let idle = match kq.try_pop() {
+                    Some(kf) => {
+                        last_t = kf.t_ns;
+                        map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                        false
+                    }
+                    None => !map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?,
+                };
+                if last_ckpt.elapsed() >= interval {
+                    last_ckpt = Instant::now();
+                    save(&mut map, last_t)?;
+                }
+                if idle {
+                    match kq.pop_timeout(Duration::from_millis(100)) {
+                        Ok(Some(kf)) => {
+                            last_t = kf.t_ns;
+                            map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                        }
+                        Ok(None) => {}
+                        Err(()) => break,
+                    }
+                }
+            }
+            save(&mut map, last_t)?;
+            Ok(map)
+        })?
+    };
+
+    // Tracking.
+    let tracking = {
+        let fq = frames.clone();
+        let kq = keyframes.clone();
+        let lq = log_q.clone();
+        let sh = shared.clone();
+        let announce = cfg.announce;
+        let align = cfg.world_from_tracker;
+        let mut tracker = tracker;
+        spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
+            let _span = tracing::info_span!("track").entered();
+            let mut recorder = TrajectoryRecorder::new();
+            let mut latencies = Vec::with_capacity(1 << 16);
+            let mut track_times = Vec::with_capacity(1 << 16);
+            let result = tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
+                while let Some((frame, arrived)) = fq.pop() {
+                    let t0 = Instant::now();
+                    let out = tracker.track(&frame)?;
+                    track_times.push(t0.elapsed());
+                    recorder.record(&out);
+                    log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
+                    if let Some(id) = out.new_keyframe {
+                        if let Some(kf) = keyframe_of(tracker, &frame, id, align.as_ref()) {
+                            sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                            log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
+                            let _ = kq.push(kf, 0);
+                        }
+                    }
+                    let lat = arrived.elapsed();
+                    latencies.push(lat);
+                    sh.frames_tracked.fetch_add(1, Ordering::Relaxed);
+                    if let Ok(mut v) = sh.recent_ms.lock() {
+                        if v.len() < v.capacity() {
+                            v.push(lat.as_secs_f64() * 1e3);
+                        }
+                    }
+                    if announce {
+                        println!("tracked {} {}", out.seq, out.t_ns.t_ns());
+                    }
+                }
+                Ok(())
+            });
+            kq.close();
+            result?;
+            Ok((tracker, recorder, latencies, track_times))
+        })?
+    };
+
+    // Capture (this function's source moves into the thread and comes back at the end).
+    let capture = {
+        let fq = frames.clone();
+        let lq = log_q.clone();
+        let sh = shared.clone();
+        let mut pacer = cfg.pace_speed.map(|speed| Pacer { speed, start: None });
+        let lossless = cfg.lossless_frames;
+        spawn("capture", move || -> (S, Option<String>) {
+            let _span = tracing::info_span!("capture").entered();
+            let mut error = None;
+            while !sh.stop.load(Ordering::Relaxed) {
+                match source.next_frame() {
+                    Ok(Some(frame)) => {
+                        if let Some(p) = pacer.as_mut() {
+                            p.wait(frame.t_ns, &sh.stop);
+                        }
+                        sh.frames_captured.fetch_add(1, Ordering::Relaxed);
+                        sh.latest_t_ns.store(frame.t_ns.t_ns(), Ordering::Relaxed);
+                        log_push(&lq, LogItem::Frame(frame.clone()));
+                        let item = (frame, Instant::now());
+                        let pushed = if lossless { fq.push_wait(item, 0) } else { fq.push(item, 0) };
+                        if let Pushed::QueuedDroppedOldest(old) = pushed {
+                            tracing::trace!(seq = old.0.seq, "frame dropped (tracking behind)");
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(e @ crate::camera::CameraError::BadFrame { .. }) => tracing::warn!("frame dropped: {e}"),
+                    Err(e) => {
+                        tracing::error!("capture stopped: {e}");
+                        error = Some(e.to_string());
+                        break;
+                    }
+                }
+            }
+            fq.close();
+            (source, error)
+        })?
+    };
+
+    // Health, on this thread, until tracking and mapping are done.
+    let (frame_period_ms, host_budget_mb) = (cfg.frame_period_ms, cfg.host_budget_mb);
+    let mut last_health = Instant::now();
+    while !(tracking.is_finished() && mapping.is_finished()) {
+        std::thread::sleep(Duration::from_millis(20));
+        if last_health.elapsed() >= cfg.health_interval {
+            last_health = Instant::now();
+            let mut recent = std::mem::take(&mut *shared.recent_ms.lock().unwrap_or_else(|p| p.into_inner()));
+            let lat = latency_of(&mut recent);
+            recent.clear();
+            *shared.recent_ms.lock().unwrap_or_else(|p| p.into_inner()) = recent;
+            let mb = |b: usize| b as f64 / (1 << 20) as f64;
+            let live = mb(crate::core::alloc::live_bytes());
+            let h = Health {
+                uptime_s: started.elapsed().as_secs_f64(),
+                frames_captured: shared.frames_captured.load(Ordering::Relaxed),
+                frames_tracked: shared.frames_tracked.load(Ordering::Relaxed),
+                keyframes: shared.keyframes.load(Ordering::Relaxed),
+                frame_queue: frames.stats(),
+                keyframe_queue: keyframes.stats(),
+                log_queue: log_q.stats(),
+                track_latency_ms: lat,
+                frame_budget_headroom_ms: frame_period_ms - lat.p99,
+                host_live_mb: live,
+                host_peak_mb: mb(crate::core::alloc::peak_bytes()),
+                host_budget_mb,
+                host_headroom_mb: host_budget_mb - live,
+                counting_allocator: crate::core::alloc::is_installed(),
+                log_failure: shared.log_failure.lock().unwrap_or_else(|p| p.into_inner()).clone(),
+            };
+            if let Ok(json) = serde_json::to_string(&h) {
+                // Stamped with the newest frame time so it sits on the log's timeline.
+                let t = Timestamp::from_ns(shared.latest_t_ns.load(Ordering::Relaxed));
+                log_push(&log_q, LogItem::Health { t_ns: t, json });
+            }
+        }
+    }
+    let (source, capture_error) = join(capture, "capture")?;
+    let tracked = join(tracking, "tracking")?;
+    let mapped = join(mapping, "mapping")?;
+    log_q.close();
+    let (log_stats, log_error) = join(logging, "logging")?;
+    let (tracker, recorder, latencies, track_times) = tracked?;
+    let map = mapped?;
+    if let Some(e) = capture_error {
+        tracing::warn!("the source ended with an error: {e}");
+    }
+    Ok(PipelineResult {
+        source,
+        tracker,
+        recorder,
+        latencies,
+        track_times,
+        frames_captured: shared.frames_captured.load(Ordering::Relaxed),
+        frame_queue: frames.stats(),
+        keyframe_queue: keyframes.stats(),
+        log_queue: log_q.stats(),
+        log: log_stats,
+        log_error,
+        map,
+        interrupted: stop.load(Ordering::Relaxed),
+        wall: started.elapsed(),
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn run_deterministic<S: FrameSource + 'static>(
+    mut source: S,
+    mut tracker: Tracker,
+    mut map: Box<dyn MapStage>,
+    cfg: &PipelineConfig,
+    mut writer: SegmentWriter,
+    checkpoints: CheckpointStore,
+    stop: Arc<AtomicBool>,
+    started: Instant,
+) -> Result<PipelineResult<S>, PipelineError> {
+    let align = cfg.world_from_tracker;
+    let mut recorder = TrajectoryRecorder::new();
+    let mut latencies = Vec::new();
+    let mut track_times = Vec::new();
+    let mut captured = 0u64;
+    let mut log_error: Option<String> = None;
+    let mut log = |writer: &mut SegmentWriter, item: LogItem| {
+        if let Err(e) = writer.write(&item) {
+            log_error.get_or_insert_with(|| e.to_string());
+        }
+    };
+    let mut last_t = Timestamp::from_ns(0);
+    tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
+        while !stop.load(Ordering::Relaxed) {
+            let frame = match source.next_frame() {
+                Ok(Some(f)) => f,
+                Ok(None) => break,
+                Err(e @ crate::camera::CameraError::BadFrame { .. }) => {
+                    tracing::warn!("frame dropped: {e}");
+                    continue;
+                }
+                Err(e) => return Err(e.into()),
+            };
+            captured += 1;
+            last_t = frame.t_ns;
+            log(&mut writer, LogItem::Frame(frame.clone()));
+            let t0 = Instant::now();
+            let out = tracker.track(&frame)?;
+            track_times.push(t0.elapsed());
+            latencies.push(t0.elapsed());
+            recorder.record(&out);
+            log(&mut writer, LogItem::Pose(pose_record(&out, align.as_ref())));
+            if let Some(id) = out.new_keyframe {
+                if let Some(kf) = keyframe_of(tracker, &frame, id, align.as_ref()) {
+                    log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
+                    map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                    while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
+                }
+            }
+        }
+        Ok(())
+    })?;
+    if let Some((bytes, centres)) = map.checkpoint() {
+        checkpoints.save(&bytes)?;
+        log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: centres, checkpoint: bytes });
+    }
+    let (log_stats, r) = writer.finish();
+    if let Err(e) = r {
+        log_error.get_or_insert_with(|| e.to_string());
+    }
+    let n = captured as usize;
+    Ok(PipelineResult {
+        source,
+        tracker,
+        recorder,
+        latencies,
+        track_times,
+        frames_captured: captured,
+        frame_queue: QueueStats { pushed: n as u64, popped: n as u64, ..Default::default() },
+        keyframe_queue: QueueStats::default(),
+        log_queue: QueueStats::default(),
+        log: log_stats,
+        log_error,
+        map,
+        interrupted: stop.load(Ordering::Relaxed),
+        wall: started.elapsed(),
+    })
+}

@@ -1,0 +1,325 @@
+//! Bounded queues with a written policy per edge (ARCHITECTURE.md, "Threads and queues").
+//!
+//! One type, [`BoundedQueue`], bounded in items and optionally in bytes, whose `push` never
+//! blocks: when full it either drops the oldest item ([`FullPolicy::DropOldest`], frames) or
+//! refuses the new one ([`FullPolicy::DropNewest`], keyframes and log records), and counts
+//! the drop. End of stream is [`BoundedQueue::close`]: the consumer drains what is left and
+//! then gets `None`. The storage is allocated once, at construction.
+
+use std::collections::VecDeque;
+use std::sync::{Condvar, Mutex};
+use std::time::Duration;
+
+/// What `push` does when the queue is full.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FullPolicy {
+    /// Evict the oldest item to make room (the freshest frame matters most).
+    DropOldest,
+    /// Refuse the new item (the producer must never wait).
+    DropNewest,
+}
+
+/// Counters of a queue.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct QueueStats {
+    pub pushed: u64,
+    pub popped: u64,
+    pub dropped: u64,
+    pub depth: usize,
+    pub depth_bytes: usize,
+    pub max_depth: usize,
+}
+
+struct Inner<T> {
+    items: VecDeque<(T, usize)>,
+    bytes: usize,
+    closed: bool,
+    stats: QueueStats,
+}
+
+/// A bounded multi-producer, multi-consumer queue that never blocks its producers.
+pub struct BoundedQueue<T> {
+    name: &'static str,
+    capacity: usize,
+    capacity_bytes: usize,
+    policy: FullPolicy,
+    inner: Mutex<Inner<T>>,
+    not_empty: Condvar,
+    not_full: Condvar,
+}
+
+/// What a push did.
+#[derive(Debug, PartialEq, Eq)]
+pub enum Pushed<T> {
+    Queued,
+    /// Queued after evicting the oldest item, which is handed back.
+    QueuedDroppedOldest(T),
+    /// Refused (full, or the item alone is larger than the byte budget).
+    Refused(T),
+    /// The queue is closed.
+    Closed(T),
+}
+
+impl<T> BoundedQueue<T> {
+    /// A queue of at most `capacity` items and, if `capacity_bytes > 0`, at most that many
+    /// bytes (as the caller measures each item).
+    pub fn new(name: &'static str, capacity: usize, capacity_bytes: usize, policy: FullPolicy) -> Self {
+        assert!(capacity > 0, "queue {name}: capacity must be > 0");
+        BoundedQueue {
+            name,
+            capacity,
+            capacity_bytes,
+            policy,
+            inner: Mutex::new(Inner { items: VecDeque::with_capacity(capacity), bytes: 0, closed: false, stats: QueueStats::default() }),
+            not_empty: Condvar::new(),
+            not_full: Condvar::new(),
+        }
+    }
+
+    pub fn name(&self) -> &'static str {
+        self.name
+    }
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner<T>> {
+        // A panicking holder cannot leave the VecDeque inconsistent; keep going.
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Pushes an item of `bytes` bytes (0 when the queue is not byte-bounded). Never blocks.
+    pub fn push(&self, item: T, bytes: usize) -> Pushed<T> {
+        let mut g = self.lock();
+        if g.closed {
+            return Pushed::Closed(item);
+        }
+        let over_bytes = |g: &Inner<T>| self.capacity_bytes > 0 && g.bytes + bytes > self.capacity_bytes;
+        if self.capacity_bytes > 0 && bytes > self.capacity_bytes {
+            g.stats.dropped += 1;
+            return Pushed::Refused(item);
+        }
+        let mut evicted = None;
+        if g.items.len() >= self.capacity || over_bytes(&g) {
+            match self.policy {
+                FullPolicy::DropNewest => {
+                    g.stats.dropped += 1;
+                    return Pushed::Refused(item);
+                }
+                FullPolicy::DropOldest => {
+                    while g.items.len() >= self.capacity || over_bytes(&g) {
+                        let Some((old, b)) = g.items.pop_front() else { break };
+                        g.bytes -= b;
+                        g.stats.dropped += 1;
+                        evicted = Some(old);
+                    }
+                }
+            }
+        }
+        g.items.push_back((item, bytes));
+        g.bytes += bytes;
+        g.stats.pushed += 1;
+        g.stats.max_depth = g.stats.max_depth.max(g.items.len());
+        drop(g);
+        self.not_empty.notify_one();
+        match evicted {
+            Some(old) => Pushed::QueuedDroppedOldest(old),
+            None => Pushed::Queued,
+        }
+    }
+
+    /// Pushes, waiting while the queue is full (offline sources: nothing may be lost and the
+    /// producer may wait). Never used where the producer must not wait.
+    pub fn push_wait(&self, item: T, bytes: usize) -> Pushed<T> {
+        let mut g = self.lock();
+        while !g.closed && (g.items.len() >= self.capacity || (self.capacity_bytes > 0 && g.bytes + bytes > self.capacity_bytes && !g.items.is_empty())) {
+            g = self.not_full.wait(g).unwrap_or_else(|p| p.into_inner());
+        }
+        drop(g);
+        self.push(item, bytes)
+    }
+
+    /// Waits up to `timeout` for an item. `Ok(None)`: timed out; `Err(())`: closed and drained
+    /// (end of stream).
+    #[allow(clippy::result_unit_err)]
+    pub fn pop_timeout(&self, timeout: Duration) -> Result<Option<T>, ()> {
+        let mut g = self.lock();
+        if g.items.is_empty() && !g.closed {
+            g = self.not_empty.wait_timeout_while(g, timeout, |g| g.items.is_empty() && !g.closed).unwrap_or_else(|p| p.into_inner()).0;
+        }
+        match g.items.pop_front() {
+            Some((item, b)) => {
+                g.bytes -= b;
+                g.stats.popped += 1;
+                drop(g);
+                self.not_full.notify_one();
+                Ok(Some(item))
+            }
+            None if g.closed => Err(()),
+            None => Ok(None),
+        }
+    }
+
+    /// Blocks until an item arrives; `None` at end of stream.
+    pub fn pop(&self) -> Option<T> {
+        loop {
+            match self.pop_timeout(Duration::from_secs(3600)) {
+                Ok(Some(item)) => return Some(item),
+                Ok(None) => continue,
+                Err(()) => return None,
+            }
+        }
+    }
+
+    /// Takes an item if one is waiting.
+    pub fn try_pop(&self) -> Option<T> {
+        self.pop_timeout(Duration::ZERO).ok().flatten()
+    }
+
+    /// Ends the stream: producers are refused from now on, the consumer drains and stops.
+    pub fn close(&self) {
+        self.lock().closed = true;
+        self.not_empty.notify_all();
+        self.not_full.notify_all();
+    }
+
+    pub fn is_closed(&self) -> bool {
+        self.lock().closed
+    }
+
+    pub fn stats(&self) -> QueueStats {
+        let g = self.lock();
+        QueueStats { depth: g.items.len(), depth_bytes: g.bytes, ..g.stats }
+    }
+}
+
+/// A single-value cell the producer overwrites (map -> tracking feedback).
+pub struct LatestCell<T> {
+    value: Mutex<Option<T>>,
+}
+
+impl<T> Default for LatestCell<T> {
+    fn default() -> Self {
+        LatestCell { value: Mutex::new(None) }
+    }
+}
+
+impl<T> LatestCell<T> {
+    pub fn set(&self, v: T) {
+        *self.value.lock().unwrap_or_else(|p| p.into_inner()) = Some(v);
+    }
+    pub fn take(&self) -> Option<T> {
+        self.value.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Arc;
+
+    #[test]
+    fn drop_oldest_keeps_the_newest_and_counts() {
+        let q = BoundedQueue::new("frames", 3, 0, FullPolicy::DropOldest);
+        for i in 0..10 {
+            q.push(i, 0);
+        }
+        let s = q.stats();
+        assert_eq!((s.pushed, s.dropped, s.depth), (10, 7, 3));
+        q.close();
+        assert_eq!(std::iter::from_fn(|| q.pop()).collect::<Vec<_>>(), vec![7, 8, 9]);
+    }
+
+    #[test]
+    fn byte_bound_refuses_and_counts() {
+        let q = BoundedQueue::new("log", 100, 1000, FullPolicy::DropNewest);
+        assert_eq!(q.push(1, 600), Pushed::Queued);
+        assert_eq!(q.push(2, 600), Pushed::Refused(2));
+        assert_eq!(q.push(3, 400), Pushed::Queued);
+        assert_eq!(q.push(4, 2000), Pushed::Refused(4));
+        let s = q.stats();
+        assert_eq!((s.depth, s.depth_bytes, s.dropped), (2, 1000, 2));
+        assert_eq!(q.try_pop(), Some(1));
+        assert_eq!(q.push(5, 500), Pushed::Queued);
+        assert_eq!(q.stats().depth_bytes, 900);
+    }
+
+    #[test]
+    fn close_drains_then_ends() {
+        let q = Arc::new(BoundedQueue::new("k", 4, 0, FullPolicy::DropNewest));
+        q.push(1, 0);
+        q.push(2, 0);
+        q.close();
+        assert_eq!(q.push(3, 0), Pushed::Closed(3));
+        let q2 = q.clone();
+        let h = std::thread::spawn(move || std::iter::from_fn(|| q2.pop()).collect::<Vec<_>>());
+        assert_eq!(h.join().unwrap(), vec![1, 2]);
+    }
+
+    /// A producer at full speed against a consumer that takes 2 ms per item: the producer is
+    /// never held up, the queue never exceeds its capacity, every drop is counted, and what
+    /// the consumer gets is in order and ends with the newest item (drop oldest).
+    #[test]
+    fn slow_consumer_never_blocks_the_producer_and_drops_are_counted() {
+        for policy in [FullPolicy::DropOldest, FullPolicy::DropNewest] {
+            let q = Arc::new(BoundedQueue::new("slow", 4, 0, policy));
+            let c = q.clone();
+            let consumer = std::thread::spawn(move || {
+                let mut got = Vec::new();
+                while let Some(v) = c.pop() {
+                    got.push(v);
+                    std::thread::sleep(Duration::from_millis(2));
+                }
+                got
+            });
+            let mut worst = Duration::ZERO;
+            for i in 0..500u32 {
+                let t0 = std::time::Instant::now();
+                q.push(i, 0);
+                worst = worst.max(t0.elapsed());
+                assert!(q.stats().depth <= 4);
+            }
+            q.close();
+            let got = consumer.join().unwrap();
+            let s = q.stats();
+            // Pushing never waits for the consumer (a generous bound for a loaded machine;
+            // the consumer alone needs 2 ms per item).
+            assert!(worst < Duration::from_millis(50), "{policy:?}: a push took {worst:?}");
+            assert!(s.dropped > 300, "{policy:?}: only {} dropped", s.dropped);
+            assert_eq!(s.pushed - (if policy == FullPolicy::DropOldest { s.dropped } else { 0 }), got.len() as u64, "{policy:?}");
+            assert_eq!(got.len() as u64 + s.dropped, 500, "{policy:?}");
+            assert!(got.windows(2).all(|w| w[0] < w[1]), "{policy:?}: out of order");
+            if policy == FullPolicy::DropOldest {
+                assert_eq!(*got.last().unwrap(), 499);
+            } else {
+                assert_eq!(got[0], 0);
+            }
+        }
+    }
+
+    /// The byte-bounded log queue under a slow writer: bytes never exceed the budget.
+    #[test]
+    fn byte_bounded_queue_under_a_slow_consumer_stays_within_budget() {
+        let q = Arc::new(BoundedQueue::new("log", 1 << 16, 10_000, FullPolicy::DropNewest));
+        let c = q.clone();
+        let consumer = std::thread::spawn(move || {
+            let mut n = 0u64;
+            while c.pop().is_some() {
+                n += 1;
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            n
+        });
+        let mut max_bytes = 0;
+        for i in 0..300usize {
+            q.push(i, 1000 + (i % 7) * 300);
+            max_bytes = max_bytes.max(q.stats().depth_bytes);
+        }
+        q.close();
+        let n = consumer.join().unwrap();
+        let s = q.stats();
+        assert!(max_bytes <= 10_000, "{max_bytes} bytes queued");
+        assert_eq!(n + s.dropped, 300);
+        assert!(s.dropped > 0);
+    }
+}

@@ -1,0 +1,289 @@
+//! The MCAP black box on its own: round trip, the independent Python reader, rotation,
+//! truncation at many points (read up to the damage, recovery keeps every synced chunk),
+//! corruption, oversized records against the memory budget, inspect.
+
+use duv::core::alloc::{peak_bytes, reset_peak_bytes, CountingAllocator};
+use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+use duv::log::reader::ReadLimits;
+use duv::log::recover::{is_finished, recover_segment};
+use duv::log::schema::{decode_frame, PoseRecord};
+use duv::log::{inspect_log, list_segments, read_segment, LogConfig, LogItem, SegmentWriter, Topic};
+use nalgebra::{Translation3, UnitQuaternion};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+#[global_allocator]
+static GLOBAL: CountingAllocator = CountingAllocator;
+
+const W: usize = 40;
+const H: usize = 30;
+
+fn frame(seq: u64, t_ns: i64) -> Frame {
+    let mut img = ImageRgb8::new(W, H);
+    for (i, v) in img.data.iter_mut().enumerate() {
+        *v = ((i as u64 * 31 + seq * 7) % 251) as u8;
+    }
+    Frame { t_ns: Timestamp::from_ns(t_ns), seq, image: FrameImage::Rgb8(img) }
+}
+
+fn pose(seq: u64, t_ns: i64) -> PoseRecord {
+    let p = Se3::from_parts(Translation3::new(0.1 * seq as f64, 0.0, 0.02 * seq as f64), UnitQuaternion::from_euler_angles(0.0, 0.01 * seq as f64, 0.0));
+    PoseRecord { t_ns: Timestamp::from_ns(t_ns), seq, world_from_cam: p, state: "tracking", tracked: true, keyframe: Some(0), new_keyframe: None, loop_closed: false }
+}
+
+fn camera() -> PinholeCamera {
+    PinholeCamera::new(30.0, 30.0, 19.5, 14.5, W, H).unwrap()
+}
+
+fn keyframe(index: u64, t_ns: i64) -> Keyframe {
+    let mut f = frame(index, t_ns);
+    let FrameImage::Rgb8(image) = std::mem::replace(&mut f.image, FrameImage::Gray8(duv::core::ImageGray8::new(1, 1))) else { unreachable!() };
+    Keyframe {
+        index,
+        t_ns: Timestamp::from_ns(t_ns),
+        image,
+        world_from_cam: Se3::identity(),
+        camera: camera(),
+        inv_depth: PlaneF32::filled(W, H, [0.5]),
+        inv_depth_variance: PlaneF32::filled(W, H, [0.01]),
+    }
+}
+
+/// Writes `frames` frames at 10 Hz with poses, two keyframes, health and a map checkpoint,
+/// syncing every `sync_every` frames. Returns the sync points (path, messages, bytes).
+fn write_log(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64) -> Vec<(PathBuf, u64, u64)> {
+    let mut cfg = LogConfig::new(dir);
+    cfg.segment_max_bytes = segment_max_bytes;
+    cfg.chunk_interval = Duration::from_secs(3600);
+    cfg.metadata.push(("duv.board".into(), [("toml".to_string(), "name = \"test\"".to_string())].into_iter().collect::<BTreeMap<_, _>>()));
+    let mut w = SegmentWriter::create(cfg).unwrap();
+    let syncs = Arc::new(Mutex::new(Vec::new()));
+    let s2 = syncs.clone();
+    w.set_on_sync(move |p, m, b| s2.lock().unwrap().push((p.to_path_buf(), m, b)));
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+    for seq in 0..frames {
+        let t = seq as i64 * 100_000_000;
+        w.write(&LogItem::Frame(frame(seq, t))).unwrap();
+        w.write(&LogItem::Pose(pose(seq, t))).unwrap();
+        if seq % 20 == 5 {
+            w.write(&LogItem::Keyframe(Box::new(keyframe(seq, t)))).unwrap();
+        }
+        if seq % 10 == 9 {
+            w.write(&LogItem::Health { t_ns: Timestamp::from_ns(t), json: format!("{{\"frames\":{seq}}}") }).unwrap();
+        }
+        if (seq + 1) % sync_every == 0 {
+            w.sync_now().unwrap();
+        }
+    }
+    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(frames as i64 * 100_000_000), centres_in_world: vec![[0.0, 1.0, 2.0]; 10], checkpoint: vec![7u8; 100] }).unwrap();
+    let (stats, r) = w.finish();
+    r.unwrap();
+    assert!(stats.failure.is_none());
+    let v = syncs.lock().unwrap().clone();
+    v
+}
+
+fn topic_counts(path: &Path) -> (BTreeMap<String, u64>, duv::log::ReadOutcome) {
+    let mut counts = BTreeMap::new();
+    let outcome = read_segment(path, ReadLimits::default(), |m| *counts.entry(m.channel.topic.clone()).or_insert(0) += 1).unwrap();
+    (counts, outcome)
+}
+
+/// The Python interpreter with the `mcap` package: `DUV_PYTHON`, else the venv `.ci/run`
+/// makes, else `python3`. `None` when none can import mcap.
+fn python_with_mcap() -> Option<PathBuf> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let candidates: Vec<PathBuf> = std::env::var_os("DUV_PYTHON").map(PathBuf::from).into_iter().chain([root.join("target/py-mcap/bin/python"), PathBuf::from("python3")]).collect();
+    candidates.into_iter().find(|py| std::process::Command::new(py).args(["-c", "import mcap.reader"]).output().is_ok_and(|o| o.status.success()))
+}
+
+fn python_check(files: &[PathBuf]) -> Option<serde_json::Value> {
+    let Some(py) = python_with_mcap() else {
+        assert!(std::env::var("CI").as_deref() != Ok("true"), "CI=true but no Python with the `mcap` package (run .ci/run, or set DUV_PYTHON)");
+        assert!(std::env::var_os("DUV_PYTHON").is_none(), "DUV_PYTHON is set but cannot import the `mcap` package");
+        eprintln!("SKIPPED the Python cross-check: no Python with the `mcap` package (pip install mcap, or run .ci/run)");
+        return None;
+    };
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/check_mcap.py");
+    let out = std::process::Command::new(&py).arg(&script).args(files).output().unwrap();
+    assert!(out.status.success(), "python mcap failed: {}", String::from_utf8_lossy(&out.stderr));
+    Some(serde_json::from_slice(&out.stdout).unwrap())
+}
+
+#[test]
+fn round_trip_and_independent_python_reader() {
+    let dir = tempfile::tempdir().unwrap();
+    write_log(dir.path(), 60, 10, 1 << 30);
+    let segs = list_segments(dir.path()).unwrap();
+    assert_eq!(segs.len(), 1);
+    let path = &segs[0].1;
+    assert!(is_finished(path).unwrap());
+    let (counts, outcome) = topic_counts(path);
+    assert!(outcome.complete && outcome.damage.is_none(), "{outcome:?}");
+    assert_eq!(counts["/camera/image"], 60);
+    assert_eq!(counts["/slam/pose"], 60);
+    assert_eq!(counts["/tf"], 60);
+    assert_eq!(counts["/slam/state"], 60);
+    assert_eq!(counts["/keyframe/inv_depth"], 3);
+    assert_eq!(counts["/health"], 6);
+    assert_eq!(counts["/map/checkpoint"], 1);
+    assert_eq!(counts["/camera/calibration"], 1);
+    // Frames decode to what was written.
+    let mut seen = 0;
+    read_segment(path, ReadLimits::default(), |m| {
+        if m.channel.topic == Topic::CameraImage.name() {
+            let f = decode_frame(m.data, m.sequence as u64, m.log_time_ns).unwrap();
+            assert_eq!(f, frame(m.sequence as u64, m.sequence as i64 * 100_000_000));
+            seen += 1;
+        }
+    })
+    .unwrap();
+    assert_eq!(seen, 60);
+
+    if let Some(v) = python_check(std::slice::from_ref(path)) {
+        let f = &v[path.to_str().unwrap()];
+        for (topic, n) in &counts {
+            assert_eq!(f["counts"][topic].as_u64(), Some(*n), "python count of {topic}");
+        }
+        assert_eq!(f["schemas"]["/camera/image"], "foxglove.RawImage");
+        assert_eq!(f["schemas"]["/slam/pose"], "foxglove.PoseInFrame");
+        assert_eq!(f["schemas"]["/tf"], "foxglove.FrameTransform");
+        assert_eq!(f["schemas"]["/map/gaussians"], "foxglove.PointCloud");
+        assert_eq!(f["schemas"]["/camera/calibration"], "foxglove.CameraCalibration");
+        assert_eq!(f["indexed"], true);
+        assert_eq!(f["statistics_messages"].as_u64(), Some(outcome.messages));
+        assert!(f["metadata"].as_array().unwrap().iter().any(|m| m == "duv.board"));
+    }
+}
+
+#[test]
+fn segments_rotate_by_size_and_each_is_valid() {
+    let dir = tempfile::tempdir().unwrap();
+    write_log(dir.path(), 200, 5, 200_000);
+    let segs = list_segments(dir.path()).unwrap();
+    assert!(segs.len() >= 3, "{} segments", segs.len());
+    let mut frames = 0;
+    for (_, p) in &segs {
+        assert!(is_finished(p).unwrap());
+        let (counts, outcome) = topic_counts(p);
+        assert!(outcome.complete && outcome.damage.is_none());
+        // Every segment carries the calibration (replayable on its own).
+        assert_eq!(counts.get("/camera/calibration"), Some(&1), "{}", p.display());
+        frames += counts.get("/camera/image").copied().unwrap_or(0);
+        let len = std::fs::metadata(p).unwrap().len();
+        assert!(len < 200_000 + 150_000, "{} is {len} bytes", p.display());
+    }
+    assert_eq!(frames, 200);
+    let summary = inspect_log(dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(summary.topics["/camera/image"].messages, 200);
+    assert!(summary.gaps.is_empty());
+    assert_eq!(summary.span_ns(), Some((0, 200 * 100_000_000)));
+}
+
+#[test]
+fn truncated_segments_read_up_to_the_damage_and_recover_every_synced_chunk() {
+    let dir = tempfile::tempdir().unwrap();
+    let syncs = write_log(dir.path(), 80, 4, 1 << 30);
+    let path = list_segments(dir.path()).unwrap()[0].1.clone();
+    let full = std::fs::read(&path).unwrap();
+    let (_, whole) = topic_counts(&path);
+    let cut_dir = tempfile::tempdir().unwrap();
+    let mut rng = 12345u64;
+    let mut cuts: Vec<usize> = (0..30)
+        .map(|_| {
+            rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (rng >> 33) as usize % full.len()
+        })
+        .collect();
+    cuts.extend([0, 3, 8, 9, full.len() - 1, full.len() - 8]);
+    for (i, &cut) in cuts.iter().enumerate() {
+        let p = cut_dir.path().join(format!("segment-{i:06}.mcap"));
+        std::fs::write(&p, &full[..cut]).unwrap();
+        // What was synced at or before this length must be readable.
+        let must = syncs.iter().filter(|s| s.2 as usize <= cut).map(|s| s.1).max().unwrap_or(0);
+        let (_, outcome) = topic_counts(&p);
+        assert!(outcome.messages >= must, "cut at {cut}: read {} messages, {must} were synced", outcome.messages);
+        assert!(outcome.messages <= whole.messages);
+        assert!(!outcome.complete || cut >= full.len() - 8);
+        if cut < full.len() - 8 {
+            assert!(outcome.damage.is_some(), "cut at {cut}: no damage reported");
+        }
+        if cut < 8 {
+            continue;
+        }
+        let rep = recover_segment(&p, ReadLimits::default()).unwrap();
+        assert_eq!(rep.messages_kept, outcome.messages, "cut at {cut}");
+        assert!(is_finished(&p).unwrap());
+        let (_, again) = topic_counts(&p);
+        assert!(again.complete && again.damage.is_none(), "recovered file at cut {cut}: {again:?}");
+        assert_eq!(again.messages, outcome.messages);
+    }
+    // The recovered files also open in the independent reader, and inspect reports them.
+    let files: Vec<PathBuf> = list_segments(cut_dir.path()).unwrap().into_iter().map(|(_, p)| p).filter(|p| std::fs::metadata(p).unwrap().len() > 8).collect();
+    if let Some(v) = python_check(&files) {
+        for f in &files {
+            let (counts, _) = topic_counts(f);
+            for (topic, n) in &counts {
+                assert_eq!(v[f.to_str().unwrap()]["counts"][topic].as_u64(), Some(*n), "{} {topic}", f.display());
+            }
+        }
+    }
+    let summary = inspect_log(cut_dir.path(), ReadLimits::default()).unwrap();
+    assert!(summary.segments.iter().filter(|s| s.recovered.is_some()).count() >= 30);
+    assert!(summary.render().contains("recovered ("));
+}
+
+#[test]
+fn corrupt_chunk_stops_reading_at_the_damage() {
+    let dir = tempfile::tempdir().unwrap();
+    write_log(dir.path(), 40, 4, 1 << 30);
+    let path = list_segments(dir.path()).unwrap()[0].1.clone();
+    let (_, whole) = topic_counts(&path);
+    let mut bytes = std::fs::read(&path).unwrap();
+    let at = bytes.len() / 2;
+    bytes[at] ^= 0xff;
+    std::fs::write(&path, &bytes).unwrap();
+    let (_, outcome) = topic_counts(&path);
+    assert!(outcome.messages > 0 && outcome.messages < whole.messages, "{} of {}", outcome.messages, whole.messages);
+    let d = outcome.damage.unwrap();
+    assert!(d.contains("after byte"), "{d}");
+}
+
+#[test]
+fn an_oversized_record_is_refused_without_allocating_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path().join("hostile.mcap");
+    // Magic, then a record that claims 2 GiB.
+    let mut bytes = mcap::MAGIC.to_vec();
+    bytes.push(0x05);
+    bytes.extend_from_slice(&(2u64 << 30).to_le_bytes());
+    bytes.extend_from_slice(&[0u8; 4096]);
+    std::fs::write(&p, &bytes).unwrap();
+    let limits = ReadLimits { max_record_bytes: 1 << 20 };
+    reset_peak_bytes();
+    let before = duv::core::alloc::live_bytes();
+    let outcome = read_segment(&p, limits, |_| {}).unwrap();
+    let grew = peak_bytes().saturating_sub(before);
+    let d = outcome.damage.expect("an oversized record is damage");
+    assert!(d.contains("limit") || d.contains("large"), "{d}");
+    assert_eq!(outcome.messages, 0);
+    // Other tests may allocate concurrently; 64 MiB is far below the 2 GiB the record claims.
+    assert!(grew < 64 << 20, "reading allocated {grew} bytes");
+}
+
+#[test]
+fn inspect_reports_gaps() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut w = SegmentWriter::create(LogConfig::new(dir.path())).unwrap();
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+    for seq in 0..30u64 {
+        let t = seq as i64 * 100_000_000 + if seq >= 20 { 2_000_000_000 } else { 0 };
+        w.write(&LogItem::Frame(frame(seq, t))).unwrap();
+    }
+    w.finish().1.unwrap();
+    let s = inspect_log(dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(s.gaps, vec![(1_900_000_000, 4_000_000_000)]);
+    assert!(s.render().contains("gaps in /camera/image: 1"));
+}
