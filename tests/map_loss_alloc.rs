@@ -1,7 +1,7 @@
 //! No allocation per iteration after warm-up (house habit 7): a counting global allocator
-//! shows that one mapping iteration of the CPU references (medium forward, total loss with
-//! every term, medium backward, Adam step) allocates nothing once the workspaces exist and
-//! have run once. Its own test binary, because the global allocator is per binary.
+//! shows that one mapping iteration of the CPU references (medium forward per pixel and on the
+//! 1/8 direction grid, total loss with every term, medium backward of both, Adam step)
+//! allocates nothing once the workspaces exist and have run once. Its own test binary, because the global allocator is per binary.
 //!
 //! The passes run on rayon threads, so the count covers the threads of a dedicated pool (marked
 //! by its start handler) as well as the calling thread; counting is armed only inside the pool
@@ -39,6 +39,9 @@ fn a_mapping_iteration_allocates_nothing_after_warm_up() {
 
     let mut net = MediumNet::<f32>::new(&MediumConfig::default()).unwrap();
     let mut medium_ws = MediumWorkspace::new(&net, 64);
+    // The mapper's medium: the 1/8 direction grid, forward and adjoint.
+    let mut grid_ws = MediumWorkspace::with_grid(&net, w, h, 8);
+    let mut grid_planes = MediumPlanes::<f32>::new(w, h);
     let mut loss_ws = LossWorkspace::<f32>::new(80, 64);
     let mut adam = AdamGroup::new(AdamGroupConfig::default(), 1, net.param_count(), net.param_count()).unwrap();
     let mut planes = MediumPlanes::<f32>::new(w, h);
@@ -53,6 +56,8 @@ fn a_mapping_iteration_allocates_nothing_after_warm_up() {
         let terms = total_loss(&mut loss_ws, &config, &rendered, &target).unwrap();
         grads.fill(0.0);
         medium_ws.backward(&net, &cam, &pose, &loss_ws.grads().d_medium, &mut grads).unwrap();
+        grid_ws.forward(&net, &cam, &pose, &mut grid_planes).unwrap();
+        grid_ws.backward(&net, &cam, &pose, &loss_ws.grads().d_medium, &mut grads).unwrap();
         adam.step(net.params_mut(), &grads).unwrap();
         terms.total
     };

@@ -53,6 +53,11 @@ pub struct BenchMapArgs {
     /// Mapper config (TOML, `MapperConfig` fields) for the `full` variant; the others change one thing.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Vignetting strength of the generated images. The mapper has no vignetting model (a
+    /// calibrated camera is flat-fielded first), and the generator's gain also darkens the
+    /// backscatter, which only a weaker medium fits: 0 keeps the medium identifiable.
+    #[arg(long, default_value_t = 0.0)]
+    vignetting: f64,
     /// Only these variants (comma-separated); all by default.
     #[arg(long, value_delimiter = ',')]
     only: Vec<String>,
@@ -119,6 +124,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         cfg.frames = a.frames;
         cfg.width = a.width;
         cfg.height = a.height;
+        cfg.vignetting = a.vignetting;
         let renderer = SimRenderer::new(&cfg).context("building the generated sequence")?;
         let truth = *renderer.medium();
         let kfs = sim_keyframes(&renderer, a.every, usize::MAX);

@@ -103,7 +103,7 @@ pub struct MapperConfig {
     /// Back-projection grid step, pixels (>= 1).
     pub init_stride_px: usize,
     /// Only pixels whose inverse-depth standard deviation is at most this fraction of the
-    /// inverse depth seed Gaussians.
+    /// inverse depth seed Gaussians (0.5: the tracker's median keyframe pixel is near 0.3).
     pub init_max_rel_std: f64,
     /// Pixels where the current map already renders at least this alpha seed no Gaussian.
     pub init_covered_alpha: f64,
@@ -151,7 +151,7 @@ impl Default for MapperConfig {
             lr: LearningRates { mean: 2e-4, log_scale: 5e-3, rotation: 1e-3, opacity_logit: 2.5e-2, f_dc: 1e-2, f_rest: 5e-4, medium: 1e-3 },
             seed: 1,
             init_stride_px: 2,
-            init_max_rel_std: 0.2,
+            init_max_rel_std: 0.5,
             init_covered_alpha: 0.9,
             init_opacity: 0.8,
             init_scale_factor: 0.7,
