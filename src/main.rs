@@ -4,6 +4,10 @@ mod cli;
 
 use clap::{Parser, Subcommand};
 
+/// Counts allocations and live/peak heap bytes (`duv bench` reports the peak).
+#[global_allocator]
+static GLOBAL: duv::core::alloc::CountingAllocator = duv::core::alloc::CountingAllocator;
+
 /// Dense underwater visual SLAM: monocular tracking with depth uncertainty and a
 /// Gaussian-splat map of the seabed with the water modelled.
 #[derive(Parser)]
@@ -32,6 +36,8 @@ enum Command {
     Board(cli::board::BoardArgs),
     /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
     Dataset(cli::dataset::DatasetArgs),
+    /// Benchmark a stage on generated data: `duv bench track` (FPS, latency, ATE, AUSE, memory).
+    Bench(cli::bench::BenchArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -54,6 +60,7 @@ fn main() -> std::process::ExitCode {
         Command::Refine(a) => cli::refine::run(a),
         Command::Board(a) => cli::board::run(a),
         Command::Dataset(a) => cli::dataset::run(a),
+        Command::Bench(a) => cli::bench::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

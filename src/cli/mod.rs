@@ -1,5 +1,7 @@
 //! Subcommand implementations of the `duv` binary (`anyhow` lives here and in `main`).
 
+pub mod bench;
+pub mod bench_track;
 pub mod board;
 pub mod dataset;
 pub mod demo;

@@ -1,0 +1,19 @@
+//! `duv bench STAGE`: benchmarks of whole stages on generated data (medians of several runs).
+
+#[derive(clap::Args)]
+pub struct BenchArgs {
+    #[command(subcommand)]
+    stage: BenchStage,
+}
+
+#[derive(clap::Subcommand)]
+enum BenchStage {
+    /// Tracking: FPS, per-stage ms, frame latency, ATE with and without loop closure, AUSE, memory.
+    Track(super::bench_track::BenchTrackArgs),
+}
+
+pub fn run(args: BenchArgs) -> anyhow::Result<()> {
+    match args.stage {
+        BenchStage::Track(a) => super::bench_track::run(a),
+    }
+}
