@@ -59,6 +59,9 @@ pub struct BenchTrackArgs {
 #[derive(Clone, Debug, Serialize)]
 struct RunMetrics {
     fps: f64,
+    /// CPU time of all the process's threads per frame, ms (steadier than wall time on a
+    /// loaded machine).
+    cpu_ms_per_frame: f64,
     /// Mean per frame, ms.
     flow_ms: f64,
     ba_ms: f64,
@@ -149,6 +152,7 @@ fn median_metrics(runs: &[RunMetrics]) -> RunMetrics {
     let mu = |f: fn(&RunMetrics) -> u64| median(runs.iter().map(|r| f(r) as f64).collect()).round() as u64;
     RunMetrics {
         fps: m(|r| r.fps),
+        cpu_ms_per_frame: m(|r| r.cpu_ms_per_frame),
         flow_ms: m(|r| r.flow_ms),
         ba_ms: m(|r| r.ba_ms),
         covariance_ms: m(|r| r.covariance_ms),
@@ -183,6 +187,19 @@ fn rss_peak_mib() -> f64 {
         .find_map(|l| l.strip_prefix("VmHWM:"))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
         .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// CPU time of every thread of this process so far, ns (`/proc/self/task/*/schedstat`; NaN
+/// where that is not there). Threads that ended before the call are not counted.
+fn process_cpu_ns() -> f64 {
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else { return f64::NAN };
+    let mut sum = 0.0;
+    for entry in dir.flatten() {
+        if let Ok(text) = std::fs::read_to_string(entry.path().join("schedstat")) {
+            sum += text.split_whitespace().next().and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+        }
+    }
+    sum
 }
 
 const MIB: f64 = 1024.0 * 1024.0;
@@ -226,6 +243,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let mut recorder = TrajectoryRecorder::new();
     let mut latencies: Vec<Duration> = Vec::with_capacity(n);
     let frames = &seq.frames;
+    let cpu0 = process_cpu_ns();
     let wall = tracker.run_in_pool(|t| -> anyhow::Result<Duration> {
         let start = Instant::now();
         for f in frames {
@@ -236,6 +254,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
         }
         Ok(start.elapsed())
     })?;
+    let cpu_ns = process_cpu_ns() - cpu0;
     let heap_peak = duv::core::alloc::peak_bytes().saturating_sub(live0) as f64 / MIB;
     let rss = rss_peak_mib();
     let fin = recorder.finish(&tracker);
@@ -283,6 +302,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     latencies.sort();
     Ok(RunMetrics {
         fps: n as f64 / wall.as_secs_f64().max(1e-9),
+        cpu_ms_per_frame: cpu_ns / 1e6 / n as f64,
         flow_ms: per_frame(times.flow),
         ba_ms: per_frame(times.ba),
         covariance_ms: per_frame(times.covariance),
@@ -316,19 +336,20 @@ fn markdown(report: &BenchReport) -> String {
         report.cases.first().map_or(0, |c| c.runs),
         if report.rss_reset_per_run { "peak reset before each run" } else { "peak since process start" }
     );
-    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | RSS MiB | frames MiB | tracker heap MiB |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | RSS MiB | frames MiB | tracker heap MiB |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for c in &report.cases {
         let m = &c.median;
         let _ = writeln!(
             s,
-            "| {} | {}x{} | {} | {} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
+            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
             c.sequence,
             c.width,
             c.height,
             c.frames,
             if c.loop_closure { "on" } else { "off" },
             m.fps,
+            m.cpu_ms_per_frame,
             m.flow_ms,
             m.ba_ms,
             m.covariance_ms,
@@ -389,11 +410,12 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                 for r in 0..args.runs {
                     let m = run_once(&mut seq, &cfg, cap, !args.no_ause, rss_reset).with_context(|| format!("{name} {w}x{h} run {}", r + 1))?;
                     eprintln!(
-                        "  loop closure {}: run {}/{}: {:.1} fps, p99 {:.1} ms, ATE {:.3}% of path, loops {}, AUSE {:.3} (random {:.3})",
+                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms, ATE {:.3}% of path, loops {}, AUSE {:.3} (random {:.3})",
                         if lc { "on" } else { "off" },
                         r + 1,
                         args.runs,
                         m.fps,
+                        m.cpu_ms_per_frame,
                         m.latency_p99_ms,
                         m.ate_percent_of_path,
                         m.loops_closed,
