@@ -4,7 +4,8 @@ mod cli;
 
 use clap::{Parser, Subcommand};
 
-/// Live and peak heap bytes for the host-memory budget in the health telemetry.
+/// Counts allocations and live/peak heap bytes: the host-memory budget in the health
+/// telemetry, and the peak `duv bench` reports.
 #[global_allocator]
 static GLOBAL: duv::core::alloc::CountingAllocator = duv::core::alloc::CountingAllocator;
 
@@ -32,8 +33,6 @@ enum Command {
     Eval(cli::eval::EvalArgs),
     /// Refine a Gaussian map and the water offline from a keyframe folder or generated keyframes.
     Refine(cli::refine::RefineArgs),
-    /// Benchmarks that produce the figures (`duv bench map`).
-    Bench(cli::bench::BenchArgs),
     /// Check board profiles and print the capacities they give.
     Board(cli::board::BoardArgs),
     /// Summarise an MCAP log: topics, counts, time span, gaps, recovered segments.
@@ -42,6 +41,9 @@ enum Command {
     Replay(cli::replay::ReplayArgs),
     /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
     Dataset(cli::dataset::DatasetArgs),
+    /// Benchmark a stage on generated data: `duv bench track` (FPS, latency, ATE, AUSE, memory),
+    /// `duv bench map` (PSNR/SSIM, recovered medium, ablation, ms per iteration).
+    Bench(cli::bench::BenchArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -62,11 +64,11 @@ fn main() -> std::process::ExitCode {
         Command::Sim(a) => cli::sim::run(a),
         Command::Eval(a) => cli::eval::run(a),
         Command::Refine(a) => cli::refine::run(a),
-        Command::Bench(a) => cli::bench::run(a),
         Command::Board(a) => cli::board::run(a),
         Command::Dataset(a) => cli::dataset::run(a),
         Command::Inspect(a) => cli::inspect::run(a),
         Command::Replay(a) => cli::replay::run(a),
+        Command::Bench(a) => cli::bench::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -1,19 +1,23 @@
-//! `duv bench ...`: figures that take minutes, one subcommand per stage.
+//! `duv bench STAGE`: benchmarks of whole stages on generated data (medians of several runs;
+//! figures that take minutes).
 
 #[derive(clap::Args)]
 pub struct BenchArgs {
     #[command(subcommand)]
-    command: BenchCommand,
+    stage: BenchStage,
 }
 
 #[derive(clap::Subcommand)]
-enum BenchCommand {
+enum BenchStage {
+    /// Tracking: FPS, per-stage ms, frame latency, ATE with and without loop closure, AUSE, memory.
+    Track(super::bench_track::BenchTrackArgs),
     /// Mapping figures on generated sequences: PSNR/SSIM, recovered medium, ablation, ms/iteration, Gaussians over time.
     Map(super::bench_map::BenchMapArgs),
 }
 
-pub fn run(a: BenchArgs) -> anyhow::Result<()> {
-    match a.command {
-        BenchCommand::Map(m) => super::bench_map::run(m),
+pub fn run(args: BenchArgs) -> anyhow::Result<()> {
+    match args.stage {
+        BenchStage::Track(a) => super::bench_track::run(a),
+        BenchStage::Map(m) => super::bench_map::run(m),
     }
 }

@@ -18,14 +18,16 @@
 //!   starts as the previous keyframe's splatted into it; it is linked (two directed edges
 //!   each) to up to `edges_per_keyframe` window keyframes whose induced flow and overlap say
 //!   they see the same scene. Then `local_rounds` rounds of: re-estimate the new edges' flow
-//!   seeded by the current BA estimate, run `local_iterations` Gauss-Newton iterations over
+//!   seeded by the current BA estimate (after initialisation both edges of a link come from
+//!   one pair estimate seeded from the older keyframe, `pair_edges`), run `local_iterations` Gauss-Newton iterations over
 //!   the sliding window (`ba_window` newest keyframes; all but the newest `window_free_poses`
 //!   poses fixed, at least two: gauge and scale; every depth free).
 //!   The depth variance of every window keyframe follows from Eq. 4. A new keyframe whose
 //!   refined induced flow to its predecessor is under `prune_flow_px` (after the first round)
 //!   is dropped again. With `defer_rounds` (default) only the first round runs on the
 //!   keyframe's own frame; the later rounds, then the loop search (or the periodic global
-//!   BA), run one stage at the start of each following frame, so no frame pays for all.
+//!   BA), run one stage at the start of each following frame, so no frame pays for all
+//!   (`defer_insertion` defers the first round too, one edge pair or solve per stage).
 //! - *Measurements*: pooled flow targets within `border_margin_px` of the image border get no
 //!   weight: the cell's pixels that left the view bias its pooled mean, and with forward
 //!   motion that bias stretched the map by a few percent per keyframe.

@@ -111,8 +111,10 @@ pub struct TrackOutput {
 pub struct StageTimes {
     /// Image preparation and every flow estimate.
     pub flow: Duration,
-    /// Motion-only, initial, local and global BA solves.
+    /// Motion-only, initial and local (window) BA solves.
     pub ba: Duration,
+    /// Dense global BA over every keyframe (after loops, or periodic).
+    pub global_ba: Duration,
     /// Depth covariance (Eq. 4).
     pub covariance: Duration,
     /// Loop detection, verification and the pose graph.
@@ -207,6 +209,8 @@ struct State {
     cur: PreparedFrame,
     cur_thumb: Vec<f32>,
     res: FlowResult,
+    /// The reverse direction of a pair estimate.
+    res_reverse: FlowResult,
     seed: FlowField,
     prev_flow: FlowField,
     have_prev_flow: bool,
@@ -243,7 +247,12 @@ struct State {
 struct Pending {
     slot: usize,
     fixed: usize,
+    /// Rounds done.
     next_round: usize,
+    /// Fine stages (`defer_insertion`): the position in `new_edges` of the next edge to
+    /// estimate in this round; `new_edges.len()`: the round's BA is next.
+    next_edge: usize,
+    fine: bool,
 }
 
 /// Inverse depth floor when loading a keyframe into BA (1/m).
@@ -526,6 +535,7 @@ impl State {
             cur: flow.new_frame(),
             cur_thumb: vec![0.0; THUMB_N],
             res: flow.new_result(),
+            res_reverse: flow.new_result(),
             seed: FlowField::zeros(lw, lh, factor),
             prev_flow: FlowField::zeros(lw, lh, factor),
             have_prev_flow: false,
@@ -573,7 +583,10 @@ impl State {
         self.times.frames += 1;
         self.evicted_slot = None;
         // One deferred stage of the last keyframe insertion (map work; the frame comes after).
-        let loop_closed = self.run_pending_stage()?;
+        let mut loop_closed = false;
+        for _ in 0..self.cfg.stages_per_frame {
+            loop_closed |= self.run_pending_stage()?;
+        }
         let frames_since = frame.seq.saturating_sub(self.last_seq).max(1);
         let mut out = TrackOutput {
             t_ns: frame.t_ns,
@@ -712,9 +725,7 @@ impl State {
                 }
             }
         }
-        for i in 0..self.new_edges.len() {
-            self.estimate_edge(self.new_edges[i])?;
-        }
+        self.estimate_new_edges()?;
         self.window.clear();
         self.window.extend_from_slice(&self.kfs.order);
         self.solve_window(self.cfg.init_iterations, 1);
@@ -834,6 +845,59 @@ fn write_back(ba: &BaWorkspace, kfs: &mut KeyframeStore, window: &[usize]) -> Re
 }
 
 impl State {
+    /// Estimates the flow of every edge in `new_edges` (seeded by the current estimate) and
+    /// stores the measurements. Consecutive edges `a -> b`, `b -> a` share one pair estimate.
+    fn estimate_new_edges(&mut self) -> Result<(), TrackError> {
+        let mut i = 0;
+        while i < self.new_edges.len() {
+            i += self.estimate_new_edge_at(i)?;
+        }
+        Ok(())
+    }
+
+    /// Estimates `new_edges[i]` (with `new_edges[i + 1]` when that is its reverse and
+    /// `pair_edges` is on); returns how many edges it measured.
+    fn estimate_new_edge_at(&mut self, i: usize) -> Result<usize, TrackError> {
+        let e = self.new_edges[i];
+        let reverse = self.new_edges.get(i + 1).copied().filter(|_| self.cfg.pair_edges && self.phase == Phase::Running).filter(|&r| {
+            let (a, b) = (&self.edges.edges[e], &self.edges.edges[r]);
+            a.from == b.to && a.to == b.from
+        });
+        match reverse {
+            Some(r) => {
+                // Seeded from the older keyframe's depth (refined by earlier rounds; the
+                // newer one's may only be splatted).
+                let (ie, ir) = (self.kfs.slots[self.edges.edges[e].from].id, self.kfs.slots[self.edges.edges[r].from].id);
+                let (p, q) = if ie <= ir { (e, r) } else { (r, e) };
+                self.estimate_edge_pair(p, q)?;
+                Ok(2)
+            }
+            None => {
+                self.estimate_edge(e)?;
+                Ok(1)
+            }
+        }
+    }
+
+    /// Edge `e` and its reverse `r` from one pair estimate seeded by the flow of `e` the
+    /// current estimate induces (`r` gets the inverted seed).
+    fn estimate_edge_pair(&mut self, e: usize, r: usize) -> Result<(), TrackError> {
+        let (from, to) = (self.edges.edges[e].from, self.edges.edges[e].to);
+        let (kf, kt) = (&self.kfs.slots[from], &self.kfs.slots[to]);
+        induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &kt.world_from_cam, Some(&mut self.seed));
+        let t0 = Instant::now();
+        let seed = if self.cfg.seed_edges { Some(&self.seed) } else { None };
+        self.flow.estimate_pair(&kf.frame, &kt.frame, seed, &mut self.res, &mut self.res_reverse)?;
+        self.times.flow += t0.elapsed();
+        self.times.flow_estimates += 2;
+        let (ws, cw, m) = (self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px);
+        let edge = &mut self.edges.edges[e];
+        write_measurement(&self.res, ws, cw, m, &mut edge.target, &mut edge.weight);
+        let edge = &mut self.edges.edges[r];
+        write_measurement(&self.res_reverse, ws, cw, m, &mut edge.target, &mut edge.weight);
+        Ok(())
+    }
+
     /// Estimates the flow of edge `e` seeded by the flow the current estimate induces, and
     /// stores its measurement. Returns the confident fraction.
     fn estimate_edge(&mut self, e: usize) -> Result<f32, TrackError> {
@@ -915,9 +979,7 @@ impl State {
         self.window.clear();
         self.window.extend_from_slice(&self.kfs.order);
         for _ in 0..self.cfg.init_rounds {
-            for i in 0..self.new_edges.len() {
-                self.estimate_edge(self.new_edges[i])?;
-            }
+            self.estimate_new_edges()?;
             self.solve_window(self.cfg.init_iterations, 1);
         }
         self.window_covariance(1);
@@ -1072,6 +1134,20 @@ impl State {
             }
         }
         let fixed = self.window_fixed();
+        if self.cfg.defer_rounds && self.cfg.defer_insertion {
+            // Every round deferred, one edge or one solve per stage: the keyframe's frame pays
+            // only for the insertion. Pruning judges the motion-only pose and splatted depth.
+            let (kp, ks) = (&self.kfs.slots[prev], &self.kfs.slots[s]);
+            let (flow, _) = induced_flow(&self.low, &ks.world_from_cam, &ks.inv_depth, &kp.world_from_cam, None);
+            tracing::debug!(kf = ks.id, links, induced_flow_px = flow, "track: keyframe inserted (rounds deferred)");
+            if flow < self.cfg.prune_flow_px {
+                let refined = ks.world_from_cam;
+                self.prune_new_keyframe(s, prev, &refined, out);
+                return Ok(());
+            }
+            self.accept_new_keyframe(s, out, Pending { slot: s, fixed, next_round: 0, next_edge: 0, fine: true });
+            return Ok(());
+        }
         self.keyframe_round(s, fixed)?;
         if self.cfg.local_rounds == 1 {
             self.window_covariance(fixed);
@@ -1081,55 +1157,83 @@ impl State {
         let refined = ks.world_from_cam;
         tracing::debug!(kf = ks.id, links, induced_flow_px = flow, "track: keyframe inserted");
         if flow < self.cfg.prune_flow_px {
-            // Too close to the previous keyframe: the frame stays a plain frame.
-            self.edges.remove_touching(s);
-            if let Some(pos) = self.kfs.position(s) {
-                self.kfs.remove_at(pos);
-            }
-            self.counters.keyframes_pruned += 1;
-            self.last_pose = refined;
-            out.world_from_cam = refined;
-            out.anchor = Some(self.anchor_to(prev, &refined));
+            self.prune_new_keyframe(s, prev, &refined, out);
             return Ok(());
         }
-        self.ref_slot = s;
-        self.last_pose = refined;
-        self.inserted_since_loop += 1;
-        self.inserted_since_global += 1;
         // The remaining rounds, then loop closure or the periodic global BA: one stage per
         // following frame when deferred (latency), all now otherwise.
-        self.pending = Some(Pending { slot: s, fixed, next_round: 1 });
+        self.accept_new_keyframe(s, out, Pending { slot: s, fixed, next_round: 1, next_edge: 0, fine: false });
         if !self.cfg.defer_rounds {
             while self.pending.is_some() {
                 out.loop_closed |= self.run_pending_stage()?;
             }
+            let kf = &self.kfs.slots[s];
+            out.world_from_cam = kf.world_from_cam;
+            self.last_pose = kf.world_from_cam;
         }
+        Ok(())
+    }
+
+    /// Too close to the previous keyframe: the frame stays a plain frame.
+    fn prune_new_keyframe(&mut self, s: usize, prev: usize, refined: &Se3, out: &mut TrackOutput) {
+        self.edges.remove_touching(s);
+        if let Some(pos) = self.kfs.position(s) {
+            self.kfs.remove_at(pos);
+        }
+        self.counters.keyframes_pruned += 1;
+        self.last_pose = *refined;
+        out.world_from_cam = *refined;
+        out.anchor = Some(self.anchor_to(prev, refined));
+    }
+
+    /// Keyframe `s` becomes the reference; `pending` holds its remaining stages.
+    fn accept_new_keyframe(&mut self, s: usize, out: &mut TrackOutput, pending: Pending) {
+        self.ref_slot = s;
+        self.inserted_since_loop += 1;
+        self.inserted_since_global += 1;
+        self.pending = Some(pending);
         let kf = &self.kfs.slots[s];
         out.world_from_cam = kf.world_from_cam;
         out.new_keyframe = Some(kf.id);
         out.anchor = Some(FrameAnchor { keyframe: kf.id, kf_from_cam: Se3::identity(), kf_scale: kf.scale_correction });
         self.last_pose = kf.world_from_cam;
-        Ok(())
     }
 
     /// One flow/BA round of a keyframe insertion: re-estimate the new edges seeded by the
     /// current estimate, then solve the window. The last pose follows keyframe `s` if it is
     /// the reference.
     fn keyframe_round(&mut self, s: usize, fixed: usize) -> Result<(), TrackError> {
-        for i in 0..self.new_edges.len() {
-            self.estimate_edge(self.new_edges[i])?;
-        }
+        self.estimate_new_edges()?;
+        self.round_solve(s, fixed);
+        Ok(())
+    }
+
+    /// The window BA of a round; the last pose follows keyframe `s` if it is the reference.
+    fn round_solve(&mut self, s: usize, fixed: usize) {
         let before = self.kfs.slots[s].world_from_cam;
         self.solve_window(self.cfg.local_iterations, fixed);
         if self.ref_slot == s {
             self.last_pose = self.kfs.slots[s].world_from_cam * before.inv_mul(&self.last_pose);
         }
-        Ok(())
     }
 
     /// Runs the next deferred stage of the last insertion; true when it closed a loop.
     fn run_pending_stage(&mut self) -> Result<bool, TrackError> {
         let Some(mut p) = self.pending else { return Ok(false) };
+        if p.fine && p.next_round < self.cfg.local_rounds {
+            if p.next_edge < self.new_edges.len() {
+                p.next_edge += self.estimate_new_edge_at(p.next_edge)?;
+            } else {
+                self.round_solve(p.slot, p.fixed);
+                p.next_round += 1;
+                p.next_edge = 0;
+                if p.next_round == self.cfg.local_rounds {
+                    self.window_covariance(p.fixed);
+                }
+            }
+            self.pending = Some(p);
+            return Ok(false);
+        }
         if p.next_round < self.cfg.local_rounds {
             self.keyframe_round(p.slot, p.fixed)?;
             p.next_round += 1;
@@ -1172,7 +1276,7 @@ impl State {
         let r = load_window(&mut self.gba, &self.low, &mut self.kfs, &self.edges, &self.window, true)
             .and_then(|_| self.gba.solve(&cfg))
             .and_then(|_| write_back(&self.gba, &mut self.kfs, &self.window));
-        self.times.ba += t0.elapsed();
+        self.times.global_ba += t0.elapsed();
         self.inserted_since_global = 0;
         match r {
             Ok(()) => {
@@ -1254,10 +1358,10 @@ impl State {
             return Ok(false);
         }
         let t0 = Instant::now();
-        let (flow0, ba0) = (self.times.flow, self.times.ba);
+        let (flow0, ba0, gba0) = (self.times.flow, self.times.ba, self.times.global_ba);
         let result = self.loop_closure_inner(s, n);
         // Exclusive of the flow and BA it ran (counted in those stages).
-        let inner = (self.times.flow - flow0) + (self.times.ba - ba0);
+        let inner = (self.times.flow - flow0) + (self.times.ba - ba0) + (self.times.global_ba - gba0);
         self.times.loop_closure += t0.elapsed().saturating_sub(inner);
         result
     }

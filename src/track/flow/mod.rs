@@ -827,6 +827,57 @@ impl FlowEstimator {
     ) -> Result<(), FlowError> {
         let (w, h) = (self.layout.width, self.layout.height);
         let _span = tracing::debug_span!("track.flow", width = w, height = h, seeded = seed.is_some()).entered();
+        self.check_inputs(src, dst, seed, out)?;
+        let start = self.run_passes(src, dst, seed, self.cfg.forward_backward);
+        let finest = self.layout.finest_level;
+        if self.cfg.forward_backward {
+            out.backward.dx.data.copy_from_slice(&self.bwd[finest].dx);
+            out.backward.dy.data.copy_from_slice(&self.bwd[finest].dy);
+        } else {
+            out.backward.dx.data.fill(0.0);
+            out.backward.dy.data.fill(0.0);
+        }
+        out.flow.dx.data.copy_from_slice(&self.fwd[finest].dx);
+        out.flow.dy.data.copy_from_slice(&self.fwd[finest].dy);
+        finish(&self.cfg, finest, start, src, dst, out);
+        Ok(())
+    }
+
+    /// Estimates both directions of an edge from the same two passes: `src -> dst` into `out`
+    /// and `dst -> src` into `out_reverse` (the backward pass of the forward-backward check is
+    /// the reverse edge's forward flow, and the forward pass its check), each with its own
+    /// confidences. Half the cost of two [`estimate`](Self::estimate) calls; the reverse
+    /// direction's seed is the inverted `seed`. Without `forward_backward` both passes still
+    /// run (each direction then has no forward-backward term). Never allocates.
+    pub fn estimate_pair(
+        &mut self,
+        src: &PreparedFrame,
+        dst: &PreparedFrame,
+        seed: Option<&FlowField>,
+        out: &mut FlowResult,
+        out_reverse: &mut FlowResult,
+    ) -> Result<(), FlowError> {
+        let (w, h) = (self.layout.width, self.layout.height);
+        let _span = tracing::debug_span!("track.flow.pair", width = w, height = h, seeded = seed.is_some()).entered();
+        self.check_inputs(src, dst, seed, out)?;
+        self.check_result(out_reverse)?;
+        let start = self.run_passes(src, dst, seed, true);
+        let finest = self.layout.finest_level;
+        out.flow.dx.data.copy_from_slice(&self.fwd[finest].dx);
+        out.flow.dy.data.copy_from_slice(&self.fwd[finest].dy);
+        out.backward.dx.data.copy_from_slice(&self.bwd[finest].dx);
+        out.backward.dy.data.copy_from_slice(&self.bwd[finest].dy);
+        out_reverse.flow.dx.data.copy_from_slice(&self.bwd[finest].dx);
+        out_reverse.flow.dy.data.copy_from_slice(&self.bwd[finest].dy);
+        out_reverse.backward.dx.data.copy_from_slice(&self.fwd[finest].dx);
+        out_reverse.backward.dy.data.copy_from_slice(&self.fwd[finest].dy);
+        finish(&self.cfg, finest, start, src, dst, out);
+        finish(&self.cfg, finest, start, dst, src, out_reverse);
+        Ok(())
+    }
+
+    fn check_inputs(&self, src: &PreparedFrame, dst: &PreparedFrame, seed: Option<&FlowField>, out: &FlowResult) -> Result<(), FlowError> {
+        let (w, h) = (self.layout.width, self.layout.height);
         for (frame, what) in [(src, "src"), (dst, "dst")] {
             if frame.layout.width != w || frame.layout.height != h {
                 return Err(FlowError::SizeMismatch {
@@ -845,6 +896,12 @@ impl FlowEstimator {
         if let Some(s) = seed {
             check_seed(s, w, h)?;
         }
+        Ok(())
+    }
+
+    /// The forward pass (and the backward one with `backward`) into `fwd` / `bwd`; returns the
+    /// start level.
+    fn run_passes(&mut self, src: &PreparedFrame, dst: &PreparedFrame, seed: Option<&FlowField>, backward: bool) -> usize {
         let start = if seed.is_some() { self.start_seeded } else { self.start_unseeded };
         let (fwd_seed, bwd_seed) = match seed {
             Some(s) => (SeedView::Forward(s), SeedView::Backward(s)),
@@ -865,30 +922,10 @@ impl FlowEstimator {
             }
         };
         run(src, dst, fwd_seed, fwd, patch_flow, refine);
-        if cfg.forward_backward {
+        if backward {
             run(dst, src, bwd_seed, bwd, patch_flow, refine);
-            out.backward.dx.data.copy_from_slice(&bwd[finest].dx);
-            out.backward.dy.data.copy_from_slice(&bwd[finest].dy);
-        } else {
-            out.backward.dx.data.fill(0.0);
-            out.backward.dy.data.fill(0.0);
         }
-        out.flow.dx.data.copy_from_slice(&fwd[finest].dx);
-        out.flow.dy.data.copy_from_slice(&fwd[finest].dy);
-        match cfg.feature.channels() {
-            1 => confidence::weights::<1>(cfg, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
-            _ => confidence::weights::<4>(cfg, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
-        }
-        confidence::pool(cfg, finest, out);
-        out.stats = confidence::stats(out, start);
-        tracing::trace!(
-            start_level = out.stats.start_level,
-            mean_weight = out.stats.mean_weight,
-            in_view = out.stats.in_view_fraction,
-            mean_flow_px = out.stats.mean_flow_input_px,
-            "flow estimated"
-        );
-        Ok(())
+        start
     }
 
     fn check_result(&self, out: &FlowResult) -> Result<(), FlowError> {
@@ -928,6 +965,23 @@ impl FlowEstimator {
         }
         Ok(())
     }
+}
+
+/// Confidences, pooling and stats of `out` (its `flow` and `backward` filled) for `src -> dst`.
+fn finish(cfg: &FlowConfig, finest: usize, start: usize, src: &PreparedFrame, dst: &PreparedFrame, out: &mut FlowResult) {
+    match cfg.feature.channels() {
+        1 => confidence::weights::<1>(cfg, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
+        _ => confidence::weights::<4>(cfg, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
+    }
+    confidence::pool(cfg, finest, out);
+    out.stats = confidence::stats(out, start);
+    tracing::trace!(
+        start_level = out.stats.start_level,
+        mean_weight = out.stats.mean_weight,
+        in_view = out.stats.in_view_fraction,
+        mean_flow_px = out.stats.mean_flow_input_px,
+        "flow estimated"
+    );
 }
 
 fn validate(cfg: &FlowConfig) -> Result<(), FlowError> {

@@ -523,3 +523,32 @@ fn config_round_trips_through_toml_and_refuses_unknown_keys() {
     assert_eq!(toml::from_str::<FlowConfig>("").unwrap(), FlowConfig::default());
     assert!(toml::from_str::<FlowConfig>("patch_sise = 8").is_err());
 }
+
+#[test]
+fn a_pair_estimate_gives_both_edges_of_separate_estimates() {
+    // Forward: bit-identical to `estimate` (same passes). Reverse: the backward pass with its
+    // own confidences, as accurate as a separate dst -> src estimate on the inverse warp.
+    let sim = similarity(2.0, 1.02, 2.5, -1.5);
+    let (src, dst) = pair(&sim, 5);
+    let mut est = FlowEstimator::new(FlowConfig::default(), src.width, src.height).unwrap();
+    let (a, b) = (est.prepare(&src).unwrap(), est.prepare(&dst).unwrap());
+    let (mut single, mut fwd, mut rev, mut rev_single) = (est.new_result(), est.new_result(), est.new_result(), est.new_result());
+    est.estimate(&a, &b, None, &mut single).unwrap();
+    est.estimate_pair(&a, &b, None, &mut fwd, &mut rev).unwrap();
+    assert_eq!(single, fwd, "the pair's forward edge differs from a single estimate");
+    est.estimate(&b, &a, None, &mut rev_single).unwrap();
+    // The reverse flow field is the forward estimate's backward field; its weights are
+    // computed for dst -> src (source texture of dst at the pixel).
+    assert_eq!(rev.flow.dx.data, single.backward.dx.data);
+    assert_eq!(rev.backward.dx.data, single.flow.dx.data);
+    let inv = Homography::new(sim.m_inv);
+    let (e_pair, e_sep) = (median_epe(&rev.flow, &inv), median_epe(&rev_single.flow, &inv));
+    eprintln!("reverse edge: median EPE pair {e_pair:.4} px, separate {e_sep:.4} px");
+    assert!(e_pair < WARP_EPE_PX && e_pair < 1.5 * e_sep + 0.02, "pair {e_pair} separate {e_sep}");
+    let mean = |p: &PlaneF32| p.data.iter().sum::<f32>() / p.data.len() as f32;
+    let (wp, ws) = (mean(&rev.weight_x), mean(&rev_single.weight_x));
+    assert!((wp - ws).abs() < 0.1 * ws, "reverse weights: pair {wp}, separate {ws}");
+    // Size checks apply to the reverse result too.
+    let mut wrong = FlowEstimator::new(FlowConfig::default(), src.width / 2, src.height / 2).unwrap().new_result();
+    assert!(matches!(est.estimate_pair(&a, &b, None, &mut fwd, &mut wrong), Err(FlowError::SizeMismatch { .. })));
+}

@@ -1,0 +1,457 @@
+//! `duv bench track`: the tracking benchmark of issue 3. Generates survey, loop and turbid
+//! sequences in memory (`duv::sim`), tracks each `--runs` times with and without loop closure
+//! on the tracker's own thread pool (as a tracking thread does: `Tracker::run_in_pool`), and
+//! prints and writes (`bench_track.json`, `bench_track.md`) the medians: frames/s, per-stage
+//! milliseconds, frame latency p50/p99, ATE (m and % of path), AUSE against a random ordering,
+//! peak RSS and the tracker's heap peak.
+//!
+//! Rendering the sequence and scoring it are outside every timing; the frames are held in
+//! memory for all runs (their bytes are reported beside the RSS, which includes them).
+
+use anyhow::Context;
+use duv::config::board::Board;
+use duv::core::{Frame, FrameImage, PlaneF32};
+use duv::eval::{ause, evaluate_trajectory, AuseOptions, TrajectoryOptions};
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv::track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::HashMap;
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+#[derive(clap::Args)]
+pub struct BenchTrackArgs {
+    /// Sequences: `survey` (coastal survey), `loop` (coastal loop), `turbid` (turbid survey).
+    #[arg(long, value_delimiter = ',', default_value = "survey,loop,turbid")]
+    sequences: Vec<String>,
+    /// Input sizes, `WIDTHxHEIGHT`.
+    #[arg(long, value_delimiter = ',', default_value = "320x240,640x480")]
+    sizes: Vec<String>,
+    /// Frames per sequence [default: the generator's preset, 300 for surveys, 400 for the loop].
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Runs per sequence, size and loop-closure setting (medians are reported).
+    #[arg(long, default_value_t = 3)]
+    runs: usize,
+    /// Loop closure: `both` (with and without), `on` or `off`.
+    #[arg(long, default_value = "both")]
+    loop_closure: String,
+    /// Board profile: capacities (keyframes, BA window) and tracking threads.
+    #[arg(long, default_value = "boards/sim.toml")]
+    board: PathBuf,
+    /// Tracker parameters (TOML, `TrackerConfig` fields); defaults otherwise.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Seed of the generated sequences.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Skip the AUSE (it renders the true depth of every final keyframe).
+    #[arg(long)]
+    no_ause: bool,
+    /// Output folder for `bench_track.json` and `bench_track.md`.
+    #[arg(long, default_value = "out/bench")]
+    out: PathBuf,
+}
+
+/// One tracking run, scored.
+#[derive(Clone, Debug, Serialize)]
+struct RunMetrics {
+    fps: f64,
+    /// CPU time of all the process's threads per frame, ms (steadier than wall time on a
+    /// loaded machine).
+    cpu_ms_per_frame: f64,
+    /// Mean per frame, ms.
+    flow_ms: f64,
+    ba_ms: f64,
+    covariance_ms: f64,
+    loop_closure_ms: f64,
+    global_ba_ms: f64,
+    latency_p50_ms: f64,
+    latency_p99_ms: f64,
+    latency_max_ms: f64,
+    ate_rmse_m: f64,
+    ate_percent_of_path: f64,
+    path_m: f64,
+    keyframes_inserted: u64,
+    loops_closed: u64,
+    lost_frames: u64,
+    /// Mean AUSE over the final keyframes (full resolution, MAE of inverse depth), NaN if skipped.
+    ause: f64,
+    ause_random: f64,
+    /// Peak resident set (VmHWM) during the run, MiB (reset before each run where the kernel allows).
+    rss_peak_mib: f64,
+    /// Heap peak above what was live before the tracker was built, MiB.
+    tracker_heap_peak_mib: f64,
+}
+
+#[derive(Debug, Serialize)]
+struct CaseResult {
+    sequence: String,
+    width: usize,
+    height: usize,
+    frames: usize,
+    loop_closure: bool,
+    runs: usize,
+    /// Bytes of the in-memory frames (included in the RSS).
+    frames_mib: f64,
+    median: RunMetrics,
+    all: Vec<RunMetrics>,
+}
+
+#[derive(Serialize)]
+struct BenchReport {
+    command: String,
+    board: String,
+    threads: usize,
+    cpus: usize,
+    rss_reset_per_run: bool,
+    cases: Vec<CaseResult>,
+}
+
+fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
+    let (w, h) = s.split_once('x').with_context(|| format!("size {s:?}: expected WIDTHxHEIGHT"))?;
+    Ok((w.trim().parse().with_context(|| format!("size {s:?}: width"))?, h.trim().parse().with_context(|| format!("size {s:?}: height"))?))
+}
+
+fn sequence_preset(name: &str) -> anyhow::Result<(WaterPreset, TrajectoryKind)> {
+    Ok(match name {
+        "survey" => (WaterPreset::Coastal, TrajectoryKind::Survey),
+        "loop" => (WaterPreset::Coastal, TrajectoryKind::Loop),
+        "turbid" => (WaterPreset::Turbid, TrajectoryKind::Survey),
+        other => anyhow::bail!("unknown sequence {other:?} (expected survey, loop or turbid)"),
+    })
+}
+
+fn percentile_ms(sorted: &[Duration], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    sorted[i].as_secs_f64() * 1e3
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.retain(|x| !x.is_nan());
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(|a, b| a.total_cmp(b));
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// Field-wise median of several runs.
+fn median_metrics(runs: &[RunMetrics]) -> RunMetrics {
+    let m = |f: fn(&RunMetrics) -> f64| median(runs.iter().map(f).collect());
+    let mu = |f: fn(&RunMetrics) -> u64| median(runs.iter().map(|r| f(r) as f64).collect()).round() as u64;
+    RunMetrics {
+        fps: m(|r| r.fps),
+        cpu_ms_per_frame: m(|r| r.cpu_ms_per_frame),
+        flow_ms: m(|r| r.flow_ms),
+        ba_ms: m(|r| r.ba_ms),
+        covariance_ms: m(|r| r.covariance_ms),
+        loop_closure_ms: m(|r| r.loop_closure_ms),
+        global_ba_ms: m(|r| r.global_ba_ms),
+        latency_p50_ms: m(|r| r.latency_p50_ms),
+        latency_p99_ms: m(|r| r.latency_p99_ms),
+        latency_max_ms: m(|r| r.latency_max_ms),
+        ate_rmse_m: m(|r| r.ate_rmse_m),
+        ate_percent_of_path: m(|r| r.ate_percent_of_path),
+        path_m: m(|r| r.path_m),
+        keyframes_inserted: mu(|r| r.keyframes_inserted),
+        loops_closed: mu(|r| r.loops_closed),
+        lost_frames: mu(|r| r.lost_frames),
+        ause: m(|r| r.ause),
+        ause_random: m(|r| r.ause_random),
+        rss_peak_mib: m(|r| r.rss_peak_mib),
+        tracker_heap_peak_mib: m(|r| r.tracker_heap_peak_mib),
+    }
+}
+
+/// Resets the kernel's peak-RSS mark of this process (Linux >= 4.0); false where it cannot.
+fn reset_rss_peak() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// VmHWM of this process in MiB (NaN where /proc is not there).
+fn rss_peak_mib() -> f64 {
+    let Ok(status) = std::fs::read_to_string("/proc/self/status") else { return f64::NAN };
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// CPU time of every thread of this process so far, ns (`/proc/self/task/*/schedstat`; NaN
+/// where that is not there). Threads that ended before the call are not counted.
+fn process_cpu_ns() -> f64 {
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else { return f64::NAN };
+    let mut sum = 0.0;
+    for entry in dir.flatten() {
+        if let Ok(text) = std::fs::read_to_string(entry.path().join("schedstat")) {
+            sum += text.split_whitespace().next().and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+        }
+    }
+    sum
+}
+
+const MIB: f64 = 1024.0 * 1024.0;
+
+struct Sequence {
+    renderer: SimRenderer,
+    frames: Vec<Frame>,
+    /// True depth of frames that became keyframes, rendered on demand.
+    depth: HashMap<u64, PlaneF32>,
+}
+
+fn generate(name: &str, width: usize, height: usize, frames: Option<usize>, seed: u64) -> anyhow::Result<Sequence> {
+    let (water, trajectory) = sequence_preset(name)?;
+    let mut cfg = SimConfig::preset(water, trajectory);
+    cfg.width = width;
+    cfg.height = height;
+    cfg.seed = seed;
+    if let Some(n) = frames {
+        cfg.frames = n;
+    }
+    let renderer = SimRenderer::new(&cfg).with_context(|| format!("sequence {name} {width}x{height}"))?;
+    let frames: Vec<Frame> = (0..renderer.len())
+        .into_par_iter()
+        .map(|i| {
+            let f = renderer.render(i);
+            Frame { t_ns: f.t_ns, seq: i as u64, image: FrameImage::Rgb8(f.rgb) }
+        })
+        .collect();
+    Ok(Sequence { renderer, frames, depth: HashMap::new() })
+}
+
+/// Tracks the sequence once and scores it.
+fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_ause: bool, rss_reset: bool) -> anyhow::Result<RunMetrics> {
+    let n = seq.frames.len();
+    if rss_reset {
+        reset_rss_peak();
+    }
+    duv::core::alloc::reset_peak_bytes();
+    let live0 = duv::core::alloc::live_bytes();
+    let mut tracker = Tracker::new(seq.renderer.camera(), cfg, cap)?;
+    let mut recorder = TrajectoryRecorder::new();
+    let mut latencies: Vec<Duration> = Vec::with_capacity(n);
+    let frames = &seq.frames;
+    let cpu0 = process_cpu_ns();
+    let wall = tracker.run_in_pool(|t| -> anyhow::Result<Duration> {
+        let start = Instant::now();
+        for f in frames {
+            let t0 = Instant::now();
+            let out = t.track(f)?;
+            latencies.push(t0.elapsed());
+            recorder.record(&out);
+        }
+        Ok(start.elapsed())
+    })?;
+    let cpu_ns = process_cpu_ns() - cpu0;
+    let heap_peak = duv::core::alloc::peak_bytes().saturating_sub(live0) as f64 / MIB;
+    let rss = rss_peak_mib();
+    let fin = recorder.finish(&tracker);
+    let gt = &seq.renderer.poses()[..n];
+    let ev = evaluate_trajectory(gt, &fin.frames, &TrajectoryOptions::default(), "gt", "est").context("scoring the trajectory")?;
+    let report = &ev.report;
+    let (mut ause_mean, mut ause_random) = (f64::NAN, f64::NAN);
+    if with_ause {
+        let scale = report.alignment.scale;
+        let kfs: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.variance.is_some()).map(|k| (k.id, k.seq)).collect();
+        let missing: Vec<u64> = kfs.iter().map(|k| k.1).filter(|s| !seq.depth.contains_key(s)).collect();
+        let renderer = &seq.renderer;
+        let rendered: Vec<(u64, PlaneF32)> = missing.par_iter().map(|&s| (s, renderer.render(s as usize).depth_m)).collect();
+        seq.depth.extend(rendered);
+        let cam = seq.renderer.camera();
+        let mut inv = PlaneF32::new(cam.width, cam.height);
+        let mut var = PlaneF32::new(cam.width, cam.height);
+        let (mut sum, mut sum_random, mut count) = (0.0, 0.0, 0usize);
+        for &(id, s) in &kfs {
+            tracker.upsample_keyframe(id, &mut inv, &mut var)?;
+            let depth = &seq.depth[&s];
+            let (mut errors, mut unc) = (Vec::new(), Vec::new());
+            for ((&z, &d), &v) in depth.data.iter().zip(&inv.data).zip(&var.data) {
+                if z > 0.0 && d.is_finite() && v.is_finite() && v < f32::MAX {
+                    errors.push((1.0 / z as f64 - d as f64 / scale).abs());
+                    unc.push(v as f64 / (scale * scale));
+                }
+            }
+            if errors.len() < 100 {
+                continue;
+            }
+            let r = ause(&errors, &unc, &AuseOptions::default())?;
+            sum += r.ause;
+            sum_random += r.ause_random;
+            count += 1;
+        }
+        if count > 0 {
+            ause_mean = sum / count as f64;
+            ause_random = sum_random / count as f64;
+        }
+    }
+    let times = tracker.times();
+    let counters = tracker.counters();
+    let per_frame = |d: Duration| d.as_secs_f64() * 1e3 / n as f64;
+    latencies.sort();
+    Ok(RunMetrics {
+        fps: n as f64 / wall.as_secs_f64().max(1e-9),
+        cpu_ms_per_frame: cpu_ns / 1e6 / n as f64,
+        flow_ms: per_frame(times.flow),
+        ba_ms: per_frame(times.ba),
+        covariance_ms: per_frame(times.covariance),
+        loop_closure_ms: per_frame(times.loop_closure),
+        global_ba_ms: per_frame(times.global_ba),
+        latency_p50_ms: percentile_ms(&latencies, 0.5),
+        latency_p99_ms: percentile_ms(&latencies, 0.99),
+        latency_max_ms: percentile_ms(&latencies, 1.0),
+        ate_rmse_m: report.ate.stats_m.rmse,
+        ate_percent_of_path: report.ate_rmse_percent_of_path.unwrap_or(f64::NAN),
+        path_m: report.gt_path_length_m,
+        keyframes_inserted: counters.keyframes_inserted,
+        loops_closed: counters.loops_closed,
+        lost_frames: counters.lost_frames,
+        ause: ause_mean,
+        ause_random,
+        rss_peak_mib: rss,
+        tracker_heap_peak_mib: if duv::core::alloc::is_installed() { heap_peak } else { f64::NAN },
+    })
+}
+
+fn markdown(report: &BenchReport) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# duv bench track\n\n`{}`\n", report.command);
+    let _ = writeln!(
+        s,
+        "Board `{}`, {} tracking threads, {} CPUs visible. Medians of {} run(s) per row; per-stage times are ms per frame (mean over the run); AUSE is the mean over the final keyframes (full resolution), random = the same errors in random order. RSS includes the in-memory frames ({}).\n",
+        report.board,
+        report.threads,
+        report.cpus,
+        report.cases.first().map_or(0, |c| c.runs),
+        if report.rss_reset_per_run { "peak reset before each run" } else { "peak since process start" }
+    );
+    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | RSS MiB | frames MiB | tracker heap MiB |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for c in &report.cases {
+        let m = &c.median;
+        let _ = writeln!(
+            s,
+            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
+            c.sequence,
+            c.width,
+            c.height,
+            c.frames,
+            if c.loop_closure { "on" } else { "off" },
+            m.fps,
+            m.cpu_ms_per_frame,
+            m.flow_ms,
+            m.ba_ms,
+            m.covariance_ms,
+            m.loop_closure_ms,
+            m.global_ba_ms,
+            m.latency_p50_ms,
+            m.latency_p99_ms,
+            m.latency_max_ms,
+            m.ate_rmse_m,
+            m.ate_percent_of_path,
+            m.path_m,
+            m.keyframes_inserted,
+            m.loops_closed,
+            m.lost_frames,
+            m.ause,
+            m.ause_random,
+            m.rss_peak_mib,
+            c.frames_mib,
+            m.tracker_heap_peak_mib
+        );
+    }
+    s
+}
+
+pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(args.runs >= 1, "--runs must be at least 1");
+    let loop_settings: Vec<bool> = match args.loop_closure.as_str() {
+        "both" => vec![true, false],
+        "on" => vec![true],
+        "off" => vec![false],
+        other => anyhow::bail!("--loop-closure {other:?}: expected both, on or off"),
+    };
+    let board = Board::load(&args.board)?;
+    let cap = TrackerCapacity::from_board(&board);
+    let base_cfg = match &args.config {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            toml::from_str::<TrackerConfig>(&text).with_context(|| format!("{}", p.display()))?
+        }
+        None => TrackerConfig::default(),
+    };
+    let sizes = args.sizes.iter().map(|s| parse_size(s)).collect::<anyhow::Result<Vec<_>>>()?;
+    for name in &args.sequences {
+        sequence_preset(name)?;
+    }
+    let rss_reset = reset_rss_peak();
+    let mut cases = Vec::new();
+    for name in &args.sequences {
+        for &(w, h) in &sizes {
+            let t0 = Instant::now();
+            let mut seq = generate(name, w, h, args.frames, args.seed)?;
+            let frames_mib = seq.frames.iter().map(|f| (f.image.width() * f.image.height() * 3) as f64).sum::<f64>() / MIB;
+            eprintln!("bench track: {name} {w}x{h}: {} frames generated in {:.1} s", seq.frames.len(), t0.elapsed().as_secs_f64());
+            for &lc in &loop_settings {
+                let mut cfg = base_cfg.clone();
+                cfg.loop_closure = lc;
+                let mut all = Vec::with_capacity(args.runs);
+                for r in 0..args.runs {
+                    let m = run_once(&mut seq, &cfg, cap, !args.no_ause, rss_reset).with_context(|| format!("{name} {w}x{h} run {}", r + 1))?;
+                    eprintln!(
+                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms, ATE {:.3}% of path, loops {}, AUSE {:.3} (random {:.3})",
+                        if lc { "on" } else { "off" },
+                        r + 1,
+                        args.runs,
+                        m.fps,
+                        m.cpu_ms_per_frame,
+                        m.latency_p99_ms,
+                        m.ate_percent_of_path,
+                        m.loops_closed,
+                        m.ause,
+                        m.ause_random
+                    );
+                    all.push(m);
+                }
+                cases.push(CaseResult {
+                    sequence: name.clone(),
+                    width: w,
+                    height: h,
+                    frames: seq.frames.len(),
+                    loop_closure: lc,
+                    runs: args.runs,
+                    frames_mib,
+                    median: median_metrics(&all),
+                    all,
+                });
+            }
+        }
+    }
+    let report = BenchReport {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        board: args.board.display().to_string(),
+        threads: cap.threads,
+        cpus: std::thread::available_parallelism().map_or(0, |n| n.get()),
+        rss_reset_per_run: rss_reset,
+        cases,
+    };
+    let md = markdown(&report);
+    print!("{md}");
+    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    let json = serde_json::to_string_pretty(&report)?;
+    duv::io::write_atomic(&args.out.join("bench_track.json"), json.as_bytes())?;
+    duv::io::write_atomic(&args.out.join("bench_track.md"), md.as_bytes())?;
+    eprintln!("wrote {} and bench_track.md", args.out.join("bench_track.json").display());
+    Ok(())
+}
