@@ -133,6 +133,10 @@ pub struct PipelineConfig {
     pub frame_period_ms: f64,
     /// The board's host memory budget (health: memory headroom).
     pub host_budget_mb: f64,
+    /// Keyframes leave tracking once this many newer ones exist (the board's BA window), so
+    /// the depth and variance mapping gets have been through the window BA; the rest at the
+    /// end of the stream.
+    pub keyframe_lag: usize,
 }
 
 impl PipelineConfig {
@@ -155,6 +159,7 @@ impl PipelineConfig {
             world_from_tracker: None,
             frame_period_ms: 1e3 / board.camera.fps,
             host_budget_mb: board.budgets.host_mb as f64,
+            keyframe_lag: board.budgets.ba_window as usize,
         }
     }
 }
@@ -252,7 +257,33 @@ fn apply(align: Option<&Sim3>, pose: &Se3) -> Se3 {
     }
 }
 
-/// The keyframe the tracker just inserted, at full resolution, for mapping and the log.
+/// Inserted keyframes waiting for `lag` newer ones (see [`PipelineConfig::keyframe_lag`]).
+struct KeyframeLag {
+    lag: usize,
+    pending: std::collections::VecDeque<(u64, Frame)>,
+}
+
+impl KeyframeLag {
+    fn new(lag: usize) -> Self {
+        KeyframeLag { lag, pending: std::collections::VecDeque::with_capacity(lag + 1) }
+    }
+    fn push(&mut self, id: u64, frame: &Frame) {
+        self.pending.push_back((id, frame.clone()));
+    }
+    /// The next keyframe due (all of them when `flush`), with the tracker's current depth,
+    /// variance and pose; keyframes the tracker no longer holds are skipped.
+    fn pop_ready(&mut self, tracker: &Tracker, align: Option<&Sim3>, flush: bool) -> Option<Keyframe> {
+        while self.pending.len() > if flush { 0 } else { self.lag } {
+            let (id, frame) = self.pending.pop_front()?;
+            if let Some(kf) = keyframe_of(tracker, &frame, id, align) {
+                return Some(kf);
+            }
+        }
+        None
+    }
+}
+
+/// A keyframe of the tracker at full resolution, for mapping and the log.
 fn keyframe_of(tracker: &Tracker, frame: &Frame, id: u64, world_from_tracker: Option<&Sim3>) -> Option<Keyframe> {
     let cam = *tracker.camera();
     let view = tracker.keyframes().find(|k| k.id == id)?;
@@ -385,42 +416,49 @@ pub fn run<S: FrameSource + 'static>(
         let interval = cfg.checkpoint_interval;
         let mut map = map;
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
-            let _span = tracing::info_span!("map").entered();
-            let mut last_ckpt = Instant::now();
-            let mut last_t = Timestamp::from_ns(0);
-            let save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
-                if let Some((bytes, centres)) = map.checkpoint() {
-                    checkpoints.save(&bytes)?;
-                    log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: centres, checkpoint: bytes });
-                }
-                Ok(())
-            };
-            loop {
-                let idle = match kq.try_pop() {
-                    Some(kf) => {
-                        last_t = kf.t_ns;
-                        map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
-                        false
+            let kq_on_exit = kq.clone();
+            let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
+                let _span = tracing::info_span!("map").entered();
+                let mut last_ckpt = Instant::now();
+                let mut last_t = Timestamp::from_ns(0);
+                let save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
+                    if let Some((bytes, centres)) = map.checkpoint() {
+                        checkpoints.save(&bytes)?;
+                        log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: centres, checkpoint: bytes });
                     }
-                    None => !map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?,
+                    Ok(())
                 };
-                if last_ckpt.elapsed() >= interval {
-                    last_ckpt = Instant::now();
-                    save(&mut map, last_t)?;
-                }
-                if idle {
-                    match kq.pop_timeout(Duration::from_millis(100)) {
-                        Ok(Some(kf)) => {
+                loop {
+                    let idle = match kq.try_pop() {
+                        Some(kf) => {
                             last_t = kf.t_ns;
                             map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                            false
                         }
-                        Ok(None) => {}
-                        Err(()) => break,
+                        None => !map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?,
+                    };
+                    if last_ckpt.elapsed() >= interval {
+                        last_ckpt = Instant::now();
+                        save(&mut map, last_t)?;
+                    }
+                    if idle {
+                        match kq.pop_timeout(Duration::from_millis(100)) {
+                            Ok(Some(kf)) => {
+                                last_t = kf.t_ns;
+                                map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                            }
+                            Ok(None) => {}
+                            Err(()) => break,
+                        }
                     }
                 }
-            }
-            save(&mut map, last_t)?;
-            Ok(map)
+    save(&mut map, last_t)?;
+                Ok(map)
+            };
+            // Closed on any exit, so tracking never waits on a mapping thread that failed.
+            let result = run();
+            kq_on_exit.close();
+            result
         })?
     };
 
@@ -433,6 +471,7 @@ pub fn run<S: FrameSource + 'static>(
         let announce = cfg.announce;
         let align = cfg.world_from_tracker;
         let mut tracker = tracker;
+        let mut lag = KeyframeLag::new(cfg.keyframe_lag);
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             let _span = tracing::info_span!("track").entered();
             let mut recorder = TrajectoryRecorder::new();
@@ -446,11 +485,12 @@ pub fn run<S: FrameSource + 'static>(
                     recorder.record(&out);
                     log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
                     if let Some(id) = out.new_keyframe {
-                        if let Some(kf) = keyframe_of(tracker, &frame, id, align.as_ref()) {
-                            sh.keyframes.fetch_add(1, Ordering::Relaxed);
-                            log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
-                            let _ = kq.push(kf, 0);
-                        }
+                        lag.push(id, &frame);
+                    }
+                    while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
+                        sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                        log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
+                        let _ = kq.push(kf, 0);
                     }
                     let lat = arrived.elapsed();
                     latencies.push(lat);
@@ -463,6 +503,11 @@ pub fn run<S: FrameSource + 'static>(
                     if announce {
                         println!("tracked {} {}", out.seq, out.t_ns.t_ns());
                     }
+                }
+                while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), true) {
+                    sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                    log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
+                    let _ = kq.push_wait(kf, 0);
                 }
                 Ok(())
             });
@@ -599,6 +644,7 @@ fn run_deterministic<S: FrameSource + 'static>(
         }
     };
     let mut last_t = Timestamp::from_ns(0);
+    let mut lag = KeyframeLag::new(cfg.keyframe_lag);
     tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
         while !stop.load(Ordering::Relaxed) {
             let frame = match source.next_frame() {
@@ -620,12 +666,18 @@ fn run_deterministic<S: FrameSource + 'static>(
             recorder.record(&out);
             log(&mut writer, LogItem::Pose(pose_record(&out, align.as_ref())));
             if let Some(id) = out.new_keyframe {
-                if let Some(kf) = keyframe_of(tracker, &frame, id, align.as_ref()) {
-                    log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
-                    map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
-                    while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
-                }
+                lag.push(id, &frame);
             }
+            while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
+                log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
+                map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
+            }
+        }
+        while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), true) {
+            log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
+            map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+            while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
         }
         Ok(())
     })?;
