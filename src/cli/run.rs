@@ -446,8 +446,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     duv::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
     // The map: final keyframe poses, a last optimisation, the exports.
     let final_poses: Vec<(u64, duv::core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
-    if let Some(summary) = map.finish(&final_poses, &args.out).map_err(|e| anyhow::anyhow!("mapping: {e}"))? {
-        println!("{summary}");
+    // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
+    // and the report still follow.
+    match map.finish(&final_poses, &args.out) {
+        Ok(Some(summary)) => println!("{summary}"),
+        Ok(None) => {}
+        Err(e) => eprintln!("MAP NOT EXPORTED: {e}"),
     }
 
     // Timing.

@@ -10,6 +10,10 @@ use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+/// Chunks also close at this size (besides every `chunk_interval`): a write failure loses at
+/// most the open chunk, and a reader's memory per chunk stays small.
+const CHUNK_BYTES: u64 = 512 << 10;
+
 /// Where and how the log is written.
 #[derive(Clone, Debug)]
 pub struct LogConfig {
@@ -140,7 +144,7 @@ impl SegmentWriter {
         let file = std::fs::OpenOptions::new().write(true).create(true).truncate(true).open(&path).map_err(io_err(&path))?;
         let sync = file.try_clone().map_err(io_err(&path))?;
         let out = CountingFile { inner: BufWriter::with_capacity(1 << 20, file), pos: 0 };
-        let options = mcap::WriteOptions::new().compression(None).profile("").library(concat!("duv-slam ", env!("CARGO_PKG_VERSION"))).chunk_size(Some(4 << 20));
+        let options = mcap::WriteOptions::new().compression(None).profile("").library(concat!("duv-slam ", env!("CARGO_PKG_VERSION"))).chunk_size(Some(CHUNK_BYTES));
         let writer = options.create(out).map_err(|source| LogError::Mcap { path: path.clone(), source })?;
         let now = Instant::now();
         let mut seg = OpenSegment { path, writer, sync, opened: now, last_sync: now, channels: [None; ALL_TOPICS.len()], messages: 0 };
@@ -201,7 +205,11 @@ impl SegmentWriter {
             self.stats.dropped_after_failure += 1;
             return Ok(());
         }
-        let result = self.write_inner(item).and_then(|()| self.rotate_if_due(false));
+        // A large record (map checkpoint, keyframe maps) starts after a closed, synced chunk,
+        // so a failure while writing it cannot take the smaller records before it along.
+        let large = matches!(item, LogItem::Map { .. } | LogItem::Keyframe(_));
+        let pre = if large && self.open.is_some() { self.sync_now() } else { Ok(()) };
+        let result = pre.and_then(|()| self.write_inner(item)).and_then(|()| self.rotate_if_due(false));
         if let LogItem::Calibration { t_ns, camera } = item {
             self.last_calibration = Some((*t_ns, *camera));
         }
