@@ -8,6 +8,7 @@
 //! parameters go in the kernel's immediate (push-constant) block.
 
 use std::path::PathBuf;
+use std::sync::{Mutex, MutexGuard, OnceLock};
 
 use ash::vk;
 use bytemuck::Pod;
@@ -162,10 +163,33 @@ struct Candidate {
     timestamp_bits: u32,
 }
 
+/// The Vulkan loader, loaded once per process and never unloaded. Loading and unloading
+/// `libvulkan` (and with it the ICDs and implicit layers) per context raced with contexts being
+/// created on other threads: the parallel GPU test binaries crashed with SIGSEGV on lavapipe.
+fn loader() -> Result<&'static ash::Entry, GpuError> {
+    static ENTRY: OnceLock<Result<ash::Entry, String>> = OnceLock::new();
+    ENTRY
+        .get_or_init(|| unsafe { ash::Entry::load() }.map_err(|e| e.to_string()))
+        .as_ref()
+        .map_err(|reason| GpuError::NoLoader { reason: reason.clone() })
+}
+
+/// Serialises `vkCreateInstance`/`vkCreateDevice` and `vkDestroyDevice`/`vkDestroyInstance`
+/// across threads. The spec only asks external synchronisation per object, but loaders,
+/// implicit layers (Mesa's device-select) and drivers have process-wide state there that races
+/// when two contexts open or close at once. Work on an open context is not serialised.
+fn lifecycle_lock() -> MutexGuard<'static, ()> {
+    static LIFECYCLE: Mutex<()> = Mutex::new(());
+    // A panic while holding it leaves nothing half-done that a later context depends on.
+    LIFECYCLE.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
 impl GpuContext {
     /// Opens the device, allocates the arena and builds every pipeline.
     pub fn new(options: &GpuOptions) -> Result<Self, GpuError> {
-        let entry = unsafe { ash::Entry::load() }.map_err(|e| GpuError::NoLoader { reason: e.to_string() })?;
+        let entry = loader()?.clone();
+        // Instance and device creation (and pipeline builds) one context at a time.
+        let _lifecycle = lifecycle_lock();
         let app = vk::ApplicationInfo::default()
             .application_name(c"duv")
             .engine_name(c"duv")
@@ -733,6 +757,7 @@ impl Drop for GpuContext {
         if let Err(e) = self.save_pipeline_cache() {
             tracing::warn!("gpu: {e}");
         }
+        let _lifecycle = lifecycle_lock();
         self.destroy_device_objects();
         unsafe { self.instance.destroy_instance(None) };
     }
