@@ -42,7 +42,8 @@ enum Command {
     /// Summarise a dataset folder through the readers (frames, rate, calibration, ground truth).
     Dataset(cli::dataset::DatasetArgs),
     /// Benchmark a stage on generated data: `duv bench track` (FPS, latency, ATE, AUSE, memory),
-    /// `duv bench map` (PSNR/SSIM, recovered medium, ablation, ms per iteration).
+    /// `duv bench map` (PSNR/SSIM, recovered medium, ablation, ms per iteration), `duv bench
+    /// replay` (soak: a log replayed in a loop, host RSS growth).
     Bench(cli::bench::BenchArgs),
 }
 

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_map;
+pub mod bench_replay;
 pub mod bench_track;
 pub mod board;
 pub mod dataset;

@@ -78,7 +78,7 @@ pub struct RunArgs {
     announce: bool,
     /// Track only: no map, no map exports.
     #[arg(long)]
-    no_map: bool,
+    pub no_map: bool,
     /// Mapper iterations after each keyframe handed to mapping.
     #[arg(long, default_value_t = MappingBudget::default().iterations_per_keyframe)]
     map_iterations: u64,
@@ -91,15 +91,35 @@ pub struct RunArgs {
     /// Mapper parameters (TOML, `MapperConfig` fields); defaults otherwise.
     #[arg(long, value_name = "FILE")]
     map_config: Option<PathBuf>,
+    /// Soak test: an `mcap:` source starts over at its end until this many seconds have
+    /// passed, with time stamps and sequence numbers continued (`duv bench replay`).
+    #[arg(long, hide = true, value_name = "SECONDS")]
+    pub loop_for_s: Option<f64>,
 }
 
 /// Where frames come from, with what ground truth.
 enum Source {
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv::core::camera::UndistortMap, ImageRgb8)> },
-    Mcap { replay: Box<McapSource>, count: usize },
+    Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>> },
     /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
     Live { source: Box<dyn FrameSource>, next: usize, count: usize },
+}
+
+/// A recorded log replayed over and over (soak tests): each lap continues the time stamps and
+/// sequence numbers of the last, one recorded frame period after its last frame.
+struct ReplayLoop {
+    path: PathBuf,
+    until: std::time::Instant,
+    laps: u64,
+    /// Added to the recorded time stamps and sequence numbers of this lap.
+    offset_ns: i64,
+    offset_seq: u64,
+    /// Recorded time stamps of the log's first two frames (the lap period's start and step).
+    first_t_ns: Option<i64>,
+    period_ns: i64,
+    last_t_ns: i64,
+    last_seq: u64,
 }
 
 /// `WATER[-TRAJECTORY]` of a `sim:` spec.
@@ -125,7 +145,24 @@ impl Source {
     fn open(args: &RunArgs, board: &Board, start: usize) -> anyhow::Result<Source> {
         if let Some(path) = args.source.strip_prefix("mcap:") {
             let replay = McapSource::open(Path::new(path), ReadLimits::default()).with_context(|| format!("source {}", args.source))?.with_max_frames(args.frames);
-            return Ok(Source::Mcap { replay: Box::new(replay), count: args.frames.unwrap_or(usize::MAX) });
+            let looping = match args.loop_for_s {
+                Some(s) => {
+                    anyhow::ensure!(s.is_finite() && s > 0.0, "--loop-for-s must be > 0, got {s}");
+                    Some(Box::new(ReplayLoop {
+                        path: PathBuf::from(path),
+                        until: std::time::Instant::now() + Duration::from_secs_f64(s),
+                        laps: 0,
+                        offset_ns: 0,
+                        offset_seq: 0,
+                        first_t_ns: None,
+                        period_ns: 0,
+                        last_t_ns: 0,
+                        last_seq: 0,
+                    }))
+                }
+                None => None,
+            };
+            return Ok(Source::Mcap { replay: Box::new(replay), count: args.frames.unwrap_or(usize::MAX), looping });
         }
         if let Some(preset) = args.source.strip_prefix("sim:") {
             let (water, trajectory) = parse_sim_preset(preset)?;
@@ -202,7 +239,31 @@ impl Source {
                     Err(e) => tracing::warn!("skipping a frame: {e}"),
                 }
             },
-            Source::Mcap { replay, .. } => Ok(replay.next_frame()?),
+            Source::Mcap { replay, looping: None, .. } => Ok(replay.next_frame()?),
+            Source::Mcap { replay, looping: Some(lp), .. } => loop {
+                if let Some(mut frame) = replay.next_frame()? {
+                    let recorded = frame.t_ns.t_ns();
+                    match lp.first_t_ns {
+                        None => lp.first_t_ns = Some(recorded),
+                        Some(first) if lp.period_ns == 0 && lp.laps == 0 => lp.period_ns = (recorded - first).max(1),
+                        Some(_) => {}
+                    }
+                    frame.t_ns = frame.t_ns.offset_ns(lp.offset_ns);
+                    frame.seq += lp.offset_seq;
+                    lp.last_t_ns = frame.t_ns.t_ns();
+                    lp.last_seq = frame.seq;
+                    return Ok(Some(frame));
+                }
+                if std::time::Instant::now() >= lp.until || lp.first_t_ns.is_none() {
+                    return Ok(None);
+                }
+                // Start the next lap one frame period after this one's last frame.
+                lp.laps += 1;
+                lp.offset_ns = lp.last_t_ns + lp.period_ns - lp.first_t_ns.unwrap_or(0);
+                lp.offset_seq = lp.last_seq + 1;
+                let again = McapSource::open(&lp.path, ReadLimits::default()).with_context(|| format!("reopening {} for lap {}", lp.path.display(), lp.laps + 1))?;
+                **replay = again;
+            },
             Source::Live { source, next, count } => {
                 if *next >= *count {
                     return Ok(None);
@@ -548,6 +609,7 @@ impl RunArgs {
             map_idle_iterations: 30,
             map_final_iterations: 100,
             map_config: None,
+            loop_for_s: None,
         }
     }
 }
