@@ -1,7 +1,8 @@
 //! The MCAP black box: everything the vehicle saw and decided, in files that open in Foxglove
 //! and survive a power cut.
 //!
-//! - [`schema`]: topics and their Foxglove schemas (`foxglove.RawImage`,
+//! - [`schema`]: topics and their Foxglove schemas (`foxglove.RawImage`, or
+//!   `foxglove.CompressedImage` for input frames when the board asks for JPEG,
 //!   `foxglove.CameraCalibration`, `foxglove.PoseInFrame`, `foxglove.FrameTransform`,
 //!   `foxglove.PointCloud`) and the JSON schemas of our own records (`duv.TrackingState`,
 //!   `duv.Health`); [`LogItem`] is what the other stages hand to the log.
@@ -23,7 +24,7 @@ pub mod writer;
 pub use inspect::{inspect_log, LogSummary};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
-pub use schema::{LogItem, PoseRecord, Topic};
+pub use schema::{FrameEncoding, LogItem, PoseRecord, Topic};
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 
 use std::path::PathBuf;
