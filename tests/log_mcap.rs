@@ -9,7 +9,7 @@ use duv::log::reader::ReadLimits;
 use duv::log::recover::{is_finished, recover_segment};
 use duv::log::schema::{decode_frame, PoseRecord};
 use duv::camera::FrameSource;
-use duv::log::{inspect_log, list_segments, read_segment, FrameEncoding, LogConfig, LogItem, SegmentWriter, Topic};
+use duv::log::{inspect_log, list_segments, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogError, LogItem, SegmentWriter, Topic};
 use duv::replay::McapSource;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::{Translation3, UnitQuaternion};
@@ -392,4 +392,90 @@ fn jpeg_frames_are_compressed_images_that_decode_replay_and_shrink_the_log() {
         assert_eq!(f["schemas"]["/slam/pose"], "foxglove.PoseInFrame");
         assert_eq!(f["indexed"], true);
     }
+}
+
+#[test]
+fn logged_keyframes_read_back_whole_and_up_to_the_damage() {
+    let dir = tempfile::tempdir().unwrap();
+    write_log(dir.path(), 60, 4, 1 << 30);
+    let expected: Vec<Keyframe> = [5u64, 25, 45].iter().map(|&i| keyframe(i, i as i64 * 100_000_000)).collect();
+    let got = read_log_keyframes(dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(got.keyframes, expected);
+    assert!(got.damage.is_empty() && got.skipped.is_empty() && got.renumbered.is_empty(), "{got:?}");
+    assert_eq!(got.segments.len(), 1);
+
+    // Cut anywhere: the keyframes before the cut come back exactly, the one the cut splits is
+    // left out and named, and damage is reported; with none left it is an error naming the log.
+    let path = list_segments(dir.path()).unwrap()[0].1.clone();
+    let full = std::fs::read(&path).unwrap();
+    let mut seen_counts = std::collections::BTreeSet::new();
+    let mut last = 0;
+    for k in 1..40 {
+        let cut = full.len() * k / 40;
+        let cut_dir = tempfile::tempdir().unwrap();
+        std::fs::write(cut_dir.path().join("segment-000000.mcap"), &full[..cut]).unwrap();
+        match read_log_keyframes(cut_dir.path(), ReadLimits::default()) {
+            Ok(got) => {
+                let n = got.keyframes.len();
+                assert_eq!(got.keyframes[..], expected[..n], "cut at {cut}");
+                assert_eq!(got.damage.len(), 1, "cut at {cut}: {:?}", got.damage);
+                assert!(got.damage[0].contains("after byte"), "{}", got.damage[0]);
+                assert!(got.skipped.len() <= 1 && got.skipped.iter().all(|(i, why)| expected.get(n).is_some_and(|k| k.index == *i) && why.contains("no /keyframe/")), "cut at {cut}: {:?}", got.skipped);
+                assert!(n >= last, "cut at {cut}: {n} keyframes after {last} at a shorter cut");
+                last = n;
+                seen_counts.insert(n);
+            }
+            Err(e) => {
+                assert!(matches!(e, LogError::NoKeyframes { .. }), "cut at {cut}: {e}");
+                assert_eq!(last, 0, "cut at {cut}: no keyframes after a shorter cut had some");
+                let msg = e.to_string();
+                assert!(msg.contains(cut_dir.path().to_str().unwrap()) && msg.contains("no keyframes") && msg.contains("damaged"), "{msg}");
+                seen_counts.insert(0);
+            }
+        }
+    }
+    assert_eq!(seen_counts.into_iter().collect::<Vec<_>>(), vec![0, 1, 2, 3]);
+
+    // A log without keyframes, and a folder without a log, are errors that name the folder.
+    let frames_only = tempfile::tempdir().unwrap();
+    let mut w = SegmentWriter::create(LogConfig::new(frames_only.path())).unwrap();
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+    w.write(&LogItem::Frame(frame(0, 0))).unwrap();
+    w.finish().1.unwrap();
+    let e = read_log_keyframes(frames_only.path(), ReadLimits::default()).unwrap_err();
+    assert!(matches!(e, LogError::NoKeyframes { segments: 1, .. }), "{e}");
+    assert!(e.to_string().starts_with(frames_only.path().to_str().unwrap()) && !e.to_string().contains("damaged"), "{e}");
+    // A keyframe whose depth does not fit the calibration is left out, with why.
+    let misfit = tempfile::tempdir().unwrap();
+    let mut w = SegmentWriter::create(LogConfig::new(misfit.path())).unwrap();
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+    let mut bad = keyframe(7, 0);
+    bad.inv_depth = PlaneF32::filled(10, 10, [0.5]);
+    w.write(&LogItem::Keyframe(Box::new(bad))).unwrap();
+    w.write(&LogItem::Keyframe(Box::new(keyframe(8, 100)))).unwrap();
+    w.finish().1.unwrap();
+    let got = read_log_keyframes(misfit.path(), ReadLimits::default()).unwrap();
+    assert_eq!(got.keyframes.iter().map(|k| k.index).collect::<Vec<_>>(), vec![8]);
+    assert_eq!(got.skipped, vec![(7, "image 40x30 or depth 10x10 differs from the calibration 40x30".to_string())]);
+    let empty = tempfile::tempdir().unwrap();
+    let e = read_log_keyframes(empty.path(), ReadLimits::default()).unwrap_err();
+    assert!(matches!(e, LogError::NotALog { .. }) && e.to_string().contains("segment-NNNNNN.mcap"), "{e}");
+}
+
+#[test]
+fn a_resumed_runs_repeated_keyframe_index_is_renumbered() {
+    let dir = tempfile::tempdir().unwrap();
+    for run in 0..2 {
+        let mut w = SegmentWriter::create(LogConfig::new(dir.path())).unwrap();
+        w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+        w.write(&LogItem::Keyframe(Box::new(keyframe(5, run * 1_000_000_000)))).unwrap();
+        w.finish().1.unwrap();
+    }
+    // The run-level folder (`RUN/log`) is found from `RUN` too.
+    let run_dir = tempfile::tempdir().unwrap();
+    std::fs::rename(dir.path(), run_dir.path().join("log")).unwrap();
+    let got = read_log_keyframes(run_dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(got.segments.len(), 2);
+    assert_eq!(got.keyframes.iter().map(|k| (k.index, k.t_ns.t_ns())).collect::<Vec<_>>(), vec![(5, 0), (6, 1_000_000_000)]);
+    assert_eq!(got.renumbered, vec![(5, 6)]);
 }

@@ -6,7 +6,7 @@
 //! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
 
 use super::LogError;
-use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, Se3, Timestamp};
+use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use foxglove::messages as fg;
 use foxglove::Encode;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
@@ -521,6 +521,22 @@ fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, S
         FrameImage::Rgb8(crate::core::ImageRgb8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} rgb"))?)
     };
     Ok(Frame { t_ns, seq, image })
+}
+
+/// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
+/// and variance are logged) into a plane.
+pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, String> {
+    use foxglove::Decode;
+    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    if img.encoding != "32FC1" {
+        return Err(format!("encoding {:?}, expected \"32FC1\"", img.encoding));
+    }
+    if img.step as usize != w * 4 || img.data.len() != w * h * 4 {
+        return Err(format!("{} bytes with step {} for a {w}x{h} 32FC1 image", img.data.len(), img.step));
+    }
+    let data = img.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    PlaneF32::from_vec(w, h, data).ok_or_else(|| format!("{w}x{h} 32FC1 size mismatch"))
 }
 
 /// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
