@@ -31,7 +31,7 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// Evaluate a trajectory / run against ground truth: ATE, RPE, PSNR, SSIM, AUSE, figures.
     Eval(cli::eval::EvalArgs),
-    /// Refine a Gaussian map and the water offline from a keyframe folder or generated keyframes.
+    /// Refine a Gaussian map and the water offline from a keyframe folder, a run's MCAP log or generated keyframes.
     Refine(cli::refine::RefineArgs),
     /// Check board profiles and print the capacities they give.
     Board(cli::board::BoardArgs),

@@ -25,6 +25,8 @@ fn board_check_passes_on_repo_boards_and_fails_on_a_broken_one() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stdout));
     let text = String::from_utf8(out.stdout).unwrap();
     assert_eq!(text.lines().filter(|l| l.starts_with("ok")).count(), 3, "{text}");
+    assert!(text.lines().any(|l| l.contains("jetson-orin-nx-16gb") && l.ends_with("| log frames jpeg q90")), "{text}");
+    assert!(text.lines().any(|l| l.contains(" sim ") && l.ends_with("| log frames raw")), "{text}");
 
     let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("bad.toml");

@@ -1,6 +1,7 @@
 //! `duv run` end to end on a tiny `sim:` source: every output file, with the right line counts,
 //! PFMs readable at full resolution, the eval report, the map exports; `duv refine` on the
-//! finished run; and clear errors for bad sources.
+//! finished run, from its keyframe folder and from its MCAP log (whole, truncated, without
+//! keyframes); and clear errors for bad sources.
 
 use duv::core::MediumParams;
 use duv::io::keyframes::read_keyframe_folder;
@@ -100,6 +101,90 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     assert_eq!(metrics["keyframes"].as_array().unwrap().len(), kfs.len());
     assert!(metrics["mean_psnr_db"].as_f64().unwrap() > 10.0, "{}", metrics["mean_psnr_db"]);
     assert!(refined.join("map.ply").exists() && refined.join("medium.json").exists());
+}
+
+#[test]
+fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    // 64 frames at 160x120 with a 1/4 depth grid: enough keyframes with confident depth to
+    // seed Gaussians (a 30-frame run seeds none).
+    let cfg = dir.path().join("tracker.toml");
+    std::fs::write(&cfg, "depth_factor = 4\n").unwrap();
+    let res = duv()
+        .args(["run", "--source", "sim:coastal", "--frames", "64", "--width", "160", "--height", "120", "--no-progress", "--no-map"])
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    let seg = out.join("log/segment-000000.mcap");
+    let summary = duv::log::inspect_log(&out.join("log"), duv::log::ReadLimits::default()).unwrap();
+    let logged = summary.topics["/keyframe/pose"].messages as usize;
+    assert!(logged >= 3, "{logged} keyframes logged");
+    let refine_with = |flag: &str, from: &std::path::Path, to: &str| {
+        let r = duv().args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--quiet"]).arg(flag).arg(from).arg("--out").arg(dir.path().join(to)).output().unwrap();
+        (r.status.success(), String::from_utf8_lossy(&r.stdout).into_owned(), String::from_utf8_lossy(&r.stderr).into_owned())
+    };
+    let refine = |from: &std::path::Path, to: &str| refine_with("--mcap", from, to);
+    let metrics = |to: &str| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(dir.path().join(to).join("metrics.json")).unwrap()).unwrap() };
+
+    // The whole log (given as the run folder): every logged keyframe, the same exports as
+    // from a keyframe folder.
+    let (ok, stdout, stderr) = refine(&out, "whole");
+    assert!(ok, "stdout:\n{stdout}\nstderr:\n{stderr}");
+    assert!(stderr.contains(&format!("{logged} keyframe(s) from 1 segment(s)")), "{stderr}");
+    let m = metrics("whole");
+    assert_eq!(m["keyframes"].as_array().unwrap().len(), logged);
+    assert!(m["mean_psnr_db"].as_f64().unwrap() > 10.0, "{}", m["mean_psnr_db"]);
+    let whole = dir.path().join("whole");
+    assert!(whole.join("map.ply").exists() && whole.join("map.ckpt").exists() && whole.join("medium.json").exists());
+    assert_eq!(std::fs::read_dir(whole.join("renders")).unwrap().count(), logged);
+    let gaussians = read_ply(&whole.join("map.ply"), 1 << 20).unwrap().len();
+    assert!(gaussians > 100, "{gaussians} Gaussians");
+
+    // The same keyframes as a keyframe folder refine to the same map (the folder's text poses
+    // round to f64 printing, and the mapper's parallel sums are not ordered: 1e-4 dB measured).
+    let logged_kfs = duv::log::read_log_keyframes(&out, duv::log::ReadLimits::default()).unwrap().keyframes;
+    let folder = dir.path().join("as-folder");
+    duv::io::keyframes::write_keyframe_folder(&folder, &logged_kfs).unwrap();
+    let (ok, stdout, stderr) = refine_with("--keyframes", &folder, "from-folder");
+    assert!(ok, "stdout:\n{stdout}\nstderr:\n{stderr}");
+    let f = metrics("from-folder");
+    assert_eq!(f["keyframes"].as_array().unwrap().len(), logged);
+    let (a, b) = (m["mean_psnr_db"].as_f64().unwrap(), f["mean_psnr_db"].as_f64().unwrap());
+    assert!((a - b).abs() < 0.01, "mean PSNR {a} dB from the log, {b} dB from the folder");
+    let g = read_ply(&dir.path().join("from-folder/map.ply"), 1 << 20).unwrap().len();
+    assert!(g.abs_diff(gaussians) <= gaussians / 100, "{gaussians} Gaussians from the log, {g} from the folder");
+
+    // Truncated inside the keyframes (they leave tracking after the BA window, so in a short
+    // run they are all near the end; the library finds a cut that keeps some of them): read
+    // up to the damage, said so, fewer keyframes refined.
+    let bytes = std::fs::read(&seg).unwrap();
+    let cut = dir.path().join("cut");
+    std::fs::create_dir_all(&cut).unwrap();
+    let cut_file = cut.join("segment-000000.mcap");
+    let kept = (50..100).find_map(|pct| {
+        std::fs::write(&cut_file, &bytes[..bytes.len() * pct / 100]).unwrap();
+        let n = duv::log::read_log_keyframes(&cut, duv::log::ReadLimits::default()).map_or(0, |k| k.keyframes.len());
+        (n >= 1 && n < logged).then_some(n)
+    });
+    let kept = kept.expect("a cut that keeps some but not all keyframes");
+    let (ok, stdout, stderr) = refine(&cut, "cut-out");
+    assert!(ok, "stdout:\n{stdout}\nstderr:\n{stderr}");
+    assert!(stderr.contains("log damaged, read up to the damage") && stderr.contains("segment-000000.mcap"), "{stderr}");
+    assert!(stderr.contains(&format!("{kept} keyframe(s) from 1 segment(s)")), "{stderr}");
+    assert_eq!(metrics("cut-out")["keyframes"].as_array().unwrap().len(), kept);
+
+    // Cut before the first keyframe: an error that names the log and the damage.
+    std::fs::write(cut.join("segment-000000.mcap"), &bytes[..4096]).unwrap();
+    let (ok, _, stderr) = refine(&cut, "none");
+    assert!(!ok && stderr.contains("no keyframes in the log") && stderr.contains(cut.to_str().unwrap()) && stderr.contains("damaged") && !stderr.contains("panicked"), "{stderr}");
+    // Not a log at all.
+    let (ok, _, stderr) = refine(dir.path().join("none-such").as_path(), "none");
+    assert!(!ok && stderr.contains("none-such") && !stderr.contains("panicked"), "{stderr}");
 }
 
 #[test]

@@ -1,13 +1,17 @@
 //! The MCAP black box on its own: round trip, the independent Python reader, rotation,
 //! truncation at many points (read up to the damage, recovery keeps every synced chunk),
-//! corruption, oversized records against the memory budget, inspect.
+//! corruption, oversized records against the memory budget, inspect, JPEG-logged frames
+//! (size against raw, decode PSNR, replay, the Python reader).
 
 use duv::core::alloc::{peak_bytes, reset_peak_bytes, CountingAllocator};
 use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use duv::log::reader::ReadLimits;
 use duv::log::recover::{is_finished, recover_segment};
 use duv::log::schema::{decode_frame, PoseRecord};
-use duv::log::{inspect_log, list_segments, read_segment, LogConfig, LogItem, SegmentWriter, Topic};
+use duv::camera::FrameSource;
+use duv::log::{inspect_log, list_segments, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogError, LogItem, SegmentWriter, Topic};
+use duv::replay::McapSource;
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::{Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -286,4 +290,192 @@ fn inspect_reports_gaps() {
     let s = inspect_log(dir.path(), ReadLimits::default()).unwrap();
     assert_eq!(s.gaps, vec![(1_900_000_000, 4_000_000_000)]);
     assert!(s.render().contains("gaps in /camera/image: 1"));
+}
+
+/// PSNR (dB) of two 8-bit images of the same size.
+fn psnr_u8(a: &[u8], b: &[u8]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let mse = a.iter().zip(b).map(|(&x, &y)| (x as f64 - y as f64).powi(2)).sum::<f64>() / a.len() as f64;
+    10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10()
+}
+
+/// Lowest decode PSNR accepted for JPEG-logged frames at quality 90 (generated coastal survey
+/// frames with sensor noise, 640x480; measured 40.3 dB when this bound was set).
+const JPEG_Q90_MIN_PSNR_DB: f64 = 38.0;
+
+/// Writes `frames` with their calibration and poses; returns the bytes per `/camera/image`
+/// message (what `duv inspect` counts).
+fn write_frames(dir: &Path, camera: PinholeCamera, frames: &[Frame], encoding: FrameEncoding) -> u64 {
+    let mut cfg = LogConfig::new(dir);
+    cfg.frame_encoding = encoding;
+    let mut w = SegmentWriter::create(cfg).unwrap();
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera }).unwrap();
+    for f in frames {
+        w.write(&LogItem::Frame(f.clone())).unwrap();
+        w.write(&LogItem::Pose(pose(f.seq, f.t_ns.t_ns()))).unwrap();
+    }
+    w.finish().1.unwrap();
+    let s = inspect_log(dir, ReadLimits::default()).unwrap();
+    let t = &s.topics["/camera/image"];
+    assert_eq!(t.messages, frames.len() as u64);
+    t.bytes / t.messages
+}
+
+#[test]
+fn jpeg_frames_are_compressed_images_that_decode_replay_and_shrink_the_log() {
+    // 640x480, the real boards' resolution: the generated coastal survey with sensor noise.
+    let mut sim = SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Survey);
+    (sim.width, sim.height, sim.frames) = (640, 480, 4);
+    let r = SimRenderer::new(&sim).unwrap();
+    let camera = *r.camera();
+    let frames: Vec<Frame> = (0..r.len()).map(|i| Frame { t_ns: r.pose(i).t_ns, seq: i as u64, image: FrameImage::Rgb8(r.render(i).rgb) }).collect();
+
+    let raw_dir = tempfile::tempdir().unwrap();
+    let jpeg_dir = tempfile::tempdir().unwrap();
+    let raw = write_frames(raw_dir.path(), camera, &frames, FrameEncoding::Raw);
+    let jpeg = write_frames(jpeg_dir.path(), camera, &frames, FrameEncoding::Jpeg { quality: 90 });
+    eprintln!("640x480 bytes per /camera/image message: raw {raw}, jpeg q90 {jpeg} ({:.1}x smaller)", raw as f64 / jpeg as f64);
+    // For the boards' comments: a lower quality, and the encode time (the log thread's cost).
+    let mut buf = Vec::new();
+    for q in [75u8, 90] {
+        let t0 = std::time::Instant::now();
+        let mut bytes = 0;
+        for f in &frames {
+            duv::log::schema::encode_jpeg(&f.image, q, &mut buf).unwrap();
+            bytes += buf.len();
+        }
+        eprintln!("jpeg q{q}: {} bytes per frame, {:.1} ms per frame to encode", bytes / frames.len(), t0.elapsed().as_secs_f64() * 1e3 / frames.len() as f64);
+    }
+    // Raw: the 921,600 pixel bytes and a few dozen bytes of protobuf around them.
+    assert!((640 * 480 * 3..640 * 480 * 3 + 100).contains(&raw), "raw {raw} bytes per frame");
+    assert!(jpeg * 8 < raw, "jpeg {jpeg} bytes per frame against raw {raw}");
+
+    // Every frame decodes to the original within the bound, in order, with its time stamp.
+    let path = list_segments(jpeg_dir.path()).unwrap()[0].1.clone();
+    let mut psnrs = Vec::new();
+    read_segment(&path, ReadLimits::default(), |m| {
+        if m.channel.topic == Topic::CameraImage.name() {
+            let f = decode_frame(m.data, m.sequence as u64, m.log_time_ns).unwrap();
+            let orig = &frames[m.sequence as usize];
+            assert_eq!((f.t_ns, f.image.width(), f.image.height()), (orig.t_ns, 640, 480));
+            let (FrameImage::Rgb8(a), FrameImage::Rgb8(b)) = (&f.image, &orig.image) else { panic!("a colour frame came back grey") };
+            psnrs.push(psnr_u8(&a.data, &b.data));
+        }
+    })
+    .unwrap();
+    eprintln!("jpeg q90 decode PSNR per frame (dB): {psnrs:.2?}");
+    assert_eq!(psnrs.len(), frames.len());
+    assert!(psnrs.iter().all(|&p| p > JPEG_Q90_MIN_PSNR_DB), "{psnrs:?}");
+
+    // Replay (`--source mcap:`, `duv replay`) delivers the same frames.
+    let mut src = McapSource::open(jpeg_dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(*src.camera(), camera);
+    let mut n = 0;
+    while let Some(f) = src.next_frame().unwrap() {
+        let orig = &frames[n];
+        assert_eq!((f.seq, f.t_ns), (orig.seq, orig.t_ns));
+        let (FrameImage::Rgb8(a), FrameImage::Rgb8(b)) = (&f.image, &orig.image) else { panic!("grey") };
+        assert!((psnr_u8(&a.data, &b.data) - psnrs[n]).abs() < 1e-9);
+        n += 1;
+    }
+    assert_eq!(n, frames.len());
+
+    // `duv inspect` and the independent reader see the CompressedImage schema and whole JPEGs.
+    let summary = inspect_log(jpeg_dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(summary.topics["/camera/image"].schema, "foxglove.CompressedImage");
+    assert_eq!(inspect_log(raw_dir.path(), ReadLimits::default()).unwrap().topics["/camera/image"].schema, "foxglove.RawImage");
+    if let Some(v) = python_check(std::slice::from_ref(&path)) {
+        let f = &v[path.to_str().unwrap()];
+        assert_eq!(f["schemas"]["/camera/image"], "foxglove.CompressedImage");
+        assert_eq!(f["counts"]["/camera/image"].as_u64(), Some(frames.len() as u64));
+        assert_eq!(f["jpeg"]["/camera/image"].as_u64(), Some(frames.len() as u64), "python: whole JPEG streams");
+        assert_eq!(f["schemas"]["/slam/pose"], "foxglove.PoseInFrame");
+        assert_eq!(f["indexed"], true);
+    }
+}
+
+#[test]
+fn logged_keyframes_read_back_whole_and_up_to_the_damage() {
+    let dir = tempfile::tempdir().unwrap();
+    write_log(dir.path(), 60, 4, 1 << 30);
+    let expected: Vec<Keyframe> = [5u64, 25, 45].iter().map(|&i| keyframe(i, i as i64 * 100_000_000)).collect();
+    let got = read_log_keyframes(dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(got.keyframes, expected);
+    assert!(got.damage.is_empty() && got.skipped.is_empty() && got.renumbered.is_empty(), "{got:?}");
+    assert_eq!(got.segments.len(), 1);
+
+    // Cut anywhere: the keyframes before the cut come back exactly, the one the cut splits is
+    // left out and named, and damage is reported; with none left it is an error naming the log.
+    let path = list_segments(dir.path()).unwrap()[0].1.clone();
+    let full = std::fs::read(&path).unwrap();
+    let mut seen_counts = std::collections::BTreeSet::new();
+    let mut last = 0;
+    for k in 1..40 {
+        let cut = full.len() * k / 40;
+        let cut_dir = tempfile::tempdir().unwrap();
+        std::fs::write(cut_dir.path().join("segment-000000.mcap"), &full[..cut]).unwrap();
+        match read_log_keyframes(cut_dir.path(), ReadLimits::default()) {
+            Ok(got) => {
+                let n = got.keyframes.len();
+                assert_eq!(got.keyframes[..], expected[..n], "cut at {cut}");
+                assert_eq!(got.damage.len(), 1, "cut at {cut}: {:?}", got.damage);
+                assert!(got.damage[0].contains("after byte"), "{}", got.damage[0]);
+                assert!(got.skipped.len() <= 1 && got.skipped.iter().all(|(i, why)| expected.get(n).is_some_and(|k| k.index == *i) && why.contains("no /keyframe/")), "cut at {cut}: {:?}", got.skipped);
+                assert!(n >= last, "cut at {cut}: {n} keyframes after {last} at a shorter cut");
+                last = n;
+                seen_counts.insert(n);
+            }
+            Err(e) => {
+                assert!(matches!(e, LogError::NoKeyframes { .. }), "cut at {cut}: {e}");
+                assert_eq!(last, 0, "cut at {cut}: no keyframes after a shorter cut had some");
+                let msg = e.to_string();
+                assert!(msg.contains(cut_dir.path().to_str().unwrap()) && msg.contains("no keyframes") && msg.contains("damaged"), "{msg}");
+                seen_counts.insert(0);
+            }
+        }
+    }
+    assert_eq!(seen_counts.into_iter().collect::<Vec<_>>(), vec![0, 1, 2, 3]);
+
+    // A log without keyframes, and a folder without a log, are errors that name the folder.
+    let frames_only = tempfile::tempdir().unwrap();
+    let mut w = SegmentWriter::create(LogConfig::new(frames_only.path())).unwrap();
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+    w.write(&LogItem::Frame(frame(0, 0))).unwrap();
+    w.finish().1.unwrap();
+    let e = read_log_keyframes(frames_only.path(), ReadLimits::default()).unwrap_err();
+    assert!(matches!(e, LogError::NoKeyframes { segments: 1, .. }), "{e}");
+    assert!(e.to_string().starts_with(frames_only.path().to_str().unwrap()) && !e.to_string().contains("damaged"), "{e}");
+    // A keyframe whose depth does not fit the calibration is left out, with why.
+    let misfit = tempfile::tempdir().unwrap();
+    let mut w = SegmentWriter::create(LogConfig::new(misfit.path())).unwrap();
+    w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+    let mut bad = keyframe(7, 0);
+    bad.inv_depth = PlaneF32::filled(10, 10, [0.5]);
+    w.write(&LogItem::Keyframe(Box::new(bad))).unwrap();
+    w.write(&LogItem::Keyframe(Box::new(keyframe(8, 100)))).unwrap();
+    w.finish().1.unwrap();
+    let got = read_log_keyframes(misfit.path(), ReadLimits::default()).unwrap();
+    assert_eq!(got.keyframes.iter().map(|k| k.index).collect::<Vec<_>>(), vec![8]);
+    assert_eq!(got.skipped, vec![(7, "image 40x30 or depth 10x10 differs from the calibration 40x30".to_string())]);
+    let empty = tempfile::tempdir().unwrap();
+    let e = read_log_keyframes(empty.path(), ReadLimits::default()).unwrap_err();
+    assert!(matches!(e, LogError::NotALog { .. }) && e.to_string().contains("segment-NNNNNN.mcap"), "{e}");
+}
+
+#[test]
+fn a_resumed_runs_repeated_keyframe_index_is_renumbered() {
+    let dir = tempfile::tempdir().unwrap();
+    for run in 0..2 {
+        let mut w = SegmentWriter::create(LogConfig::new(dir.path())).unwrap();
+        w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
+        w.write(&LogItem::Keyframe(Box::new(keyframe(5, run * 1_000_000_000)))).unwrap();
+        w.finish().1.unwrap();
+    }
+    // The run-level folder (`RUN/log`) is found from `RUN` too.
+    let run_dir = tempfile::tempdir().unwrap();
+    std::fs::rename(dir.path(), run_dir.path().join("log")).unwrap();
+    let got = read_log_keyframes(run_dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(got.segments.len(), 2);
+    assert_eq!(got.keyframes.iter().map(|k| (k.index, k.t_ns.t_ns())).collect::<Vec<_>>(), vec![(5, 0), (6, 1_000_000_000)]);
+    assert_eq!(got.renumbered, vec![(5, 6)]);
 }

@@ -1,6 +1,7 @@
 //! `duv board`: validate board profiles and show what they allow.
 
 use anyhow::Context;
+use duv::config::board::FrameLogEncoding;
 use duv::config::Board;
 use std::path::PathBuf;
 
@@ -22,8 +23,12 @@ pub fn run(args: BoardArgs) -> anyhow::Result<()> {
             Ok(b) => {
                 let c = &b.camera;
                 let bu = &b.budgets;
+                let frames = match b.log.frame_encoding {
+                    FrameLogEncoding::Raw => "raw".to_string(),
+                    FrameLogEncoding::Jpeg => format!("jpeg q{}", b.log.jpeg_quality),
+                };
                 println!(
-                    "ok    {:<24} {}x{} @ {} fps {:?} from {} | host {} MiB, GPU {} MiB, {} Gaussians, {} keyframes (window {}), queues {}/{}/{} MiB | threads {}+{}",
+                    "ok    {:<24} {}x{} @ {} fps {:?} from {} | host {} MiB, GPU {} MiB, {} Gaussians, {} keyframes (window {}), queues {}/{}/{} MiB | threads {}+{} | log frames {frames}",
                     b.name, c.width, c.height, c.fps, c.pixel_format, c.source, bu.host_mb, bu.gpu_mb, bu.max_gaussians,
                     bu.max_keyframes, bu.ba_window, bu.frame_queue, bu.keyframe_queue, bu.log_queue_mb, b.threads.tracking, b.threads.mapping
                 );

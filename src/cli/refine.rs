@@ -1,5 +1,7 @@
 //! `duv refine`: offshore map refinement from a keyframe folder (the layout is documented in
-//! `duv::io::keyframes`), or from generated keyframes with ground-truth poses and depth
+//! `duv::io::keyframes`), from the keyframes in a run's MCAP log (`--mcap`, read by
+//! `duv::log::keyframes`: image, pose, inverse depth and variance of every logged keyframe, up
+//! to any damage), or from generated keyframes with ground-truth poses and depth
 //! (`--sim WATER`) so that mapping is evaluated without the tracker.
 //!
 //! Writes into `--out`: `map.ply` (3DGS PLY), `map.ckpt` (full mapper checkpoint),
@@ -15,6 +17,7 @@ use duv::eval::image::{psnr, ssim, SsimConvention};
 use duv::io::keyframes::read_keyframe_folder;
 use duv::io::png_io::write_rgb8;
 use duv::io::write_atomic;
+use duv::log::{read_log_keyframes, ReadLimits};
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::ply::write_ply;
 use duv::map::stage::render_panel;
@@ -25,10 +28,17 @@ use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 pub struct RefineArgs {
     /// Keyframe folder written by the tracker (calibration.txt, keyframes.txt, keyframes/), e.g.
     /// the output folder of `duv run`.
-    #[arg(long, conflicts_with = "sim", required_unless_present = "sim")]
+    #[arg(long, value_name = "DIR", conflicts_with = "sim", required_unless_present_any = ["sim", "mcap"])]
     keyframes: Option<PathBuf>,
+    /// Instead of a keyframe folder: a run's MCAP log (`RUN/log`, `RUN`, or one segment
+    /// `.mcap`). Every keyframe logged with its image, pose, inverse depth and variance is
+    /// refined; a damaged log is read up to the damage. The poses are those logged as each
+    /// keyframe left the BA window (a later loop closure is in `RUN/keyframes.txt`, which
+    /// --keyframes reads).
+    #[arg(long, value_name = "LOG", conflicts_with_all = ["sim", "keyframes"])]
+    mcap: Option<PathBuf>,
     /// The true medium (a generator's `medium.json`) to score the recovered one against
-    /// (with --keyframes; --sim knows its own).
+    /// (with --keyframes or --mcap; --sim knows its own).
     #[arg(long, value_name = "FILE")]
     medium_truth: Option<PathBuf>,
     /// Instead of a folder: generated keyframes with ground-truth poses and depth in this water.
@@ -92,6 +102,22 @@ struct Metrics {
     iterations: u64,
 }
 
+/// The keyframes of a log, with what was left out said on stderr.
+fn read_log(path: &std::path::Path) -> anyhow::Result<Vec<Keyframe>> {
+    let got = read_log_keyframes(path, ReadLimits::default())?;
+    for d in &got.damage {
+        eprintln!("log damaged, read up to the damage: {d}");
+    }
+    for (index, why) in &got.skipped {
+        eprintln!("keyframe {index} left out: {why}");
+    }
+    for (from, to) in &got.renumbered {
+        eprintln!("keyframe {from} logged twice (a resumed run): the later one is keyframe {to}");
+    }
+    eprintln!("{}: {} keyframe(s) from {} segment(s)", path.display(), got.keyframes.len(), got.segments.len());
+    Ok(got.keyframes)
+}
+
 pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let (keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
         let mut cfg = SimConfig::preset(water, a.trajectory);
@@ -104,8 +130,11 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         let (k, c) = kfs.into_iter().map(|s| (s.keyframe, Some(s.clear))).unzip();
         (k, c, Some(truth))
     } else {
-        let dir = a.keyframes.as_ref().context("--keyframes or --sim is required")?;
-        let k = read_keyframe_folder(dir)?;
+        let k = match (&a.mcap, &a.keyframes) {
+            (Some(log), _) => read_log(log)?,
+            (None, Some(dir)) => read_keyframe_folder(dir)?,
+            (None, None) => anyhow::bail!("--keyframes, --mcap or --sim is required"),
+        };
         let n = k.len();
         let truth = match &a.medium_truth {
             Some(p) => Some(serde_json::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?),

@@ -33,6 +33,9 @@ pub struct Board {
     pub camera: CameraConfig,
     pub budgets: Budgets,
     pub threads: Threads,
+    /// The black-box log; absent: raw frames.
+    #[serde(default)]
+    pub log: LogSettings,
 }
 
 /// The pixel layout a camera delivers.
@@ -103,6 +106,42 @@ pub struct Threads {
     pub tracking: u32,
     /// Worker threads for the CPU mapper (unused when mapping runs on the GPU).
     pub mapping: u32,
+}
+
+/// How input frames are stored in the log.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameLogEncoding {
+    /// Uncompressed (`foxglove.RawImage`): lossless, 0.9 MB per 640x480 RGB frame.
+    #[default]
+    Raw,
+    /// JPEG (`foxglove.CompressedImage`) at [`LogSettings::jpeg_quality`].
+    Jpeg,
+}
+
+/// The `[log]` section.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogSettings {
+    /// `raw` or `jpeg`: how every input frame is logged (keyframe images stay raw).
+    #[serde(default)]
+    pub frame_encoding: FrameLogEncoding,
+    /// JPEG quality, 1 to 100 (with `frame_encoding = "jpeg"`).
+    #[serde(default = "default_jpeg_quality")]
+    pub jpeg_quality: u8,
+}
+
+/// [`LogSettings::jpeg_quality`] when the board does not say.
+pub const DEFAULT_JPEG_QUALITY: u8 = 90;
+
+fn default_jpeg_quality() -> u8 {
+    DEFAULT_JPEG_QUALITY
+}
+
+impl Default for LogSettings {
+    fn default() -> Self {
+        LogSettings { frame_encoding: FrameLogEncoding::Raw, jpeg_quality: DEFAULT_JPEG_QUALITY }
+    }
 }
 
 impl Board {
@@ -177,6 +216,9 @@ impl Board {
                 return Err(invalid(key, "0".into(), "at least one thread"));
             }
         }
+        if !(1..=100).contains(&self.log.jpeg_quality) {
+            return Err(invalid("log.jpeg_quality", self.log.jpeg_quality.to_string(), "must be in 1..=100"));
+        }
         Ok(())
     }
 
@@ -235,6 +277,25 @@ mapping = 1
             let e = Board::parse(Path::new("t.toml"), &with(n)).unwrap_err();
             assert!(e.to_string().contains("camera.driver_buffers"), "{e}");
         }
+    }
+
+    #[test]
+    fn log_section_is_optional_and_strict() {
+        let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
+        assert_eq!(b.log, LogSettings { frame_encoding: FrameLogEncoding::Raw, jpeg_quality: 90 });
+        let with = |body: &str| format!("{MINIMAL}[log]\n{body}\n");
+        let b = Board::parse(Path::new("t.toml"), &with("frame_encoding = \"jpeg\"\njpeg_quality = 75")).unwrap();
+        assert_eq!(b.log, LogSettings { frame_encoding: FrameLogEncoding::Jpeg, jpeg_quality: 75 });
+        for q in [0, 101] {
+            let e = Board::parse(Path::new("t.toml"), &with(&format!("frame_encoding = \"jpeg\"\njpeg_quality = {q}"))).unwrap_err();
+            assert_eq!(e.to_string(), format!("t.toml: log.jpeg_quality = {q} is invalid: must be in 1..=100"));
+        }
+        let e = Board::parse(Path::new("t.toml"), &with("jpeg_quality = 300")).unwrap_err().to_string();
+        assert!(e.starts_with("t.toml:") && e.contains("jpeg_quality"), "{e}");
+        let e = Board::parse(Path::new("t.toml"), &with("frame_encoding = \"png\"")).unwrap_err().to_string();
+        assert!(e.contains("unknown variant `png`") && e.contains("raw") && e.contains("jpeg"), "{e}");
+        let e = Board::parse(Path::new("t.toml"), &with("frame_encodng = \"jpeg\"")).unwrap_err().to_string();
+        assert!(e.contains("unknown field `frame_encodng`"), "{e}");
     }
 
     #[test]

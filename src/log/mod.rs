@@ -1,7 +1,8 @@
 //! The MCAP black box: everything the vehicle saw and decided, in files that open in Foxglove
 //! and survive a power cut.
 //!
-//! - [`schema`]: topics and their Foxglove schemas (`foxglove.RawImage`,
+//! - [`schema`]: topics and their Foxglove schemas (`foxglove.RawImage`, or
+//!   `foxglove.CompressedImage` for input frames when the board asks for JPEG,
 //!   `foxglove.CameraCalibration`, `foxglove.PoseInFrame`, `foxglove.FrameTransform`,
 //!   `foxglove.PointCloud`) and the JSON schemas of our own records (`duv.TrackingState`,
 //!   `duv.Health`); [`LogItem`] is what the other stages hand to the log.
@@ -10,20 +11,23 @@
 //!   cleanly instead of failing the run.
 //! - [`reader`]: a streaming reader with a record-size limit that reads a damaged file up to
 //!   the damage; [`recover`] re-indexes an unfinished segment into a valid file;
-//!   [`inspect`] summarises a log folder (`duv inspect`).
+//!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
+//!   keyframes back (`duv refine --mcap`).
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 
 pub mod inspect;
+pub mod keyframes;
 pub mod reader;
 pub mod recover;
 pub mod schema;
 pub mod writer;
 
 pub use inspect::{inspect_log, LogSummary};
+pub use keyframes::{log_files, read_log_keyframes, LogKeyframes};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
-pub use schema::{LogItem, PoseRecord, Topic};
+pub use schema::{FrameEncoding, LogItem, PoseRecord, Topic};
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 
 use std::path::PathBuf;
@@ -49,6 +53,9 @@ pub enum LogError {
     NotALog { path: PathBuf, problem: String },
     #[error("{what}: cannot encode: {problem}")]
     Encode { what: &'static str, problem: String },
+    /// A log without one complete keyframe (`duv refine --mcap`).
+    #[error("{path}: no keyframes in the log ({segments} segment(s) read; a keyframe is a /keyframe/image, /keyframe/inv_depth, /keyframe/variance and /keyframe/pose message of one index){why}")]
+    NoKeyframes { path: PathBuf, segments: usize, why: String },
     #[error("{path}: message {topic} at {log_time_ns} ns: cannot decode: {problem}")]
     Decode { path: PathBuf, topic: String, log_time_ns: u64, problem: String },
 }

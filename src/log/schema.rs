@@ -6,7 +6,7 @@
 //! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
 
 use super::LogError;
-use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, Se3, Timestamp};
+use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use foxglove::messages as fg;
 use foxglove::Encode;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
@@ -70,6 +70,21 @@ fn json_schema(name: &str, schema: &str) -> TopicSchema {
     TopicSchema { name: name.into(), encoding: "jsonschema".into(), data: schema.as_bytes().to_vec(), message_encoding: "json".into() }
 }
 
+/// How input frames are stored on [`Topic::CameraImage`] (the board's `[log] frame_encoding`).
+/// Keyframe images are always raw: refinement reads them back and must get what mapping got.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FrameEncoding {
+    /// `foxglove.RawImage`, `rgb8` or `mono8`: lossless, 3 bytes per RGB pixel.
+    #[default]
+    Raw,
+    /// `foxglove.CompressedImage`, format `jpeg`, at this quality (1..=100; below 90 the
+    /// chroma is subsampled 4:2:0, from 90 on it is kept at full resolution).
+    Jpeg { quality: u8 },
+}
+
+/// Lowest and highest JPEG quality [`FrameEncoding::Jpeg`] accepts.
+pub const JPEG_QUALITY_RANGE: std::ops::RangeInclusive<u8> = 1..=100;
+
 impl Topic {
     pub fn name(self) -> &'static str {
         match self {
@@ -104,6 +119,15 @@ impl Topic {
             Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
             Topic::MapCheckpoint => return None,
         })
+    }
+
+    /// The schema of the topic as a writer with `frames` writes it: `/camera/image` is
+    /// `foxglove.CompressedImage` when frames are JPEG, [`Topic::schema`] otherwise.
+    pub fn schema_for(self, frames: FrameEncoding) -> Option<TopicSchema> {
+        match (self, frames) {
+            (Topic::CameraImage, FrameEncoding::Jpeg { .. }) => Some(foxglove_schema::<fg::CompressedImage>()),
+            _ => self.schema(),
+        }
     }
 
     /// Message encoding of a schemaless topic.
@@ -244,16 +268,71 @@ pub struct Encoded {
     pub log_time_ns: u64,
 }
 
-/// Encodes `item` into one or more messages; `emit` gets each with its body.
-pub fn encode_item(item: &LogItem, scratch: &mut Vec<u8>, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+/// Encodes [`LogItem`]s into MCAP message bodies, with the buffers it reuses from item to item
+/// (the message body and the JPEG stream) and the frame encoding.
+#[derive(Debug, Default)]
+pub struct ItemEncoder {
+    frames: FrameEncoding,
+    scratch: Vec<u8>,
+    jpeg: Vec<u8>,
+}
+
+impl ItemEncoder {
+    pub fn new(frames: FrameEncoding) -> Self {
+        ItemEncoder { frames, scratch: Vec::new(), jpeg: Vec::new() }
+    }
+
+    pub fn frame_encoding(&self) -> FrameEncoding {
+        self.frames
+    }
+
+    /// Encodes `item` into one or more messages; `emit` gets each with its body.
+    pub fn encode(&mut self, item: &LogItem, emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+        encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, emit)
+    }
+}
+
+/// Compresses `image` into `out` (cleared first; its capacity is reused).
+pub fn encode_jpeg(image: &FrameImage, quality: u8, out: &mut Vec<u8>) -> Result<(), LogError> {
+    use jpeg_encoder::{ColorType, Encoder};
+    let (data, w, h, colour) = match image {
+        FrameImage::Rgb8(i) => (&i.data, i.width, i.height, ColorType::Rgb),
+        FrameImage::Gray8(i) => (&i.data, i.width, i.height, ColorType::Luma),
+    };
+    let problem = |p: String| LogError::Encode { what: "frame (jpeg)", problem: p };
+    if !JPEG_QUALITY_RANGE.contains(&quality) {
+        return Err(problem(format!("quality {quality} is outside 1..=100")));
+    }
+    let (Ok(w16), Ok(h16)) = (u16::try_from(w), u16::try_from(h)) else {
+        return Err(problem(format!("{w}x{h} exceeds the JPEG limit of 65535x65535")));
+    };
+    out.clear();
+    Encoder::new(&mut *out, quality).encode(data, w16, h16, colour).map_err(|e| problem(e.to_string()))
+}
+
+fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
     let log_time_ns = item.t_ns().t_ns().max(0) as u64;
     match item {
         LogItem::Frame(f) => {
-            let msg = match &f.image {
-                FrameImage::Rgb8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "rgb8", i.width * 3, &i.data),
-                FrameImage::Gray8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "mono8", i.width, &i.data),
-            };
-            encode(&msg, "frame", scratch)?;
+            match frames {
+                FrameEncoding::Raw => {
+                    let msg = match &f.image {
+                        FrameImage::Rgb8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "rgb8", i.width * 3, &i.data),
+                        FrameImage::Gray8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "mono8", i.width, &i.data),
+                    };
+                    encode(&msg, "frame", scratch)?;
+                }
+                FrameEncoding::Jpeg { quality } => {
+                    encode_jpeg(&f.image, quality, jpeg)?;
+                    let msg = fg::CompressedImage {
+                        timestamp: Some(fg_time(f.t_ns)),
+                        frame_id: CAMERA_FRAME.into(),
+                        data: foxglove::bytes::Bytes::copy_from_slice(jpeg),
+                        format: "jpeg".into(),
+                    };
+                    encode(&msg, "frame", scratch)?;
+                }
+            }
             emit(Encoded { topic: Topic::CameraImage, sequence: f.seq as u32, log_time_ns }, scratch)
         }
         LogItem::Calibration { t_ns, camera } => {
@@ -344,15 +423,53 @@ pub fn encode_item(item: &LogItem, scratch: &mut Vec<u8>, mut emit: impl FnMut(E
     }
 }
 
-/// Decodes a `foxglove.RawImage` (`rgb8` or `mono8`) into a frame.
+/// The wire type of field 2 of a protobuf message: `foxglove.RawImage` has its `width` there
+/// (fixed32, wire type 5), `foxglove.CompressedImage` its `data` (length-delimited, wire type
+/// 2). `None` when the field is absent or the bytes are not protobuf.
+fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
+    fn varint(d: &mut &[u8]) -> Option<u64> {
+        let mut v = 0u64;
+        for shift in (0..64).step_by(7) {
+            let (&b, rest) = d.split_first()?;
+            *d = rest;
+            v |= u64::from(b & 0x7f) << shift;
+            if b & 0x80 == 0 {
+                return Some(v);
+            }
+        }
+        None
+    }
+    while !data.is_empty() {
+        let key = varint(&mut data)?;
+        let wire = (key & 7) as u8;
+        if key >> 3 == 2 {
+            return Some(wire);
+        }
+        let skip = match wire {
+            0 => {
+                varint(&mut data)?;
+                0
+            }
+            1 => 8,
+            2 => usize::try_from(varint(&mut data)?).ok()?,
+            5 => 4,
+            _ => return None,
+        };
+        data = data.get(skip..)?;
+    }
+    None
+}
+
+/// Decodes a logged frame: a `foxglove.RawImage` (`rgb8` or `mono8`) or a
+/// `foxglove.CompressedImage` in format `jpeg` (colour or grey), whichever the message is.
 pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+    if field2_wire_type(data) == Some(2) {
+        return decode_jpeg_frame(data, seq, log_time_ns);
+    }
     use foxglove::Decode;
     let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
     let (w, h) = (img.width as usize, img.height as usize);
-    let t_ns = match img.timestamp {
-        Some(t) => Timestamp::from_ns(t.sec() as i64 * 1_000_000_000 + t.nsec() as i64),
-        None => Timestamp::from_ns(log_time_ns as i64),
-    };
+    let t_ns = timestamp_or(img.timestamp, log_time_ns);
     let image = match img.encoding.as_str() {
         "rgb8" => {
             if img.step as usize != w * 3 {
@@ -369,6 +486,57 @@ pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, St
         other => return Err(format!("unsupported image encoding {other:?}")),
     };
     Ok(Frame { t_ns, seq, image })
+}
+
+fn timestamp_or(t: Option<fg::Timestamp>, log_time_ns: u64) -> Timestamp {
+    match t {
+        Some(t) => Timestamp::from_ns(t.sec() as i64 * 1_000_000_000 + t.nsec() as i64),
+        None => Timestamp::from_ns(log_time_ns as i64),
+    }
+}
+
+/// Decodes a `foxglove.CompressedImage` holding a JPEG into a frame: grey JPEGs give grey
+/// frames, colour ones RGB.
+fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+    use foxglove::Decode;
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let img = fg::CompressedImage::decode(data).map_err(|e| e.to_string())?;
+    if !img.format.eq_ignore_ascii_case("jpeg") && !img.format.eq_ignore_ascii_case("jpg") {
+        return Err(format!("unsupported compressed image format {:?} (this build reads jpeg)", img.format));
+    }
+    let t_ns = timestamp_or(img.timestamp, log_time_ns);
+    let mut probe = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], DecoderOptions::new_safe());
+    probe.decode_headers().map_err(|e| format!("jpeg: {e:?}"))?;
+    let grey = probe.get_input_colorspace() == Some(ColorSpace::Luma);
+    let (w, h) = probe.dimensions().ok_or("jpeg: no dimensions")?;
+    let out = if grey { ColorSpace::Luma } else { ColorSpace::RGB };
+    // Strict: a damaged stream is an error, not a frame with a grey lower half.
+    let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(out).set_strict_mode(true);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], options);
+    let pixels = decoder.decode().map_err(|e| format!("jpeg: {e:?}"))?;
+    let image = if grey {
+        FrameImage::Gray8(crate::core::ImageGray8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} grey"))?)
+    } else {
+        FrameImage::Rgb8(crate::core::ImageRgb8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} rgb"))?)
+    };
+    Ok(Frame { t_ns, seq, image })
+}
+
+/// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
+/// and variance are logged) into a plane.
+pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, String> {
+    use foxglove::Decode;
+    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    if img.encoding != "32FC1" {
+        return Err(format!("encoding {:?}, expected \"32FC1\"", img.encoding));
+    }
+    if img.step as usize != w * 4 || img.data.len() != w * h * 4 {
+        return Err(format!("{} bytes with step {} for a {w}x{h} 32FC1 image", img.data.len(), img.step));
+    }
+    let data = img.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    PlaneF32::from_vec(w, h, data).ok_or_else(|| format!("{w}x{h} 32FC1 size mismatch"))
 }
 
 /// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
@@ -401,9 +569,9 @@ mod tests {
             *v = (i * 7 % 251) as u8;
         }
         let frame = Frame { t_ns: Timestamp::from_ns(1_500_000_123), seq: 42, image: FrameImage::Rgb8(img) };
-        let mut scratch = Vec::new();
+        let mut enc = ItemEncoder::new(FrameEncoding::Raw);
         let mut got = Vec::new();
-        encode_item(&LogItem::Frame(frame.clone()), &mut scratch, |e, b| {
+        enc.encode(&LogItem::Frame(frame.clone()), |e, b| {
             got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
             Ok(())
         })
@@ -415,7 +583,7 @@ mod tests {
         let pose = Se3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
         let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false };
         got.clear();
-        encode_item(&LogItem::Pose(rec), &mut scratch, |e, b| {
+        enc.encode(&LogItem::Pose(rec), |e, b| {
             got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
             Ok(())
         })
@@ -432,5 +600,66 @@ mod tests {
         assert_eq!(Topic::Transform.schema().unwrap().name, "foxglove.FrameTransform");
         assert_eq!(Topic::MapGaussians.schema().unwrap().name, "foxglove.PointCloud");
         assert_eq!(Topic::CameraCalibration.schema().unwrap().encoding, "protobuf");
+    }
+
+    /// A smooth test image (JPEG's case: gradients and a few edges, like a seabed).
+    fn smooth(w: usize, h: usize) -> ImageRgb8 {
+        let mut img = ImageRgb8::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let v = [(x * 255 / w) as u8, (y * 255 / h) as u8, if (x / 8 + y / 8) % 2 == 0 { 60 } else { 190 }];
+                img.set_pixel(x, y, v);
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn jpeg_frames_round_trip_colour_and_grey() {
+        let mut enc = ItemEncoder::new(FrameEncoding::Jpeg { quality: 90 });
+        let rgb = smooth(37, 23); // not a multiple of the 8x8 / 16x16 MCU
+        let grey = crate::core::ImageGray8::from_vec(37, 23, rgb.data.iter().step_by(3).copied().collect()).unwrap();
+        for image in [FrameImage::Rgb8(rgb.clone()), FrameImage::Gray8(grey)] {
+            let frame = Frame { t_ns: Timestamp::from_ns(2_000_000_007), seq: 9, image };
+            let mut body = Vec::new();
+            enc.encode(&LogItem::Frame(frame.clone()), |e, b| {
+                assert_eq!((e.topic, e.sequence, e.log_time_ns), (Topic::CameraImage, 9, 2_000_000_007));
+                body = b.to_vec();
+                Ok(())
+            })
+            .unwrap();
+            assert_eq!(field2_wire_type(&body), Some(2), "CompressedImage carries its data in field 2");
+            let back = decode_frame(&body, 9, 0).unwrap();
+            assert_eq!((back.t_ns, back.seq), (frame.t_ns, 9));
+            let (a, b): (&[u8], &[u8]) = match (&frame.image, &back.image) {
+                (FrameImage::Rgb8(a), FrameImage::Rgb8(b)) => (&a.data, &b.data),
+                (FrameImage::Gray8(a), FrameImage::Gray8(b)) => (&a.data, &b.data),
+                _ => panic!("colour kind changed"),
+            };
+            let mse = a.iter().zip(b).map(|(&x, &y)| (x as f64 - y as f64).powi(2)).sum::<f64>() / a.len() as f64;
+            let psnr = 10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10();
+            assert!(psnr > 30.0, "quality 90: PSNR {psnr:.1} dB");
+        }
+        assert_eq!(Topic::CameraImage.schema_for(FrameEncoding::Jpeg { quality: 90 }).unwrap().name, "foxglove.CompressedImage");
+        assert_eq!(Topic::CameraImage.schema_for(FrameEncoding::Raw).unwrap().name, "foxglove.RawImage");
+        assert_eq!(Topic::KeyframeImage.schema_for(FrameEncoding::Jpeg { quality: 90 }).unwrap().name, "foxglove.RawImage");
+    }
+
+    #[test]
+    fn bad_jpeg_input_is_an_error_not_a_panic() {
+        let img = FrameImage::Rgb8(smooth(16, 16));
+        let e = encode_jpeg(&img, 0, &mut Vec::new()).unwrap_err();
+        assert!(e.to_string().contains("quality 0"), "{e}");
+        // A CompressedImage whose JPEG is cut short, and one in another format.
+        let mut out = Vec::new();
+        encode_jpeg(&img, 80, &mut out).unwrap();
+        for (data, format, want) in [(out[..out.len() / 2].to_vec(), "jpeg", "jpeg"), (out.clone(), "png", "format \"png\"")] {
+            let msg = fg::CompressedImage { timestamp: None, frame_id: String::new(), data: data.into(), format: format.into() };
+            let mut body = Vec::new();
+            msg.encode(&mut body).unwrap();
+            let e = decode_frame(&body, 0, 0).unwrap_err();
+            assert!(e.contains(want), "{e}");
+        }
+        assert!(decode_frame(&[0xff, 0xff, 0xff], 0, 0).is_err());
     }
 }

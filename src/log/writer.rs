@@ -1,7 +1,7 @@
 //! Segment files: one MCAP writer at a time, chunks closed and fsynced on a timer, rotation by
 //! size and age, and a write error (disk full, device gone) that stops logging cleanly.
 
-use super::schema::{encode_item, LogItem, Topic, ALL_TOPICS};
+use super::schema::{FrameEncoding, ItemEncoder, LogItem, Topic, ALL_TOPICS};
 use super::{list_segments, segment_name, LogError};
 use crate::core::{PinholeCamera, Timestamp};
 use std::collections::BTreeMap;
@@ -27,6 +27,8 @@ pub struct LogConfig {
     pub chunk_interval: Duration,
     /// Metadata records written at the start of every segment (board, config, run).
     pub metadata: Vec<(String, BTreeMap<String, String>)>,
+    /// How input frames are stored (the board's `[log] frame_encoding`).
+    pub frame_encoding: FrameEncoding,
 }
 
 impl LogConfig {
@@ -37,6 +39,7 @@ impl LogConfig {
             segment_max_age: Duration::from_secs(600),
             chunk_interval: Duration::from_millis(500),
             metadata: Vec::new(),
+            frame_encoding: FrameEncoding::Raw,
         }
     }
 }
@@ -100,7 +103,8 @@ pub struct SegmentWriter {
     stats: LogStats,
     failed: bool,
     last_calibration: Option<(Timestamp, PinholeCamera)>,
-    scratch: Vec<u8>,
+    /// Message bodies and JPEG streams, buffers reused from item to item.
+    encoder: ItemEncoder,
     /// Called after every fsync with (segment path, messages in it, file bytes).
     on_sync: Option<Box<dyn FnMut(&Path, u64, u64) + Send>>,
 }
@@ -114,7 +118,8 @@ impl SegmentWriter {
     pub fn create(cfg: LogConfig) -> Result<Self, LogError> {
         std::fs::create_dir_all(&cfg.dir).map_err(io_err(&cfg.dir))?;
         let next_index = list_segments(&cfg.dir)?.last().map(|(i, _)| i + 1).unwrap_or(0);
-        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, scratch: Vec::new(), on_sync: None })
+        let encoder = ItemEncoder::new(cfg.frame_encoding);
+        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, encoder, on_sync: None })
     }
 
     /// Reports every fsync (the crash harness reads this to know what must survive).
@@ -163,12 +168,12 @@ impl SegmentWriter {
         Ok(())
     }
 
-    fn channel(seg: &mut OpenSegment, topic: Topic) -> Result<u16, LogError> {
+    fn channel(seg: &mut OpenSegment, topic: Topic, frames: FrameEncoding) -> Result<u16, LogError> {
         if let Some(id) = seg.channels[topic.index()] {
             return Ok(id);
         }
         let map_err = |source| LogError::Mcap { path: seg.path.clone(), source };
-        let id = match topic.schema() {
+        let id = match topic.schema_for(frames) {
             Some(s) => {
                 let schema_id = seg.writer.add_schema(&s.name, &s.encoding, &s.data).map_err(map_err)?;
                 seg.writer.add_channel(schema_id, topic.name(), &s.message_encoding, &BTreeMap::new()).map_err(map_err)?
@@ -185,8 +190,9 @@ impl SegmentWriter {
         }
         let seg = self.open.as_mut().expect("opened above");
         let mut written = 0u64;
-        encode_item(item, &mut self.scratch, |e, body| {
-            let channel_id = Self::channel(seg, e.topic)?;
+        let frames = self.encoder.frame_encoding();
+        self.encoder.encode(item, |e, body| {
+            let channel_id = Self::channel(seg, e.topic, frames)?;
             let header = mcap::records::MessageHeader { channel_id, sequence: e.sequence, log_time: e.log_time_ns, publish_time: e.log_time_ns };
             seg.writer.write_to_known_channel(&header, body).map_err(|source| LogError::Mcap { path: seg.path.clone(), source })?;
             written += 1;

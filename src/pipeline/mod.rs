@@ -20,9 +20,9 @@ pub mod queue;
 pub mod resume;
 
 use crate::camera::FrameSource;
-use crate::config::board::Board;
+use crate::config::board::{Board, FrameLogEncoding};
 use crate::core::{Frame, Keyframe, PlaneF32, Se3, Sim3, Timestamp};
-use crate::log::{LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
+use crate::log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
 use crate::track::{TrackOutput, Tracker, TrajectoryRecorder};
 use queue::{BoundedQueue, FullPolicy, Pushed, QueueStats};
 use serde::Serialize;
@@ -143,6 +143,10 @@ impl PipelineConfig {
     /// Capacities from the board, log into `out_dir/log`.
     pub fn from_board(board: &Board, out_dir: PathBuf) -> Self {
         let mut log = LogConfig::new(out_dir.join("log"));
+        log.frame_encoding = match board.log.frame_encoding {
+            FrameLogEncoding::Raw => FrameEncoding::Raw,
+            FrameLogEncoding::Jpeg => FrameEncoding::Jpeg { quality: board.log.jpeg_quality },
+        };
         log.metadata.push(("duv.board".into(), [("toml".to_string(), toml::to_string(board).unwrap_or_default())].into_iter().collect()));
         PipelineConfig {
             out_dir,
