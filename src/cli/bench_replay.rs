@@ -62,6 +62,10 @@ struct ReplayReport {
     rss_max_mib: f64,
     /// Peak RSS of the process (VmHWM), MiB.
     rss_peak_mib: f64,
+    /// Live heap bytes (the counting allocator), the same windows, MiB.
+    heap_start_mib: f64,
+    heap_end_mib: f64,
+    heap_growth_percent: f64,
 }
 
 /// Median of the samples with `t` in `[from, to)`.
@@ -115,9 +119,10 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
         let stop = stop.clone();
         std::thread::Builder::new().name("rss-sampler".into()).spawn(move || {
             let t0 = Instant::now();
-            let mut samples: Vec<(f64, f64)> = Vec::with_capacity(4096);
+            let mut samples: Vec<(f64, f64, f64)> = Vec::with_capacity(4096);
             while !stop.load(Ordering::Relaxed) {
-                samples.push((t0.elapsed().as_secs_f64(), proc_status_mib("VmRSS:")));
+                let heap_mib = duv::core::alloc::live_bytes() as f64 / (1u64 << 20) as f64;
+                samples.push((t0.elapsed().as_secs_f64(), proc_status_mib("VmRSS:"), heap_mib));
                 let next = Duration::from_secs(samples.len() as u64);
                 while !stop.load(Ordering::Relaxed) && t0.elapsed() < next {
                     std::thread::sleep(Duration::from_millis(50));
@@ -133,16 +138,19 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
     let samples = sampler.join().map_err(|_| anyhow::anyhow!("the RSS sampler panicked"))?;
     outcome.context("the replay loop")?;
 
-    let mut csv = String::from("t_s,rss_mib\n");
-    for (t, m) in &samples {
-        csv.push_str(&format!("{t:.3},{m:.3}\n"));
+    let mut csv = String::from("t_s,rss_mib,heap_live_mib\n");
+    for (t, m, h) in &samples {
+        csv.push_str(&format!("{t:.3},{m:.3},{h:.3}\n"));
     }
     std::fs::write(args.out.join("rss.csv"), csv)?;
     anyhow::ensure!(samples.iter().all(|s| s.1.is_finite()), "no /proc/self/status here: RSS cannot be sampled");
     // The loop's own samples: after it the run maps its final iterations and exports.
     let loop_s = args.minutes * 60.0;
-    let in_loop: Vec<(f64, f64)> = samples.iter().copied().filter(|s| s.0 <= loop_s).collect();
+    let in_loop: Vec<(f64, f64)> = samples.iter().filter(|s| s.0 <= loop_s).map(|s| (s.0, s.1)).collect();
+    let heap: Vec<(f64, f64)> = samples.iter().filter(|s| s.0 <= loop_s).map(|s| (s.0, s.2)).collect();
     let (rss_start_mib, rss_end_mib, rss_growth_percent) = growth(&in_loop, args.warm_up_s);
+    let (heap_start_mib, heap_end_mib, heap_growth_percent) =
+        if duv::core::alloc::is_installed() { growth(&heap, args.warm_up_s) } else { (f64::NAN, f64::NAN, f64::NAN) };
     let report = ReplayReport {
         log: log.display().to_string(),
         board: args.board.display().to_string(),
@@ -157,10 +165,21 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
         rss_growth_percent,
         rss_max_mib: in_loop.iter().map(|s| s.1).fold(f64::NAN, f64::max),
         rss_peak_mib: proc_status_mib("VmHWM:"),
+        heap_start_mib,
+        heap_end_mib,
+        heap_growth_percent,
     };
     let md = format!(
-        "| loop s | samples | RSS after warm-up (MiB) | RSS at the end (MiB) | growth | max RSS (MiB) |\n|---|---|---|---|---|---|\n| {:.0} | {} | {:.1} | {:.1} | {:+.2} % | {:.1} |\n",
-        report.loop_s, report.samples, report.rss_start_mib, report.rss_end_mib, report.rss_growth_percent, report.rss_max_mib
+        "| loop s | samples | RSS after warm-up (MiB) | RSS at the end (MiB) | RSS growth | max RSS (MiB) | live heap after warm-up / at the end (MiB) | heap growth |\n|---|---|---|---|---|---|---|---|\n| {:.0} | {} | {:.1} | {:.1} | {:+.2} % | {:.1} | {:.1} / {:.1} | {:+.2} % |\n",
+        report.loop_s,
+        report.samples,
+        report.rss_start_mib,
+        report.rss_end_mib,
+        report.rss_growth_percent,
+        report.rss_max_mib,
+        report.heap_start_mib,
+        report.heap_end_mib,
+        report.heap_growth_percent
     );
     std::fs::write(args.out.join("bench_replay.json"), serde_json::to_string_pretty(&report)?)?;
     std::fs::write(args.out.join("bench_replay.md"), &md)?;
