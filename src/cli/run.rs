@@ -469,6 +469,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         println!("nothing left to track after frame {}", start.saturating_sub(1));
         return Ok(());
     }
+    if frames_done == 0 && result.interrupted {
+        println!("stopped before the first frame was tracked");
+        return Ok(());
+    }
     anyhow::ensure!(frames_done > 0, "the source delivered no frame");
     let mut e2e: Vec<Duration> = result.latencies.clone();
     e2e.sort();
@@ -549,18 +553,40 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         counters.relocalisations
     );
 
-    // Evaluation against ground truth.
+    // Evaluation against ground truth. A trajectory too short to align (a run stopped during
+    // initialisation) is reported, not a failed run: its outputs are all written by now.
     if let Some(gt) = source.ground_truth() {
+        if let Err(e) = evaluate(&args, &source, &tracker, &gt, &fin.frames, &live, &mut inv, &mut var) {
+            eprintln!("evaluation skipped: {e:#}");
+        }
+    }
+    Ok(())
+}
+
+/// The eval report of a finished run against the source's ground truth (ATE, AUSE of the
+/// keyframes whose true depth the source has), printed and written to `OUT/eval`.
+#[allow(clippy::too_many_arguments)]
+fn evaluate(
+    args: &RunArgs,
+    source: &Source,
+    tracker: &Tracker,
+    gt: &[StampedPose],
+    frames: &[StampedPose],
+    live: &[(u64, u64)],
+    inv: &mut PlaneF32,
+    var: &mut PlaneF32,
+) -> anyhow::Result<()> {
+    {
         let options = EvalOptions::default();
         let gt_name = format!("{} ground truth", args.source);
         let est_name = args.out.join("trajectory.txt").display().to_string();
-        let base = EvalInputs { gt_name, est_name, gt: &gt, est: &fin.frames, images: &[], images_source: None, ause: &[], ause_source: None, options };
+        let base = EvalInputs { gt_name, est_name, gt, est: frames, images: &[], images_source: None, ause: &[], ause_source: None, options };
         let first = build_report(&base)?;
         let scale = first.report.trajectory.alignment.scale;
         let mut ause: Vec<AuseInput> = Vec::new();
-        for &(id, seq) in &live {
+        for &(id, seq) in live {
             let Some(depth) = source.depth(seq) else { continue };
-            tracker.upsample_keyframe(id, &mut inv, &mut var)?;
+            tracker.upsample_keyframe(id, inv, var)?;
             let (mut errors, mut uncertainties) = (Vec::new(), Vec::new());
             for ((&z, &d), &v) in depth.data.iter().zip(&inv.data).zip(&var.data) {
                 if z > 0.0 && d.is_finite() && v.is_finite() && v < f32::MAX {
