@@ -1,6 +1,7 @@
 //! The mapper's stages on the Vulkan device (lavapipe in CI) against their CPU references in
 //! `map`: projection (EWA) with the tile-count scan, tile binning + sort + ranges, the
-//! rasteriser forward with the medium, Adam. Sizes cross workgroup (256 threads) and tile
+//! rasteriser forward with the medium, the rasteriser backward with its per-Gaussian
+//! reduction, Adam. Sizes cross workgroup (256 threads) and tile
 //! (16 px) boundaries.
 
 mod gpu_common;
@@ -13,13 +14,14 @@ use duv::map::gaussians::{GaussianParam, Gaussians, PARAMS_PER_GAUSSIAN};
 use duv::map::render::{
     bits_for, emit_intersections, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
     sort_histogram_len, tile_ranges, DepthMode, ProjectedSplat, ProjectionSetup, RasterCapacity, RasterInputs, RasterWorkspace, RenderConfig, RenderError, RenderOutput, TileGrid, TileRect,
-    rasterize_forward,
+    rasterize_backward, rasterize_forward, reduce_isect_grads, MediumPlanes, SplatGrad,
 };
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
-    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterForward, VulkanRenderError, SETUP_WORDS, SPLAT_FLOATS,
+    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterBackward, GpuRasterForward, VulkanRenderError, GRAD_FLOATS,
+    SETUP_WORDS, SPLAT_FLOATS,
 };
-use render_scene::{camera, random_gaussians, random_medium, world_from_cam};
+use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
 /// Forward values (pixels, conic entries, depth, opacity, colour): `|gpu - cpu| <= tol *
 /// max(1, |cpu|)`. The GPU's exp/log/sqrt are not the host's correctly rounded ones.
@@ -29,6 +31,53 @@ const RASTER_FORWARD_TOL: f64 = 1e-4;
 /// Adam: parameters and moments, `|gpu - cpu| <= tol * max(1e-3, |cpu|)` (the GPU may fuse
 /// multiply-adds and its sqrt is not correctly rounded).
 const ADAM_REL_TOL: f64 = 1e-5;
+/// Gradients (backward kernels): `|gpu - cpu| <= GRAD_REL_TOL * max(|cpu|, floor)` per value,
+/// with `floor = GRAD_FLOOR_FRACTION * max |cpu|` over all values of the same field (e.g. every
+/// Gaussian's dL/dconic.a, or every pixel's dL/dsigma_att). A gradient is a sum of per-pixel
+/// terms of both signs (random upstream gradients); where they cancel, the sum is far smaller
+/// than its terms and rounding of the terms (GPU exp, summation order: the GPU sums a tile's
+/// pixels row by row, the CPU pixel by pixel) is a large relative error of a value that is
+/// nearly zero on the field's scale. The floor makes such values count as absolute errors
+/// against 1e-2 of the field's largest value; every other value is held to 1e-3 relative.
+const GRAD_REL_TOL: f64 = 1e-3;
+const GRAD_FLOOR_FRACTION: f64 = 1e-2;
+
+fn grad_values(g: &SplatGrad<f32>) -> [f32; GRAD_FLOATS] {
+    [
+        g.mean2d[0],
+        g.mean2d[1],
+        g.conic[0],
+        g.conic[1],
+        g.conic[2],
+        g.opacity,
+        g.colour[0],
+        g.colour[1],
+        g.colour[2],
+        g.z,
+        g.mean2d_densify[0],
+        g.mean2d_densify[1],
+    ]
+}
+
+const GRAD_FIELDS: [&str; GRAD_FLOATS] =
+    ["mean2d.x", "mean2d.y", "conic.a", "conic.b", "conic.c", "opacity", "colour.r", "colour.g", "colour.b", "z", "densify.x", "densify.y"];
+
+/// Checks `got` against `want` (one field) with [`GRAD_REL_TOL`] and the floor of
+/// [`GRAD_FLOOR_FRACTION`]; returns the worst `|gpu - cpu| / max(|cpu|, floor)`.
+fn check_grads(what: &str, got: &[f32], want: &[f32]) -> f64 {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let largest = want.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
+    assert!(largest > 0.0, "{what}: the reference gradient is zero everywhere, nothing is tested");
+    let floor = GRAD_FLOOR_FRACTION * largest;
+    let (i, err) = got
+        .iter()
+        .zip(want)
+        .map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(floor))
+        .enumerate()
+        .fold((0, 0.0), |m, (i, e)| if e > m.1 || e.is_nan() { (i, e) } else { m });
+    assert!(err <= GRAD_REL_TOL, "{what}[{i}]: GPU {} vs CPU {} (scaled error {err:.3e}, floor {floor:.3e})", got[i], want[i]);
+    err
+}
 
 fn close(a: f32, b: f32) -> bool {
     ((a - b).abs() as f64) <= FORWARD_TOL * (b.abs() as f64).max(1.0)
@@ -306,6 +355,139 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
         }
         let ends_differ = got.isect_end.iter().zip(&want.isect_end).filter(|(a, b)| a != b).count();
         assert_eq!(ends_differ, 0, "{mode:?}: {ends_differ} pixels stop blending at a different splat");
+    }
+}
+
+#[test]
+fn rasterize_backward_matches_the_cpu_reference() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("rasterize_backward_matches_the_cpu_reference") else { return };
+    let table = Kernel::RasterizeBackwardRasterizeBackward.info();
+    assert_eq!(table.workgroup_size, [16, 16, 1]);
+    let names: Vec<&str> = table.bindings.iter().map(|b| b.name).collect();
+    assert_eq!(names, [
+        "splats",
+        "sorted_gaussian",
+        "tile_offsets",
+        "c_med",
+        "sigma_att",
+        "sigma_bs",
+        "fwd_scalars",
+        "fwd_isect_end",
+        "up_colour",
+        "up_restored",
+        "up_scalars",
+        "partials",
+        "partial_pixels",
+        "grad_c_med",
+        "grad_sigma_att",
+        "grad_sigma_bs"
+    ]);
+    let reduce: Vec<&str> = Kernel::RasterizeBackwardReduceIsectGrads.info().bindings.iter().map(|b| b.name).collect();
+    assert_eq!(reduce, ["isect_offsets", "slot_to_sorted", "in_partials", "in_partial_pixels", "splat_grads", "splat_pixels"]);
+    for (mode, seed) in [(DepthMode::InverseDepth, 23), (DepthMode::Depth, 24)] {
+        let (w, h) = (117, 83); // 8 x 6 tiles, partial tiles on both axes
+        let cam = camera(w, h, 100.0);
+        let world_from_cam = world_from_cam();
+        let mut rng = Rng::new(seed);
+        // More than one 256-splat batch in some tiles, early termination in places, clamped
+        // alphas (logits up to 6: opacity above 0.99), and more than one reduction workgroup.
+        let n = 1500;
+        let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (0.5, 6.0), (1.0, 14.0), (-1.0, 6.0));
+        let medium = random_medium(&mut rng, w, h);
+        let up = random_upstream(&mut rng, w, h);
+        let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+        let grid = TileGrid::new(w, h);
+        let cpu = cpu_stages(&g, &setup, &grid);
+        let longest = cpu.tile_offsets.windows(2).map(|p| p[1] - p[0]).max().unwrap();
+        assert!(longest > 256, "want a tile with more than one batch, longest has {longest}");
+        let intrinsics = [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32];
+        let inputs = RasterInputs {
+            splats: &cpu.splats,
+            sorted_gaussian: &cpu.sorted_gaussian,
+            tile_offsets: &cpu.tile_offsets,
+            grid,
+            intrinsics,
+            depth_mode: mode,
+        };
+        // The CPU forward is the input of both backward passes.
+        let mut fwd = RenderOutput::new(w, h);
+        rasterize_forward(&inputs, &medium, &mut fwd);
+        assert!(fwd.final_t.data.iter().any(|&t| t < 2e-4), "{mode:?}: want pixels where blending terminates early");
+        let mut want_partials = vec![SplatGrad::default(); cpu.total];
+        let mut want_medium = MediumPlanes::new(w, h);
+        rasterize_backward(&inputs, &medium, &fwd, &up, &mut want_partials, &mut want_medium);
+        let mut want = vec![SplatGrad::default(); n];
+        reduce_isect_grads(&cpu.offsets, &cpu.slot_to_sorted, &want_partials, &mut want);
+
+        let arena_mark = ctx.arena_used_bytes();
+        let proj = GpuProjection::new(&mut ctx, n).unwrap();
+        let bin = GpuBinning::new(&mut ctx, cpu.total, grid.num_tiles()).unwrap();
+        let mut raster = GpuRasterForward::new(&mut ctx, w * h).unwrap();
+        let mut bwd = GpuRasterBackward::new(&mut ctx, w * h, cpu.total, n).unwrap();
+        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_values).collect();
+        ctx.write(&proj.splats, &raw).unwrap();
+        ctx.write(&proj.isect_offsets, &cpu.offsets).unwrap();
+        ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();
+        ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
+        ctx.write(&bin.slot_to_sorted, &cpu.slot_to_sorted).unwrap();
+        raster.upload_medium(&mut ctx, &medium).unwrap();
+        raster.upload_output(&mut ctx, &fwd).unwrap();
+        bwd.upload_upstream(&mut ctx, &up).unwrap();
+        // Garbage in every output, so a value the kernels fail to write is caught.
+        ctx.begin().unwrap();
+        for r in [bwd.partials.range(), bwd.splat_grads.range(), bwd.grad_c_med.range(), bwd.grad_sigma_att.range(), bwd.grad_sigma_bs.range()] {
+            ctx.fill(r, 0x7fc0_0000).unwrap(); // NaN
+        }
+        ctx.fill(bwd.partial_pixels.range(), 0xdead).unwrap();
+        ctx.fill(bwd.splat_pixels.range(), 0xdead).unwrap();
+        bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut got = vec![SplatGrad::default(); n];
+        let mut got_medium = MediumPlanes::new(w, h);
+        bwd.read(&ctx, &mut got, &mut got_medium).unwrap();
+        let mut got_partials = vec![SplatGrad::default(); cpu.total];
+        bwd.read_partials(&ctx, &mut got_partials).unwrap();
+        // No float atomics: a second run gives the same bits.
+        ctx.begin().unwrap();
+        bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut again = vec![SplatGrad::default(); n];
+        let mut again_medium = MediumPlanes::new(w, h);
+        bwd.read(&ctx, &mut again, &mut again_medium).unwrap();
+        let bits = |v: &[SplatGrad<f32>]| v.iter().flat_map(|g| grad_values(g).map(f32::to_bits)).collect::<Vec<u32>>();
+        assert_eq!(bits(&again), bits(&got), "{mode:?}: two GPU backward passes differ");
+        assert_eq!(again_medium, got_medium, "{mode:?}: two GPU backward passes differ in the medium gradients");
+        ctx.arena_reset_to(arena_mark);
+
+        // Pixel counts are integers: exact, per intersection and per Gaussian.
+        let counts = |v: &[SplatGrad<f32>]| v.iter().map(|g| g.pixels).collect::<Vec<u32>>();
+        assert_eq!(counts(&got_partials), counts(&want_partials), "{mode:?}: pixels per intersection");
+        assert_eq!(counts(&got), counts(&want), "{mode:?}: pixels per Gaussian");
+        let touched = want.iter().filter(|g| g.pixels > 0).count();
+        assert!(touched > n / 5, "{mode:?}: scene too sparse, {touched} of {n} Gaussians touch a pixel");
+        let mut worst = [0.0f64; GRAD_FLOATS];
+        for (f, name) in GRAD_FIELDS.iter().enumerate() {
+            let field = |v: &[SplatGrad<f32>]| v.iter().map(|g| grad_values(g)[f]).collect::<Vec<f32>>();
+            check_grads(&format!("{mode:?} intersection {name}"), &field(&got_partials), &field(&want_partials));
+            worst[f] = check_grads(&format!("{mode:?} Gaussian {name}"), &field(&got), &field(&want));
+        }
+        let mut worst_medium = [0.0f64; 3];
+        for (k, (name, a, b)) in [
+            ("dL/dc_med", &got_medium.c_med.data, &want_medium.c_med.data),
+            ("dL/dsigma_att", &got_medium.sigma_att.data, &want_medium.sigma_att.data),
+            ("dL/dsigma_bs", &got_medium.sigma_bs.data, &want_medium.sigma_bs.data),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            worst_medium[k] = check_grads(&format!("{mode:?} {name}"), a, b);
+        }
+        eprintln!(
+            "{mode:?}: {} intersections, {touched} Gaussians touched; worst scaled error per field {:?}; medium c_med/att/bs {:?}",
+            cpu.total,
+            worst.map(|e| format!("{e:.1e}")),
+            worst_medium.map(|e| format!("{e:.1e}")),
+        );
     }
 }
 
