@@ -1,7 +1,7 @@
 //! The mapper's stages on the Vulkan device (lavapipe in CI) against their CPU references in
 //! `map`: projection (EWA) with the tile-count scan, tile binning + sort + ranges, the
 //! rasteriser forward with the medium, the rasteriser backward with its per-Gaussian
-//! reduction, Adam. Sizes cross workgroup (256 threads) and tile
+//! reduction, the projection backward, Adam. Sizes cross workgroup (256 threads) and tile
 //! (16 px) boundaries.
 
 mod gpu_common;
@@ -10,15 +10,15 @@ mod render_scene;
 
 use duv::core::rng::Rng;
 use duv::gpu::{BindingKind, Kernel};
-use duv::map::gaussians::{GaussianParam, Gaussians, PARAMS_PER_GAUSSIAN};
+use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use duv::map::render::{
     bits_for, emit_intersections, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
     sort_histogram_len, tile_ranges, DepthMode, ProjectedSplat, ProjectionSetup, RasterCapacity, RasterInputs, RasterWorkspace, RenderConfig, RenderError, RenderOutput, TileGrid, TileRect,
-    rasterize_backward, rasterize_forward, reduce_isect_grads, MediumPlanes, SplatGrad,
+    project_backward, rasterize_backward, rasterize_forward, reduce_isect_grads, MediumPlanes, SplatGrad,
 };
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
-    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterBackward, GpuRasterForward, VulkanRenderError, GRAD_FLOATS,
+    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, VulkanRenderError, GRAD_FLOATS,
     SETUP_WORDS, SPLAT_FLOATS,
 };
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
@@ -489,6 +489,131 @@ fn rasterize_backward_matches_the_cpu_reference() {
             worst_medium.map(|e| format!("{e:.1e}")),
         );
     }
+}
+
+#[test]
+fn project_backward_matches_the_cpu_reference() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("project_backward_matches_the_cpu_reference") else { return };
+    let names: Vec<&str> = Kernel::ProjectBackwardProjectBackward.info().bindings.iter().map(|b| b.name).collect();
+    assert_eq!(names, ["params", "setup", "splat_grads", "splat_pixels", "grads", "densify_grad_norm", "pixels_touched", "views"]);
+    let (w, h) = (117, 83);
+    let cam = camera(w, h, 100.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(27);
+    let n_scene = 256 * 6 + 77;
+    let mut g = random_gaussians(&mut rng, n_scene, n_scene + 64, &cam, &world_from_cam, (0.5, 6.0), (1.0, 14.0), (-1.0, 6.0));
+    let medium = random_medium(&mut rng, w, h);
+    let up = random_upstream(&mut rng, w, h);
+    let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+    let grid = TileGrid::new(w, h);
+    // Splat gradients of a real backward pass (CPU), for the scene.
+    let cpu = cpu_stages(&g, &setup, &grid);
+    let inputs = RasterInputs {
+        splats: &cpu.splats,
+        sorted_gaussian: &cpu.sorted_gaussian,
+        tile_offsets: &cpu.tile_offsets,
+        grid,
+        intrinsics: [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32],
+        depth_mode: DepthMode::InverseDepth,
+    };
+    let mut fwd = RenderOutput::new(w, h);
+    rasterize_forward(&inputs, &medium, &mut fwd);
+    let mut partials = vec![SplatGrad::default(); cpu.total];
+    let mut medium_grads = MediumPlanes::new(w, h);
+    rasterize_backward(&inputs, &medium, &fwd, &up, &mut partials, &mut medium_grads);
+    let mut splat_grads = vec![SplatGrad::default(); n_scene];
+    reduce_isect_grads(&cpu.offsets, &cpu.slot_to_sorted, &partials, &mut splat_grads);
+    // Branches the scene rarely reaches, with made-up splat gradients: means beyond the
+    // Jacobian's clamp on each side (x/z, y/z outside the field of view + 15%), a colour
+    // channel clamped at 0, and a Gaussian with gradients but no pixel (must be left alone).
+    let base = g.get(0);
+    let at = |x: f64, y: f64, z: f64| {
+        let p = world_from_cam * nalgebra::Point3::new(x * z, y * z, z);
+        [p.x as f32, p.y as f32, p.z as f32]
+    };
+    let extra = [
+        GaussianParam { mean: at(-1.2, 0.1, 3.0), ..base },
+        GaussianParam { mean: at(1.3, -0.2, 2.0), ..base },
+        GaussianParam { mean: at(0.2, -1.0, 4.0), ..base },
+        GaussianParam { mean: at(-0.1, 1.1, 2.5), ..base },
+        GaussianParam { f_dc: [-4.0, 0.5, 0.2], ..base },
+        GaussianParam { f_dc: [0.3, -5.0, -6.0], ..base },
+        base,
+    ];
+    for (k, p) in extra.iter().enumerate() {
+        g.push(p).unwrap();
+        let r = |rng: &mut Rng| rng.range(-1.0, 1.0) as f32;
+        splat_grads.push(SplatGrad {
+            mean2d: [r(&mut rng), r(&mut rng)],
+            conic: [r(&mut rng) * 100.0, r(&mut rng) * 100.0, r(&mut rng) * 100.0],
+            opacity: r(&mut rng),
+            colour: [r(&mut rng), r(&mut rng), r(&mut rng)],
+            z: r(&mut rng),
+            mean2d_densify: [r(&mut rng), r(&mut rng)],
+            pixels: if k + 1 == extra.len() { 0 } else { 1 + k as u32 },
+        });
+    }
+    let n = g.len();
+    let with_pixels = splat_grads.iter().filter(|s| s.pixels > 0).count();
+    assert!(with_pixels > n / 5, "{with_pixels} of {n} Gaussians have a gradient");
+
+    let mut want = GaussianGrads::with_capacity(n);
+    want.reset(n).unwrap();
+    project_backward(&g, &setup, &splat_grads, &mut want);
+
+    let arena_mark = ctx.arena_used_bytes();
+    let mut proj = GpuProjection::new(&mut ctx, n).unwrap();
+    let raster = GpuRasterBackward::new(&mut ctx, 1, 1, n).unwrap();
+    let mut pbwd = GpuProjectBackward::new(&mut ctx, n).unwrap();
+    proj.upload(&mut ctx, &g).unwrap();
+    proj.write_setup(&mut ctx, &setup, &grid, n).unwrap();
+    let raw: Vec<f32> = splat_grads.iter().flat_map(grad_values).collect();
+    ctx.write(&raster.splat_grads, &raw).unwrap();
+    ctx.write(&raster.splat_pixels, &splat_grads.iter().map(|s| s.pixels).collect::<Vec<u32>>()).unwrap();
+    let mut got = GaussianGrads::with_capacity(n);
+    got.reset(n).unwrap();
+    // NaN in the GPU buffers first, then the (zero) host gradients: the kernel adds to what
+    // was uploaded.
+    ctx.begin().unwrap();
+    ctx.fill(pbwd.grads.range(), 0x7fc0_0000).unwrap();
+    ctx.submit_and_wait().unwrap();
+    pbwd.upload(&mut ctx, &got).unwrap();
+    ctx.begin().unwrap();
+    pbwd.record(&mut ctx, &proj, &raster, n).unwrap();
+    ctx.submit_and_wait().unwrap();
+    pbwd.read(&ctx, &mut got).unwrap();
+
+    assert_eq!(got.pixels_touched(), want.pixels_touched(), "pixels touched");
+    assert_eq!(got.views(), want.views(), "views");
+    let untouched = n - 1;
+    assert_eq!(got.get(untouched), GaussianParam::default(), "a Gaussian without pixels gets no gradient");
+    assert_eq!(want.get(untouched), GaussianParam::default());
+    let worst_norm = check_grads("densify_grad_norm", got.densify_grad_norm(), want.densify_grad_norm());
+    let mut worst = Vec::new();
+    for group in ParamGroup::ALL {
+        let width = group.width();
+        for c in 0..width {
+            let field = |gr: &GaussianGrads| gr.group(group).chunks_exact(width).map(|v| v[c]).collect::<Vec<f32>>();
+            let e = check_grads(&format!("{}[{c}]", group.name()), &field(&got), &field(&want));
+            worst.push(format!("{}[{c}] {e:.1e}", group.name()));
+        }
+    }
+    eprintln!("project_backward: {n} Gaussians, {with_pixels} with pixels; worst scaled errors: densify norm {worst_norm:.1e}, {}", worst.join(", "));
+
+    // A second pass adds: every gradient doubles (x + x is exact), the counts too.
+    ctx.begin().unwrap();
+    pbwd.record(&mut ctx, &proj, &raster, n).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut twice = GaussianGrads::with_capacity(n);
+    twice.reset(n).unwrap();
+    pbwd.read(&ctx, &mut twice).unwrap();
+    for group in ParamGroup::ALL {
+        let doubled: Vec<f32> = got.group(group).iter().map(|v| 2.0 * v).collect();
+        assert_eq!(twice.group(group), &doubled[..], "{}: a second pass must add", group.name());
+    }
+    let doubled: Vec<u32> = want.views().iter().map(|v| 2 * v).collect();
+    assert_eq!(twice.views(), &doubled[..], "views after two passes");
+    ctx.arena_reset_to(arena_mark);
 }
 
 #[test]
