@@ -1,7 +1,7 @@
 //! The mapper's stages on the Vulkan device (lavapipe in CI) against their CPU references in
 //! `map`: projection (EWA) with the tile-count scan, tile binning + sort + ranges, the
 //! rasteriser forward with the medium, the rasteriser backward with its per-Gaussian
-//! reduction, the projection backward, Adam. Sizes cross workgroup (256 threads) and tile
+//! reduction, the projection backward, Adam; the whole forward and backward. Sizes cross workgroup (256 threads) and tile
 //! (16 px) boundaries.
 
 mod gpu_common;
@@ -18,7 +18,7 @@ use duv::map::render::{
 };
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
-    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, VulkanRenderError, GRAD_FLOATS,
+    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
     SETUP_WORDS, SPLAT_FLOATS,
 };
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
@@ -703,6 +703,78 @@ fn gpu_forward_render_matches_raster_workspace() {
     }
     eprintln!("arena peak {} MiB of {} MiB", ctx.arena_peak_bytes() >> 20, ctx.arena_capacity_bytes() >> 20);
     ctx.arena_reset_to(arena_mark);
+}
+
+#[test]
+fn gpu_forward_backward_matches_raster_workspace() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("gpu_forward_backward_matches_raster_workspace") else { return };
+    let (w, h) = (160, 120);
+    let cam = camera(w, h, 140.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(33);
+    let n = 256 * 11 + 9;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (1.0, 10.0), (0.7, 6.0), (-2.0, 3.0));
+    let medium = random_medium(&mut rng, w, h);
+    let up = random_upstream(&mut rng, w, h);
+    let config = RenderConfig::default();
+    let cam_from_world = world_from_cam.inverse();
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: n, max_intersections: 8 * n };
+    let mut ws = RasterWorkspace::new(capacity).unwrap();
+    let mut want_out = RenderOutput::new(w, h);
+    ws.forward(&g, &cam, &cam_from_world, &medium, &config, &mut want_out).unwrap();
+    let mut want = GaussianGrads::with_capacity(n);
+    want.reset(n).unwrap();
+    let mut want_medium = MediumPlanes::new(w, h);
+    ws.backward(&g, &medium, &want_out, &up, &mut want, &mut want_medium).unwrap();
+
+    let arena_mark = ctx.arena_used_bytes();
+    let mut gpu = GpuRenderer::new(&mut ctx, capacity).unwrap();
+    let mut got_out = RenderOutput::new(w, h);
+    let mut got = GaussianGrads::with_capacity(n);
+    got.reset(n).unwrap();
+    let mut got_medium = MediumPlanes::new(w, h);
+    // Backward before any forward: the CPU reference's error.
+    match gpu.backward(&mut ctx, &g, &medium, &got_out, &up, &mut got, &mut got_medium) {
+        Err(VulkanRenderError::Render(RenderError::NoForward { .. })) => {}
+        other => panic!("expected NoForward, got {other:?}"),
+    }
+    gpu.forward(&mut ctx, &g, &cam, &cam_from_world, &medium, &config, &mut got_out).unwrap();
+    ctx.reset_profile();
+    gpu.backward(&mut ctx, &g, &medium, &got_out, &up, &mut got, &mut got_medium).unwrap();
+    let rows: Vec<String> = ctx.profile().rows().map(|(k, d, ms)| format!("{} x{d}: {ms:.2} ms", k.name())).collect();
+    ctx.arena_reset_to(arena_mark);
+
+    // The two forwards agree to RASTER_FORWARD_TOL, but where a splat's alpha is within
+    // rounding of 1/255 at a pixel (or T within rounding of 1e-4), one side blends it and the
+    // other does not: its pixel count differs by one. Such pixels must be rare.
+    let ends_differ = got_out.isect_end.iter().zip(&want_out.isect_end).filter(|(a, b)| a != b).count();
+    let count_diff: u64 = got.pixels_touched().iter().zip(want.pixels_touched()).map(|(a, b)| a.abs_diff(*b) as u64).sum();
+    let count_total: u64 = want.pixels_touched().iter().map(|&v| v as u64).sum();
+    assert!(count_total > (w * h) as u64, "the scene must cover the image");
+    assert!(count_diff * 10_000 <= count_total, "pixel counts differ by {count_diff} of {count_total}");
+    assert_eq!(got.views(), want.views(), "views");
+    let mut worst = Vec::new();
+    worst.push(format!("densify norm {:.1e}", check_grads("densify_grad_norm", got.densify_grad_norm(), want.densify_grad_norm())));
+    for group in ParamGroup::ALL {
+        let width = group.width();
+        for c in 0..width {
+            let field = |gr: &GaussianGrads| gr.group(group).chunks_exact(width).map(|v| v[c]).collect::<Vec<f32>>();
+            let e = check_grads(&format!("whole backward {}[{c}]", group.name()), &field(&got), &field(&want));
+            worst.push(format!("{}[{c}] {e:.1e}", group.name()));
+        }
+    }
+    for (name, a, b) in [
+        ("dL/dc_med", &got_medium.c_med.data, &want_medium.c_med.data),
+        ("dL/dsigma_att", &got_medium.sigma_att.data, &want_medium.sigma_att.data),
+        ("dL/dsigma_bs", &got_medium.sigma_bs.data, &want_medium.sigma_bs.data),
+    ] {
+        worst.push(format!("{name} {:.1e}", check_grads(&format!("whole backward {name}"), a, b)));
+    }
+    eprintln!(
+        "whole backward: {ends_differ} pixels end elsewhere, pixel counts differ by {count_diff} of {count_total}; worst scaled errors: {}",
+        worst.join(", ")
+    );
+    eprintln!("backward kernel times: {}", rows.join(", "));
 }
 
 /// No kernel uses float atomics (integer workgroup atomics only, in an order-independent

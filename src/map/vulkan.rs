@@ -16,7 +16,8 @@
 //! [`GpuProjection`], [`GpuBinning`], [`GpuRasterForward`], [`GpuRasterBackward`] and
 //! [`GpuProjectBackward`] own their buffers, allocated once from the arena for a fixed
 //! capacity; [`GpuForwardRenderer`] runs the forward stages as `RasterWorkspace::forward`
-//! does. No kernel uses float atomics (the backward writes one gradient per intersection and
+//! does, [`GpuRenderer`] the forward and the backward as `RasterWorkspace::{forward,
+//! backward}` do (one submission for the backward). No kernel uses float atomics (the backward writes one gradient per intersection and
 //! sums them per Gaussian), so results are bit-identical from run to run on one device.
 //! [`ForwardBackend`] is the CPU fallback when no Vulkan device exists.
 
@@ -795,6 +796,135 @@ impl GpuForwardRenderer {
             self.projection.staging_offsets = offsets;
         }
         Ok(RenderStats { visible, intersections: n_isects })
+    }
+}
+
+/// What [`GpuRenderer::backward`] needs of the last forward pass.
+#[derive(Clone, Copy, Debug)]
+struct GpuForwardState {
+    grid: TileGrid,
+    intrinsics: [f32; 4],
+    depth_mode: DepthMode,
+    n_gaussians: usize,
+    n_isects: usize,
+}
+
+/// Forward and backward render on the GPU, every buffer allocated once for a
+/// [`RasterCapacity`]: the twin of [`crate::map::render::RasterWorkspace`]. The backward
+/// differentiates the last forward with what that forward left on the device (the map, the
+/// medium, the projected splats, the sorted intersections, depth, variance, alpha, final T and
+/// isect end), so the caller passes the same map and medium again, as it must to the CPU
+/// reference.
+pub struct GpuRenderer {
+    pub fwd: GpuForwardRenderer,
+    pub raster_backward: GpuRasterBackward,
+    pub project_backward: GpuProjectBackward,
+    last: Option<GpuForwardState>,
+}
+
+impl GpuRenderer {
+    pub fn new(ctx: &mut GpuContext, capacity: RasterCapacity) -> Result<Self, GpuError> {
+        Ok(GpuRenderer {
+            fwd: GpuForwardRenderer::new(ctx, capacity)?,
+            raster_backward: GpuRasterBackward::new(
+                ctx,
+                capacity.width * capacity.height,
+                capacity.max_intersections,
+                capacity.max_gaussians,
+            )?,
+            project_backward: GpuProjectBackward::new(ctx, capacity.max_gaussians)?,
+            last: None,
+        })
+    }
+
+    /// [`GpuForwardRenderer::forward`], remembered for [`Self::backward`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        out: &mut RenderOutput,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        self.last = None;
+        let stats = self.fwd.forward(ctx, gaussians, camera, cam_from_world, medium, config, out)?;
+        self.last = Some(GpuForwardState {
+            grid: TileGrid::new(camera.width, camera.height),
+            intrinsics: [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32],
+            depth_mode: config.depth_mode,
+            n_gaussians: gaussians.len(),
+            n_isects: stats.intersections,
+        });
+        Ok(stats)
+    }
+
+    /// Differentiates the last [`Self::forward`] for the upstream gradients, as
+    /// [`crate::map::render::RasterWorkspace::backward`] does on the CPU (same checks, same
+    /// errors): **adds** the parameter gradients and densification statistics into `grads`
+    /// and **overwrites** `medium_grads`. One submission: `rasterize_backward`,
+    /// `reduce_isect_grads`, `project_backward`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        medium: &MediumPlanes,
+        out: &RenderOutput,
+        upstream: &RenderUpstream,
+        grads: &mut GaussianGrads,
+        medium_grads: &mut MediumPlanes,
+    ) -> Result<(), VulkanRenderError> {
+        let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
+        if gaussians.len() != last.n_gaussians {
+            return Err(RenderError::NoForward { why: "the map changed size since the forward pass" }.into());
+        }
+        if grads.len() != gaussians.len() {
+            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: gaussians.len() }.into());
+        }
+        let grid = last.grid;
+        check_output(out, &grid)?;
+        check_size("upstream gradients", upstream.width(), upstream.height(), &grid)?;
+        for p in [&upstream.depth, &upstream.depth_var, &upstream.alpha] {
+            check_size("upstream gradients", p.width, p.height, &grid)?;
+        }
+        check_size("upstream gradients", upstream.restored.width, upstream.restored.height, &grid)?;
+        for (_, plane) in medium.planes().into_iter().chain(medium_grads.planes()) {
+            check_size("medium planes", plane.width, plane.height, &grid)?;
+        }
+        check_rgb("dL/dcolour", &upstream.colour, false)?;
+        check_rgb("dL/drestored", &upstream.restored, false)?;
+        check_rgb("dL/ddepth", &upstream.depth, false)?;
+        check_rgb("dL/ddepth_var", &upstream.depth_var, false)?;
+        check_rgb("dL/dalpha", &upstream.alpha, false)?;
+
+        let _span = tracing::debug_span!("map.gpu_backward", intersections = last.n_isects).entered();
+        let n = last.n_gaussians;
+        self.raster_backward.upload_upstream(ctx, upstream)?;
+        self.project_backward.upload(ctx, grads)?;
+        ctx.begin()?;
+        let fwd = &self.fwd;
+        self.raster_backward.record(
+            ctx,
+            &fwd.projection.splats,
+            &fwd.projection.isect_offsets,
+            &fwd.binning,
+            &fwd.raster,
+            &grid,
+            last.intrinsics,
+            last.depth_mode,
+            n,
+            last.n_isects,
+        )?;
+        self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
+        ctx.submit_and_wait()?;
+        self.project_backward.read(ctx, grads)?;
+        ctx.read(&self.raster_backward.grad_c_med, &mut medium_grads.c_med.data)?;
+        ctx.read(&self.raster_backward.grad_sigma_att, &mut medium_grads.sigma_att.data)?;
+        ctx.read(&self.raster_backward.grad_sigma_bs, &mut medium_grads.sigma_bs.data)?;
+        Ok(())
     }
 }
 
