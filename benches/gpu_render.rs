@@ -1,10 +1,12 @@
-//! Forward render on the Vulkan device (`map::vulkan::GpuForwardRenderer`) against the CPU
-//! reference (`RasterWorkspace::forward`) in the same run: 320x240 and 640x480 with 20k and
-//! 100k random Gaussians (the scenes of `benches/render.rs`). Medians of several runs, the
-//! GPU time including uploads and read-backs, then the per-kernel GPU timestamps.
-//! The backward pass has no kernels yet, so this measures the forward only.
+//! Forward and backward render on the Vulkan device (`map::vulkan::GpuRenderer`) against the
+//! CPU reference (`RasterWorkspace::forward` + `backward`) in the same run: 320x240 and
+//! 640x480 with 20k and 100k random Gaussians (the scenes of `benches/render.rs`) and random
+//! upstream gradients. Medians of several runs, the GPU time including uploads and
+//! read-backs, then the per-kernel GPU timestamps (forward and backward kernels).
 //!
-//! Run: `cargo bench --bench gpu_render` (release; `DUV_VULKAN_DEVICE` picks the device).
+//! Run: `cargo bench --bench gpu_render` (release; `DUV_VULKAN_DEVICE` picks the device);
+//! `cargo bench --bench gpu_render -- --quick`: 320x240 with 20k Gaussians only, 3 runs (a CPU
+//! Vulkan device such as lavapipe takes seconds per backward pass).
 
 #[path = "../tests/common/render_scene.rs"]
 mod render_scene;
@@ -15,11 +17,13 @@ use std::time::{Duration, Instant};
 use duv::config::Board;
 use duv::core::rng::Rng;
 use duv::gpu::{GpuContext, GpuOptions};
-use duv::map::render::{RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
-use duv::map::vulkan::GpuForwardRenderer;
-use render_scene::{camera, random_gaussians, random_medium, world_from_cam};
+use duv::map::gaussians::GaussianGrads;
+use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
+use duv::map::vulkan::GpuRenderer;
+use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
 const RUNS: usize = 7;
+const QUICK_RUNS: usize = 3;
 
 fn median_ms(samples: &mut [Duration]) -> f64 {
     samples.sort();
@@ -27,6 +31,8 @@ fn median_ms(samples: &mut [Duration]) -> f64 {
 }
 
 fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let runs = if quick { QUICK_RUNS } else { RUNS };
     let board = Board::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("boards/sim.toml")).expect("boards/sim.toml");
     let mut ctx = match GpuContext::new(&GpuOptions::with_budget_mb(board.budgets.gpu_mb)) {
         Ok(c) => c,
@@ -35,23 +41,28 @@ fn main() {
             return;
         }
     };
-    println!("device: {}; CPU reference on {} rayon threads; median of {RUNS} runs", ctx.info(), rayon::current_num_threads());
-    // Fixed GPU memory of the forward buffers for a 640x480 run with a 300k Gaussian cap and
-    // room for 10 tile intersections per Gaussian (allocated, not used).
+    println!("device: {}; CPU reference on {} rayon threads; median of {runs} runs", ctx.info(), rayon::current_num_threads());
+    // Fixed GPU memory of the forward and backward buffers for a 640x480 run with a 300k
+    // Gaussian cap and room for 10 tile intersections per Gaussian (allocated, not used).
     let mark = ctx.arena_used_bytes();
     let cap300k = RasterCapacity { width: 640, height: 480, max_gaussians: 300_000, max_intersections: 3_000_000 };
-    GpuForwardRenderer::new(&mut ctx, cap300k).unwrap();
+    match GpuRenderer::new(&mut ctx, cap300k) {
+        Ok(_) => {}
+        Err(e) => println!("forward+backward buffers for 640x480, 300k Gaussians, 3M intersections do not fit: {e}"),
+    }
     println!(
-        "forward buffers for 640x480, 300k Gaussians, 3M intersections: {:.1} MiB of the {} MiB arena (Adam moments and gradients not included)",
+        "forward+backward buffers for 640x480, 300k Gaussians, 3M intersections: {:.1} MiB of the {} MiB arena (Adam moments not included)",
         (ctx.arena_used_bytes() - mark) as f64 / (1 << 20) as f64,
         ctx.arena_capacity_bytes() >> 20
     );
     ctx.arena_reset_to(mark);
     let config = RenderConfig::default();
-    for (w, h) in [(320usize, 240usize), (640, 480)] {
+    let sizes: &[(usize, usize)] = if quick { &[(320, 240)] } else { &[(320, 240), (640, 480)] };
+    let counts: &[usize] = if quick { &[20_000] } else { &[20_000, 100_000] };
+    for &(w, h) in sizes {
         let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
         let cam_from_world = world_from_cam().inverse();
-        for n in [20_000usize, 100_000] {
+        for &n in counts {
             let mut rng = Rng::new(n as u64);
             let gaussians = random_gaussians(&mut rng, n, n, &cam, &world_from_cam(), (1.0, 10.0), (0.7, 4.0), (-2.0, 3.0));
             let medium = random_medium(&mut rng, w, h);
@@ -66,33 +77,52 @@ fn main() {
                 }
                 other => other.unwrap(),
             };
+            let up = random_upstream(&mut rng, w, h);
+            let mut grads = GaussianGrads::with_capacity(n);
+            grads.reset(n).unwrap();
+            let mut medium_grads = MediumPlanes::new(w, h);
+            ws.backward(&gaussians, &medium, &out, &up, &mut grads, &mut medium_grads).unwrap();
             let mark = ctx.arena_used_bytes();
-            let mut gpu = GpuForwardRenderer::new(&mut ctx, cap).unwrap();
+            let mut gpu = GpuRenderer::new(&mut ctx, cap).unwrap();
             let used_mib = (ctx.arena_used_bytes() - mark) as f64 / (1 << 20) as f64;
             let mut gpu_out = RenderOutput::new(w, h);
+            let mut gpu_grads = GaussianGrads::with_capacity(n);
+            gpu_grads.reset(n).unwrap();
+            let mut gpu_medium_grads = MediumPlanes::new(w, h);
             gpu.forward(&mut ctx, &gaussians, &cam, &cam_from_world, &medium, &config, &mut gpu_out).unwrap();
+            gpu.backward(&mut ctx, &gaussians, &medium, &gpu_out, &up, &mut gpu_grads, &mut gpu_medium_grads).unwrap();
             ctx.reset_profile();
-            let (mut cpu_t, mut gpu_t) = (Vec::new(), Vec::new());
-            for _ in 0..RUNS {
+            let (mut cpu_f, mut cpu_b, mut gpu_f, mut gpu_b) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            for _ in 0..runs {
+                grads.reset(n).unwrap();
+                gpu_grads.reset(n).unwrap();
                 let t0 = Instant::now();
                 ws.forward(&gaussians, &cam, &cam_from_world, &medium, &config, &mut out).unwrap();
                 let t1 = Instant::now();
-                gpu.forward(&mut ctx, &gaussians, &cam, &cam_from_world, &medium, &config, &mut gpu_out).unwrap();
+                ws.backward(&gaussians, &medium, &out, &up, &mut grads, &mut medium_grads).unwrap();
                 let t2 = Instant::now();
-                cpu_t.push(t1 - t0);
-                gpu_t.push(t2 - t1);
+                gpu.forward(&mut ctx, &gaussians, &cam, &cam_from_world, &medium, &config, &mut gpu_out).unwrap();
+                let t3 = Instant::now();
+                gpu.backward(&mut ctx, &gaussians, &medium, &gpu_out, &up, &mut gpu_grads, &mut gpu_medium_grads).unwrap();
+                let t4 = Instant::now();
+                cpu_f.push(t1 - t0);
+                cpu_b.push(t2 - t1);
+                gpu_f.push(t3 - t2);
+                gpu_b.push(t4 - t3);
             }
             let err = out.colour.data.iter().zip(&gpu_out.colour.data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-            let (cpu_ms, gpu_ms) = (median_ms(&mut cpu_t), median_ms(&mut gpu_t));
+            let (cf, cb, gf, gb) = (median_ms(&mut cpu_f), median_ms(&mut cpu_b), median_ms(&mut gpu_f), median_ms(&mut gpu_b));
             println!(
-                "{w}x{h}, {n} Gaussians ({} visible, {} intersections): forward CPU {cpu_ms:8.2} ms, Vulkan {gpu_ms:8.2} ms \
-                 (CPU/Vulkan {:.2}x); colour max abs diff {err:.1e}",
+                "{w}x{h}, {n} Gaussians ({} visible, {} intersections): forward+backward CPU {:8.2} ms ({cf:.2} + {cb:.2}), \
+                 Vulkan {:8.2} ms ({gf:.2} + {gb:.2}) (CPU/Vulkan {:.2}x); colour max abs diff {err:.1e}",
                 stats.visible,
                 stats.intersections,
-                cpu_ms / gpu_ms
+                cf + cb,
+                gf + gb,
+                (cf + cb) / (gf + gb)
             );
             for (k, d, ms) in ctx.profile().rows() {
-                println!("    {:<48} {:8.3} ms per forward ({} dispatches)", k.name(), ms / RUNS as f64, d / RUNS as u64);
+                println!("    {:<48} {:8.3} ms per iteration ({} dispatches)", k.name(), ms / runs as f64, d / runs as u64);
             }
             println!("    GPU buffers of this renderer: {used_mib:.1} MiB of the {} MiB arena", ctx.arena_capacity_bytes() >> 20);
             ctx.arena_reset_to(mark);

@@ -1,6 +1,7 @@
 //! The mapper's stages on the Vulkan device (lavapipe in CI) against their CPU references in
 //! `map`: projection (EWA) with the tile-count scan, tile binning + sort + ranges, the
-//! rasteriser forward with the medium, Adam. Sizes cross workgroup (256 threads) and tile
+//! rasteriser forward with the medium, the rasteriser backward with its per-Gaussian
+//! reduction, the projection backward, Adam; the whole forward and backward. Sizes cross workgroup (256 threads) and tile
 //! (16 px) boundaries.
 
 mod gpu_common;
@@ -9,17 +10,18 @@ mod render_scene;
 
 use duv::core::rng::Rng;
 use duv::gpu::{BindingKind, Kernel};
-use duv::map::gaussians::{GaussianParam, Gaussians, PARAMS_PER_GAUSSIAN};
+use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use duv::map::render::{
     bits_for, emit_intersections, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
     sort_histogram_len, tile_ranges, DepthMode, ProjectedSplat, ProjectionSetup, RasterCapacity, RasterInputs, RasterWorkspace, RenderConfig, RenderError, RenderOutput, TileGrid, TileRect,
-    rasterize_forward,
+    project_backward, rasterize_backward, rasterize_forward, reduce_isect_grads, MediumPlanes, SplatGrad,
 };
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
-    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjection, GpuRasterForward, VulkanRenderError, SETUP_WORDS, SPLAT_FLOATS,
+    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
+    SETUP_WORDS, SPLAT_FLOATS,
 };
-use render_scene::{camera, random_gaussians, random_medium, world_from_cam};
+use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
 /// Forward values (pixels, conic entries, depth, opacity, colour): `|gpu - cpu| <= tol *
 /// max(1, |cpu|)`. The GPU's exp/log/sqrt are not the host's correctly rounded ones.
@@ -29,6 +31,53 @@ const RASTER_FORWARD_TOL: f64 = 1e-4;
 /// Adam: parameters and moments, `|gpu - cpu| <= tol * max(1e-3, |cpu|)` (the GPU may fuse
 /// multiply-adds and its sqrt is not correctly rounded).
 const ADAM_REL_TOL: f64 = 1e-5;
+/// Gradients (backward kernels): `|gpu - cpu| <= GRAD_REL_TOL * max(|cpu|, floor)` per value,
+/// with `floor = GRAD_FLOOR_FRACTION * max |cpu|` over all values of the same field (e.g. every
+/// Gaussian's dL/dconic.a, or every pixel's dL/dsigma_att). A gradient is a sum of per-pixel
+/// terms of both signs (random upstream gradients); where they cancel, the sum is far smaller
+/// than its terms and rounding of the terms (GPU exp, summation order: the GPU sums a tile's
+/// pixels row by row, the CPU pixel by pixel) is a large relative error of a value that is
+/// nearly zero on the field's scale. The floor makes such values count as absolute errors
+/// against 1e-2 of the field's largest value; every other value is held to 1e-3 relative.
+const GRAD_REL_TOL: f64 = 1e-3;
+const GRAD_FLOOR_FRACTION: f64 = 1e-2;
+
+fn grad_values(g: &SplatGrad<f32>) -> [f32; GRAD_FLOATS] {
+    [
+        g.mean2d[0],
+        g.mean2d[1],
+        g.conic[0],
+        g.conic[1],
+        g.conic[2],
+        g.opacity,
+        g.colour[0],
+        g.colour[1],
+        g.colour[2],
+        g.z,
+        g.mean2d_densify[0],
+        g.mean2d_densify[1],
+    ]
+}
+
+const GRAD_FIELDS: [&str; GRAD_FLOATS] =
+    ["mean2d.x", "mean2d.y", "conic.a", "conic.b", "conic.c", "opacity", "colour.r", "colour.g", "colour.b", "z", "densify.x", "densify.y"];
+
+/// Checks `got` against `want` (one field) with [`GRAD_REL_TOL`] and the floor of
+/// [`GRAD_FLOOR_FRACTION`]; returns the worst `|gpu - cpu| / max(|cpu|, floor)`.
+fn check_grads(what: &str, got: &[f32], want: &[f32]) -> f64 {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let largest = want.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
+    assert!(largest > 0.0, "{what}: the reference gradient is zero everywhere, nothing is tested");
+    let floor = GRAD_FLOOR_FRACTION * largest;
+    let (i, err) = got
+        .iter()
+        .zip(want)
+        .map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(floor))
+        .enumerate()
+        .fold((0, 0.0), |m, (i, e)| if e > m.1 || e.is_nan() { (i, e) } else { m });
+    assert!(err <= GRAD_REL_TOL, "{what}[{i}]: GPU {} vs CPU {} (scaled error {err:.3e}, floor {floor:.3e})", got[i], want[i]);
+    err
+}
 
 fn close(a: f32, b: f32) -> bool {
     ((a - b).abs() as f64) <= FORWARD_TOL * (b.abs() as f64).max(1.0)
@@ -310,6 +359,264 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
 }
 
 #[test]
+fn rasterize_backward_matches_the_cpu_reference() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("rasterize_backward_matches_the_cpu_reference") else { return };
+    let table = Kernel::RasterizeBackwardRasterizeBackward.info();
+    assert_eq!(table.workgroup_size, [16, 16, 1]);
+    let names: Vec<&str> = table.bindings.iter().map(|b| b.name).collect();
+    assert_eq!(names, [
+        "splats",
+        "sorted_gaussian",
+        "tile_offsets",
+        "c_med",
+        "sigma_att",
+        "sigma_bs",
+        "fwd_scalars",
+        "fwd_isect_end",
+        "up_colour",
+        "up_restored",
+        "up_scalars",
+        "partials",
+        "partial_pixels",
+        "grad_c_med",
+        "grad_sigma_att",
+        "grad_sigma_bs"
+    ]);
+    let reduce: Vec<&str> = Kernel::RasterizeBackwardReduceIsectGrads.info().bindings.iter().map(|b| b.name).collect();
+    assert_eq!(reduce, ["isect_offsets", "slot_to_sorted", "in_partials", "in_partial_pixels", "splat_grads", "splat_pixels"]);
+    for (mode, seed) in [(DepthMode::InverseDepth, 23), (DepthMode::Depth, 24)] {
+        let (w, h) = (117, 83); // 8 x 6 tiles, partial tiles on both axes
+        let cam = camera(w, h, 100.0);
+        let world_from_cam = world_from_cam();
+        let mut rng = Rng::new(seed);
+        // More than one 256-splat batch in some tiles, early termination in places, clamped
+        // alphas (logits up to 6: opacity above 0.99), and more than one reduction workgroup.
+        let n = 1500;
+        let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (0.5, 6.0), (1.0, 14.0), (-1.0, 6.0));
+        let medium = random_medium(&mut rng, w, h);
+        let up = random_upstream(&mut rng, w, h);
+        let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+        let grid = TileGrid::new(w, h);
+        let cpu = cpu_stages(&g, &setup, &grid);
+        let longest = cpu.tile_offsets.windows(2).map(|p| p[1] - p[0]).max().unwrap();
+        assert!(longest > 256, "want a tile with more than one batch, longest has {longest}");
+        let intrinsics = [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32];
+        let inputs = RasterInputs {
+            splats: &cpu.splats,
+            sorted_gaussian: &cpu.sorted_gaussian,
+            tile_offsets: &cpu.tile_offsets,
+            grid,
+            intrinsics,
+            depth_mode: mode,
+        };
+        // The CPU forward is the input of both backward passes.
+        let mut fwd = RenderOutput::new(w, h);
+        rasterize_forward(&inputs, &medium, &mut fwd);
+        assert!(fwd.final_t.data.iter().any(|&t| t < 2e-4), "{mode:?}: want pixels where blending terminates early");
+        let mut want_partials = vec![SplatGrad::default(); cpu.total];
+        let mut want_medium = MediumPlanes::new(w, h);
+        rasterize_backward(&inputs, &medium, &fwd, &up, &mut want_partials, &mut want_medium);
+        let mut want = vec![SplatGrad::default(); n];
+        reduce_isect_grads(&cpu.offsets, &cpu.slot_to_sorted, &want_partials, &mut want);
+
+        let arena_mark = ctx.arena_used_bytes();
+        let proj = GpuProjection::new(&mut ctx, n).unwrap();
+        let bin = GpuBinning::new(&mut ctx, cpu.total, grid.num_tiles()).unwrap();
+        let mut raster = GpuRasterForward::new(&mut ctx, w * h).unwrap();
+        let mut bwd = GpuRasterBackward::new(&mut ctx, w * h, cpu.total, n).unwrap();
+        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_values).collect();
+        ctx.write(&proj.splats, &raw).unwrap();
+        ctx.write(&proj.isect_offsets, &cpu.offsets).unwrap();
+        ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();
+        ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
+        ctx.write(&bin.slot_to_sorted, &cpu.slot_to_sorted).unwrap();
+        raster.upload_medium(&mut ctx, &medium).unwrap();
+        raster.upload_output(&mut ctx, &fwd).unwrap();
+        bwd.upload_upstream(&mut ctx, &up).unwrap();
+        // Garbage in every output, so a value the kernels fail to write is caught.
+        ctx.begin().unwrap();
+        for r in [bwd.partials.range(), bwd.splat_grads.range(), bwd.grad_c_med.range(), bwd.grad_sigma_att.range(), bwd.grad_sigma_bs.range()] {
+            ctx.fill(r, 0x7fc0_0000).unwrap(); // NaN
+        }
+        ctx.fill(bwd.partial_pixels.range(), 0xdead).unwrap();
+        ctx.fill(bwd.splat_pixels.range(), 0xdead).unwrap();
+        bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut got = vec![SplatGrad::default(); n];
+        let mut got_medium = MediumPlanes::new(w, h);
+        bwd.read(&ctx, &mut got, &mut got_medium).unwrap();
+        let mut got_partials = vec![SplatGrad::default(); cpu.total];
+        bwd.read_partials(&ctx, &mut got_partials).unwrap();
+        // No float atomics: a second run gives the same bits.
+        ctx.begin().unwrap();
+        bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+        ctx.submit_and_wait().unwrap();
+        let mut again = vec![SplatGrad::default(); n];
+        let mut again_medium = MediumPlanes::new(w, h);
+        bwd.read(&ctx, &mut again, &mut again_medium).unwrap();
+        let bits = |v: &[SplatGrad<f32>]| v.iter().flat_map(|g| grad_values(g).map(f32::to_bits)).collect::<Vec<u32>>();
+        assert_eq!(bits(&again), bits(&got), "{mode:?}: two GPU backward passes differ");
+        assert_eq!(again_medium, got_medium, "{mode:?}: two GPU backward passes differ in the medium gradients");
+        ctx.arena_reset_to(arena_mark);
+
+        // Pixel counts are integers: exact, per intersection and per Gaussian.
+        let counts = |v: &[SplatGrad<f32>]| v.iter().map(|g| g.pixels).collect::<Vec<u32>>();
+        assert_eq!(counts(&got_partials), counts(&want_partials), "{mode:?}: pixels per intersection");
+        assert_eq!(counts(&got), counts(&want), "{mode:?}: pixels per Gaussian");
+        let touched = want.iter().filter(|g| g.pixels > 0).count();
+        assert!(touched > n / 5, "{mode:?}: scene too sparse, {touched} of {n} Gaussians touch a pixel");
+        let mut worst = [0.0f64; GRAD_FLOATS];
+        for (f, name) in GRAD_FIELDS.iter().enumerate() {
+            let field = |v: &[SplatGrad<f32>]| v.iter().map(|g| grad_values(g)[f]).collect::<Vec<f32>>();
+            check_grads(&format!("{mode:?} intersection {name}"), &field(&got_partials), &field(&want_partials));
+            worst[f] = check_grads(&format!("{mode:?} Gaussian {name}"), &field(&got), &field(&want));
+        }
+        let mut worst_medium = [0.0f64; 3];
+        for (k, (name, a, b)) in [
+            ("dL/dc_med", &got_medium.c_med.data, &want_medium.c_med.data),
+            ("dL/dsigma_att", &got_medium.sigma_att.data, &want_medium.sigma_att.data),
+            ("dL/dsigma_bs", &got_medium.sigma_bs.data, &want_medium.sigma_bs.data),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            worst_medium[k] = check_grads(&format!("{mode:?} {name}"), a, b);
+        }
+        eprintln!(
+            "{mode:?}: {} intersections, {touched} Gaussians touched; worst scaled error per field {:?}; medium c_med/att/bs {:?}",
+            cpu.total,
+            worst.map(|e| format!("{e:.1e}")),
+            worst_medium.map(|e| format!("{e:.1e}")),
+        );
+    }
+}
+
+#[test]
+fn project_backward_matches_the_cpu_reference() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("project_backward_matches_the_cpu_reference") else { return };
+    let names: Vec<&str> = Kernel::ProjectBackwardProjectBackward.info().bindings.iter().map(|b| b.name).collect();
+    assert_eq!(names, ["params", "setup", "splat_grads", "splat_pixels", "grads", "densify_grad_norm", "pixels_touched", "views"]);
+    let (w, h) = (117, 83);
+    let cam = camera(w, h, 100.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(27);
+    let n_scene = 256 * 6 + 77;
+    let mut g = random_gaussians(&mut rng, n_scene, n_scene + 64, &cam, &world_from_cam, (0.5, 6.0), (1.0, 14.0), (-1.0, 6.0));
+    let medium = random_medium(&mut rng, w, h);
+    let up = random_upstream(&mut rng, w, h);
+    let setup = ProjectionSetup::<f32>::new(&cam, &world_from_cam.inverse(), &RenderConfig::default()).unwrap();
+    let grid = TileGrid::new(w, h);
+    // Splat gradients of a real backward pass (CPU), for the scene.
+    let cpu = cpu_stages(&g, &setup, &grid);
+    let inputs = RasterInputs {
+        splats: &cpu.splats,
+        sorted_gaussian: &cpu.sorted_gaussian,
+        tile_offsets: &cpu.tile_offsets,
+        grid,
+        intrinsics: [cam.fx as f32, cam.fy as f32, cam.cx as f32, cam.cy as f32],
+        depth_mode: DepthMode::InverseDepth,
+    };
+    let mut fwd = RenderOutput::new(w, h);
+    rasterize_forward(&inputs, &medium, &mut fwd);
+    let mut partials = vec![SplatGrad::default(); cpu.total];
+    let mut medium_grads = MediumPlanes::new(w, h);
+    rasterize_backward(&inputs, &medium, &fwd, &up, &mut partials, &mut medium_grads);
+    let mut splat_grads = vec![SplatGrad::default(); n_scene];
+    reduce_isect_grads(&cpu.offsets, &cpu.slot_to_sorted, &partials, &mut splat_grads);
+    // Branches the scene rarely reaches, with made-up splat gradients: means beyond the
+    // Jacobian's clamp on each side (x/z, y/z outside the field of view + 15%), a colour
+    // channel clamped at 0, and a Gaussian with gradients but no pixel (must be left alone).
+    let base = g.get(0);
+    let at = |x: f64, y: f64, z: f64| {
+        let p = world_from_cam * nalgebra::Point3::new(x * z, y * z, z);
+        [p.x as f32, p.y as f32, p.z as f32]
+    };
+    let extra = [
+        GaussianParam { mean: at(-1.2, 0.1, 3.0), ..base },
+        GaussianParam { mean: at(1.3, -0.2, 2.0), ..base },
+        GaussianParam { mean: at(0.2, -1.0, 4.0), ..base },
+        GaussianParam { mean: at(-0.1, 1.1, 2.5), ..base },
+        GaussianParam { f_dc: [-4.0, 0.5, 0.2], ..base },
+        GaussianParam { f_dc: [0.3, -5.0, -6.0], ..base },
+        base,
+    ];
+    for (k, p) in extra.iter().enumerate() {
+        g.push(p).unwrap();
+        let r = |rng: &mut Rng| rng.range(-1.0, 1.0) as f32;
+        splat_grads.push(SplatGrad {
+            mean2d: [r(&mut rng), r(&mut rng)],
+            conic: [r(&mut rng) * 100.0, r(&mut rng) * 100.0, r(&mut rng) * 100.0],
+            opacity: r(&mut rng),
+            colour: [r(&mut rng), r(&mut rng), r(&mut rng)],
+            z: r(&mut rng),
+            mean2d_densify: [r(&mut rng), r(&mut rng)],
+            pixels: if k + 1 == extra.len() { 0 } else { 1 + k as u32 },
+        });
+    }
+    let n = g.len();
+    let with_pixels = splat_grads.iter().filter(|s| s.pixels > 0).count();
+    assert!(with_pixels > n / 5, "{with_pixels} of {n} Gaussians have a gradient");
+
+    let mut want = GaussianGrads::with_capacity(n);
+    want.reset(n).unwrap();
+    project_backward(&g, &setup, &splat_grads, &mut want);
+
+    let arena_mark = ctx.arena_used_bytes();
+    let mut proj = GpuProjection::new(&mut ctx, n).unwrap();
+    let raster = GpuRasterBackward::new(&mut ctx, 1, 1, n).unwrap();
+    let mut pbwd = GpuProjectBackward::new(&mut ctx, n).unwrap();
+    proj.upload(&mut ctx, &g).unwrap();
+    proj.write_setup(&mut ctx, &setup, &grid, n).unwrap();
+    let raw: Vec<f32> = splat_grads.iter().flat_map(grad_values).collect();
+    ctx.write(&raster.splat_grads, &raw).unwrap();
+    ctx.write(&raster.splat_pixels, &splat_grads.iter().map(|s| s.pixels).collect::<Vec<u32>>()).unwrap();
+    let mut got = GaussianGrads::with_capacity(n);
+    got.reset(n).unwrap();
+    // NaN in the GPU buffers first, then the (zero) host gradients: the kernel adds to what
+    // was uploaded.
+    ctx.begin().unwrap();
+    ctx.fill(pbwd.grads.range(), 0x7fc0_0000).unwrap();
+    ctx.submit_and_wait().unwrap();
+    pbwd.upload(&mut ctx, &got).unwrap();
+    ctx.begin().unwrap();
+    pbwd.record(&mut ctx, &proj, &raster, n).unwrap();
+    ctx.submit_and_wait().unwrap();
+    pbwd.read(&ctx, &mut got).unwrap();
+
+    assert_eq!(got.pixels_touched(), want.pixels_touched(), "pixels touched");
+    assert_eq!(got.views(), want.views(), "views");
+    let untouched = n - 1;
+    assert_eq!(got.get(untouched), GaussianParam::default(), "a Gaussian without pixels gets no gradient");
+    assert_eq!(want.get(untouched), GaussianParam::default());
+    let worst_norm = check_grads("densify_grad_norm", got.densify_grad_norm(), want.densify_grad_norm());
+    let mut worst = Vec::new();
+    for group in ParamGroup::ALL {
+        let width = group.width();
+        for c in 0..width {
+            let field = |gr: &GaussianGrads| gr.group(group).chunks_exact(width).map(|v| v[c]).collect::<Vec<f32>>();
+            let e = check_grads(&format!("{}[{c}]", group.name()), &field(&got), &field(&want));
+            worst.push(format!("{}[{c}] {e:.1e}", group.name()));
+        }
+    }
+    eprintln!("project_backward: {n} Gaussians, {with_pixels} with pixels; worst scaled errors: densify norm {worst_norm:.1e}, {}", worst.join(", "));
+
+    // A second pass adds: every gradient doubles (x + x is exact), the counts too.
+    ctx.begin().unwrap();
+    pbwd.record(&mut ctx, &proj, &raster, n).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut twice = GaussianGrads::with_capacity(n);
+    twice.reset(n).unwrap();
+    pbwd.read(&ctx, &mut twice).unwrap();
+    for group in ParamGroup::ALL {
+        let doubled: Vec<f32> = got.group(group).iter().map(|v| 2.0 * v).collect();
+        assert_eq!(twice.group(group), &doubled[..], "{}: a second pass must add", group.name());
+    }
+    let doubled: Vec<u32> = want.views().iter().map(|v| 2 * v).collect();
+    assert_eq!(twice.views(), &doubled[..], "views after two passes");
+    ctx.arena_reset_to(arena_mark);
+}
+
+#[test]
 fn adam_step_matches_adam_group() {
     let Some(mut ctx) = gpu_common::gpu_or_skip("adam_step_matches_adam_group") else { return };
     // 65535 * 256 + 3 * 256 + 5 values: more workgroups than one grid dimension holds.
@@ -396,6 +703,78 @@ fn gpu_forward_render_matches_raster_workspace() {
     }
     eprintln!("arena peak {} MiB of {} MiB", ctx.arena_peak_bytes() >> 20, ctx.arena_capacity_bytes() >> 20);
     ctx.arena_reset_to(arena_mark);
+}
+
+#[test]
+fn gpu_forward_backward_matches_raster_workspace() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("gpu_forward_backward_matches_raster_workspace") else { return };
+    let (w, h) = (160, 120);
+    let cam = camera(w, h, 140.0);
+    let world_from_cam = world_from_cam();
+    let mut rng = Rng::new(33);
+    let n = 256 * 11 + 9;
+    let g = random_gaussians(&mut rng, n, n, &cam, &world_from_cam, (1.0, 10.0), (0.7, 6.0), (-2.0, 3.0));
+    let medium = random_medium(&mut rng, w, h);
+    let up = random_upstream(&mut rng, w, h);
+    let config = RenderConfig::default();
+    let cam_from_world = world_from_cam.inverse();
+    let capacity = RasterCapacity { width: w, height: h, max_gaussians: n, max_intersections: 8 * n };
+    let mut ws = RasterWorkspace::new(capacity).unwrap();
+    let mut want_out = RenderOutput::new(w, h);
+    ws.forward(&g, &cam, &cam_from_world, &medium, &config, &mut want_out).unwrap();
+    let mut want = GaussianGrads::with_capacity(n);
+    want.reset(n).unwrap();
+    let mut want_medium = MediumPlanes::new(w, h);
+    ws.backward(&g, &medium, &want_out, &up, &mut want, &mut want_medium).unwrap();
+
+    let arena_mark = ctx.arena_used_bytes();
+    let mut gpu = GpuRenderer::new(&mut ctx, capacity).unwrap();
+    let mut got_out = RenderOutput::new(w, h);
+    let mut got = GaussianGrads::with_capacity(n);
+    got.reset(n).unwrap();
+    let mut got_medium = MediumPlanes::new(w, h);
+    // Backward before any forward: the CPU reference's error.
+    match gpu.backward(&mut ctx, &g, &medium, &got_out, &up, &mut got, &mut got_medium) {
+        Err(VulkanRenderError::Render(RenderError::NoForward { .. })) => {}
+        other => panic!("expected NoForward, got {other:?}"),
+    }
+    gpu.forward(&mut ctx, &g, &cam, &cam_from_world, &medium, &config, &mut got_out).unwrap();
+    ctx.reset_profile();
+    gpu.backward(&mut ctx, &g, &medium, &got_out, &up, &mut got, &mut got_medium).unwrap();
+    let rows: Vec<String> = ctx.profile().rows().map(|(k, d, ms)| format!("{} x{d}: {ms:.2} ms", k.name())).collect();
+    ctx.arena_reset_to(arena_mark);
+
+    // The two forwards agree to RASTER_FORWARD_TOL, but where a splat's alpha is within
+    // rounding of 1/255 at a pixel (or T within rounding of 1e-4), one side blends it and the
+    // other does not: its pixel count differs by one. Such pixels must be rare.
+    let ends_differ = got_out.isect_end.iter().zip(&want_out.isect_end).filter(|(a, b)| a != b).count();
+    let count_diff: u64 = got.pixels_touched().iter().zip(want.pixels_touched()).map(|(a, b)| a.abs_diff(*b) as u64).sum();
+    let count_total: u64 = want.pixels_touched().iter().map(|&v| v as u64).sum();
+    assert!(count_total > (w * h) as u64, "the scene must cover the image");
+    assert!(count_diff * 10_000 <= count_total, "pixel counts differ by {count_diff} of {count_total}");
+    assert_eq!(got.views(), want.views(), "views");
+    let mut worst = Vec::new();
+    worst.push(format!("densify norm {:.1e}", check_grads("densify_grad_norm", got.densify_grad_norm(), want.densify_grad_norm())));
+    for group in ParamGroup::ALL {
+        let width = group.width();
+        for c in 0..width {
+            let field = |gr: &GaussianGrads| gr.group(group).chunks_exact(width).map(|v| v[c]).collect::<Vec<f32>>();
+            let e = check_grads(&format!("whole backward {}[{c}]", group.name()), &field(&got), &field(&want));
+            worst.push(format!("{}[{c}] {e:.1e}", group.name()));
+        }
+    }
+    for (name, a, b) in [
+        ("dL/dc_med", &got_medium.c_med.data, &want_medium.c_med.data),
+        ("dL/dsigma_att", &got_medium.sigma_att.data, &want_medium.sigma_att.data),
+        ("dL/dsigma_bs", &got_medium.sigma_bs.data, &want_medium.sigma_bs.data),
+    ] {
+        worst.push(format!("{name} {:.1e}", check_grads(&format!("whole backward {name}"), a, b)));
+    }
+    eprintln!(
+        "whole backward: {ends_differ} pixels end elsewhere, pixel counts differ by {count_diff} of {count_total}; worst scaled errors: {}",
+        worst.join(", ")
+    );
+    eprintln!("backward kernel times: {}", rows.join(", "));
 }
 
 /// No kernel uses float atomics (integer workgroup atomics only, in an order-independent

@@ -9,22 +9,26 @@
 //! | depth/tile key sort | `radix_sort.*` (via `gpu::ops`) | `radix_sort_pairs` |
 //! | tile ranges, index maps | `tile_ranges.{tile_ranges, gather_sorted, invert_permutation}` | `tile_ranges`, `gather_sorted_gaussians`, `invert_permutation` |
 //! | rasterise forward with the medium | `rasterize.rasterize` | `rasterize_forward` |
+//! | rasterise backward, per-Gaussian sums | `rasterize_backward.{rasterize_backward, reduce_isect_grads}` | `rasterize_backward`, `reduce_isect_grads` |
+//! | projection backward | `project_backward.project_backward` | `project_backward` |
 //! | Adam | `adam.adam_step` | `AdamGroup::step` |
 //!
-//! [`GpuProjection`], [`GpuBinning`] and [`GpuRasterForward`] own their buffers, allocated
-//! once from the arena for a fixed capacity; [`GpuForwardRenderer`] runs them all as
-//! `RasterWorkspace::forward` does. No kernel uses float atomics, so results are
-//! bit-identical from run to run on one device. [`ForwardBackend`] is the CPU fallback when
-//! no Vulkan device exists. Backward kernels are not written yet.
+//! [`GpuProjection`], [`GpuBinning`], [`GpuRasterForward`], [`GpuRasterBackward`] and
+//! [`GpuProjectBackward`] own their buffers, allocated once from the arena for a fixed
+//! capacity; [`GpuForwardRenderer`] runs the forward stages as `RasterWorkspace::forward`
+//! does, [`GpuRenderer`] the forward and the backward as `RasterWorkspace::{forward,
+//! backward}` do (one submission for the backward). No kernel uses float atomics (the backward writes one gradient per intersection and
+//! sums them per Gaussian), so results are bit-identical from run to run on one device.
+//! [`ForwardBackend`] is the CPU fallback when no Vulkan device exists.
 
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
 use crate::map::adam::StepConstants;
-use crate::map::gaussians::{Gaussians, PARAMS_PER_GAUSSIAN};
+use crate::map::gaussians::{GaussianGrads, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use crate::core::{PinholeCamera, Se3};
 use crate::map::render::{
     bits_for, check_output, check_rgb, check_size, validate_gaussians, DepthMode, MediumPlanes, ProjectedSplat, ProjectionSetup,
-    RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, TileGrid, TileRect,
+    RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream, SplatGrad, TileGrid, TileRect,
 };
 
 /// Floats per projected splat on the GPU (the field order of [`ProjectedSplat`]).
@@ -334,6 +338,323 @@ impl GpuRasterForward {
         }
         ctx.read(&self.isect_end, &mut out.isect_end)
     }
+
+    /// Writes what the backward pass reads of a forward render (depth, variance, alpha,
+    /// final T, isect end) from `out`: the backward of a forward computed elsewhere (tests).
+    pub fn upload_output(&mut self, ctx: &mut GpuContext, out: &RenderOutput) -> Result<(), GpuError> {
+        let n = out.width() * out.height();
+        if n > self.max_pixels {
+            return Err(GpuError::OutOfRange { what: "depth, variance, alpha, final T", requested: n, len: self.max_pixels });
+        }
+        for (i, s) in self.staging[..n].iter_mut().enumerate() {
+            *s = [out.depth.data[i], out.depth_var.data[i], out.alpha.data[i], out.final_t.data[i]];
+        }
+        ctx.write(&self.scalars, &self.staging[..n])?;
+        ctx.write(&self.isect_end, &out.isect_end)
+    }
+}
+
+/// Floats of one splat gradient on the GPU: the fields of [`SplatGrad`] in order (mean2d,
+/// conic, opacity, colour, z, mean2d_densify) without the pixel count, which is a u32 buffer
+/// of its own.
+pub const GRAD_FLOATS: usize = 12;
+
+fn splat_grad_from(v: &[f32], pixels: u32) -> SplatGrad<f32> {
+    SplatGrad {
+        mean2d: [v[0], v[1]],
+        conic: [v[2], v[3], v[4]],
+        opacity: v[5],
+        colour: [v[6], v[7], v[8]],
+        z: v[9],
+        mean2d_densify: [v[10], v[11]],
+        pixels,
+    }
+}
+
+/// Rasterisation backward buffers for images up to `max_pixels` pixels, `max_intersections`
+/// intersections and `max_gaussians` Gaussians: the upstream gradients (inputs), one splat
+/// gradient per sorted intersection, one per Gaussian, and the per-pixel medium gradients.
+pub struct GpuRasterBackward {
+    pub max_pixels: usize,
+    pub max_intersections: usize,
+    pub max_gaussians: usize,
+    pub up_colour: GpuBuffer<f32>,
+    pub up_restored: GpuBuffer<f32>,
+    /// Per pixel `[dL/ddepth, dL/ddepth_var, dL/dalpha, 0]`.
+    pub up_scalars: GpuBuffer<[f32; 4]>,
+    /// [`GRAD_FLOATS`] per sorted intersection, and its pixel count.
+    pub partials: GpuBuffer<f32>,
+    pub partial_pixels: GpuBuffer<u32>,
+    pub grad_c_med: GpuBuffer<f32>,
+    pub grad_sigma_att: GpuBuffer<f32>,
+    pub grad_sigma_bs: GpuBuffer<f32>,
+    /// [`GRAD_FLOATS`] per Gaussian, and its pixel count.
+    pub splat_grads: GpuBuffer<f32>,
+    pub splat_pixels: GpuBuffer<u32>,
+    /// Host staging (allocated once).
+    staging_up: Vec<[f32; 4]>,
+    staging_grads: Vec<f32>,
+    staging_pixels: Vec<u32>,
+}
+
+impl GpuRasterBackward {
+    pub fn new(ctx: &mut GpuContext, max_pixels: usize, max_intersections: usize, max_gaussians: usize) -> Result<Self, GpuError> {
+        let most = max_intersections.max(max_gaussians);
+        Ok(GpuRasterBackward {
+            max_pixels,
+            max_intersections,
+            max_gaussians,
+            up_colour: ctx.alloc("dL/dcolour", max_pixels * 3)?,
+            up_restored: ctx.alloc("dL/drestored", max_pixels * 3)?,
+            up_scalars: ctx.alloc("dL/d depth, variance, alpha", max_pixels)?,
+            partials: ctx.alloc("intersection splat gradients", max_intersections * GRAD_FLOATS)?,
+            partial_pixels: ctx.alloc("intersection pixel counts", max_intersections)?,
+            grad_c_med: ctx.alloc("dL/dc_med", max_pixels * 3)?,
+            grad_sigma_att: ctx.alloc("dL/dsigma_att", max_pixels * 3)?,
+            grad_sigma_bs: ctx.alloc("dL/dsigma_bs", max_pixels * 3)?,
+            splat_grads: ctx.alloc("splat gradients", max_gaussians * GRAD_FLOATS)?,
+            splat_pixels: ctx.alloc("splat pixel counts", max_gaussians)?,
+            staging_up: vec![[0.0; 4]; max_pixels],
+            staging_grads: vec![0.0; most * GRAD_FLOATS],
+            staging_pixels: vec![0; most],
+        })
+    }
+
+    /// Uploads the upstream gradients of a `width x height` render.
+    pub fn upload_upstream(&mut self, ctx: &mut GpuContext, up: &RenderUpstream) -> Result<(), GpuError> {
+        let n = up.width() * up.height();
+        if n > self.max_pixels {
+            return Err(GpuError::OutOfRange { what: "dL/d depth, variance, alpha", requested: n, len: self.max_pixels });
+        }
+        ctx.write(&self.up_colour, &up.colour.data)?;
+        ctx.write(&self.up_restored, &up.restored.data)?;
+        for (i, s) in self.staging_up[..n].iter_mut().enumerate() {
+            *s = [up.depth.data[i], up.depth_var.data[i], up.alpha.data[i], 0.0];
+        }
+        ctx.write(&self.up_scalars, &self.staging_up[..n])
+    }
+
+    /// Records `rasterize_backward` over the grid (one [`SplatGrad`] per sorted intersection
+    /// in `partials`, the medium gradients per pixel), then `reduce_isect_grads` over `n`
+    /// Gaussians (their intersection offsets `isect_offsets`). The forward outputs are read
+    /// from `fwd`, the medium planes too. CPU reference: `rasterize_backward` +
+    /// `reduce_isect_grads`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record(
+        &self,
+        ctx: &mut GpuContext,
+        splats: &GpuBuffer<f32>,
+        isect_offsets: &GpuBuffer<u32>,
+        bin: &GpuBinning,
+        fwd: &GpuRasterForward,
+        grid: &TileGrid,
+        intrinsics: [f32; 4],
+        depth_mode: DepthMode,
+        n: usize,
+        n_isects: usize,
+    ) -> Result<(), GpuError> {
+        if grid.width * grid.height > self.max_pixels.min(fwd.max_pixels) {
+            return Err(GpuError::OutOfRange { what: "dL/dc_med", requested: grid.width * grid.height, len: self.max_pixels });
+        }
+        if n_isects > self.max_intersections {
+            return Err(GpuError::OutOfRange { what: "intersection splat gradients", requested: n_isects, len: self.max_intersections });
+        }
+        if n > self.max_gaussians {
+            return Err(GpuError::OutOfRange { what: "splat gradients", requested: n, len: self.max_gaussians });
+        }
+        let [fx, fy, cx, cy] = intrinsics;
+        let mode = match depth_mode {
+            DepthMode::InverseDepth => 0u32,
+            DepthMode::Depth => 1,
+        };
+        let params = [fx.to_bits(), fy.to_bits(), cx.to_bits(), cy.to_bits(), grid.width as u32, grid.height as u32, grid.tiles_x as u32, mode];
+        let bufs = [
+            splats.range(),
+            bin.sorted_gaussian.range(),
+            bin.tile_offsets.range(),
+            fwd.c_med.range(),
+            fwd.sigma_att.range(),
+            fwd.sigma_bs.range(),
+            fwd.scalars.range(),
+            fwd.isect_end.range(),
+            self.up_colour.range(),
+            self.up_restored.range(),
+            self.up_scalars.range(),
+            self.partials.range(),
+            self.partial_pixels.range(),
+            self.grad_c_med.range(),
+            self.grad_sigma_att.range(),
+            self.grad_sigma_bs.range(),
+        ];
+        ctx.dispatch(Kernel::RasterizeBackwardRasterizeBackward, &bufs, bytemuck::bytes_of(&params), [
+            grid.tiles_x as u32,
+            grid.tiles_y as u32,
+            1,
+        ])?;
+        if n == 0 {
+            return Ok(());
+        }
+        let params = [n as u32, 0, 0, 0];
+        let groups = n.div_ceil(256);
+        let gx = groups.min(65535);
+        let bufs = [
+            isect_offsets.range(),
+            bin.slot_to_sorted.range(),
+            self.partials.range(),
+            self.partial_pixels.range(),
+            self.splat_grads.range(),
+            self.splat_pixels.range(),
+        ];
+        ctx.dispatch(Kernel::RasterizeBackwardReduceIsectGrads, &bufs, bytemuck::bytes_of(&params), [
+            gx as u32,
+            groups.div_ceil(gx) as u32,
+            1,
+        ])
+    }
+
+    fn read_grads(
+        ctx: &GpuContext,
+        grads: &GpuBuffer<f32>,
+        pixels: &GpuBuffer<u32>,
+        staging_grads: &mut [f32],
+        staging_pixels: &mut [u32],
+        out: &mut [SplatGrad<f32>],
+    ) -> Result<(), GpuError> {
+        let n = out.len();
+        ctx.read(grads, &mut staging_grads[..n * GRAD_FLOATS])?;
+        ctx.read(pixels, &mut staging_pixels[..n])?;
+        for (i, o) in out.iter_mut().enumerate() {
+            *o = splat_grad_from(&staging_grads[i * GRAD_FLOATS..(i + 1) * GRAD_FLOATS], staging_pixels[i]);
+        }
+        Ok(())
+    }
+
+    /// Reads the per-Gaussian splat gradients (`out.len()` Gaussians) and the medium gradients
+    /// of a `width x height` render (overwritten, as the CPU reference does).
+    pub fn read(&mut self, ctx: &GpuContext, out: &mut [SplatGrad<f32>], medium_grads: &mut MediumPlanes) -> Result<(), GpuError> {
+        Self::read_grads(ctx, &self.splat_grads, &self.splat_pixels, &mut self.staging_grads, &mut self.staging_pixels, out)?;
+        ctx.read(&self.grad_c_med, &mut medium_grads.c_med.data)?;
+        ctx.read(&self.grad_sigma_att, &mut medium_grads.sigma_att.data)?;
+        ctx.read(&self.grad_sigma_bs, &mut medium_grads.sigma_bs.data)
+    }
+
+    /// Reads the per-intersection partials (`out.len()` sorted intersections; tests, debugging).
+    pub fn read_partials(&mut self, ctx: &GpuContext, out: &mut [SplatGrad<f32>]) -> Result<(), GpuError> {
+        Self::read_grads(ctx, &self.partials, &self.partial_pixels, &mut self.staging_grads, &mut self.staging_pixels, out)
+    }
+}
+
+/// Parameter gradients and densification statistics of up to `capacity` Gaussians on the
+/// GPU: [`PARAMS_PER_GAUSSIAN`] floats per Gaussian in the layout of the parameters, plus the
+/// three statistics of [`GaussianGrads`].
+pub struct GpuProjectBackward {
+    pub capacity: usize,
+    pub grads: GpuBuffer<f32>,
+    pub densify_grad_norm: GpuBuffer<f32>,
+    pub pixels_touched: GpuBuffer<u32>,
+    pub views: GpuBuffer<u32>,
+    /// Host staging (allocated once).
+    staging: Vec<f32>,
+    staging_norm: Vec<f32>,
+    staging_counts: Vec<u32>,
+}
+
+impl GpuProjectBackward {
+    pub fn new(ctx: &mut GpuContext, capacity: usize) -> Result<Self, GpuError> {
+        Ok(GpuProjectBackward {
+            capacity,
+            grads: ctx.alloc("Gaussian gradients", capacity * PARAMS_PER_GAUSSIAN)?,
+            densify_grad_norm: ctx.alloc("densify gradient norms", capacity)?,
+            pixels_touched: ctx.alloc("pixels touched", capacity)?,
+            views: ctx.alloc("views", capacity)?,
+            staging: vec![0.0; capacity * PARAMS_PER_GAUSSIAN],
+            staging_norm: vec![0.0; capacity],
+            staging_counts: vec![0; 2 * capacity],
+        })
+    }
+
+    fn check_len(&self, n: usize) -> Result<(), GpuError> {
+        if n > self.capacity {
+            return Err(GpuError::OutOfRange { what: "Gaussian gradients", requested: n, len: self.capacity });
+        }
+        Ok(())
+    }
+
+    /// Uploads `grads` (what the backward pass adds into).
+    pub fn upload(&mut self, ctx: &mut GpuContext, grads: &GaussianGrads) -> Result<(), GpuError> {
+        let n = grads.len();
+        self.check_len(n)?;
+        for g in ParamGroup::ALL {
+            let (w, off) = (g.width(), g.offset());
+            for (i, src) in grads.group(g).chunks_exact(w).enumerate() {
+                self.staging[i * PARAMS_PER_GAUSSIAN + off..i * PARAMS_PER_GAUSSIAN + off + w].copy_from_slice(src);
+            }
+        }
+        ctx.write(&self.grads, &self.staging[..n * PARAMS_PER_GAUSSIAN])?;
+        ctx.write(&self.densify_grad_norm, grads.densify_grad_norm())?;
+        ctx.write(&self.pixels_touched, grads.pixels_touched())?;
+        ctx.write(&self.views, grads.views())
+    }
+
+    /// Records zeroing the gradients and statistics of `n` Gaussians.
+    pub fn record_zero(&self, ctx: &mut GpuContext, n: usize) -> Result<(), GpuError> {
+        self.check_len(n)?;
+        if n == 0 {
+            return Ok(());
+        }
+        ctx.fill(self.grads.slice_range(0, n * PARAMS_PER_GAUSSIAN)?, 0)?;
+        ctx.fill(self.densify_grad_norm.slice_range(0, n)?, 0)?;
+        ctx.fill(self.pixels_touched.slice_range(0, n)?, 0)?;
+        ctx.fill(self.views.slice_range(0, n)?, 0)
+    }
+
+    /// Records `project_backward` over `n` Gaussians: the splat gradients of `raster` back to
+    /// the parameters in `proj` (with the setup of the forward pass), ADDED into these
+    /// buffers. CPU reference: `project_backward`.
+    pub fn record(&self, ctx: &mut GpuContext, proj: &GpuProjection, raster: &GpuRasterBackward, n: usize) -> Result<(), GpuError> {
+        self.check_len(n)?;
+        if n > proj.capacity || n > raster.max_gaussians {
+            return Err(GpuError::OutOfRange { what: "splat gradients", requested: n, len: proj.capacity.min(raster.max_gaussians) });
+        }
+        if n == 0 {
+            return Ok(());
+        }
+        let groups = n.div_ceil(256);
+        let gx = groups.min(65535);
+        let bufs = [
+            proj.params.range(),
+            proj.setup.range(),
+            raster.splat_grads.range(),
+            raster.splat_pixels.range(),
+            self.grads.range(),
+            self.densify_grad_norm.range(),
+            self.pixels_touched.range(),
+            self.views.range(),
+        ];
+        ctx.dispatch(Kernel::ProjectBackwardProjectBackward, &bufs, &[], [gx as u32, groups.div_ceil(gx) as u32, 1])
+    }
+
+    /// Reads the gradients and statistics of `grads.len()` Gaussians into `grads`
+    /// (overwritten).
+    pub fn read(&mut self, ctx: &GpuContext, grads: &mut GaussianGrads) -> Result<(), GpuError> {
+        let n = grads.len();
+        self.check_len(n)?;
+        ctx.read(&self.grads, &mut self.staging[..n * PARAMS_PER_GAUSSIAN])?;
+        for g in ParamGroup::ALL {
+            let (w, off) = (g.width(), g.offset());
+            for (i, dst) in grads.group_mut(g).chunks_exact_mut(w).enumerate() {
+                dst.copy_from_slice(&self.staging[i * PARAMS_PER_GAUSSIAN + off..i * PARAMS_PER_GAUSSIAN + off + w]);
+            }
+        }
+        ctx.read(&self.densify_grad_norm, &mut self.staging_norm[..n])?;
+        let (touched, views) = self.staging_counts.split_at_mut(self.capacity);
+        ctx.read(&self.pixels_touched, &mut touched[..n])?;
+        ctx.read(&self.views, &mut views[..n])?;
+        grads
+            .set_densify_stats(&self.staging_norm[..n], &touched[..n], &views[..n])
+            .expect("lengths equal grads.len() by construction");
+        Ok(())
+    }
 }
 
 /// Records one Adam step over `n` values (`values`, `grads`, first and second moments `m`,
@@ -475,6 +796,135 @@ impl GpuForwardRenderer {
             self.projection.staging_offsets = offsets;
         }
         Ok(RenderStats { visible, intersections: n_isects })
+    }
+}
+
+/// What [`GpuRenderer::backward`] needs of the last forward pass.
+#[derive(Clone, Copy, Debug)]
+struct GpuForwardState {
+    grid: TileGrid,
+    intrinsics: [f32; 4],
+    depth_mode: DepthMode,
+    n_gaussians: usize,
+    n_isects: usize,
+}
+
+/// Forward and backward render on the GPU, every buffer allocated once for a
+/// [`RasterCapacity`]: the twin of [`crate::map::render::RasterWorkspace`]. The backward
+/// differentiates the last forward with what that forward left on the device (the map, the
+/// medium, the projected splats, the sorted intersections, depth, variance, alpha, final T and
+/// isect end), so the caller passes the same map and medium again, as it must to the CPU
+/// reference.
+pub struct GpuRenderer {
+    pub fwd: GpuForwardRenderer,
+    pub raster_backward: GpuRasterBackward,
+    pub project_backward: GpuProjectBackward,
+    last: Option<GpuForwardState>,
+}
+
+impl GpuRenderer {
+    pub fn new(ctx: &mut GpuContext, capacity: RasterCapacity) -> Result<Self, GpuError> {
+        Ok(GpuRenderer {
+            fwd: GpuForwardRenderer::new(ctx, capacity)?,
+            raster_backward: GpuRasterBackward::new(
+                ctx,
+                capacity.width * capacity.height,
+                capacity.max_intersections,
+                capacity.max_gaussians,
+            )?,
+            project_backward: GpuProjectBackward::new(ctx, capacity.max_gaussians)?,
+            last: None,
+        })
+    }
+
+    /// [`GpuForwardRenderer::forward`], remembered for [`Self::backward`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        out: &mut RenderOutput,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        self.last = None;
+        let stats = self.fwd.forward(ctx, gaussians, camera, cam_from_world, medium, config, out)?;
+        self.last = Some(GpuForwardState {
+            grid: TileGrid::new(camera.width, camera.height),
+            intrinsics: [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32],
+            depth_mode: config.depth_mode,
+            n_gaussians: gaussians.len(),
+            n_isects: stats.intersections,
+        });
+        Ok(stats)
+    }
+
+    /// Differentiates the last [`Self::forward`] for the upstream gradients, as
+    /// [`crate::map::render::RasterWorkspace::backward`] does on the CPU (same checks, same
+    /// errors): **adds** the parameter gradients and densification statistics into `grads`
+    /// and **overwrites** `medium_grads`. One submission: `rasterize_backward`,
+    /// `reduce_isect_grads`, `project_backward`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        medium: &MediumPlanes,
+        out: &RenderOutput,
+        upstream: &RenderUpstream,
+        grads: &mut GaussianGrads,
+        medium_grads: &mut MediumPlanes,
+    ) -> Result<(), VulkanRenderError> {
+        let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
+        if gaussians.len() != last.n_gaussians {
+            return Err(RenderError::NoForward { why: "the map changed size since the forward pass" }.into());
+        }
+        if grads.len() != gaussians.len() {
+            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: gaussians.len() }.into());
+        }
+        let grid = last.grid;
+        check_output(out, &grid)?;
+        check_size("upstream gradients", upstream.width(), upstream.height(), &grid)?;
+        for p in [&upstream.depth, &upstream.depth_var, &upstream.alpha] {
+            check_size("upstream gradients", p.width, p.height, &grid)?;
+        }
+        check_size("upstream gradients", upstream.restored.width, upstream.restored.height, &grid)?;
+        for (_, plane) in medium.planes().into_iter().chain(medium_grads.planes()) {
+            check_size("medium planes", plane.width, plane.height, &grid)?;
+        }
+        check_rgb("dL/dcolour", &upstream.colour, false)?;
+        check_rgb("dL/drestored", &upstream.restored, false)?;
+        check_rgb("dL/ddepth", &upstream.depth, false)?;
+        check_rgb("dL/ddepth_var", &upstream.depth_var, false)?;
+        check_rgb("dL/dalpha", &upstream.alpha, false)?;
+
+        let _span = tracing::debug_span!("map.gpu_backward", intersections = last.n_isects).entered();
+        let n = last.n_gaussians;
+        self.raster_backward.upload_upstream(ctx, upstream)?;
+        self.project_backward.upload(ctx, grads)?;
+        ctx.begin()?;
+        let fwd = &self.fwd;
+        self.raster_backward.record(
+            ctx,
+            &fwd.projection.splats,
+            &fwd.projection.isect_offsets,
+            &fwd.binning,
+            &fwd.raster,
+            &grid,
+            last.intrinsics,
+            last.depth_mode,
+            n,
+            last.n_isects,
+        )?;
+        self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
+        ctx.submit_and_wait()?;
+        self.project_backward.read(ctx, grads)?;
+        ctx.read(&self.raster_backward.grad_c_med, &mut medium_grads.c_med.data)?;
+        ctx.read(&self.raster_backward.grad_sigma_att, &mut medium_grads.sigma_att.data)?;
+        ctx.read(&self.raster_backward.grad_sigma_bs, &mut medium_grads.sigma_bs.data)?;
+        Ok(())
     }
 }
 

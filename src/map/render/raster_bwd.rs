@@ -22,11 +22,13 @@
 //! and `t_n = z_n |ray|`, these become the splat gradients of [`SplatGrad`].
 //!
 //! # Accumulation without atomics
-//! The GPU adds per-pixel contributions into per-Gaussian sums with atomics. Here each tile
-//! row owns the slice of the sorted intersection list its tiles cover and accumulates into
-//! one [`SplatGrad`] per intersection; [`reduce_isect_grads`] then sums each Gaussian's
-//! intersections (found through the inverse sort permutation), one task per Gaussian. The
-//! result is deterministic.
+//! One [`SplatGrad`] per sorted intersection, summed over the pixels of its tile; then
+//! [`reduce_isect_grads`] sums each Gaussian's intersections (found through the inverse sort
+//! permutation), one task per Gaussian. The result is deterministic. Here each tile row owns
+//! the slice of the sorted intersection list its tiles cover; the kernel
+//! (`kernels/rasterize_backward.wgsl`, one workgroup per tile) sums the tile's 256 pixels for
+//! each intersection in workgroup memory in a fixed order (row by row) instead of pixel by
+//! pixel, so the two agree to rounding.
 
 use std::ops::Range;
 
