@@ -45,7 +45,7 @@ fn real_boards_hold_the_targets() {
 fn every_budget_of_zero_is_refused_by_name() {
     let path = boards_dir().join("sim.toml");
     let text = std::fs::read_to_string(&path).unwrap();
-    for key in ["host_mb", "gpu_mb", "max_gaussians", "max_keyframes", "ba_window", "frame_queue", "keyframe_queue", "log_queue_mb"] {
+    for key in ["host_mb", "gpu_mb", "max_gaussians", "max_keyframes", "map_keyframes", "ba_window", "frame_queue", "keyframe_queue", "log_queue_mb"] {
         let broken: String = text
             .lines()
             .map(|l| if l.trim_start().starts_with(&format!("{key} =")) { format!("{key} = 0") } else { l.to_string() })
@@ -67,4 +67,27 @@ fn unknown_key_and_missing_file_are_named() {
     assert!(err.contains("unknown field `turbo`") && err.contains("sim.toml"), "{err}");
     let err = Board::load(Path::new("boards/does-not-exist.toml")).unwrap_err().to_string();
     assert!(err.contains("does-not-exist.toml"), "{err}");
+}
+
+/// The host plan counts the mapper's keyframes (8-bit and f32 image, inverse depth, variance,
+/// target variance: 27 bytes a pixel) and every real board holds its plan; a board whose
+/// mapper keyframes do not fit is refused with that line in the numbers.
+#[test]
+fn host_plan_counts_the_mapper_keyframes() {
+    for f in Board::files_in(&boards_dir()).unwrap() {
+        let b = Board::load(&f).unwrap();
+        let (w, h) = (b.camera.width as usize, b.camera.height as usize);
+        let plan = duv::pipeline::budget::plan(&b, w, h).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+        assert_eq!(plan.map_keyframe_bytes, b.budgets.map_keyframes as usize * w * h * 27, "{}", f.display());
+        assert!(plan.total_bytes > plan.map_keyframe_bytes + plan.keyframe_store_bytes, "{}", f.display());
+        assert!(plan.headroom_bytes() > 0, "{}", f.display());
+    }
+    let path = boards_dir().join("jetson-orin-nx-16gb.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let line = text.lines().find(|l| l.starts_with("map_keyframes =")).unwrap();
+    let greedy = Board::parse(&path, &text.replace(line, "map_keyframes = 512")).unwrap();
+    // 512 keyframes of 640x480 at 27 bytes a pixel: 4050 MiB, over the 3072 MiB host budget.
+    let err = duv::pipeline::budget::plan(&greedy, 640, 480).unwrap_err().to_string();
+    assert!(err.contains("mapper keyframes 512 x 7.91 MiB = 4050.0 MiB"), "{err}");
+    assert!(err.contains("budgets.host_mb = 3072"), "{err}");
 }

@@ -28,9 +28,9 @@ pub fn run(args: BoardArgs) -> anyhow::Result<()> {
                     FrameLogEncoding::Jpeg => format!("jpeg q{}", b.log.jpeg_quality),
                 };
                 println!(
-                    "ok    {:<24} {}x{} @ {} fps {:?} from {} | host {} MiB, GPU {} MiB, {} Gaussians, {} keyframes (window {}), queues {}/{}/{} MiB | threads {}+{} | log frames {frames}",
+                    "ok    {:<24} {}x{} @ {} fps {:?} from {} | host {} MiB, GPU {} MiB, {} Gaussians, {} keyframes (window {}, mapper {}), queues {}/{}/{} MiB | threads {}+{} | log frames {frames}",
                     b.name, c.width, c.height, c.fps, c.pixel_format, c.source, bu.host_mb, bu.gpu_mb, bu.max_gaussians,
-                    bu.max_keyframes, bu.ba_window, bu.frame_queue, bu.keyframe_queue, bu.log_queue_mb, b.threads.tracking, b.threads.mapping
+                    bu.max_keyframes, bu.ba_window, bu.map_keyframes, bu.frame_queue, bu.keyframe_queue, bu.log_queue_mb, b.threads.tracking, b.threads.mapping
                 );
             }
             Err(e) => {

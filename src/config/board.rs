@@ -89,6 +89,9 @@ pub struct Budgets {
     pub max_gaussians: u32,
     /// Keyframes kept in the factor graph (older ones are pruned).
     pub max_keyframes: u32,
+    /// Keyframes the mapper keeps to optimise against (the newest window plus older ones);
+    /// each holds the image (8-bit and f32), inverse depth and variances at full size.
+    pub map_keyframes: u32,
     /// Keyframes in the sliding bundle-adjustment window.
     pub ba_window: u32,
     /// Frames buffered between capture and tracking (drop oldest when full).
@@ -190,11 +193,12 @@ impl Board {
             return Err(invalid("camera.driver_buffers", c.driver_buffers.to_string(), "must be in 2..=32"));
         }
         let b = &self.budgets;
-        let positive: [(&'static str, u32); 8] = [
+        let positive: [(&'static str, u32); 9] = [
             ("budgets.host_mb", b.host_mb),
             ("budgets.gpu_mb", b.gpu_mb),
             ("budgets.max_gaussians", b.max_gaussians),
             ("budgets.max_keyframes", b.max_keyframes),
+            ("budgets.map_keyframes", b.map_keyframes),
             ("budgets.ba_window", b.ba_window),
             ("budgets.frame_queue", b.frame_queue),
             ("budgets.keyframe_queue", b.keyframe_queue),
@@ -252,6 +256,7 @@ host_mb = 512
 gpu_mb = 256
 max_gaussians = 1000
 max_keyframes = 32
+map_keyframes = 16
 ba_window = 8
 frame_queue = 4
 keyframe_queue = 4

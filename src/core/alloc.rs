@@ -93,6 +93,19 @@ unsafe impl GlobalAlloc for CountingAllocator {
     }
 }
 
+/// Writes every page of `buf` once, so that the operating system backs it now: a buffer from
+/// `vec![0; n]` is mapped lazily (zero pages appear in the resident set only when first
+/// written), which would make a fixed-capacity store look like a leak as it fills.
+pub fn prefault<T: Copy>(buf: &mut [T]) {
+    let step = (4096 / std::mem::size_of::<T>().max(1)).max(1);
+    for i in (0..buf.len()).step_by(step) {
+        let p: *mut T = &mut buf[i];
+        // SAFETY: `p` comes from a live `&mut` element: valid, aligned and initialised. The
+        // volatile write of its own value keeps the store from being optimised away.
+        unsafe { std::ptr::write_volatile(p, std::ptr::read_volatile(p)) };
+    }
+}
+
 /// Whether this binary's global allocator is [`CountingAllocator`].
 pub fn is_installed() -> bool {
     INSTALLED.load(Ordering::Relaxed)

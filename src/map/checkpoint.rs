@@ -20,7 +20,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::gaussians::ParamGroup;
-use super::mapper::{MapKeyframe, Mapper, MapperCapacity, MapperConfig, MapperError};
+use super::mapper::{Mapper, MapperCapacity, MapperConfig, MapperError};
 use super::medium::{MediumCheckpoint, MediumNet, MEDIUM_CHECKPOINT_VERSION};
 use crate::core::rng::Rng;
 use crate::core::{ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
@@ -250,7 +250,7 @@ impl Mapper {
             if !kf.is_consistent() {
                 return Err(bad(format!("keyframe {}: inconsistent sizes", r.index)));
             }
-            m.keyframes.push(MapKeyframe::new(kf));
+            m.push_restored_keyframe(&kf);
         }
         m.iteration = payload.iteration;
         m.rng = Rng::from_state(payload.rng_state);

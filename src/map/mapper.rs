@@ -27,7 +27,8 @@ use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as Medium
 use super::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput, RenderUpstream};
 use super::schedule::pick_keyframe;
 use crate::core::rng::Rng;
-use crate::core::{ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
+use crate::core::alloc::prefault;
+use crate::core::{ImageRgb8, ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
 
 /// Why the mapper refused a call. Nothing is changed by a refused call unless stated.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
@@ -225,7 +226,7 @@ impl MapperConfig {
 pub struct MapperCapacity {
     /// Largest Gaussian map (board `max_gaussians`).
     pub max_gaussians: usize,
-    /// Keyframes kept for optimisation (board `max_keyframes`).
+    /// Keyframes kept for optimisation (board `map_keyframes`).
     pub max_keyframes: usize,
     /// Image size of every keyframe, pixels.
     pub width: usize,
@@ -259,15 +260,45 @@ pub(crate) struct MapKeyframe {
 }
 
 impl MapKeyframe {
-    pub(crate) fn new(kf: Keyframe) -> Self {
-        let image = kf.image.to_rgb_f32();
-        let mut target_variance = kf.inv_depth_variance.clone();
-        for (v, &d) in target_variance.data.iter_mut().zip(&kf.inv_depth.data) {
-            if !(d > 0.0 && d.is_finite() && v.is_finite()) {
-                *v = 0.0;
-            }
-        }
+    /// An empty slot of `width x height` pixels, every page written (resident from start-up).
+    fn blank(width: usize, height: usize) -> Self {
+        let camera = PinholeCamera { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0, width, height, distortion: None };
+        let mut kf = Keyframe {
+            index: 0,
+            t_ns: crate::core::Timestamp::from_ns(0),
+            image: ImageRgb8::new(width, height),
+            world_from_cam: crate::core::Se3::identity(),
+            camera,
+            inv_depth: PlaneF32::new(width, height),
+            inv_depth_variance: PlaneF32::new(width, height),
+        };
+        let mut image = ImageRgbF32::new(width, height);
+        let mut target_variance = PlaneF32::new(width, height);
+        prefault(&mut kf.image.data);
+        prefault(&mut kf.inv_depth.data);
+        prefault(&mut kf.inv_depth_variance.data);
+        prefault(&mut image.data);
+        prefault(&mut target_variance.data);
         MapKeyframe { kf, image, target_variance }
+    }
+
+    /// Copies `kf` into this slot (same size: [`Mapper::add_keyframe`] checks it) with its
+    /// float image and depth target; allocates nothing.
+    fn refill(&mut self, kf: &Keyframe) {
+        let k = &mut self.kf;
+        k.index = kf.index;
+        k.t_ns = kf.t_ns;
+        k.world_from_cam = kf.world_from_cam;
+        k.camera = kf.camera;
+        k.image.data.copy_from_slice(&kf.image.data);
+        k.inv_depth.data.copy_from_slice(&kf.inv_depth.data);
+        k.inv_depth_variance.data.copy_from_slice(&kf.inv_depth_variance.data);
+        for (o, &v) in self.image.data.iter_mut().zip(&kf.image.data) {
+            *o = v as f32 / 255.0;
+        }
+        for ((t, &v), &d) in self.target_variance.data.iter_mut().zip(&kf.inv_depth_variance.data).zip(&kf.inv_depth.data) {
+            *t = if d > 0.0 && d.is_finite() && v.is_finite() { v } else { 0.0 };
+        }
     }
 }
 
@@ -329,6 +360,9 @@ pub struct Mapper {
     view: ViewBuffers,
     densify_scratch: DensifyScratch,
     pub(crate) keyframes: Vec<MapKeyframe>,
+    /// Free keyframe slots: with `keyframes`, `max_keyframes` slots allocated (and written)
+    /// at start-up, so the resident set does not grow as the keyframe history fills.
+    spare_keyframes: Vec<MapKeyframe>,
     pub(crate) iteration: u64,
     pub(crate) rng: Rng,
 }
@@ -370,6 +404,7 @@ impl Mapper {
             gaussians: Gaussians::with_capacity(cap),
             grads: GaussianGrads::with_capacity(cap),
             keyframes: Vec::with_capacity(capacity.max_keyframes),
+            spare_keyframes: (0..capacity.max_keyframes).map(|_| MapKeyframe::blank(w, h)).collect(),
             iteration: 0,
             rng: Rng::new(config.seed),
             adam,
@@ -567,14 +602,31 @@ impl Mapper {
             group.grow(added)?;
         }
         self.grads.reset(self.gaussians.len())?;
-        if self.keyframes.len() == self.capacity.max_keyframes {
+        let slot = if self.keyframes.len() == self.capacity.max_keyframes {
             let older = self.keyframes.len().saturating_sub(self.config.window);
             let slot = if older > 0 { self.rng.below(older as u64) as usize } else { 0 };
-            self.keyframes.remove(slot);
-        }
-        self.keyframes.push(MapKeyframe::new(kf));
+            self.keyframes.remove(slot)
+        } else {
+            self.spare_keyframes.pop().unwrap_or_else(|| MapKeyframe::blank(w, h))
+        };
+        self.store_keyframe(slot, &kf);
+
         tracing::debug!(added, total = self.gaussians.len(), "map.add_keyframe");
         Ok(added)
+    }
+
+    /// Fills `slot` from `kf` and makes it the newest keyframe.
+    fn store_keyframe(&mut self, mut slot: MapKeyframe, kf: &Keyframe) {
+        slot.refill(kf);
+        self.keyframes.push(slot);
+    }
+
+    /// Appends `kf` as the newest keyframe in a free slot (checkpoint restore: the history is
+    /// rebuilt oldest first, never beyond `max_keyframes`).
+    pub(crate) fn push_restored_keyframe(&mut self, kf: &Keyframe) {
+        let (w, h) = (kf.camera.width, kf.camera.height);
+        let slot = self.spare_keyframes.pop().unwrap_or_else(|| MapKeyframe::blank(w, h));
+        self.store_keyframe(slot, kf);
     }
 
     /// One optimisation step on a scheduled keyframe, then densify/prune when due.

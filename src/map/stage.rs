@@ -79,10 +79,10 @@ pub struct MappingStep {
 }
 
 impl MapperCapacity {
-    /// The board's caps (`budgets.max_gaussians`, `budgets.max_keyframes`) for keyframes of
+    /// The board's caps (`budgets.max_gaussians`, `budgets.map_keyframes`) for keyframes of
     /// `width x height` pixels.
     pub fn from_board(board: &Board, width: usize, height: usize) -> Self {
-        MapperCapacity { max_gaussians: board.budgets.max_gaussians as usize, max_keyframes: board.budgets.max_keyframes as usize, width, height }
+        MapperCapacity { max_gaussians: board.budgets.max_gaussians as usize, max_keyframes: board.budgets.map_keyframes as usize, width, height }
     }
 }
 

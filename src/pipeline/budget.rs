@@ -20,6 +20,9 @@ pub struct BudgetPlan {
     pub keyframe_queue_bytes: usize,
     /// The tracker's keyframe store (image pyramid as f32 plus colour, per keyframe).
     pub keyframe_store_bytes: usize,
+    /// The mapper's keyframes (`budgets.map_keyframes`: 8-bit and f32 image, inverse depth,
+    /// its variance and the masked target variance at full size, per keyframe).
+    pub map_keyframe_bytes: usize,
     /// Log queue budget.
     pub log_queue_bytes: usize,
     pub total_bytes: usize,
@@ -41,6 +44,7 @@ pub fn plan(board: &Board, width: usize, height: usize) -> Result<BudgetPlan, Pi
     let keyframe_bytes = px * 3 + px * 4 * 2;
     // Grey f32 pyramid (4/3 of the base level) plus the colour image, per stored keyframe.
     let per_stored_keyframe = px * 4 * 4 / 3 + px * 3;
+    let per_map_keyframe = px * 3 + px * 4 * 2 + px * 4 * 3 + px * 4;
     let plan = BudgetPlan {
         width,
         height,
@@ -49,11 +53,12 @@ pub fn plan(board: &Board, width: usize, height: usize) -> Result<BudgetPlan, Pi
         frame_queue_bytes: b.frame_queue as usize * frame_bytes,
         keyframe_queue_bytes: b.keyframe_queue as usize * keyframe_bytes,
         keyframe_store_bytes: b.max_keyframes as usize * per_stored_keyframe,
+        map_keyframe_bytes: b.map_keyframes as usize * per_map_keyframe,
         log_queue_bytes: b.log_queue_mb as usize * (1 << 20),
         total_bytes: 0,
         host_budget_bytes: b.host_mb as usize * (1 << 20),
     };
-    let total = plan.frame_queue_bytes + plan.keyframe_queue_bytes + plan.keyframe_store_bytes + plan.log_queue_bytes;
+    let total = plan.frame_queue_bytes + plan.keyframe_queue_bytes + plan.keyframe_store_bytes + plan.map_keyframe_bytes + plan.log_queue_bytes;
     let plan = BudgetPlan { total_bytes: total, ..plan };
     let mib = |x: usize| x as f64 / (1 << 20) as f64;
     if plan.log_queue_bytes < keyframe_bytes + 2 * frame_bytes {
@@ -71,7 +76,7 @@ pub fn plan(board: &Board, width: usize, height: usize) -> Result<BudgetPlan, Pi
         return Err(PipelineError::Budget {
             board: board.name.clone(),
             problem: format!(
-                "{width}x{height} needs {:.1} MiB of host memory but budgets.host_mb = {}: frame queue {} x {:.2} MiB = {:.1} MiB, keyframe queue {} x {:.2} MiB = {:.1} MiB, keyframe store {} x {:.2} MiB = {:.1} MiB, log queue {:.1} MiB",
+                "{width}x{height} needs {:.1} MiB of host memory but budgets.host_mb = {}: frame queue {} x {:.2} MiB = {:.1} MiB, keyframe queue {} x {:.2} MiB = {:.1} MiB, keyframe store {} x {:.2} MiB = {:.1} MiB, mapper keyframes {} x {:.2} MiB = {:.1} MiB, log queue {:.1} MiB",
                 mib(total),
                 b.host_mb,
                 b.frame_queue,
@@ -83,6 +88,9 @@ pub fn plan(board: &Board, width: usize, height: usize) -> Result<BudgetPlan, Pi
                 b.max_keyframes,
                 mib(per_stored_keyframe),
                 mib(plan.keyframe_store_bytes),
+                b.map_keyframes,
+                mib(per_map_keyframe),
+                mib(plan.map_keyframe_bytes),
                 mib(plan.log_queue_bytes)
             ),
         });
