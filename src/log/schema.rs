@@ -371,6 +371,21 @@ pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, St
     Ok(Frame { t_ns, seq, image })
 }
 
+/// Decodes a `32FC1` `foxglove.RawImage` (a keyframe's inverse depth or variance) into a plane.
+pub fn decode_plane_f32(data: &[u8]) -> Result<crate::core::PlaneF32, String> {
+    use foxglove::Decode;
+    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    if img.encoding != "32FC1" {
+        return Err(format!("encoding {:?}, expected \"32FC1\"", img.encoding));
+    }
+    if img.step as usize != w * 4 || img.data.len() != w * h * 4 {
+        return Err(format!("32FC1 step {} and {} bytes for a {w}x{h} plane", img.step, img.data.len()));
+    }
+    let values = img.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    crate::core::PlaneF32::from_vec(w, h, values).ok_or_else(|| format!("{w}x{h} plane"))
+}
+
 /// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
 /// holds undistorted frames).
 pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, String> {
@@ -432,5 +447,29 @@ mod tests {
         assert_eq!(Topic::Transform.schema().unwrap().name, "foxglove.FrameTransform");
         assert_eq!(Topic::MapGaussians.schema().unwrap().name, "foxglove.PointCloud");
         assert_eq!(Topic::CameraCalibration.schema().unwrap().encoding, "protobuf");
+    }
+
+    #[test]
+    fn keyframe_planes_round_trip_and_bad_planes_are_errors() {
+        let camera = PinholeCamera::new(50.0, 50.0, 2.0, 1.5, 4, 3).unwrap();
+        let mut inv = crate::core::PlaneF32::new(4, 3);
+        let mut var = crate::core::PlaneF32::new(4, 3);
+        for (i, (d, v)) in inv.data.iter_mut().zip(var.data.iter_mut()).enumerate() {
+            *d = 0.25 + i as f32 * 0.01;
+            *v = if i == 5 { f32::MAX } else { 1e-4 * i as f32 };
+        }
+        let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
+        let mut scratch = Vec::new();
+        let mut got = Vec::new();
+        encode_item(&LogItem::Keyframe(Box::new(kf)), &mut scratch, |e, b| {
+            got.push((e.topic, e.sequence, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), vec![(Topic::KeyframeImage, 9), (Topic::KeyframeInvDepth, 9), (Topic::KeyframeVariance, 9), (Topic::KeyframePose, 9)]);
+        assert_eq!(decode_plane_f32(&got[1].2).unwrap(), inv);
+        assert_eq!(decode_plane_f32(&got[2].2).unwrap(), var);
+        let err = decode_plane_f32(&got[0].2).unwrap_err();
+        assert!(err.contains("rgb8"), "{err}");
     }
 }
