@@ -11,8 +11,14 @@
 //! stopped run made there never reached the log (keyframes leave tracking only after the BA
 //! window), and tracking them again rebuilds the window and hands them to mapping and the log.
 //!
-//! Fallback, when the log holds no usable keyframe (a run stopped before its first keyframe
-//! left the BA window): the last logged frames (with the poses recorded for them) are tracked
+//! A log with no whole keyframe yet (every run so far stopped before a keyframe left its BA
+//! window, which frequent power cuts make the rule) seeds it with the logged frames that were
+//! the newest keyframes instead, at their recorded poses (refined by the keyframe's BA round),
+//! their depth triangulated from those poses ([`SeedFrame`]); the frames after them are tracked
+//! again as above.
+//!
+//! Fallback, when the log holds neither (fewer than 3 such frames: a run stopped early in its
+//! initialisation): the last logged frames (with the poses recorded for them) are tracked
 //! by the new tracker from scratch, and the Sim(3) that carries its positions onto the
 //! recorded ones (Umeyama) becomes [`PipelineConfig::world_from_tracker`](super::PipelineConfig).
 //! Its scale comes from ~20 frames of a re-initialisation, so it drifts; the caller says which
@@ -64,9 +70,9 @@ pub struct ResumeState {
     /// One more than the largest keyframe id the log mentions (logged, or announced in a
     /// tracking state): the new tracker's keyframes get ids from here.
     pub next_keyframe_id: u64,
-    /// When the log holds no whole keyframe: logged frames with measured recorded poses, or
-    /// that were keyframes of an initialisation (the newest, `SEED_FRAME_SPACING` apart, at
-    /// least 3), oldest first, to seed the tracker.
+    /// When the log holds no whole keyframe: the logged frames that were the newest keyframes
+    /// (up to `seed_keyframes`, at least 3), else the newest with measured recorded poses
+    /// `SEED_FRAME_SPACING` apart (at least 3); oldest first, to seed the tracker.
     pub seed_frames: Vec<(Frame, Se3)>,
     /// Logged frames after the newest of `keyframes` (or `seed_frames`) up to `last_seq`,
     /// oldest first.
@@ -101,6 +107,8 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     // Frames whose recorded pose can seed a tracker: measured (tracking or relocalised), or
     // keyframes of an initialisation.
     let mut measured: std::collections::BTreeSet<u64> = std::collections::BTreeSet::new();
+    // Frames that became keyframes (not lost): poses refined by the keyframe's BA round.
+    let mut keyframe_frames: std::collections::BTreeSet<u64> = std::collections::BTreeSet::new();
     // Pose time -> seq: a keyframe's frame number (keyframes are logged by id and time).
     let mut seq_of_t: BTreeMap<u64, u64> = BTreeMap::new();
     let mut partial: BTreeMap<u64, PartialKeyframe> = BTreeMap::new();
@@ -160,6 +168,14 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                         }
                         while measured.len() > POSES_KEPT {
                             measured.pop_first();
+                        }
+                        if s.new_keyframe.is_some() && !s.state.starts_with("lost") {
+                            keyframe_frames.insert(s.seq);
+                        } else {
+                            keyframe_frames.remove(&s.seq);
+                        }
+                        while keyframe_frames.len() > POSES_KEPT {
+                            keyframe_frames.pop_first();
                         }
                         if let Some(id) = s.new_keyframe {
                             next_keyframe_id = next_keyframe_id.max(id + 1);
@@ -227,6 +243,13 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     let keyframes: Vec<(u64, Keyframe)> = keyframes.into_iter().filter(|(s, _)| *s <= last_seq).collect();
     let mut seed_seqs: Vec<u64> = Vec::new();
     if keyframes.is_empty() {
+        // The frames that were the newest keyframes, as the stopped tracker's window held them.
+        seed_seqs.extend(frames.keys().rev().filter(|s| **s <= last_seq && keyframe_frames.contains(s) && poses.contains_key(s)).take(options.seed_keyframes));
+        if seed_seqs.len() < 3 {
+            seed_seqs.clear();
+        }
+    }
+    if keyframes.is_empty() && seed_seqs.is_empty() {
         for &s in frames.keys().rev().filter(|s| **s <= last_seq && measured.contains(s) && poses.contains_key(s)) {
             if seed_seqs.last().is_none_or(|l| l - s >= SEED_FRAME_SPACING) {
                 seed_seqs.push(s);
@@ -238,8 +261,8 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
         if seed_seqs.len() < 3 {
             seed_seqs.clear();
         }
-        seed_seqs.reverse();
     }
+    seed_seqs.reverse();
     let after = keyframes.last().map(|(s, _)| *s).or(seed_seqs.last().copied());
     let mut seed_frames = Vec::new();
     let mut recent = Vec::new();
