@@ -220,10 +220,16 @@ fn crash_harness_kill_9_and_resume() {
 }
 
 /// The accuracy bar for resume: ATE of the combined run <= 1.5x an uninterrupted run.
-/// Not met yet: each relocalisation estimates the new tracker's scale from ~20 frames of its
-/// re-initialisation, and the error compounds over 20 resumes (measured 2.8 m vs 0.12 m).
+/// Each start relocalises against the log instead of re-initialising: the tracker is seeded
+/// with the logged keyframes, or (what this harness hits: every start lives 0.2-1.7 s, so no
+/// keyframe ever leaves a BA window and reaches the log) with the logged frames that were the
+/// newest keyframes, at their recorded poses, depth triangulated from them; it continues in the
+/// recorded frame and scale. Not met reliably yet: three runs measured a combined ATE of
+/// 0.156 m, 0.290 m and 0.732 m vs 0.120 m uninterrupted (1.3x, 2.4x, 6.1x; 2.57 m with the
+/// Sim(3) re-initialisation this replaced): it varies with the kill points. About 5 minutes in a
+/// debug build on 2 cores.
 #[test]
-#[ignore = "known gap: resumed-run ATE is not within 1.5x of an uninterrupted run yet"]
+#[ignore = "known gap: resumed-run ATE measured 1.3x-6.1x an uninterrupted run, not reliably within 1.5x"]
 fn crash_harness_resumed_ate_within_1_5x() {
     crash_harness(true);
 }

@@ -9,15 +9,23 @@
 #[path = "common/track_sim.rs"]
 mod track_sim;
 
-use duv::core::{Frame, FrameImage, ImageRgb8};
+use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
+use duv::eval::umeyama;
 use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{LostReason, TrackError, Tracker, TrackingState};
+use duv::track::{LostReason, SeedKeyframe, TrackError, Tracker, TrackerSeed, TrackingState};
+use nalgebra::Vector3;
 use track_sim::{capacity, render_all, run, sim_config, small_tracker_config};
 
 /// ATE RMSE bound on the survey, percent of path length (measured 0.19 %).
 const SURVEY_ATE_PERCENT: f64 = 0.5;
 /// ATE RMSE bound on the loop with loop closure, percent of path length (measured 0.25 %).
 const LOOP_ATE_PERCENT: f64 = 0.5;
+/// A seeded tracker's distance from the uninterrupted one, RMS over the frames after the
+/// stop, as a fraction of the uninterrupted path over them (measured 0.029).
+const SEEDED_GAP_FRACTION: f64 = 0.06;
+/// Relative difference of the seeded and the uninterrupted tracker's scale (each aligned to
+/// the truth over the frames after the stop; measured 0.023).
+const SEEDED_SCALE_TOLERANCE: f64 = 0.05;
 
 fn survey(frames: usize) -> (SimRenderer, Vec<Frame>) {
     let r = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, frames, 160, 120, 0.5)).unwrap();
@@ -162,4 +170,124 @@ fn wrong_frame_size_is_an_error_not_a_panic() {
     let small = Frame { t_ns: frames[1].t_ns, seq: 1, image: flat(80, 60, 128) };
     assert!(matches!(tracker.track(&small), Err(TrackError::FrameSize { width: 80, height: 60, .. })));
     tracker.track(&frames[1]).unwrap();
+}
+
+/// Keyframes of `tracker` as the pipeline logs them (full-resolution inverse depth and
+/// variance, the frame's image), without the newest `lag` (still in the BA window: not logged
+/// yet); the newest `count` of the rest, oldest first, with their frame seq.
+fn logged_keyframes(tracker: &Tracker, frames: &[Frame], lag: usize, count: usize) -> Vec<(u64, Keyframe)> {
+    let cam = *tracker.camera();
+    let views: Vec<(u64, u64, duv::core::Timestamp, duv::core::Se3)> = tracker.keyframes().map(|k| (k.id, k.seq, k.t_ns, k.world_from_cam)).collect();
+    let logged = &views[..views.len().saturating_sub(lag)];
+    logged[logged.len().saturating_sub(count)..]
+        .iter()
+        .map(|&(id, seq, t_ns, world_from_cam)| {
+            let mut inv_depth = PlaneF32::new(cam.width, cam.height);
+            let mut inv_depth_variance = PlaneF32::new(cam.width, cam.height);
+            tracker.upsample_keyframe(id, &mut inv_depth, &mut inv_depth_variance).unwrap();
+            (seq, Keyframe { index: id, t_ns, image: frames[seq as usize].image.to_rgb8(), world_from_cam, camera: cam, inv_depth, inv_depth_variance })
+        })
+        .collect()
+}
+
+/// Positions of `poses` (seq, pose) and of the ground truth at the same frames.
+fn positions(poses: &[(u64, duv::core::Se3)], gt: &[duv::core::StampedPose]) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+    poses.iter().map(|(s, p)| (p.translation.vector, gt[*s as usize].world_from_cam.translation.vector)).unzip()
+}
+
+/// Resume, tracker side: a tracker seeded with the keyframes a stopped run had logged
+/// continues that run's trajectory in its frame and scale (no alignment), as close to an
+/// uninterrupted tracker as the uninterrupted tracker is to the truth.
+#[test]
+fn a_seeded_tracker_continues_in_the_recorded_frame_and_scale() {
+    const STOP: usize = 110;
+    const LAG: usize = 8;
+    let (renderer, frames) = survey(160);
+    let gt = renderer.poses();
+    // The uninterrupted run; what it had logged when frame STOP was tracked.
+    let mut a = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
+    let mut a_poses = Vec::new();
+    let mut logged = Vec::new();
+    for f in &frames {
+        a_poses.push((f.seq, a.track(f).unwrap().world_from_cam));
+        if f.seq as usize == STOP {
+            logged = logged_keyframes(&a, &frames, LAG, LAG);
+        }
+    }
+    assert!(logged.len() >= 4, "{} keyframes logged by frame {STOP}", logged.len());
+    let seeds: Vec<SeedKeyframe> = logged.iter().map(|(seq, k)| SeedKeyframe { seq: *seq, keyframe: k }).collect();
+    let newest = seeds[seeds.len() - 1].seq as usize;
+    let mut b = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
+    b.seed(&TrackerSeed { keyframes: &seeds, frames: &[], resume: None, next_keyframe_id: 500 }).unwrap();
+    assert_eq!(b.num_keyframes(), logged.len());
+    assert!(b.keyframes().zip(&logged).all(|(v, (seq, k))| v.id == k.index && v.seq == *seq && v.world_from_cam == k.world_from_cam));
+    assert!(b.edges().count() >= 2 * (logged.len() - 1), "{} edges between the seeded keyframes", b.edges().count());
+    // Track the logged frames after the newest seeded keyframe again, then the new ones.
+    let mut b_poses = Vec::new();
+    for f in &frames[newest + 1..] {
+        let out = b.track(f).unwrap();
+        assert!(out.state.is_tracked(), "frame {}: {:?}", f.seq, out.state);
+        if let Some(id) = out.new_keyframe {
+            assert!(id >= 500, "new keyframe id {id}");
+        }
+        if f.seq as usize > STOP {
+            b_poses.push((f.seq, out.world_from_cam));
+        }
+    }
+    let after = &a_poses[STOP + 1..];
+    // Same frame, no alignment: the seeded run's positions against the uninterrupted run's.
+    let a_path: f64 = after.windows(2).map(|w| (w[1].1.translation.vector - w[0].1.translation.vector).norm()).sum();
+    let gap = (b_poses.iter().zip(after).map(|((_, p), (_, q))| (p.translation.vector - q.translation.vector).norm_squared()).sum::<f64>() / after.len() as f64).sqrt();
+    // Same scale: each run's segment aligned to the truth by Sim(3).
+    let (pa, ga) = positions(after, gt);
+    let (pb, gb) = positions(&b_poses, gt);
+    let (sa, sb) = (umeyama(&pa, &ga, true).unwrap().scaling(), umeyama(&pb, &gb, true).unwrap().scaling());
+    // And as close to the truth: ATE of the whole run, the seeded continuation after STOP.
+    let combined: Vec<(u64, duv::core::Se3)> = a_poses[..=STOP].iter().copied().chain(b_poses.iter().copied()).collect();
+    let ate = |poses: &[(u64, duv::core::Se3)]| {
+        let (p, g) = positions(poses, gt);
+        let s = umeyama(&p, &g, true).unwrap();
+        (p.iter().zip(&g).map(|(p, g)| (s.transform_point(&(*p).into()).coords - g).norm_squared()).sum::<f64>() / p.len() as f64).sqrt()
+    };
+    let (ate_a, ate_combined) = (ate(&a_poses), ate(&combined));
+    eprintln!("seeded at frame {newest} (stop {STOP}): gap {gap:.4} over a {a_path:.3} path, scale {sb:.4} vs {sa:.4}, ATE combined {ate_combined:.4} m vs uninterrupted {ate_a:.4} m");
+    assert!(gap < SEEDED_GAP_FRACTION * a_path, "seeded run {gap} from the uninterrupted one over a {a_path} path");
+    assert!((sb / sa - 1.0).abs() < SEEDED_SCALE_TOLERANCE, "scale {sb} seeded vs {sa} uninterrupted");
+    assert!(ate_combined <= 1.5 * ate_a, "ATE combined {ate_combined} m vs uninterrupted {ate_a} m");
+}
+
+/// Bad seeds are errors naming the keyframe; a failed seed leaves the tracker usable.
+#[test]
+fn seeding_with_bad_keyframes_is_an_error_and_changes_nothing() {
+    let (renderer, frames) = survey(2);
+    let cam = *renderer.camera();
+    let kf = |index: u64, seq: usize, w: usize, h: usize| Keyframe {
+        index,
+        t_ns: frames[seq].t_ns,
+        image: frames[seq].image.to_rgb8(),
+        world_from_cam: renderer.poses()[seq].world_from_cam,
+        camera: cam,
+        inv_depth: PlaneF32::filled(w, h, [0.2]),
+        inv_depth_variance: PlaneF32::filled(w, h, [1e-3]),
+    };
+    let (k0, k1, small) = (kf(3, 0, 160, 120), kf(4, 1, 160, 120), kf(4, 1, 80, 60));
+    let mut t = Tracker::new(&cam, &small_tracker_config(), capacity(1)).unwrap();
+    fn seed<'a>(ks: &[(u64, &'a Keyframe)]) -> Vec<SeedKeyframe<'a>> {
+        ks.iter().map(|&(seq, keyframe)| SeedKeyframe { seq, keyframe }).collect()
+    }
+    let try_seed = |t: &mut Tracker, ks: &[SeedKeyframe]| t.seed(&TrackerSeed { keyframes: ks, frames: &[], resume: None, next_keyframe_id: 0 });
+    assert!(matches!(try_seed(&mut t, &[]), Err(TrackError::NoSeedKeyframes)));
+    let e = try_seed(&mut t, &seed(&[(0, &k0), (1, &small)])).unwrap_err();
+    assert!(matches!(e, TrackError::SeedSize { id: 4, width: 80, height: 60, .. }), "{e}");
+    assert_eq!(e.to_string(), "seed keyframe 4: inverse depth is 80x60, the tracker was built for 160x120");
+    let e = try_seed(&mut t, &seed(&[(1, &k1), (0, &k0)])).unwrap_err();
+    assert!(matches!(e, TrackError::BadSeedKeyframe { id: 3, .. }), "{e}");
+    assert_eq!(t.num_keyframes(), 0);
+    try_seed(&mut t, &seed(&[(0, &k0), (1, &k1)])).unwrap();
+    assert_eq!(t.keyframes().map(|k| (k.id, k.seq)).collect::<Vec<_>>(), vec![(3, 0), (4, 1)]);
+    assert!(matches!(try_seed(&mut t, &seed(&[(0, &k0)])), Err(TrackError::NotEmpty)));
+    // A tracker that has tracked is not seeded either.
+    let mut u = Tracker::new(&cam, &small_tracker_config(), capacity(1)).unwrap();
+    u.track(&frames[0]).unwrap();
+    assert!(matches!(try_seed(&mut u, &seed(&[(0, &k0)])), Err(TrackError::NotEmpty)));
 }

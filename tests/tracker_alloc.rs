@@ -3,7 +3,8 @@
 //! allocator. The counted frames include plain frames (flow + motion-only BA), keyframe
 //! insertions (flow/BA rounds over the window, covariance, pruning check), evictions from a
 //! full keyframe store, a black frame (lost) and the relocalisation after it, and, on a loop
-//! sequence, the loop closure (verification, Sim(3) pose graph, dense global BA).
+//! sequence, the loop closure (verification, Sim(3) pose graph, dense global BA); and a tracker
+//! seeded with logged keyframes (resume) tracking on, inserting and evicting.
 //!
 //! Not covered: `Tracker::new` (the start-up allocation), `upsample_keyframe` (output, called
 //! by the writer; allocation-free too but not counted here), the caller's frame decoding and
@@ -12,9 +13,9 @@
 #[path = "common/track_sim.rs"]
 mod track_sim;
 
-use duv::core::{Frame, FrameImage, ImageRgb8};
+use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
 use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{TrackOutput, Tracker, TrackerCapacity, TrackingState};
+use duv::track::{SeedKeyframe, TrackOutput, Tracker, TrackerCapacity, TrackerSeed, TrackingState};
 use duv::core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
@@ -70,4 +71,49 @@ fn loop_closure_does_not_allocate() {
     let (n, outputs) = counted_run(&renderer, &frames, 60, track_sim::capacity(2));
     assert!(outputs.iter().any(|o| o.loop_closed), "no loop closed in the counted frames");
     assert_eq!(n, 0, "{n} allocations in {} frames with a loop closure", outputs.len());
+}
+
+#[test]
+fn a_seeded_tracker_does_not_allocate_per_frame() {
+    let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 110, 160, 120, 0.5)).unwrap();
+    let frames = track_sim::render_all(&renderer);
+    let cam = *renderer.camera();
+    // A first tracker's newest keyframes at frame 60 as the pipeline logs them (full resolution).
+    let mut a = Tracker::new(&cam, &track_sim::small_tracker_config(), track_sim::capacity(2)).unwrap();
+    for f in &frames[..=60] {
+        a.track(f).unwrap();
+    }
+    let ids: Vec<(u64, u64)> = a.keyframes().map(|k| (k.id, k.seq)).collect();
+    let logged: Vec<(u64, Keyframe)> = ids[ids.len().saturating_sub(8)..]
+        .iter()
+        .map(|&(id, seq)| {
+            let view = a.keyframes().find(|k| k.id == id).unwrap();
+            let (mut inv_depth, mut inv_depth_variance) = (PlaneF32::new(160, 120), PlaneF32::new(160, 120));
+            a.upsample_keyframe(id, &mut inv_depth, &mut inv_depth_variance).unwrap();
+            (seq, Keyframe { index: id, t_ns: view.t_ns, image: frames[seq as usize].image.to_rgb8(), world_from_cam: view.world_from_cam, camera: cam, inv_depth, inv_depth_variance })
+        })
+        .collect();
+    assert!(logged.len() >= 4, "{} keyframes to seed", logged.len());
+    let seeds: Vec<SeedKeyframe> = logged.iter().map(|(seq, k)| SeedKeyframe { seq: *seq, keyframe: k }).collect();
+    let first = seeds[seeds.len() - 1].seq as usize + 1;
+    // A small store, so the counted insertions evict seeded keyframes too.
+    let mut b = Tracker::new(&cam, &track_sim::small_tracker_config(), TrackerCapacity { max_keyframes: 11, ba_window: 8, threads: 2 }).unwrap();
+    b.seed(&TrackerSeed { keyframes: &seeds, frames: &[], resume: None, next_keyframe_id: 100 }).unwrap();
+    let (n, outputs) = b.run_in_pool(|t| {
+        for f in &frames[first..first + 10] {
+            t.track(f).unwrap();
+        }
+        let mut outputs: Vec<TrackOutput> = Vec::with_capacity(frames.len());
+        let n = count(|| {
+            for f in &frames[first + 10..] {
+                outputs.push(t.track(f).unwrap());
+            }
+        });
+        (n, outputs)
+    });
+    let keyframes = outputs.iter().filter(|o| o.new_keyframe.is_some()).count();
+    assert!(keyframes >= 3, "only {keyframes} keyframe insertions counted");
+    assert!(outputs.iter().any(|o| o.evicted.is_some()), "no eviction counted");
+    assert!(outputs.iter().all(|o| o.state.is_tracked()));
+    assert_eq!(n, 0, "{n} allocations in {} frames after seeding ({keyframes} keyframes)", outputs.len());
 }

@@ -26,8 +26,13 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
 
-/// Logged frames a resumed run tracks again to relocalise in the recorded frame.
-const RELOCALISATION_FRAMES: usize = 20;
+/// What a resumed run reads back from the log: the newest `ba_window` logged keyframes seed
+/// the tracker (see `pipeline::resume`); the logged frames after them are tracked again (at
+/// most 64 MiB of them); the last 20 logged frames re-initialise the tracker when no keyframe
+/// is usable (the fallback).
+fn resume_options(board: &Board) -> resume::ResumeOptions {
+    resume::ResumeOptions { relocalisation_frames: 20, seed_keyframes: board.budgets.ba_window as usize, retrack_bytes: 64 << 20 }
+}
 
 #[derive(clap::Args)]
 pub struct RunArgs {
@@ -364,7 +369,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if args.no_resume {
         anyhow::ensure!(duv::log::list_segments(&log_dir)?.is_empty(), "--no-resume: {} already holds a log; choose another --out", log_dir.display());
     }
-    let resume_state = if args.no_resume { None } else { resume::prepare(&args.out, ReadLimits::default(), RELOCALISATION_FRAMES)? };
+    let mut resume_state = if args.no_resume { None } else { resume::prepare(&args.out, ReadLimits::default(), &resume_options(&board))? };
     let start = match &resume_state {
         Some(r) if r.poses_recorded > 0 && !args.source.starts_with("mcap:") => r.last_seq as usize + 1,
         _ => 0,
@@ -414,7 +419,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(args.out.join("checkpoints"))?;
         Box::new(StageMapping::new(stage, kf_dir.clone(), scratch, args.map_idle_iterations, args.map_final_iterations))
     };
-    if let Some(r) = &resume_state {
+    let mut retrack = Vec::new();
+    if let Some(r) = &mut resume_state {
         for rep in &r.recovered {
             eprintln!("recovered {}: {} messages kept, {} of {} bytes ({})", rep.segment.display(), rep.messages_kept, rep.bytes_after, rep.bytes_before, rep.damage);
         }
@@ -422,10 +428,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             map.restore(bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             eprintln!("map checkpoint {} reloaded", path.display());
         }
-        pcfg.world_from_tracker = resume::relocalise(&mut tracker, r)?;
-        match &pcfg.world_from_tracker {
-            Some(a) => eprintln!("resumed after frame {} ({} poses recorded): relocalised on {} logged frames, scale {:.4}", r.last_seq, r.poses_recorded, r.recent.len(), a.scaling()),
-            None => eprintln!("resumed after frame {}: relocalisation failed, continuing in a new frame", r.last_seq),
+        match resume::relocalise(&mut tracker, r)? {
+            resume::Relocalisation::Seeded { keyframes, frames, newest_keyframe_seq, retrack: again } => {
+                let seeds = if keyframes > 0 { format!("{keyframes} logged keyframes") } else { format!("{frames} logged frames at their recorded poses (no keyframe in the log)") };
+                eprintln!(
+                    "resumed after frame {} ({} poses recorded): tracker seeded with {seeds}, newest at frame {newest_keyframe_seq}, in the recorded frame and scale; tracking {} logged frames again",
+                    r.last_seq,
+                    r.poses_recorded,
+                    again.len()
+                );
+                retrack = again;
+            }
+            resume::Relocalisation::Aligned { world_from_tracker, why } => {
+                eprintln!(
+                    "resumed after frame {} ({} poses recorded): {why}; re-initialised on {} logged frames and aligned by Sim(3), scale {:.4} (the scale of this fallback drifts)",
+                    r.last_seq,
+                    r.poses_recorded,
+                    r.recent.len(),
+                    world_from_tracker.scaling()
+                );
+                pcfg.world_from_tracker = Some(world_from_tracker);
+            }
+            resume::Relocalisation::NewFrame { why } => eprintln!("resumed after frame {}: {why}; relocalisation failed, continuing in a new frame", r.last_seq),
         }
     }
     let stop = Arc::new(AtomicBool::new(false));
@@ -435,7 +459,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if !args.no_progress {
         eprintln!("tracking {} frames...", if total == usize::MAX { "all".to_string() } else { total.saturating_sub(start).to_string() });
     }
-    let result = duv::pipeline::run(run_source, tracker, map, &pcfg, stop)?;
+    let result = duv::pipeline::run(run_source, tracker, map, &pcfg, retrack, stop)?;
     let source = result.source.inner;
     let tracker = result.tracker;
     let recorder = result.recorder;

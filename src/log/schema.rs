@@ -662,4 +662,28 @@ mod tests {
         }
         assert!(decode_frame(&[0xff, 0xff, 0xff], 0, 0).is_err());
     }
+
+    #[test]
+    fn keyframe_planes_round_trip_and_bad_planes_are_errors() {
+        let camera = PinholeCamera::new(50.0, 50.0, 2.0, 1.5, 4, 3).unwrap();
+        let mut inv = crate::core::PlaneF32::new(4, 3);
+        let mut var = crate::core::PlaneF32::new(4, 3);
+        for (i, (d, v)) in inv.data.iter_mut().zip(var.data.iter_mut()).enumerate() {
+            *d = 0.25 + i as f32 * 0.01;
+            *v = if i == 5 { f32::MAX } else { 1e-4 * i as f32 };
+        }
+        let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
+        let mut scratch = Vec::new();
+        let mut got = Vec::new();
+        encode_item(&LogItem::Keyframe(Box::new(kf)), &mut scratch, |e, b| {
+            got.push((e.topic, e.sequence, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), vec![(Topic::KeyframeImage, 9), (Topic::KeyframeInvDepth, 9), (Topic::KeyframeVariance, 9), (Topic::KeyframePose, 9)]);
+        assert_eq!(decode_plane_f32(&got[1].2).unwrap(), inv);
+        assert_eq!(decode_plane_f32(&got[2].2).unwrap(), var);
+        let err = decode_plane_f32(&got[0].2).unwrap_err();
+        assert!(err.contains("rgb8"), "{err}");
+    }
 }

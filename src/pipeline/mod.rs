@@ -344,12 +344,16 @@ impl Pacer {
 }
 
 /// Runs `source` through tracking, mapping and logging until the source ends or `stop` is
-/// set, then closes the log. `map`: the mapping stage.
+/// set, then closes the log. `map`: the mapping stage. `retrack`: frames already in the log
+/// that tracking goes through before the source (resume: the logged frames after the newest
+/// logged keyframe, see [`resume`]); their poses are in the log already and are not logged
+/// again, the keyframes they make go to mapping and the log like any other.
 pub fn run<S: FrameSource + 'static>(
     mut source: S,
     tracker: Tracker,
     map: Box<dyn MapStage>,
     cfg: &PipelineConfig,
+    retrack: Vec<Frame>,
     stop: Arc<AtomicBool>,
 ) -> Result<PipelineResult<S>, PipelineError> {
     let started = Instant::now();
@@ -361,7 +365,7 @@ pub fn run<S: FrameSource + 'static>(
     let camera = *source.camera();
     writer.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera }).ok();
     if cfg.deterministic {
-        return run_deterministic(source, tracker, map, cfg, writer, checkpoints, stop, started);
+        return run_deterministic(source, tracker, map, cfg, writer, checkpoints, retrack, stop, started);
     }
 
     let frames: Arc<BoundedQueue<(Frame, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::DropOldest));
@@ -482,6 +486,24 @@ pub fn run<S: FrameSource + 'static>(
             let mut latencies = Vec::with_capacity(1 << 16);
             let mut track_times = Vec::with_capacity(1 << 16);
             let result = tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
+                for frame in &retrack {
+                    if sh.stop.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    let t0 = Instant::now();
+                    let out = tracker.track(frame)?;
+                    track_times.push(t0.elapsed());
+                    recorder.record(&out);
+                    if let Some(id) = out.new_keyframe {
+                        lag.push(id, frame);
+                    }
+                    while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
+                        sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                        log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
+                        let _ = kq.push(kf, 0);
+                    }
+                }
+                drop(retrack);
                 while let Some((frame, arrived)) = fq.pop() {
                     let t0 = Instant::now();
                     let out = tracker.track(&frame)?;
@@ -633,6 +655,7 @@ fn run_deterministic<S: FrameSource + 'static>(
     cfg: &PipelineConfig,
     mut writer: SegmentWriter,
     checkpoints: CheckpointStore,
+    retrack: Vec<Frame>,
     stop: Arc<AtomicBool>,
     started: Instant,
 ) -> Result<PipelineResult<S>, PipelineError> {
@@ -650,6 +673,23 @@ fn run_deterministic<S: FrameSource + 'static>(
     let mut last_t = Timestamp::from_ns(0);
     let mut lag = KeyframeLag::new(cfg.keyframe_lag);
     tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
+        for frame in &retrack {
+            if stop.load(Ordering::Relaxed) {
+                break;
+            }
+            let t0 = Instant::now();
+            let out = tracker.track(frame)?;
+            track_times.push(t0.elapsed());
+            recorder.record(&out);
+            if let Some(id) = out.new_keyframe {
+                lag.push(id, frame);
+            }
+            while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
+                log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
+                map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
+            }
+        }
         while !stop.load(Ordering::Relaxed) {
             let frame = match source.next_frame() {
                 Ok(Some(f)) => f,

@@ -1,21 +1,56 @@
 //! Resume after power loss: recover the log's unfinished segments, find where the recorded
-//! trajectory stopped, reload the newest good map checkpoint, and relocalise a fresh tracker
-//! in the recorded map frame from the last frames the log holds.
+//! trajectory stopped, reload the newest good map checkpoint, and relocalise a new tracker in
+//! the recorded map frame.
 //!
-//! Relocalisation: the last logged frames (with the poses recorded for them) are tracked again
-//! by the new tracker; the Sim(3) that carries its positions onto the recorded ones (Umeyama)
-//! becomes [`PipelineConfig::world_from_tracker`](super::PipelineConfig), so every pose after
-//! the restart continues the same trajectory in the same frame and scale.
+//! Relocalisation against what was logged: the newest keyframes of the log (image, pose in the
+//! recorded world frame, inverse depth and variance) seed the new tracker
+//! ([`Tracker::seed`]). Their recorded poses are the fixed, oldest poses of its next BA windows,
+//! so it continues in the recorded frame and scale: nothing is re-initialised and nothing is
+//! aligned. The logged frames after the newest of those keyframes, up to the last recorded
+//! pose, are tracked again first ([`Relocalisation::Seeded`]`::retrack`): the keyframes the
+//! stopped run made there never reached the log (keyframes leave tracking only after the BA
+//! window), and tracking them again rebuilds the window and hands them to mapping and the log.
+//!
+//! A log with no whole keyframe yet (every run so far stopped before a keyframe left its BA
+//! window, which frequent power cuts make the rule) seeds it with the logged frames that were
+//! the newest keyframes instead, at their recorded poses (refined by the keyframe's BA round),
+//! their depth triangulated from those poses ([`SeedFrame`]); the frames after them are tracked
+//! again as above.
+//!
+//! Fallback, when the log holds neither (fewer than 3 such frames: a run stopped early in its
+//! initialisation): the last logged frames (with the poses recorded for them) are tracked
+//! by the new tracker from scratch, and the Sim(3) that carries its positions onto the
+//! recorded ones (Umeyama) becomes [`PipelineConfig::world_from_tracker`](super::PipelineConfig).
+//! Its scale comes from ~20 frames of a re-initialisation, so it drifts; the caller says which
+//! path was taken.
 
 use super::{CheckpointStore, PipelineError};
-use crate::core::{Frame, PinholeCamera, Se3, Sim3, Timestamp};
+use crate::core::{Frame, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Sim3, Timestamp};
 use crate::log::reader::OwnedEvent;
-use crate::log::schema::{decode_calibration, decode_frame, decode_pose, StateMessage};
+use crate::log::schema::{decode_calibration, decode_frame, decode_plane_f32, decode_pose, StateMessage};
 use crate::log::{list_segments, recover_folder, ReadLimits, RecoveryReport, SegmentReader, Topic};
-use crate::track::Tracker;
+use crate::track::{ResumePoint, SeedFrame, SeedKeyframe, Tracker, TrackerSeed};
 use nalgebra::Vector3;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::path::{Path, PathBuf};
+
+/// How much of the log a resume keeps in memory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ResumeOptions {
+    /// Logged frames the fallback (re-initialisation and Sim(3)) tracks again.
+    pub relocalisation_frames: usize,
+    /// Newest logged keyframes the new tracker is seeded with (at most the tracker's
+    /// `max_keyframes`).
+    pub seed_keyframes: usize,
+    /// Logged frames kept to track again after the newest keyframe, in bytes of image data
+    /// (the oldest go first; tracking then picks up at the recorded pose before the first kept).
+    pub retrack_bytes: usize,
+}
+
+/// Recorded poses kept while reading (the newest), for the resume point and the fallback.
+const POSES_KEPT: usize = 1 << 14;
+/// Frames between the recorded frames that seed the tracker when the log holds no keyframe.
+const SEED_FRAME_SPACING: u64 = 4;
 
 /// What a previous run left behind.
 pub struct ResumeState {
@@ -27,15 +62,39 @@ pub struct ResumeState {
     /// Poses recorded in all segments.
     pub poses_recorded: u64,
     /// The last logged frames that have a recorded pose, oldest first: (frame, pose, not lost).
+    /// What the fallback tracks again.
     pub recent: Vec<(Frame, Se3, bool)>,
+    /// The newest logged keyframes that are whole (image, inverse depth, variance, pose) and
+    /// whose frame number is known, oldest first, as (frame seq, keyframe).
+    pub keyframes: Vec<(u64, Keyframe)>,
+    /// One more than the largest keyframe id the log mentions (logged, or announced in a
+    /// tracking state): the new tracker's keyframes get ids from here.
+    pub next_keyframe_id: u64,
+    /// When the log holds no whole keyframe: the logged frames that were the newest keyframes
+    /// (up to `seed_keyframes`, at least 3), else the newest with measured recorded poses
+    /// `SEED_FRAME_SPACING` apart (at least 3); oldest first, to seed the tracker.
+    pub seed_frames: Vec<(Frame, Se3)>,
+    /// Logged frames after the newest of `keyframes` (or `seed_frames`) up to `last_seq`,
+    /// oldest first.
+    pub retrack: Vec<Frame>,
+    /// Recorded poses of the last frames: seq -> (pose, measured).
+    pub poses: BTreeMap<u64, (Se3, bool)>,
     pub camera: Option<PinholeCamera>,
     /// Newest checkpoint that verified.
     pub checkpoint: Option<(PathBuf, Vec<u8>)>,
 }
 
+/// A keyframe's four records as they arrive.
+#[derive(Default)]
+struct PartialKeyframe {
+    image: Option<ImageRgb8>,
+    inv_depth: Option<PlaneF32>,
+    variance: Option<PlaneF32>,
+}
+
 /// Looks at `out_dir`; `None` when it holds no log (a fresh start). Unfinished segments are
-/// recovered in place. `keep_frames`: how many of the last frames to keep for relocalisation.
-pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result<Option<ResumeState>, PipelineError> {
+/// recovered in place.
+pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> Result<Option<ResumeState>, PipelineError> {
     let log_dir = out_dir.join("log");
     if list_segments(&log_dir)?.is_empty() {
         return Ok(None);
@@ -43,7 +102,18 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
     let recovered = recover_folder(&log_dir, limits)?;
     // By seq: a frame logged by a run killed before tracking it is logged again by the next.
     let mut frames: BTreeMap<u64, (Vec<u8>, u64)> = BTreeMap::new();
+    let mut frame_bytes = 0usize;
     let mut poses: BTreeMap<u64, (Se3, bool)> = BTreeMap::new();
+    // Frames whose recorded pose can seed a tracker: measured (tracking or relocalised), or
+    // keyframes of an initialisation.
+    let mut measured: std::collections::BTreeSet<u64> = std::collections::BTreeSet::new();
+    // Frames that became keyframes (not lost): poses refined by the keyframe's BA round.
+    let mut keyframe_frames: std::collections::BTreeSet<u64> = std::collections::BTreeSet::new();
+    // Pose time -> seq: a keyframe's frame number (keyframes are logged by id and time).
+    let mut seq_of_t: BTreeMap<u64, u64> = BTreeMap::new();
+    let mut partial: BTreeMap<u64, PartialKeyframe> = BTreeMap::new();
+    let mut keyframes: VecDeque<(u64, Keyframe)> = VecDeque::new();
+    let mut next_keyframe_id = 0u64;
     let mut camera = None;
     let mut poses_recorded = 0u64;
     let mut last: Option<(u64, Timestamp)> = None;
@@ -55,9 +125,14 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
             let seq = sequence as u64;
             match topic {
                 Topic::CameraImage => {
-                    frames.insert(seq, (data, log_time_ns));
-                    while frames.len() > keep_frames * 4 {
-                        frames.pop_first();
+                    frame_bytes += data.len();
+                    if let Some(old) = frames.insert(seq, (data, log_time_ns)) {
+                        frame_bytes -= old.0.len();
+                    }
+                    while frames.len() > options.relocalisation_frames * 4 && frame_bytes > options.retrack_bytes {
+                        if let Some((_, (d, _))) = frames.pop_first() {
+                            frame_bytes -= d.len();
+                        }
                     }
                 }
                 Topic::CameraCalibration => camera = decode_calibration(&data).ok(),
@@ -66,11 +141,15 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
                         poses_recorded += 1;
                         let tracked = poses.get(&seq).map(|x| x.1).unwrap_or(true);
                         poses.insert(seq, (p, tracked));
+                        seq_of_t.insert(log_time_ns, seq);
                         if last.is_none_or(|(s, _)| seq >= s) {
                             last = Some((seq, Timestamp::from_ns(log_time_ns as i64)));
                         }
-                        while poses.len() > keep_frames * 8 {
+                        while poses.len() > POSES_KEPT {
                             poses.pop_first();
+                        }
+                        while seq_of_t.len() > POSES_KEPT {
+                            seq_of_t.pop_first();
                         }
                     }
                 }
@@ -80,6 +159,64 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
                             // Lost frames hold a prediction, not a measurement.
                             p.1 = !s.state.starts_with("lost");
                         }
+                        // Measured, or a keyframe of the initialisation (its pose refined by
+                        // the initialisation BA; the frames between hold provisional poses).
+                        if s.tracked || (s.new_keyframe.is_some() && !s.state.starts_with("lost")) {
+                            measured.insert(s.seq);
+                        } else {
+                            measured.remove(&s.seq);
+                        }
+                        while measured.len() > POSES_KEPT {
+                            measured.pop_first();
+                        }
+                        if s.new_keyframe.is_some() && !s.state.starts_with("lost") {
+                            keyframe_frames.insert(s.seq);
+                        } else {
+                            keyframe_frames.remove(&s.seq);
+                        }
+                        while keyframe_frames.len() > POSES_KEPT {
+                            keyframe_frames.pop_first();
+                        }
+                        if let Some(id) = s.new_keyframe {
+                            next_keyframe_id = next_keyframe_id.max(id + 1);
+                        }
+                    }
+                }
+                Topic::KeyframeImage => match decode_frame(&data, seq, log_time_ns) {
+                    Ok(f) => partial.entry(seq).or_default().image = Some(f.image.to_rgb8()),
+                    Err(e) => tracing::warn!("resume: logged keyframe {seq}: image unreadable: {e}"),
+                },
+                Topic::KeyframeInvDepth => match decode_plane_f32(&data) {
+                    Ok(p) => partial.entry(seq).or_default().inv_depth = Some(p),
+                    Err(e) => tracing::warn!("resume: logged keyframe {seq}: inverse depth unreadable: {e}"),
+                },
+                Topic::KeyframeVariance => match decode_plane_f32(&data) {
+                    Ok(p) => partial.entry(seq).or_default().variance = Some(p),
+                    Err(e) => tracing::warn!("resume: logged keyframe {seq}: variance unreadable: {e}"),
+                },
+                Topic::KeyframePose => {
+                    // The last of a keyframe's four records.
+                    next_keyframe_id = next_keyframe_id.max(seq + 1);
+                    let parts = partial.remove(&seq).unwrap_or_default();
+                    let (Ok(pose), Some(image), Some(inv_depth), Some(variance), Some(cam)) = (decode_pose(&data), parts.image, parts.inv_depth, parts.variance, camera) else {
+                        tracing::warn!("resume: logged keyframe {seq} incomplete, not used");
+                        continue;
+                    };
+                    let Some(&frame_seq) = seq_of_t.get(&log_time_ns) else {
+                        tracing::warn!("resume: logged keyframe {seq}: no recorded pose at its time, not used");
+                        continue;
+                    };
+                    let kf = Keyframe { index: seq, t_ns: Timestamp::from_ns(log_time_ns as i64), image, world_from_cam: pose, camera: cam, inv_depth, inv_depth_variance: variance };
+                    if !kf.is_consistent() {
+                        tracing::warn!("resume: logged keyframe {seq}: planes do not match the camera, not used");
+                        continue;
+                    }
+                    // Ids of one log increase; a log written before ids continued across
+                    // resumes may repeat one: the newer keyframe replaces the older.
+                    keyframes.retain(|(_, k)| k.index < seq);
+                    keyframes.push_back((frame_seq, kf));
+                    while keyframes.len() > options.seed_keyframes {
+                        keyframes.pop_front();
                     }
                 }
                 _ => {}
@@ -87,27 +224,134 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, keep_frames: usize) -> Result
         }
     }
     let Some((last_seq, last_t_ns)) = last else {
-        return Ok(Some(ResumeState { log_dir, recovered, last_seq: 0, last_t_ns: Timestamp::from_ns(0), poses_recorded: 0, recent: Vec::new(), camera, checkpoint: None }));
+        return Ok(Some(ResumeState {
+            log_dir,
+            recovered,
+            last_seq: 0,
+            last_t_ns: Timestamp::from_ns(0),
+            poses_recorded: 0,
+            recent: Vec::new(),
+            keyframes: Vec::new(),
+            next_keyframe_id,
+            seed_frames: Vec::new(),
+            retrack: Vec::new(),
+            poses,
+            camera,
+            checkpoint: None,
+        }));
     };
+    let keyframes: Vec<(u64, Keyframe)> = keyframes.into_iter().filter(|(s, _)| *s <= last_seq).collect();
+    let mut seed_seqs: Vec<u64> = Vec::new();
+    if keyframes.is_empty() {
+        // The frames that were the newest keyframes, as the stopped tracker's window held them.
+        seed_seqs.extend(frames.keys().rev().filter(|s| **s <= last_seq && keyframe_frames.contains(s) && poses.contains_key(s)).take(options.seed_keyframes));
+        if seed_seqs.len() < 3 {
+            seed_seqs.clear();
+        }
+    }
+    if keyframes.is_empty() && seed_seqs.is_empty() {
+        for &s in frames.keys().rev().filter(|s| **s <= last_seq && measured.contains(s) && poses.contains_key(s)) {
+            if seed_seqs.last().is_none_or(|l| l - s >= SEED_FRAME_SPACING) {
+                seed_seqs.push(s);
+                if seed_seqs.len() >= options.seed_keyframes {
+                    break;
+                }
+            }
+        }
+        if seed_seqs.len() < 3 {
+            seed_seqs.clear();
+        }
+    }
+    seed_seqs.reverse();
+    let after = keyframes.last().map(|(s, _)| *s).or(seed_seqs.last().copied());
+    let mut seed_frames = Vec::new();
     let mut recent = Vec::new();
+    let mut retrack = Vec::new();
+    let first_recent = frames.keys().rev().filter(|s| poses.contains_key(s)).nth(options.relocalisation_frames.saturating_sub(1)).copied().unwrap_or(0);
     for (seq, (data, t)) in frames {
-        let Some(&(pose, tracked)) = poses.get(&seq) else { continue };
+        let wanted_retrack = after.is_some_and(|a| seq > a && seq <= last_seq);
+        let pose = poses.get(&seq).copied();
+        let wanted_recent = seq >= first_recent && pose.is_some();
+        let wanted_seed = seed_seqs.contains(&seq);
+        if !(wanted_retrack || wanted_recent || wanted_seed) {
+            continue;
+        }
         match decode_frame(&data, seq, t) {
-            Ok(f) => recent.push((f, pose, tracked)),
+            Ok(f) => {
+                if let (true, Some((p, tracked))) = (wanted_recent, pose) {
+                    recent.push((f.clone(), p, tracked));
+                }
+                if let (true, Some((p, _))) = (wanted_seed, pose) {
+                    seed_frames.push((f.clone(), p));
+                }
+                if wanted_retrack {
+                    retrack.push(f);
+                }
+            }
             Err(e) => tracing::warn!("resume: logged frame {seq} unreadable: {e}"),
         }
     }
-    if recent.len() > keep_frames {
-        recent.drain(..recent.len() - keep_frames);
-    }
     let checkpoint = CheckpointStore::new(out_dir.join("checkpoints"), 3).load_newest();
-    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, camera, checkpoint }))
+    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, next_keyframe_id, seed_frames, retrack, poses, camera, checkpoint }))
 }
 
-/// Tracks the recorded frames of `state` with `tracker` and returns the Sim(3) from the
-/// tracker's frame to the recorded one, `None` when too few frames were tracked in both runs
-/// (the run then continues in a new frame, which the caller reports).
-pub fn relocalise(tracker: &mut Tracker, state: &ResumeState) -> Result<Option<Sim3>, PipelineError> {
+/// How a resumed run continues the recorded trajectory.
+pub enum Relocalisation {
+    /// The tracker holds the newest logged keyframes in the recorded frame and scale; the
+    /// pipeline tracks `retrack` (logged frames after the newest keyframe) before the source.
+    /// `keyframes` logged keyframes, or `frames` logged frames at their recorded poses (depth
+    /// triangulated) when the log holds no keyframe.
+    Seeded { keyframes: usize, frames: usize, newest_keyframe_seq: u64, retrack: Vec<Frame> },
+    /// Fallback: re-initialised on the last logged frames; `world_from_tracker` carries the new
+    /// tracker's frame onto the recorded one. `why`: why the keyframes were not used.
+    Aligned { world_from_tracker: Sim3, why: String },
+    /// Nothing to relocalise with: the run continues in a new frame.
+    NewFrame { why: String },
+}
+
+/// Recorded pose of `seq` and the motion per frame into it (from the recorded pose before it,
+/// when both are there).
+fn resume_point(poses: &BTreeMap<u64, (Se3, bool)>, seq: u64) -> Option<ResumePoint> {
+    let &(pose, _) = poses.get(&seq)?;
+    let velocity = match seq.checked_sub(1).and_then(|s| poses.get(&s)) {
+        Some((prev, true)) => prev.inv_mul(&pose),
+        _ => Se3::identity(),
+    };
+    Some(ResumePoint { seq, world_from_cam: pose, velocity })
+}
+
+/// Relocalises a new, empty `tracker` in the frame `state` recorded: seeded with the logged
+/// keyframes when the log holds any, else by the fallback (see the module docs).
+pub fn relocalise(tracker: &mut Tracker, state: &mut ResumeState) -> Result<Relocalisation, PipelineError> {
+    let why = if state.keyframes.is_empty() && state.seed_frames.is_empty() {
+        "no whole keyframe in the log and fewer than 3 frames with measured poses or initialisation keyframes".to_string()
+    } else {
+        let seeds: Vec<SeedKeyframe<'_>> = state.keyframes.iter().map(|(seq, k)| SeedKeyframe { seq: *seq, keyframe: k }).collect();
+        let frames: Vec<SeedFrame<'_>> = state.seed_frames.iter().map(|(frame, pose)| SeedFrame { frame, world_from_cam: *pose }).collect();
+        let newest_keyframe_seq = frames.last().map(|f| f.frame.seq).or(seeds.last().map(|k| k.seq)).unwrap_or(0);
+        // Straight on from the newest keyframe when its next frames were kept; otherwise from
+        // the recorded pose before the first frame there is to track.
+        let first = state.retrack.first().map(|f| f.seq).unwrap_or(state.last_seq + 1);
+        let resume = if first == newest_keyframe_seq + 1 { None } else { resume_point(&state.poses, first - 1) };
+        match tracker.seed(&TrackerSeed { keyframes: &seeds, frames: &frames, resume, next_keyframe_id: state.next_keyframe_id }) {
+            Ok(()) => {
+                let (keyframes, frames) = (seeds.len(), frames.len());
+                return Ok(Relocalisation::Seeded { keyframes, frames, newest_keyframe_seq, retrack: std::mem::take(&mut state.retrack) });
+            }
+            Err(e) => format!("the logged keyframes did not seed the tracker: {e}"),
+        }
+    };
+    tracing::warn!("resume: {why}; relocalising by re-initialisation");
+    Ok(match align_by_reinitialising(tracker, state)? {
+        Some(world_from_tracker) => Relocalisation::Aligned { world_from_tracker, why },
+        None => Relocalisation::NewFrame { why },
+    })
+}
+
+/// The fallback: tracks the recorded frames of `state` with `tracker` and returns the Sim(3)
+/// from the tracker's frame to the recorded one, `None` when too few frames were tracked in
+/// both runs.
+fn align_by_reinitialising(tracker: &mut Tracker, state: &ResumeState) -> Result<Option<Sim3>, PipelineError> {
     // Per warm-up frame: the recorded pose, whether it was measured, and the new tracker's
     // live pose and state.
     let mut live: Vec<(u64, Se3, bool, Se3, bool)> = Vec::new();

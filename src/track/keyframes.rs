@@ -112,6 +112,22 @@ impl KeyframeStore {
         Some(s)
     }
 
+    /// Like [`push`](Self::push), with the id given (a keyframe recorded by an earlier run);
+    /// later ids continue after it. `None` when no slot is free or `id` is below an id already
+    /// given out.
+    pub fn push_with_id(&mut self, id: u64) -> Option<usize> {
+        if id < self.next_id {
+            return None;
+        }
+        self.next_id = id;
+        self.push()
+    }
+
+    /// Ids given out from now on are at least `next`.
+    pub fn reserve_ids_below(&mut self, next: u64) {
+        self.next_id = self.next_id.max(next);
+    }
+
     /// Removes the keyframe at `order` position `pos`; its slot becomes free (its data stays
     /// readable until the slot is taken again).
     pub fn remove_at(&mut self, pos: usize) -> usize {

@@ -50,6 +50,12 @@
 //!   map. The next good frame tries the reference keyframe with the prediction, then the
 //!   stored keyframes by thumbnail NCC, verified by flow and motion-only BA.
 //!
+//! - *Resume*: [`Tracker::seed`] starts a new tracker from keyframes an earlier run logged
+//!   (recorded ids, poses, images, inverse depth averaged down to the depth grid, variance),
+//!   linked and measured as an insertion links them but not re-solved: their recorded poses
+//!   are the oldest, fixed poses of the next windows, so tracking continues in the recorded
+//!   frame and scale.
+//!
 //! Full-resolution depth and variance come from joint bilateral upsampling guided by the
 //! keyframe image ([`Tracker::upsample_keyframe`]).
 //!
@@ -69,7 +75,7 @@ mod upsample;
 
 pub use config::{ConfigError, TrackerCapacity, TrackerConfig};
 pub use tracker::{
-    depth_grid_camera, EvictedKeyframe, FrameAnchor, KeyframeView, LostReason, StageTimes, TrackError, TrackOutput, Tracker,
-    TrackerCounters, TrackingState,
+    depth_grid_camera, EvictedKeyframe, FrameAnchor, KeyframeView, LostReason, ResumePoint, SeedFrame, SeedKeyframe, StageTimes, TrackError,
+    TrackOutput, Tracker, TrackerCounters, TrackerSeed, TrackingState,
 };
 pub use trajectory::{FinalKeyframe, FinalTrajectory, RecordedFrame, TrajectoryRecorder};

@@ -154,6 +154,49 @@ pub struct KeyframeView<'a> {
     pub variance: Option<&'a PlaneF32>,
 }
 
+/// A keyframe an earlier run recorded, to seed a new tracker with ([`Tracker::seed`]): the
+/// keyframe as the pipeline logged it (id, time, image, pose in the recorded world frame,
+/// full-resolution inverse depth and variance) and the frame number of its image.
+#[derive(Clone, Copy, Debug)]
+pub struct SeedKeyframe<'a> {
+    pub seq: u64,
+    pub keyframe: &'a crate::core::Keyframe,
+}
+
+/// Where a seeded tracker picks the motion up: the pose of frame `seq` and the motion per
+/// frame (`velocity = prev_from_cam`, what the constant-velocity prediction applies).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ResumePoint {
+    pub seq: u64,
+    pub world_from_cam: Se3,
+    pub velocity: Se3,
+}
+
+/// A frame an earlier run recorded a measured pose for, without depth, to seed a new tracker
+/// with ([`Tracker::seed`]): it becomes a keyframe at its recorded pose, its depth triangulated
+/// from the recorded poses.
+#[derive(Clone, Copy, Debug)]
+pub struct SeedFrame<'a> {
+    pub frame: &'a Frame,
+    pub world_from_cam: Se3,
+}
+
+/// What [`Tracker::seed`] starts a tracker from.
+#[derive(Clone, Copy, Debug)]
+pub struct TrackerSeed<'a> {
+    /// Recorded keyframes, oldest first (ids increasing); their poses and depths set the
+    /// frame and the scale the tracker continues in.
+    pub keyframes: &'a [SeedKeyframe<'a>],
+    /// Recorded frames with measured poses, newer than every keyframe, oldest first.
+    pub frames: &'a [SeedFrame<'a>],
+    /// Where tracking continues; `None`: at the newest keyframe, with the mean motion per frame
+    /// between the two newest.
+    pub resume: Option<ResumePoint>,
+    /// New keyframes get ids from here on at least (ids an earlier run gave out but did not
+    /// log), and always after the newest seeded id.
+    pub next_keyframe_id: u64,
+}
+
 /// Errors of the tracker. Bad frames are not errors: they are reported as a lost state.
 #[derive(Debug, thiserror::Error)]
 pub enum TrackError {
@@ -177,6 +220,14 @@ pub enum TrackError {
     NoSuchKeyframe { id: u64 },
     #[error("output planes must be {expected_width}x{expected_height}, got {width}x{height}")]
     OutputSize { width: usize, height: usize, expected_width: usize, expected_height: usize },
+    #[error("seed: the tracker has tracked frames already (seed a new tracker)")]
+    NotEmpty,
+    #[error("seed: no keyframe to seed with")]
+    NoSeedKeyframes,
+    #[error("seed keyframe {id}: {what} is {width}x{height}, the tracker was built for {expected_width}x{expected_height}")]
+    SeedSize { id: u64, what: &'static str, width: usize, height: usize, expected_width: usize, expected_height: usize },
+    #[error("seed keyframe {id}: {problem}")]
+    BadSeedKeyframe { id: u64, problem: &'static str },
 }
 
 /// Dense monocular tracker. Everything is allocated by [`Tracker::new`]; see the module docs
@@ -301,6 +352,19 @@ impl Tracker {
         }
         let st = &mut self.st;
         self.pool.install(|| st.track(frame))
+    }
+
+    /// Seeds a new tracker with keyframes an earlier run recorded (resume after a power cut):
+    /// they take their recorded ids, poses, images and inverse depth (averaged down to the
+    /// depth grid) with their variance, are linked as an insertion links them (flow measured
+    /// now; no BA, so their poses stay as recorded), and the tracker starts tracking against
+    /// the newest. Their poses are the gauge of the window BA while they are in the window
+    /// (its oldest poses are held fixed), so the tracker continues in the recorded frame and
+    /// scale. Everything is checked before anything changes: an error leaves the tracker
+    /// empty and usable.
+    pub fn seed(&mut self, seed: &TrackerSeed<'_>) -> Result<(), TrackError> {
+        let st = &mut self.st;
+        self.pool.install(|| st.seed(seed))
     }
 
     /// Runs `f` on one of the tracker's pool threads, so that the [`track`](Self::track) calls
@@ -490,15 +554,38 @@ fn write_measurement(res: &FlowResult, weight_scale: f32, confident: f32, margin
 /// Grey [0, 1] of a frame into a preallocated plane of the same size.
 fn to_grey(image: &FrameImage, out: &mut PlaneF32) {
     match image {
-        FrameImage::Rgb8(i) => {
-            for (o, p) in out.data.iter_mut().zip(i.data.chunks_exact(3)) {
-                *o = (LUMA_WEIGHTS[0] * p[0] as f32 + LUMA_WEIGHTS[1] * p[1] as f32 + LUMA_WEIGHTS[2] * p[2] as f32) / 255.0;
-            }
-        }
+        FrameImage::Rgb8(i) => rgb_to_grey(i, out),
         FrameImage::Gray8(i) => {
             for (o, &v) in out.data.iter_mut().zip(&i.data) {
                 *o = v as f32 / 255.0;
             }
+        }
+    }
+}
+
+/// Grey [0, 1] of an RGB image into a preallocated plane of the same size.
+fn rgb_to_grey(image: &crate::core::ImageRgb8, out: &mut PlaneF32) {
+    for (o, p) in out.data.iter_mut().zip(image.data.chunks_exact(3)) {
+        *o = (LUMA_WEIGHTS[0] * p[0] as f32 + LUMA_WEIGHTS[1] * p[1] as f32 + LUMA_WEIGHTS[2] * p[2] as f32) / 255.0;
+    }
+}
+
+/// Block means of a full-resolution plane at the depth grid (`cell` input pixels per depth
+/// pixel); a block with a non-finite value or the `f32::MAX` "unknown" marker gives `bad`.
+fn plane_block_means(full: &PlaneF32, cell: usize, out: &mut PlaneF32, bad: f32) {
+    let w = full.width;
+    let inv = 1.0 / (cell * cell) as f64;
+    for ly in 0..out.height {
+        for lx in 0..out.width {
+            let mut sum = 0.0f64;
+            let mut ok = true;
+            for y in ly * cell..(ly + 1) * cell {
+                for &v in &full.data[y * w + lx * cell..y * w + (lx + 1) * cell] {
+                    ok &= v.is_finite() && v < f32::MAX;
+                    sum += v as f64;
+                }
+            }
+            out.data[ly * out.width + lx] = if ok { (sum * inv) as f32 } else { bad };
         }
     }
 }
@@ -752,20 +839,169 @@ impl State {
             self.evict();
         }
         let s = self.kfs.push().expect("a slot is free after eviction");
+        self.fill_keyframe_slot(s, frame.t_ns, frame.seq, pose);
+        self.counters.keyframes_inserted += 1;
+        self.times.keyframes += 1;
+        s
+    }
+
+    /// Fills slot `s` from the current frame (`cur`, `grey`).
+    fn fill_keyframe_slot(&mut self, s: usize, t_ns: Timestamp, seq: u64, pose: &Se3) {
         let (w, h) = (self.camera.width, self.camera.height);
         let kf = &mut self.kfs.slots[s];
         std::mem::swap(&mut kf.frame, &mut self.cur);
-        kf.t_ns = frame.t_ns;
-        kf.seq = frame.seq;
+        kf.t_ns = t_ns;
+        kf.seq = seq;
         kf.world_from_cam = *pose;
         for (g, &v) in kf.guide.iter_mut().zip(&self.grey.data) {
             *g = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
         }
         block_means(&self.grey.data, w, self.factor, &mut kf.guide_low);
         thumbnail(&self.grey.data, w, h, &mut kf.thumb);
-        self.counters.keyframes_inserted += 1;
-        self.times.keyframes += 1;
-        s
+    }
+
+    /// See [`Tracker::seed`].
+    fn seed(&mut self, seed: &TrackerSeed<'_>) -> Result<(), TrackError> {
+        if self.phase != Phase::Empty || self.kfs.len() > 0 {
+            return Err(TrackError::NotEmpty);
+        }
+        let (w, h) = (self.camera.width, self.camera.height);
+        let seeds = seed.keyframes;
+        if seeds.len() + seed.frames.len() < 2 && seed.keyframes.is_empty() {
+            return Err(TrackError::NoSeedKeyframes);
+        }
+        if seed.frames.len() > self.cap.ba_window {
+            return Err(TrackError::Capacity { field: "ba_window", value: self.cap.ba_window, problem: "fewer than the frames to seed" });
+        }
+        for sf in seed.frames {
+            let f = sf.frame;
+            if f.image.width() != w || f.image.height() != h {
+                return Err(TrackError::FrameSize { seq: f.seq, width: f.image.width(), height: f.image.height(), expected_width: w, expected_height: h });
+            }
+            if crate::core::pose::se3_to_tum(&sf.world_from_cam).iter().any(|x| !x.is_finite()) {
+                return Err(TrackError::BadSeedKeyframe { id: f.seq, problem: "seed frame pose not finite" });
+            }
+        }
+        if seeds.len() + seed.frames.len() > self.kfs.capacity() {
+            return Err(TrackError::Capacity { field: "max_keyframes", value: self.kfs.capacity(), problem: "fewer than the keyframes to seed" });
+        }
+        let mut prev_id: Option<u64> = None;
+        for sk in seeds {
+            let k = sk.keyframe;
+            let id = k.index;
+            for (what, width, height) in [("image", k.image.width, k.image.height), ("inverse depth", k.inv_depth.width, k.inv_depth.height), ("variance", k.inv_depth_variance.width, k.inv_depth_variance.height)] {
+                if width != w || height != h {
+                    return Err(TrackError::SeedSize { id, what, width, height, expected_width: w, expected_height: h });
+                }
+            }
+            if !k.is_consistent() {
+                return Err(TrackError::BadSeedKeyframe { id, problem: "a plane's data does not match its size" });
+            }
+            let v = crate::core::pose::se3_to_tum(&k.world_from_cam);
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(TrackError::BadSeedKeyframe { id, problem: "pose not finite" });
+            }
+            if prev_id.is_some_and(|p| id <= p) {
+                return Err(TrackError::BadSeedKeyframe { id, problem: "ids must increase (oldest first)" });
+            }
+            prev_id = Some(id);
+        }
+        for sk in seeds {
+            let k = sk.keyframe;
+            rgb_to_grey(&k.image, &mut self.grey);
+            let t0 = Instant::now();
+            self.flow.prepare_into(&self.grey, &mut self.cur)?;
+            self.times.flow += t0.elapsed();
+            let s = self.kfs.push_with_id(k.index).expect("ids increase and a slot is free");
+            self.fill_keyframe_slot(s, k.t_ns, sk.seq, &k.world_from_cam);
+            let kf = &mut self.kfs.slots[s];
+            plane_block_means(&k.inv_depth, self.factor, &mut kf.inv_depth, MIN_INV_DEPTH);
+            for d in kf.inv_depth.data.iter_mut() {
+                *d = d.max(MIN_INV_DEPTH);
+            }
+            plane_block_means(&k.inv_depth_variance, self.factor, &mut kf.variance, f32::MAX);
+            kf.has_variance = true;
+        }
+        self.kfs.reserve_ids_below(seed.next_keyframe_id);
+        for sf in seed.frames {
+            to_grey(&sf.frame.image, &mut self.grey);
+            let t0 = Instant::now();
+            self.flow.prepare_into(&self.grey, &mut self.cur)?;
+            self.times.flow += t0.elapsed();
+            let s = self.kfs.push().expect("a slot is free");
+            self.fill_keyframe_slot(s, sf.frame.t_ns, sf.frame.seq, &sf.world_from_cam);
+            // Depth: the previous seed's splatted in, or constant (triangulated below).
+            match self.kfs.len() {
+                1 => self.kfs.slots[s].inv_depth.data.fill(self.cfg.initial_inv_depth),
+                n => self.splat_depth(self.kfs.order[n - 2], s),
+            }
+        }
+        // Links as an insertion makes them: each keyframe to up to `edges_per_keyframe` older
+        // ones that see the same scene, both directions, measured from one pair estimate.
+        self.phase = Phase::Running;
+        self.new_edges.clear();
+        let n = self.kfs.len();
+        for pos in 1..n {
+            let s = self.kfs.order[pos];
+            let mut links = 0;
+            for back in 1..=pos {
+                if links >= self.cfg.edges_per_keyframe {
+                    break;
+                }
+                let c = self.kfs.order[pos - back];
+                let (ks, kc) = (&self.kfs.slots[s], &self.kfs.slots[c]);
+                let (flow, overlap) = induced_flow(&self.low, &ks.world_from_cam, &ks.inv_depth, &kc.world_from_cam, None);
+                if back == 1 || (flow <= self.cfg.edge_max_flow_px && overlap >= self.cfg.edge_min_overlap) {
+                    for (f, t) in [(s, c), (c, s)] {
+                        if let Some(e) = self.edges.add(f, t, false) {
+                            self.new_edges.push(e);
+                        }
+                    }
+                    links += 1;
+                }
+            }
+        }
+        self.estimate_new_edges()?;
+        if !seed.frames.is_empty() {
+            // Depth of the seed frames from their recorded poses: flow/BA rounds over the
+            // newest seeds with every pose fixed (depth only).
+            self.window.clear();
+            self.window.extend_from_slice(&self.kfs.order[n.saturating_sub(self.cap.ba_window)..]);
+            let fixed = self.window.len();
+            self.solve_window(self.cfg.init_iterations, fixed);
+            for _ in 1..self.cfg.init_rounds {
+                self.estimate_new_edges()?;
+                self.solve_window(self.cfg.init_iterations, fixed);
+            }
+            self.window_covariance(fixed);
+        }
+        self.new_edges.clear();
+        let newest = self.kfs.newest().expect("seeded");
+        self.ref_slot = newest;
+        self.state = TrackingState::Tracking;
+        self.have_prev_flow = false;
+        self.inserted_since_loop = 0;
+        self.inserted_since_global = 0;
+        self.pending = None;
+        match seed.resume {
+            Some(r) => {
+                self.last_pose = r.world_from_cam;
+                self.last_seq = r.seq;
+                self.velocity = r.velocity;
+            }
+            None => {
+                let last = &self.kfs.slots[newest];
+                self.last_pose = last.world_from_cam;
+                self.last_seq = last.seq;
+                self.velocity = Se3::identity();
+                if n >= 2 {
+                    let before = &self.kfs.slots[self.kfs.order[n - 2]];
+                    let frames = last.seq.saturating_sub(before.seq).max(1) as f64;
+                    self.velocity = se3_exp(&(se3_log(&before.world_from_cam.inv_mul(&last.world_from_cam)) / frames));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Evicts the most redundant keyframe outside the window (the one whose neighbours are
