@@ -673,9 +673,9 @@ mod tests {
             *v = if i == 5 { f32::MAX } else { 1e-4 * i as f32 };
         }
         let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
-        let mut scratch = Vec::new();
+        let (mut scratch, mut jpeg) = (Vec::new(), Vec::new());
         let mut got = Vec::new();
-        encode_item(&LogItem::Keyframe(Box::new(kf)), &mut scratch, |e, b| {
+        encode_item(&LogItem::Keyframe(Box::new(kf)), FrameEncoding::Raw, &mut scratch, &mut jpeg, |e, b| {
             got.push((e.topic, e.sequence, b.to_vec()));
             Ok(())
         })
