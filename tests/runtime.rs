@@ -139,9 +139,9 @@ fn jpeg_logged_run_resumes_inspects_and_replays() {
     run_ok(sim_run(&rec, 30).arg("--board").arg(&board).arg("--no-map"));
     let inspect = run_ok(duv().arg("inspect").arg(&rec));
     assert!(inspect.lines().any(|l| l.starts_with("/camera/image") && l.contains("foxglove.CompressedImage") && l.contains(" 30 ")), "{inspect}");
-    // Resume reads the logged JPEG frames back to relocalise.
+    // Resume reads the logged keyframes and the JPEG frames after them back to relocalise.
     let resumed = run_ok(sim_run(&rec, 60).arg("--board").arg(&board).arg("--no-map"));
-    assert!(resumed.contains("relocalised on 20 logged frames"), "{resumed}");
+    assert!(resumed.contains("in the recorded frame and scale; tracking") && resumed.contains("logged frames again"), "{resumed}");
     // Replay of the whole JPEG log (two segments): every frame, and the trajectory holds the
     // bound of the raw replay above. JPEG is lossy, so the replay is not the recorded run: on
     // this sequence it measured 0.33% of the path against 0.17% for a raw log.
