@@ -21,6 +21,14 @@ use duv::core::alloc::{self, CountScope, CountingAllocator};
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
 
+/// The counts see every thread (rayon workers included), so a test setting up beside a
+/// counting one would be counted: the tests of this binary run one at a time.
+static SERIAL: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
 fn count(f: impl FnOnce()) -> usize {
     alloc::count_allocations(CountScope::AllThreads, f)
 }
@@ -49,6 +57,7 @@ fn counted_run(renderer: &SimRenderer, frames: &[Frame], warm: usize, cap: Track
 
 #[test]
 fn tracking_keyframes_eviction_and_relocalisation_do_not_allocate() {
+    let _serial = serial();
     let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 110, 160, 120, 0.5)).unwrap();
     let mut frames = track_sim::render_all(&renderer);
     frames[95].image = FrameImage::Rgb8(ImageRgb8 { width: 160, height: 120, data: vec![0; 160 * 120 * 3] });
@@ -66,6 +75,7 @@ fn tracking_keyframes_eviction_and_relocalisation_do_not_allocate() {
 
 #[test]
 fn loop_closure_does_not_allocate() {
+    let _serial = serial();
     let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
     let frames = track_sim::render_all(&renderer);
     let (n, outputs) = counted_run(&renderer, &frames, 60, track_sim::capacity(2));
@@ -75,6 +85,7 @@ fn loop_closure_does_not_allocate() {
 
 #[test]
 fn a_seeded_tracker_does_not_allocate_per_frame() {
+    let _serial = serial();
     let renderer = SimRenderer::new(&track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 110, 160, 120, 0.5)).unwrap();
     let frames = track_sim::render_all(&renderer);
     let cam = *renderer.camera();
