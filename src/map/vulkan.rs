@@ -27,7 +27,7 @@ use crate::map::adam::StepConstants;
 use crate::map::gaussians::{GaussianGrads, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use crate::core::{PinholeCamera, Se3};
 use crate::map::render::{
-    bits_for, check_output, check_rgb, check_size, validate_gaussians, DepthMode, MediumPlanes, ProjectedSplat, ProjectionSetup,
+    bits_for, check_backward_inputs, check_output, check_rgb, check_size, validate_gaussians, DepthMode, MediumPlanes, ProjectedSplat, ProjectionSetup,
     RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream, SplatGrad, TileGrid, TileRect,
 };
 
@@ -878,27 +878,8 @@ impl GpuRenderer {
         medium_grads: &mut MediumPlanes,
     ) -> Result<(), VulkanRenderError> {
         let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
-        if gaussians.len() != last.n_gaussians {
-            return Err(RenderError::NoForward { why: "the map changed size since the forward pass" }.into());
-        }
-        if grads.len() != gaussians.len() {
-            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: gaussians.len() }.into());
-        }
         let grid = last.grid;
-        check_output(out, &grid)?;
-        check_size("upstream gradients", upstream.width(), upstream.height(), &grid)?;
-        for p in [&upstream.depth, &upstream.depth_var, &upstream.alpha] {
-            check_size("upstream gradients", p.width, p.height, &grid)?;
-        }
-        check_size("upstream gradients", upstream.restored.width, upstream.restored.height, &grid)?;
-        for (_, plane) in medium.planes().into_iter().chain(medium_grads.planes()) {
-            check_size("medium planes", plane.width, plane.height, &grid)?;
-        }
-        check_rgb("dL/dcolour", &upstream.colour, false)?;
-        check_rgb("dL/drestored", &upstream.restored, false)?;
-        check_rgb("dL/ddepth", &upstream.depth, false)?;
-        check_rgb("dL/ddepth_var", &upstream.depth_var, false)?;
-        check_rgb("dL/dalpha", &upstream.alpha, false)?;
+        check_backward_inputs(last.n_gaussians, &grid, gaussians, medium, out, upstream, grads, medium_grads)?;
 
         let _span = tracing::debug_span!("map.gpu_backward", intersections = last.n_isects).entered();
         let n = last.n_gaussians;

@@ -67,7 +67,7 @@ pub use raster_fwd::{blend_pixel, depth_value, rasterize_forward, PixelForward, 
 pub use sort::{bits_for, radix_sort_pairs, sort_histogram_len, RADIX, RADIX_BITS, SORT_BLOCK};
 pub use tiles::{gather_sorted_gaussians, invert_permutation, tile_ranges};
 pub use workspace::{RasterWorkspace, RenderStats};
-pub(crate) use workspace::{check_output, check_rgb, check_size, validate_gaussians};
+pub(crate) use workspace::{check_backward_inputs, check_output, check_rgb, check_size, validate_gaussians};
 
 use crate::core::{CameraModelError, ImageRgbF32, PlaneF32};
 

@@ -220,27 +220,8 @@ impl RasterWorkspace {
         medium_grads: &mut MediumPlanes,
     ) -> Result<(), RenderError> {
         let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this workspace" })?;
-        if gaussians.len() != last.n_gaussians {
-            return Err(RenderError::NoForward { why: "the map changed size since the forward pass" });
-        }
-        if grads.len() != gaussians.len() {
-            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: gaussians.len() });
-        }
         let grid = last.grid;
-        check_output(out, &grid)?;
-        check_size("upstream gradients", upstream.width(), upstream.height(), &grid)?;
-        for p in [&upstream.depth, &upstream.depth_var, &upstream.alpha] {
-            check_size("upstream gradients", p.width, p.height, &grid)?;
-        }
-        check_size("upstream gradients", upstream.restored.width, upstream.restored.height, &grid)?;
-        for (_, plane) in medium.planes().into_iter().chain(medium_grads.planes()) {
-            check_size("medium planes", plane.width, plane.height, &grid)?;
-        }
-        check_rgb("dL/dcolour", &upstream.colour, false)?;
-        check_rgb("dL/drestored", &upstream.restored, false)?;
-        check_rgb("dL/ddepth", &upstream.depth, false)?;
-        check_rgb("dL/ddepth_var", &upstream.depth_var, false)?;
-        check_rgb("dL/dalpha", &upstream.alpha, false)?;
+        check_backward_inputs(last.n_gaussians, &grid, gaussians, medium, out, upstream, grads, medium_grads)?;
 
         let n = last.n_gaussians;
         {
@@ -273,6 +254,42 @@ fn raster_inputs<'a>(
         intrinsics: [setup.fx, setup.fy, setup.cx, setup.cy],
         depth_mode,
     }
+}
+
+/// The checks of a backward pass, shared by the CPU workspace and the Vulkan renderer (same
+/// errors): the map as the forward pass saw it (`n_forward` Gaussians), gradient buffers of its
+/// length, every image and medium plane of the forward's size, finite upstream gradients.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn check_backward_inputs(
+    n_forward: usize,
+    grid: &TileGrid,
+    gaussians: &Gaussians,
+    medium: &MediumPlanes,
+    out: &RenderOutput,
+    upstream: &RenderUpstream,
+    grads: &GaussianGrads,
+    medium_grads: &MediumPlanes,
+) -> Result<(), RenderError> {
+    if gaussians.len() != n_forward {
+        return Err(RenderError::NoForward { why: "the map changed size since the forward pass" });
+    }
+    if grads.len() != gaussians.len() {
+        return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: gaussians.len() });
+    }
+    check_output(out, grid)?;
+    check_size("upstream gradients", upstream.width(), upstream.height(), grid)?;
+    for p in [&upstream.depth, &upstream.depth_var, &upstream.alpha] {
+        check_size("upstream gradients", p.width, p.height, grid)?;
+    }
+    check_size("upstream gradients", upstream.restored.width, upstream.restored.height, grid)?;
+    for (_, plane) in medium.planes().into_iter().chain(medium_grads.planes()) {
+        check_size("medium planes", plane.width, plane.height, grid)?;
+    }
+    check_rgb("dL/dcolour", &upstream.colour, false)?;
+    check_rgb("dL/drestored", &upstream.restored, false)?;
+    check_rgb("dL/ddepth", &upstream.depth, false)?;
+    check_rgb("dL/ddepth_var", &upstream.depth_var, false)?;
+    check_rgb("dL/dalpha", &upstream.alpha, false)
 }
 
 pub(crate) fn check_size(what: &'static str, width: usize, height: usize, grid: &TileGrid) -> Result<(), RenderError> {
