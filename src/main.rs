@@ -59,6 +59,11 @@ fn main() -> std::process::ExitCode {
         .with_writer(std::io::stderr)
         .with_target(false)
         .init();
+    // The onboard commands page their fixed stores in when they are made (see
+    // `prefault_large_allocations`): resident memory is flat from start-up.
+    if matches!(cli.command, Command::Run(_) | Command::Replay(_) | Command::Demo(_)) {
+        duv::core::alloc::prefault_large_allocations(true);
+    }
     let result = match cli.command {
         Command::Demo(a) => cli::demo::run(a),
         Command::Run(a) => cli::run::run(a),

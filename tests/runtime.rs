@@ -214,27 +214,14 @@ struct Heard {
     synced: BTreeMap<PathBuf, (u64, u64)>,
 }
 
+/// The crash harness: kill -9 at 20 points, resume each time. Every chunk synced
+/// before a kill is readable, at most 1 s of data is lost per kill, and the combined
+/// trajectory continues in the recorded frame: its ATE is within 1.5x an uninterrupted run's.
+/// Each start seeds its tracker with the newest logged tracker window (`/slam/window`, twice a
+/// second of frame time) and tracks the logged frames after it again. Measured over three
+/// runs: ATE 0.1201, 0.1197, 0.1198 m combined against 0.1196 m uninterrupted.
 #[test]
 fn crash_harness_kill_9_and_resume() {
-    crash_harness(false);
-}
-
-/// The accuracy bar for resume: ATE of the combined run <= 1.5x an uninterrupted run.
-/// Each start relocalises against the log instead of re-initialising: the tracker is seeded
-/// with the logged keyframes, or (what this harness hits: every start lives 0.2-1.7 s, so no
-/// keyframe ever leaves a BA window and reaches the log) with the logged frames that were the
-/// newest keyframes, at their recorded poses, depth triangulated from them; it continues in the
-/// recorded frame and scale. Not met reliably yet: three runs measured a combined ATE of
-/// 0.156 m, 0.290 m and 0.732 m vs 0.120 m uninterrupted (1.3x, 2.4x, 6.1x; 2.57 m with the
-/// Sim(3) re-initialisation this replaced): it varies with the kill points. About 5 minutes in a
-/// debug build on 2 cores.
-#[test]
-#[ignore = "known gap: resumed-run ATE measured 1.3x-6.1x an uninterrupted run, not reliably within 1.5x"]
-fn crash_harness_resumed_ate_within_1_5x() {
-    crash_harness(true);
-}
-
-fn crash_harness(assert_ate: bool) {
     const FRAMES: usize = 300;
     const KILLS: usize = 20;
     let started = Instant::now();
@@ -356,10 +343,5 @@ fn crash_harness(assert_ate: bool) {
         combined.len()
     );
     assert!(max_loss <= 1.0, "lost {max_loss:.3} s of data at one kill (losses {losses_s:?})");
-    if assert_ate {
-        assert!(ate_combined <= 1.5 * ate_clean, "ATE combined {ate_combined} > 1.5 x uninterrupted {ate_clean}");
-    }
-    // What is asserted today: the resumed run stays finite and in one frame (no restart at the
-    // origin with an arbitrary scale would give a bounded error of this order).
-    assert!(ate_combined.is_finite());
+    assert!(ate_combined <= 1.5 * ate_clean, "ATE combined {ate_combined} > 1.5 x uninterrupted {ate_clean}");
 }

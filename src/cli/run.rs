@@ -430,7 +430,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         }
         match resume::relocalise(&mut tracker, r)? {
             resume::Relocalisation::Seeded { keyframes, frames, newest_keyframe_seq, retrack: again } => {
-                let seeds = if keyframes > 0 { format!("{keyframes} logged keyframes") } else { format!("{frames} logged frames at their recorded poses (no keyframe in the log)") };
+                let seeds = if let (true, Some(w)) = (keyframes > 0, r.window_seq) {
+                    format!("the {keyframes} keyframes of the tracker window logged at frame {w}")
+                } else if keyframes > 0 {
+                    format!("{keyframes} logged keyframes")
+                } else { format!("{frames} logged frames at their recorded poses (no keyframe in the log)") };
                 eprintln!(
                     "resumed after frame {} ({} poses recorded): tracker seeded with {seeds}, newest at frame {newest_keyframe_seq}, in the recorded frame and scale; tracking {} logged frames again",
                     r.last_seq,

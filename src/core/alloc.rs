@@ -24,6 +24,8 @@ static INSTALLED: AtomicBool = AtomicBool::new(false);
 static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
 static LIVE_BYTES: AtomicUsize = AtomicUsize::new(0);
 static PEAK_BYTES: AtomicUsize = AtomicUsize::new(0);
+/// Allocations of at least [`PREFAULT_MIN_BYTES`] are paged in when made.
+static PREFAULT_LARGE: AtomicBool = AtomicBool::new(false);
 /// 0: not counting, 1: all threads, 2: marked threads only.
 static ARMED: AtomicU8 = AtomicU8::new(0);
 
@@ -55,6 +57,41 @@ fn note_allocation(bytes: usize) {
     PEAK_BYTES.fetch_max(live, Ordering::Relaxed);
 }
 
+/// Allocations this large or larger are paged in when made, once
+/// [`prefault_large_allocations`] is on.
+pub const PREFAULT_MIN_BYTES: usize = 256 << 10;
+
+/// Turns paging-in of large allocations on or off for the whole process (`duv` turns it on).
+///
+/// The fixed-capacity stores (Gaussians, optimiser moments, raster and tracker workspaces,
+/// keyframe slots) are allocated once at start-up, but the operating system backs an
+/// allocation with memory only when a page is first written: the resident set then creeps up
+/// for minutes as the stores fill, which reads as a leak on a vehicle's memory watchdog, and
+/// each first touch is a page fault in a frame's time. With this on, every allocation of at
+/// least [`PREFAULT_MIN_BYTES`] has each page written once when it is made (zeros: the memory
+/// is zeroed or uninitialised, so nothing changes), so the resident set matches the live heap
+/// from start-up and a steady state that allocates nothing keeps it flat.
+pub fn prefault_large_allocations(on: bool) {
+    PREFAULT_LARGE.store(on, Ordering::Relaxed);
+}
+
+/// Writes a zero into every page of a fresh allocation of `size` bytes at `p`.
+///
+/// SAFETY (caller): `p` is a live allocation of at least `size` bytes whose contents are
+/// zero or uninitialised.
+#[inline]
+unsafe fn touch_pages(p: *mut u8, size: usize) {
+    if size >= PREFAULT_MIN_BYTES && PREFAULT_LARGE.load(Ordering::Relaxed) {
+        let mut off = 0;
+        while off < size {
+            // SAFETY: `off < size`, inside the allocation; a zero byte is what a zeroed
+            // allocation holds and any value is fine in an uninitialised one.
+            unsafe { std::ptr::write_volatile(p.add(off), 0u8) };
+            off += 4096;
+        }
+    }
+}
+
 #[inline]
 fn note_free(bytes: usize) {
     LIVE_BYTES.fetch_sub(bytes, Ordering::Relaxed);
@@ -68,6 +105,8 @@ unsafe impl GlobalAlloc for CountingAllocator {
         let p = unsafe { System.alloc(layout) };
         if !p.is_null() {
             note_allocation(layout.size());
+            // SAFETY: a fresh, uninitialised allocation of `layout.size()` bytes.
+            unsafe { touch_pages(p, layout.size()) };
         }
         p
     }
@@ -76,6 +115,8 @@ unsafe impl GlobalAlloc for CountingAllocator {
         let p = unsafe { System.alloc_zeroed(layout) };
         if !p.is_null() {
             note_allocation(layout.size());
+            // SAFETY: a fresh, zeroed allocation of `layout.size()` bytes.
+            unsafe { touch_pages(p, layout.size()) };
         }
         p
     }

@@ -12,7 +12,8 @@
 //! - [`reader`]: a streaming reader with a record-size limit that reads a damaged file up to
 //!   the damage; [`recover`] re-indexes an unfinished segment into a valid file;
 //!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
-//!   keyframes back (`duv refine --mcap`).
+//!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
+//!   logged for a resume (`/slam/window`).
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 
@@ -21,6 +22,7 @@ pub mod keyframes;
 pub mod reader;
 pub mod recover;
 pub mod schema;
+pub mod window;
 pub mod writer;
 
 pub use inspect::{inspect_log, LogSummary};
@@ -28,6 +30,7 @@ pub use keyframes::{log_files, read_log_keyframes, LogKeyframes};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
 pub use schema::{FrameEncoding, LogItem, PoseRecord, Topic};
+pub use window::{TrackerWindow, WindowKeyframe};
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 
 use std::path::PathBuf;

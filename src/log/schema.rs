@@ -5,6 +5,7 @@
 //! Gaussian centres visible. Our own records (tracking state, health) are JSON with a JSON
 //! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
 
+use super::window::TrackerWindow;
 use super::LogError;
 use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use foxglove::messages as fg;
@@ -33,9 +34,10 @@ pub enum Topic {
     MapGaussians,
     MapCheckpoint,
     Health,
+    TrackerWindow,
 }
 
-pub const ALL_TOPICS: [Topic; 12] = [
+pub const ALL_TOPICS: [Topic; 13] = [
     Topic::CameraImage,
     Topic::CameraCalibration,
     Topic::Pose,
@@ -48,6 +50,7 @@ pub const ALL_TOPICS: [Topic; 12] = [
     Topic::MapGaussians,
     Topic::MapCheckpoint,
     Topic::Health,
+    Topic::TrackerWindow,
 ];
 
 /// Schema of a topic: name, schema encoding, schema bytes, message encoding.
@@ -100,6 +103,7 @@ impl Topic {
             Topic::MapGaussians => "/map/gaussians",
             Topic::MapCheckpoint => "/map/checkpoint",
             Topic::Health => "/health",
+            Topic::TrackerWindow => "/slam/window",
         }
     }
 
@@ -107,7 +111,7 @@ impl Topic {
         ALL_TOPICS.into_iter().find(|t| t.name() == name)
     }
 
-    /// The schema; `None` for the schemaless checkpoint channel.
+    /// The schema; `None` for the schemaless channels (map checkpoint, tracker window).
     pub fn schema(self) -> Option<TopicSchema> {
         Some(match self {
             Topic::CameraImage | Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance => foxglove_schema::<fg::RawImage>(),
@@ -117,7 +121,7 @@ impl Topic {
             Topic::MapGaussians => foxglove_schema::<fg::PointCloud>(),
             Topic::State => json_schema("duv.TrackingState", STATE_SCHEMA),
             Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
-            Topic::MapCheckpoint => return None,
+            Topic::MapCheckpoint | Topic::TrackerWindow => return None,
         })
     }
 
@@ -132,7 +136,10 @@ impl Topic {
 
     /// Message encoding of a schemaless topic.
     pub fn schemaless_encoding(self) -> &'static str {
-        "duv.map_checkpoint"
+        match self {
+            Topic::TrackerWindow => super::window::WINDOW_ENCODING,
+            _ => "duv.map_checkpoint",
+        }
     }
 
     /// Index into per-topic tables.
@@ -182,6 +189,8 @@ pub enum LogItem {
     Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8> },
     /// A health record, already JSON.
     Health { t_ns: Timestamp, json: String },
+    /// The tracker's newest keyframes (what a resume seeds a tracker with).
+    Window(Box<TrackerWindow>),
 }
 
 impl LogItem {
@@ -197,6 +206,7 @@ impl LogItem {
             LogItem::Keyframe(k) => k.image.data.len() + 4 * (k.inv_depth.data.len() + k.inv_depth_variance.data.len()),
             LogItem::Map { centres_in_world, checkpoint, .. } => 12 * centres_in_world.len() + checkpoint.len(),
             LogItem::Health { json, .. } => json.len(),
+            LogItem::Window(w) => w.encoded_len(),
         }
     }
 
@@ -206,6 +216,7 @@ impl LogItem {
             LogItem::Calibration { t_ns, .. } | LogItem::Map { t_ns, .. } | LogItem::Health { t_ns, .. } => *t_ns,
             LogItem::Pose(p) => p.t_ns,
             LogItem::Keyframe(k) => k.t_ns,
+            LogItem::Window(w) => w.t_ns,
         }
     }
 }
@@ -420,6 +431,10 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
             emit(Encoded { topic: Topic::MapCheckpoint, sequence: 0, log_time_ns }, checkpoint)
         }
         LogItem::Health { json, .. } => emit(Encoded { topic: Topic::Health, sequence: 0, log_time_ns }, json.as_bytes()),
+        LogItem::Window(w) => {
+            w.encode(scratch).map_err(|problem| LogError::Encode { what: "tracker window", problem })?;
+            emit(Encoded { topic: Topic::TrackerWindow, sequence: w.seq as u32, log_time_ns }, scratch)
+        }
     }
 }
 

@@ -15,15 +15,17 @@
 
 pub mod budget;
 pub mod checkpoints;
+mod handoff;
 pub mod mapping;
 pub mod queue;
 pub mod resume;
 
 use crate::camera::FrameSource;
 use crate::config::board::{Board, FrameLogEncoding};
-use crate::core::{Frame, Keyframe, PlaneF32, Se3, Sim3, Timestamp};
+use crate::core::{Frame, Keyframe, Se3, Sim3, Timestamp};
 use crate::log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
 use crate::track::{TrackOutput, Tracker, TrajectoryRecorder};
+use handoff::Handoff;
 use queue::{BoundedQueue, FullPolicy, Pushed, QueueStats};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -137,6 +139,11 @@ pub struct PipelineConfig {
     /// the depth and variance mapping gets have been through the window BA; the rest at the
     /// end of the stream.
     pub keyframe_lag: usize,
+    /// The tracker's newest keyframes (this many: the board's BA window) go to the log every
+    /// `window_interval` of frame time (`/slam/window`): what a resume seeds a tracker with.
+    /// 0: none.
+    pub window_keyframes: usize,
+    pub window_interval: Duration,
 }
 
 impl PipelineConfig {
@@ -164,6 +171,8 @@ impl PipelineConfig {
             frame_period_ms: 1e3 / board.camera.fps,
             host_budget_mb: board.budgets.host_mb as f64,
             keyframe_lag: board.budgets.ba_window as usize,
+            window_keyframes: board.budgets.ba_window as usize,
+            window_interval: Duration::from_millis(500),
         }
     }
 }
@@ -259,52 +268,6 @@ fn apply(align: Option<&Sim3>, pose: &Se3) -> Se3 {
         Some(a) => crate::core::pose::sim3_apply_to_pose(a, pose),
         None => *pose,
     }
-}
-
-/// Inserted keyframes waiting for `lag` newer ones (see [`PipelineConfig::keyframe_lag`]).
-struct KeyframeLag {
-    lag: usize,
-    pending: std::collections::VecDeque<(u64, Frame)>,
-}
-
-impl KeyframeLag {
-    fn new(lag: usize) -> Self {
-        KeyframeLag { lag, pending: std::collections::VecDeque::with_capacity(lag + 1) }
-    }
-    fn push(&mut self, id: u64, frame: &Frame) {
-        self.pending.push_back((id, frame.clone()));
-    }
-    /// The next keyframe due (all of them when `flush`), with the tracker's current depth,
-    /// variance and pose; keyframes the tracker no longer holds are skipped.
-    fn pop_ready(&mut self, tracker: &Tracker, align: Option<&Sim3>, flush: bool) -> Option<Keyframe> {
-        while self.pending.len() > if flush { 0 } else { self.lag } {
-            let (id, frame) = self.pending.pop_front()?;
-            if let Some(kf) = keyframe_of(tracker, &frame, id, align) {
-                return Some(kf);
-            }
-        }
-        None
-    }
-}
-
-/// A keyframe of the tracker at full resolution, for mapping and the log.
-fn keyframe_of(tracker: &Tracker, frame: &Frame, id: u64, world_from_tracker: Option<&Sim3>) -> Option<Keyframe> {
-    let cam = *tracker.camera();
-    let view = tracker.keyframes().find(|k| k.id == id)?;
-    let world_from_cam = apply(world_from_tracker, &view.world_from_cam);
-    let mut inv = PlaneF32::new(cam.width, cam.height);
-    let mut var = PlaneF32::new(cam.width, cam.height);
-    if let Err(e) = tracker.upsample_keyframe(id, &mut inv, &mut var) {
-        tracing::debug!("keyframe {id}: no depth yet: {e}");
-        return None;
-    }
-    if let Some(a) = world_from_tracker {
-        // Inverse depth scales with 1/s, its variance with 1/s^2.
-        let s = a.scaling() as f32;
-        inv.data.iter_mut().for_each(|d| *d /= s);
-        var.data.iter_mut().for_each(|v| *v /= s * s);
-    }
-    Some(Keyframe { index: id, t_ns: frame.t_ns, image: frame.image.to_rgb8(), world_from_cam, camera: cam, inv_depth: inv, inv_depth_variance: var })
 }
 
 /// Installs SIGINT/SIGTERM handlers that set `stop` (the run then ends like end of stream).
@@ -479,12 +442,17 @@ pub fn run<S: FrameSource + 'static>(
         let announce = cfg.announce;
         let align = cfg.world_from_tracker;
         let mut tracker = tracker;
-        let mut lag = KeyframeLag::new(cfg.keyframe_lag);
+        let mut handoff = Handoff::new(cfg.keyframe_lag, cfg.window_keyframes, cfg.window_interval, align);
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             let _span = tracing::info_span!("track").entered();
             let mut recorder = TrajectoryRecorder::new();
             let mut latencies = Vec::with_capacity(1 << 16);
             let mut track_times = Vec::with_capacity(1 << 16);
+            let to_mapping = |kf: Keyframe| {
+                sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                let _ = kq.push(kf, 0);
+                Ok(())
+            };
             let result = tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
                 for frame in &retrack {
                     if sh.stop.load(Ordering::Relaxed) {
@@ -494,14 +462,7 @@ pub fn run<S: FrameSource + 'static>(
                     let out = tracker.track(frame)?;
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
-                    if let Some(id) = out.new_keyframe {
-                        lag.push(id, frame);
-                    }
-                    while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
-                        sh.keyframes.fetch_add(1, Ordering::Relaxed);
-                        log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
-                        let _ = kq.push(kf, 0);
-                    }
+                    handoff.after_frame(tracker, frame, &out, |item| log_push(&lq, item), to_mapping)?;
                 }
                 drop(retrack);
                 while let Some((frame, arrived)) = fq.pop() {
@@ -510,14 +471,7 @@ pub fn run<S: FrameSource + 'static>(
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
                     log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
-                    if let Some(id) = out.new_keyframe {
-                        lag.push(id, &frame);
-                    }
-                    while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
-                        sh.keyframes.fetch_add(1, Ordering::Relaxed);
-                        log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
-                        let _ = kq.push(kf, 0);
-                    }
+                    handoff.after_frame(tracker, &frame, &out, |item| log_push(&lq, item), to_mapping)?;
                     let lat = arrived.elapsed();
                     latencies.push(lat);
                     sh.frames_tracked.fetch_add(1, Ordering::Relaxed);
@@ -530,12 +484,11 @@ pub fn run<S: FrameSource + 'static>(
                         println!("tracked {} {}", out.seq, out.t_ns.t_ns());
                     }
                 }
-                while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), true) {
+                handoff.flush(tracker, |item| log_push(&lq, item), |kf| {
                     sh.keyframes.fetch_add(1, Ordering::Relaxed);
-                    log_push(&lq, LogItem::Keyframe(Box::new(kf.clone())));
                     let _ = kq.push_wait(kf, 0);
-                }
-                Ok(())
+                    Ok(())
+                })
             });
             kq.close();
             result?;
@@ -671,7 +624,12 @@ fn run_deterministic<S: FrameSource + 'static>(
         }
     };
     let mut last_t = Timestamp::from_ns(0);
-    let mut lag = KeyframeLag::new(cfg.keyframe_lag);
+    let mut handoff = Handoff::new(cfg.keyframe_lag, cfg.window_keyframes, cfg.window_interval, align);
+    let mut to_mapping = |kf: Keyframe| -> Result<(), PipelineError> {
+        map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+        while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
+        Ok(())
+    };
     tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
         for frame in &retrack {
             if stop.load(Ordering::Relaxed) {
@@ -681,14 +639,7 @@ fn run_deterministic<S: FrameSource + 'static>(
             let out = tracker.track(frame)?;
             track_times.push(t0.elapsed());
             recorder.record(&out);
-            if let Some(id) = out.new_keyframe {
-                lag.push(id, frame);
-            }
-            while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
-                log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
-                map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
-                while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
-            }
+            handoff.after_frame(tracker, frame, &out, |item| log(&mut writer, item), &mut to_mapping)?;
         }
         while !stop.load(Ordering::Relaxed) {
             let frame = match source.next_frame() {
@@ -709,22 +660,11 @@ fn run_deterministic<S: FrameSource + 'static>(
             latencies.push(t0.elapsed());
             recorder.record(&out);
             log(&mut writer, LogItem::Pose(pose_record(&out, align.as_ref())));
-            if let Some(id) = out.new_keyframe {
-                lag.push(id, &frame);
-            }
-            while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), false) {
-                log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
-                map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
-                while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
-            }
+            handoff.after_frame(tracker, &frame, &out, |item| log(&mut writer, item), &mut to_mapping)?;
         }
-        while let Some(kf) = lag.pop_ready(tracker, align.as_ref(), true) {
-            log(&mut writer, LogItem::Keyframe(Box::new(kf.clone())));
-            map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
-            while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
-        }
-        Ok(())
+        handoff.flush(tracker, |item| log(&mut writer, item), &mut to_mapping)
     })?;
+    drop(to_mapping);
     if let Some((bytes, centres)) = map.checkpoint() {
         checkpoints.save(&bytes)?;
         log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: centres, checkpoint: bytes });

@@ -2,24 +2,26 @@
 //! trajectory stopped, reload the newest good map checkpoint, and relocalise a new tracker in
 //! the recorded map frame.
 //!
-//! Relocalisation against what was logged: the newest keyframes of the log (image, pose in the
-//! recorded world frame, inverse depth and variance) seed the new tracker
-//! ([`Tracker::seed`]). Their recorded poses are the fixed, oldest poses of its next BA windows,
-//! so it continues in the recorded frame and scale: nothing is re-initialised and nothing is
-//! aligned. The logged frames after the newest of those keyframes, up to the last recorded
-//! pose, are tracked again first ([`Relocalisation::Seeded`]`::retrack`): the keyframes the
-//! stopped run made there never reached the log (keyframes leave tracking only after the BA
-//! window), and tracking them again rebuilds the window and hands them to mapping and the log.
+//! Relocalisation against what was logged: the tracker's newest keyframes seed the new tracker
+//! ([`Tracker::seed`]) with their poses in the recorded world frame and their inverse depth
+//! and variance. They come from the newest `/slam/window` record (tracking logs its window
+//! twice a second of frame time: ids, frame numbers, poses and the depth grids; the images are
+//! the logged frames), or from the logged keyframes (`/keyframe/*`, which keyframes reach
+//! only after leaving the BA window) when those are newer. Their recorded poses are the
+//! fixed, oldest poses of its next BA windows, so it continues in the recorded frame and
+//! scale: nothing is re-initialised and nothing is aligned. The logged frames after the newest
+//! of those keyframes, up to the last recorded pose, are tracked again first
+//! ([`Relocalisation::Seeded`]`::retrack`): that rebuilds the window and hands the keyframes
+//! made there to mapping and the log.
 //!
-//! A log with no whole keyframe yet (every run so far stopped before a keyframe left its BA
-//! window, which frequent power cuts make the rule) seeds it with the logged frames that were
-//! the newest keyframes instead, at their recorded poses (refined by the keyframe's BA round),
-//! their depth triangulated from those poses ([`SeedFrame`]); the frames after them are tracked
-//! again as above.
+//! A log with neither (a run stopped before its first window record) seeds it with the logged
+//! frames that were the newest keyframes instead, at their recorded poses (refined by the
+//! keyframe's BA round), their depth triangulated from those poses ([`SeedFrame`]); the frames
+//! after them are tracked again as above.
 //!
-//! Fallback, when the log holds neither (fewer than 3 such frames: a run stopped early in its
-//! initialisation): the last logged frames (with the poses recorded for them) are tracked
-//! by the new tracker from scratch, and the Sim(3) that carries its positions onto the
+//! Fallback, when the log holds none of these (fewer than 3 such frames: a run stopped early
+//! in its initialisation): the last logged frames (with the poses recorded for them) are
+//! tracked by the new tracker from scratch, and the Sim(3) that carries its positions onto the
 //! recorded ones (Umeyama) becomes [`PipelineConfig::world_from_tracker`](super::PipelineConfig).
 //! Its scale comes from ~20 frames of a re-initialisation, so it drifts; the caller says which
 //! path was taken.
@@ -28,7 +30,7 @@ use super::{CheckpointStore, PipelineError};
 use crate::core::{Frame, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Sim3, Timestamp};
 use crate::log::reader::OwnedEvent;
 use crate::log::schema::{decode_calibration, decode_frame, decode_plane_f32, decode_pose, StateMessage};
-use crate::log::{list_segments, recover_folder, ReadLimits, RecoveryReport, SegmentReader, Topic};
+use crate::log::{list_segments, recover_folder, ReadLimits, RecoveryReport, SegmentReader, Topic, TrackerWindow};
 use crate::track::{ResumePoint, SeedFrame, SeedKeyframe, Tracker, TrackerSeed};
 use nalgebra::Vector3;
 use std::collections::{BTreeMap, VecDeque};
@@ -64,9 +66,13 @@ pub struct ResumeState {
     /// The last logged frames that have a recorded pose, oldest first: (frame, pose, not lost).
     /// What the fallback tracks again.
     pub recent: Vec<(Frame, Se3, bool)>,
-    /// The newest logged keyframes that are whole (image, inverse depth, variance, pose) and
-    /// whose frame number is known, oldest first, as (frame seq, keyframe).
+    /// The keyframes that seed the tracker, oldest first, as (frame seq, keyframe): the newest
+    /// logged tracker window's, or the newest logged keyframes that are whole (image, inverse
+    /// depth, variance, pose) with a known frame number when those are newer.
     pub keyframes: Vec<(u64, Keyframe)>,
+    /// The frame after which the tracker window `keyframes` come from was logged; `None`
+    /// when they are logged keyframes.
+    pub window_seq: Option<u64>,
     /// One more than the largest keyframe id the log mentions (logged, or announced in a
     /// tracking state): the new tracker's keyframes get ids from here.
     pub next_keyframe_id: u64,
@@ -112,6 +118,9 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     // Pose time -> seq: a keyframe's frame number (keyframes are logged by id and time).
     let mut seq_of_t: BTreeMap<u64, u64> = BTreeMap::new();
     let mut partial: BTreeMap<u64, PartialKeyframe> = BTreeMap::new();
+    // The newest logged tracker window (`/slam/window`) and the frames its keyframes were.
+    let mut window: Option<TrackerWindow> = None;
+    let mut window_seqs: Vec<u64> = Vec::new();
     let mut keyframes: VecDeque<(u64, Keyframe)> = VecDeque::new();
     let mut next_keyframe_id = 0u64;
     let mut camera = None;
@@ -129,8 +138,10 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                     if let Some(old) = frames.insert(seq, (data, log_time_ns)) {
                         frame_bytes -= old.0.len();
                     }
+                    // The oldest go first, except the frames of the newest window's keyframes.
                     while frames.len() > options.relocalisation_frames * 4 && frame_bytes > options.retrack_bytes {
-                        if let Some((_, (d, _))) = frames.pop_first() {
+                        let Some(victim) = frames.keys().find(|s| !window_seqs.contains(s)).copied() else { break };
+                        if let Some((d, _)) = frames.remove(&victim) {
                             frame_bytes -= d.len();
                         }
                     }
@@ -182,6 +193,19 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                         }
                     }
                 }
+                Topic::TrackerWindow => match TrackerWindow::decode(&data) {
+                    Ok(w) if w.keyframes.len() >= 2 => {
+                        for k in &w.keyframes {
+                            next_keyframe_id = next_keyframe_id.max(k.id + 1);
+                        }
+                        if window.as_ref().is_none_or(|old| w.seq >= old.seq) {
+                            window_seqs = w.keyframes.iter().map(|k| k.seq).collect();
+                            window = Some(w);
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(e) => tracing::warn!("resume: logged tracker window at frame {seq} unreadable: {e}"),
+                },
                 Topic::KeyframeImage => match decode_frame(&data, seq, log_time_ns) {
                     Ok(f) => partial.entry(seq).or_default().image = Some(f.image.to_rgb8()),
                     Err(e) => tracing::warn!("resume: logged keyframe {seq}: image unreadable: {e}"),
@@ -232,6 +256,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
             poses_recorded: 0,
             recent: Vec::new(),
             keyframes: Vec::new(),
+            window_seq: None,
             next_keyframe_id,
             seed_frames: Vec::new(),
             retrack: Vec::new(),
@@ -240,7 +265,22 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
             checkpoint: None,
         }));
     };
-    let keyframes: Vec<(u64, Keyframe)> = keyframes.into_iter().filter(|(s, _)| *s <= last_seq).collect();
+    let mut keyframes: Vec<(u64, Keyframe)> = keyframes.into_iter().filter(|(s, _)| *s <= last_seq).collect();
+    // The newest window, when it is newer than the newest whole keyframe (the rule: keyframes
+    // reach the log only after they leave the window), replaces the logged keyframes.
+    let newest_logged = keyframes.last().map(|(s, _)| *s);
+    let mut window_seq = None;
+    if let (Some(w), Some(cam)) = (window.filter(|w| w.seq <= last_seq), camera) {
+        if newest_logged.is_none_or(|n| w.keyframes.last().is_some_and(|k| k.seq > n)) {
+            match window_keyframes(&w, &cam, &frames, &log_dir, limits) {
+                Ok(k) => {
+                    keyframes = k;
+                    window_seq = Some(w.seq);
+                }
+                Err(e) => tracing::warn!("resume: the logged tracker window at frame {} is not used: {e}", w.seq),
+            }
+        }
+    }
     let mut seed_seqs: Vec<u64> = Vec::new();
     if keyframes.is_empty() {
         // The frames that were the newest keyframes, as the stopped tracker's window held them.
@@ -292,7 +332,72 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
         }
     }
     let checkpoint = CheckpointStore::new(out_dir.join("checkpoints"), 3).load_newest();
-    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, next_keyframe_id, seed_frames, retrack, poses, camera, checkpoint }))
+    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, retrack, poses, camera, checkpoint }))
+}
+
+/// The keyframes of a logged tracker window as whole [`Keyframe`]s for [`Tracker::seed`]: each
+/// image is the logged frame it was (from `frames`, or read again from the segments, newest
+/// first, when the byte budget let it go), its depth grid repeated over each cell at the input
+/// resolution (the seed takes cell means again, so the grid comes back as it was logged).
+fn window_keyframes(w: &TrackerWindow, camera: &PinholeCamera, frames: &BTreeMap<u64, (Vec<u8>, u64)>, log_dir: &Path, limits: ReadLimits) -> Result<Vec<(u64, Keyframe)>, String> {
+    let mut found: BTreeMap<u64, (Vec<u8>, u64)> = BTreeMap::new();
+    let missing: Vec<u64> = w.keyframes.iter().map(|k| k.seq).filter(|s| !frames.contains_key(s)).collect();
+    if !missing.is_empty() {
+        let segments = list_segments(log_dir).map_err(|e| e.to_string())?;
+        for (_, path) in segments.iter().rev() {
+            let mut r = SegmentReader::open(path, limits).map_err(|e| e.to_string())?;
+            while let Some(e) = r.next_event() {
+                let OwnedEvent::Message { channel_id, sequence, log_time_ns, data, .. } = e else { continue };
+                let seq = sequence as u64;
+                if missing.contains(&seq) && r.channel(channel_id).is_some_and(|c| c.topic == Topic::CameraImage.name()) {
+                    found.insert(seq, (data, log_time_ns));
+                }
+            }
+            if missing.iter().all(|s| found.contains_key(s)) {
+                break;
+            }
+        }
+    }
+    let (width, height) = (camera.width, camera.height);
+    let mut out = Vec::with_capacity(w.keyframes.len());
+    for k in &w.keyframes {
+        let (data, t) = frames.get(&k.seq).or(found.get(&k.seq)).ok_or_else(|| format!("keyframe {}: its frame {} is not in the log", k.id, k.seq))?;
+        let frame = decode_frame(data, k.seq, *t).map_err(|e| format!("keyframe {}: frame {}: {e}", k.id, k.seq))?;
+        if frame.image.width() != width || frame.image.height() != height {
+            return Err(format!("keyframe {}: frame {} is {}x{}, the calibration {width}x{height}", k.id, k.seq, frame.image.width(), frame.image.height()));
+        }
+        let (gw, gh) = (k.inv_depth.width, k.inv_depth.height);
+        if gw == 0 || gh == 0 || gw > width || gh > height {
+            return Err(format!("keyframe {}: depth grid {gw}x{gh} does not fit {width}x{height}", k.id));
+        }
+        let cell = (width / gw).min(height / gh).max(1);
+        let spread = |grid: Option<&PlaneF32>| {
+            let mut p = PlaneF32::new(width, height);
+            match grid {
+                Some(g) => {
+                    for y in 0..height {
+                        let gy = (y / cell).min(gh - 1);
+                        for x in 0..width {
+                            p.data[y * width + x] = g.data[gy * gw + (x / cell).min(gw - 1)];
+                        }
+                    }
+                }
+                None => p.data.fill(f32::MAX),
+            }
+            p
+        };
+        let kf = Keyframe {
+            index: k.id,
+            t_ns: k.t_ns,
+            image: frame.image.to_rgb8(),
+            world_from_cam: k.world_from_cam,
+            camera: *camera,
+            inv_depth: spread(Some(&k.inv_depth)),
+            inv_depth_variance: spread(k.variance.as_ref()),
+        };
+        out.push((k.seq, kf));
+    }
+    Ok(out)
 }
 
 /// How a resumed run continues the recorded trajectory.
