@@ -69,10 +69,10 @@ fn write_log(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64) -
     w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
     for seq in 0..frames {
         let t = seq as i64 * 100_000_000;
-        w.write(&LogItem::Frame(frame(seq, t))).unwrap();
+        w.write(&LogItem::Frame(std::sync::Arc::new(frame(seq, t)))).unwrap();
         w.write(&LogItem::Pose(pose(seq, t))).unwrap();
         if seq % 20 == 5 {
-            w.write(&LogItem::Keyframe(Box::new(keyframe(seq, t)))).unwrap();
+            w.write(&LogItem::Keyframe(std::sync::Arc::new(keyframe(seq, t)))).unwrap();
         }
         if seq % 10 == 9 {
             w.write(&LogItem::Health { t_ns: Timestamp::from_ns(t), json: format!("{{\"frames\":{seq}}}") }).unwrap();
@@ -284,7 +284,7 @@ fn inspect_reports_gaps() {
     w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
     for seq in 0..30u64 {
         let t = seq as i64 * 100_000_000 + if seq >= 20 { 2_000_000_000 } else { 0 };
-        w.write(&LogItem::Frame(frame(seq, t))).unwrap();
+        w.write(&LogItem::Frame(std::sync::Arc::new(frame(seq, t)))).unwrap();
     }
     w.finish().1.unwrap();
     let s = inspect_log(dir.path(), ReadLimits::default()).unwrap();
@@ -311,7 +311,7 @@ fn write_frames(dir: &Path, camera: PinholeCamera, frames: &[Frame], encoding: F
     let mut w = SegmentWriter::create(cfg).unwrap();
     w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera }).unwrap();
     for f in frames {
-        w.write(&LogItem::Frame(f.clone())).unwrap();
+        w.write(&LogItem::Frame(std::sync::Arc::new(f.clone()))).unwrap();
         w.write(&LogItem::Pose(pose(f.seq, f.t_ns.t_ns()))).unwrap();
     }
     w.finish().1.unwrap();
@@ -440,7 +440,7 @@ fn logged_keyframes_read_back_whole_and_up_to_the_damage() {
     let frames_only = tempfile::tempdir().unwrap();
     let mut w = SegmentWriter::create(LogConfig::new(frames_only.path())).unwrap();
     w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
-    w.write(&LogItem::Frame(frame(0, 0))).unwrap();
+    w.write(&LogItem::Frame(std::sync::Arc::new(frame(0, 0)))).unwrap();
     w.finish().1.unwrap();
     let e = read_log_keyframes(frames_only.path(), ReadLimits::default()).unwrap_err();
     assert!(matches!(e, LogError::NoKeyframes { segments: 1, .. }), "{e}");
@@ -451,8 +451,8 @@ fn logged_keyframes_read_back_whole_and_up_to_the_damage() {
     w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
     let mut bad = keyframe(7, 0);
     bad.inv_depth = PlaneF32::filled(10, 10, [0.5]);
-    w.write(&LogItem::Keyframe(Box::new(bad))).unwrap();
-    w.write(&LogItem::Keyframe(Box::new(keyframe(8, 100)))).unwrap();
+    w.write(&LogItem::Keyframe(std::sync::Arc::new(bad))).unwrap();
+    w.write(&LogItem::Keyframe(std::sync::Arc::new(keyframe(8, 100)))).unwrap();
     w.finish().1.unwrap();
     let got = read_log_keyframes(misfit.path(), ReadLimits::default()).unwrap();
     assert_eq!(got.keyframes.iter().map(|k| k.index).collect::<Vec<_>>(), vec![8]);
@@ -468,7 +468,7 @@ fn a_resumed_runs_repeated_keyframe_index_is_renumbered() {
     for run in 0..2 {
         let mut w = SegmentWriter::create(LogConfig::new(dir.path())).unwrap();
         w.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera: camera() }).unwrap();
-        w.write(&LogItem::Keyframe(Box::new(keyframe(5, run * 1_000_000_000)))).unwrap();
+        w.write(&LogItem::Keyframe(std::sync::Arc::new(keyframe(5, run * 1_000_000_000)))).unwrap();
         w.finish().1.unwrap();
     }
     // The run-level folder (`RUN/log`) is found from `RUN` too.

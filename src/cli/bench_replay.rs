@@ -86,6 +86,8 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
     anyhow::ensure!(args.minutes.is_finite() && args.minutes > 0.0, "--minutes must be > 0, got {}", args.minutes);
     anyhow::ensure!(args.warm_up_s >= 0.0 && args.warm_up_s < args.minutes * 60.0, "--warm-up-s must be in [0, minutes * 60)");
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
+    // As `duv run` on the vehicle: large stores paged in when made.
+    duv::core::alloc::prefault_large_allocations(true);
     let log = match &args.log {
         Some(l) => l.clone(),
         None => {

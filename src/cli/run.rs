@@ -324,6 +324,25 @@ impl FrameSource for RunSource {
     fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
         self.inner.next().map_err(|e| CameraError::BadSpec { spec: self.spec.clone(), problem: format!("{e:#}") })
     }
+    /// Live cameras decode into the pipeline's pooled frame (no allocation per frame).
+    fn next_frame_into(&mut self, frame: &mut Frame) -> Result<bool, CameraError> {
+        match &mut self.inner {
+            Source::Live { source, next, count } => {
+                if *next >= *count {
+                    return Ok(false);
+                }
+                *next += 1;
+                source.next_frame_into(frame)
+            }
+            _ => match self.next_frame()? {
+                Some(f) => {
+                    *frame = f;
+                    Ok(true)
+                }
+                None => Ok(false),
+            },
+        }
+    }
     fn describe(&self) -> String {
         self.inner.describe()
     }

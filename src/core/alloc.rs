@@ -31,6 +31,33 @@ static ARMED: AtomicU8 = AtomicU8::new(0);
 
 thread_local! {
     static MARKED: Cell<bool> = const { Cell::new(false) };
+    static ROLE: Cell<u8> = const { Cell::new(0) };
+}
+
+/// What a thread does, for the per-role allocation counts ([`label_current_thread`],
+/// [`role_allocations`]): the pipeline's stage threads and the tracker's workers label
+/// themselves, so health telemetry and tests see which stage allocates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+pub enum ThreadRole {
+    Capture = 1,
+    /// The tracking thread and the tracker's worker threads.
+    Tracking = 2,
+    Mapping = 3,
+    Logging = 4,
+}
+
+const ROLES: usize = 5;
+static ROLE_ALLOCATIONS: [AtomicUsize; ROLES] = [const { AtomicUsize::new(0) }; ROLES];
+
+/// Counts this thread's allocations from now on under `role` (always on, armed or not).
+pub fn label_current_thread(role: ThreadRole) {
+    ROLE.with(|c| c.set(role as u8));
+}
+
+/// Allocations (and reallocations) made so far by threads labelled `role`.
+pub fn role_allocations(role: ThreadRole) -> usize {
+    ROLE_ALLOCATIONS[role as usize].load(Ordering::Relaxed)
 }
 
 /// Which threads [`count_allocations`] sees.
@@ -42,6 +69,10 @@ pub enum CountScope {
 
 #[inline]
 fn note_allocation(bytes: usize) {
+    let role = ROLE.try_with(|c| c.get()).unwrap_or(0) as usize;
+    if role != 0 {
+        ROLE_ALLOCATIONS[role % ROLES].fetch_add(1, Ordering::Relaxed);
+    }
     match ARMED.load(Ordering::Relaxed) {
         0 => {}
         1 => {

@@ -194,6 +194,18 @@ pub struct Frame {
     pub image: FrameImage,
 }
 
+impl Frame {
+    /// A 0x0 RGB frame at time 0: a buffer for `FrameSource::next_frame_into` to fill.
+    pub fn empty() -> Frame {
+        Frame::rgb(0, 0)
+    }
+
+    /// A black `width x height` RGB frame at time 0 (a buffer of that size to fill).
+    pub fn rgb(width: usize, height: usize) -> Frame {
+        Frame { t_ns: Timestamp::from_ns(0), seq: 0, image: FrameImage::Rgb8(ImageRgb8 { width, height, data: vec![0; width * height * 3] }) }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

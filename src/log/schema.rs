@@ -180,17 +180,17 @@ pub struct StateMessage {
 /// What the other stages hand to the log writer.
 #[derive(Clone, Debug)]
 pub enum LogItem {
-    /// An input frame, as delivered by the source.
-    Frame(Frame),
+    /// An input frame, as delivered by the source (shared with tracking, not copied).
+    Frame(std::sync::Arc<Frame>),
     Calibration { t_ns: Timestamp, camera: PinholeCamera },
     Pose(PoseRecord),
-    Keyframe(Box<Keyframe>),
+    Keyframe(std::sync::Arc<Keyframe>),
     /// A map checkpoint: the mapper's bytes and the Gaussian centres (world frame) for display.
     Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8> },
     /// A health record, already JSON.
     Health { t_ns: Timestamp, json: String },
     /// The tracker's newest keyframes (what a resume seeds a tracker with).
-    Window(Box<TrackerWindow>),
+    Window(std::sync::Arc<TrackerWindow>),
 }
 
 impl LogItem {
@@ -252,24 +252,75 @@ fn encode<T: Encode>(msg: &T, what: &'static str, out: &mut Vec<u8>) -> Result<(
     msg.encode(out).map_err(|e| LogError::Encode { what, problem: e.to_string() })
 }
 
-fn raw_image(t_ns: Timestamp, frame_id: &str, width: usize, height: usize, encoding: &str, step: usize, data: &[u8]) -> fg::RawImage {
-    fg::RawImage {
-        timestamp: Some(fg_time(t_ns)),
-        frame_id: frame_id.into(),
-        width: width as u32,
-        height: height as u32,
-        encoding: encoding.into(),
-        step: step as u32,
-        data: foxglove::bytes::Bytes::copy_from_slice(data),
+/// Messages whose strings are set once, so that encoding one allocates nothing: only their
+/// numbers change from item to item.
+#[derive(Debug)]
+struct Templates {
+    image: fg::RawImage,
+    pose: fg::PoseInFrame,
+    transform: fg::FrameTransform,
+}
+
+impl Default for Templates {
+    fn default() -> Self {
+        Templates {
+            image: fg::RawImage { frame_id: CAMERA_FRAME.into(), encoding: String::with_capacity(8), ..Default::default() },
+            pose: fg::PoseInFrame { frame_id: WORLD_FRAME.into(), ..Default::default() },
+            transform: fg::FrameTransform { parent_frame_id: WORLD_FRAME.into(), child_frame_id: CAMERA_FRAME.into(), ..Default::default() },
+        }
     }
 }
 
-fn f32_bytes(v: &[f32]) -> Vec<u8> {
-    let mut b = Vec::with_capacity(v.len() * 4);
-    for x in v {
-        b.extend_from_slice(&x.to_le_bytes());
+/// Pixel data of a `foxglove.RawImage`: bytes, or f32 samples written little endian.
+enum Pixels<'a> {
+    Bytes(&'a [u8]),
+    F32(&'a [f32]),
+}
+
+/// Encodes a `foxglove.RawImage` into `out` without building the message's `data` (a copy of
+/// every pixel): the other fields through the template, then field 6 (`data`, length
+/// delimited) appended from `pixels`. Protobuf readers take fields in any order.
+#[allow(clippy::too_many_arguments)]
+fn encode_raw_image(tpl: &mut fg::RawImage, t_ns: Timestamp, width: usize, height: usize, encoding: &str, step: usize, pixels: Pixels<'_>, what: &'static str, out: &mut Vec<u8>) -> Result<(), LogError> {
+    tpl.timestamp = Some(fg_time(t_ns));
+    tpl.width = width as u32;
+    tpl.height = height as u32;
+    tpl.encoding.clear();
+    tpl.encoding.push_str(encoding);
+    tpl.step = step as u32;
+    encode(&*tpl, what, out)?;
+    let len = match pixels {
+        Pixels::Bytes(b) => b.len(),
+        Pixels::F32(v) => 4 * v.len(),
+    };
+    out.push((6 << 3) | 2);
+    let mut v = len as u64;
+    while v >= 0x80 {
+        out.push((v as u8 & 0x7f) | 0x80);
+        v >>= 7;
     }
-    b
+    out.push(v as u8);
+    match pixels {
+        Pixels::Bytes(b) => out.extend_from_slice(b),
+        Pixels::F32(v) => {
+            for x in v {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The JSON body of `/slam/state`, borrowed ([`StateMessage`] is what readers get back).
+#[derive(Serialize)]
+struct StateRef<'a> {
+    seq: u64,
+    t_ns: i64,
+    state: &'a str,
+    tracked: bool,
+    keyframe: Option<u64>,
+    new_keyframe: Option<u64>,
+    loop_closed: bool,
 }
 
 /// One encoded MCAP message: topic, header sequence, log time, body in the caller's buffer.
@@ -286,11 +337,12 @@ pub struct ItemEncoder {
     frames: FrameEncoding,
     scratch: Vec<u8>,
     jpeg: Vec<u8>,
+    templates: Templates,
 }
 
 impl ItemEncoder {
     pub fn new(frames: FrameEncoding) -> Self {
-        ItemEncoder { frames, scratch: Vec::new(), jpeg: Vec::new() }
+        ItemEncoder { frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default() }
     }
 
     pub fn frame_encoding(&self) -> FrameEncoding {
@@ -299,7 +351,7 @@ impl ItemEncoder {
 
     /// Encodes `item` into one or more messages; `emit` gets each with its body.
     pub fn encode(&mut self, item: &LogItem, emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
-        encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, emit)
+        encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates, emit)
     }
 }
 
@@ -321,18 +373,15 @@ pub fn encode_jpeg(image: &FrameImage, quality: u8, out: &mut Vec<u8>) -> Result
     Encoder::new(&mut *out, quality).encode(data, w16, h16, colour).map_err(|e| problem(e.to_string()))
 }
 
-fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, tpl: &mut Templates, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
     let log_time_ns = item.t_ns().t_ns().max(0) as u64;
     match item {
         LogItem::Frame(f) => {
             match frames {
-                FrameEncoding::Raw => {
-                    let msg = match &f.image {
-                        FrameImage::Rgb8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "rgb8", i.width * 3, &i.data),
-                        FrameImage::Gray8(i) => raw_image(f.t_ns, CAMERA_FRAME, i.width, i.height, "mono8", i.width, &i.data),
-                    };
-                    encode(&msg, "frame", scratch)?;
-                }
+                FrameEncoding::Raw => match &f.image {
+                    FrameImage::Rgb8(i) => encode_raw_image(&mut tpl.image, f.t_ns, i.width, i.height, "rgb8", i.width * 3, Pixels::Bytes(&i.data), "frame", scratch)?,
+                    FrameImage::Gray8(i) => encode_raw_image(&mut tpl.image, f.t_ns, i.width, i.height, "mono8", i.width, Pixels::Bytes(&i.data), "frame", scratch)?,
+                },
                 FrameEncoding::Jpeg { quality } => {
                     encode_jpeg(&f.image, quality, jpeg)?;
                     let msg = fg::CompressedImage {
@@ -368,24 +417,21 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
         }
         LogItem::Pose(p) => {
             let sequence = p.seq as u32;
-            let msg = fg::PoseInFrame { timestamp: Some(fg_time(p.t_ns)), frame_id: WORLD_FRAME.into(), pose: Some(fg_pose(&p.world_from_cam)) };
-            encode(&msg, "pose", scratch)?;
+            tpl.pose.timestamp = Some(fg_time(p.t_ns));
+            tpl.pose.pose = Some(fg_pose(&p.world_from_cam));
+            encode(&tpl.pose, "pose", scratch)?;
             emit(Encoded { topic: Topic::Pose, sequence, log_time_ns }, scratch)?;
             let t = p.world_from_cam.translation.vector;
             let q = p.world_from_cam.rotation.quaternion();
-            let tf = fg::FrameTransform {
-                timestamp: Some(fg_time(p.t_ns)),
-                parent_frame_id: WORLD_FRAME.into(),
-                child_frame_id: CAMERA_FRAME.into(),
-                translation: Some(fg::Vector3 { x: t.x, y: t.y, z: t.z }),
-                rotation: Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w }),
-            };
-            encode(&tf, "transform", scratch)?;
+            tpl.transform.timestamp = Some(fg_time(p.t_ns));
+            tpl.transform.translation = Some(fg::Vector3 { x: t.x, y: t.y, z: t.z });
+            tpl.transform.rotation = Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w });
+            encode(&tpl.transform, "transform", scratch)?;
             emit(Encoded { topic: Topic::Transform, sequence, log_time_ns }, scratch)?;
-            let state = StateMessage {
+            let state = StateRef {
                 seq: p.seq,
                 t_ns: p.t_ns.t_ns(),
-                state: p.state.to_string(),
+                state: p.state,
                 tracked: p.tracked,
                 keyframe: p.keyframe,
                 new_keyframe: p.new_keyframe,
@@ -398,16 +444,17 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
         LogItem::Keyframe(k) => {
             let sequence = k.index as u32;
             let (w, h) = (k.image.width, k.image.height);
-            encode(&raw_image(k.t_ns, CAMERA_FRAME, w, h, "rgb8", w * 3, &k.image.data), "keyframe image", scratch)?;
+            encode_raw_image(&mut tpl.image, k.t_ns, w, h, "rgb8", w * 3, Pixels::Bytes(&k.image.data), "keyframe image", scratch)?;
             emit(Encoded { topic: Topic::KeyframeImage, sequence, log_time_ns }, scratch)?;
             let (dw, dh) = (k.inv_depth.width, k.inv_depth.height);
-            encode(&raw_image(k.t_ns, CAMERA_FRAME, dw, dh, "32FC1", dw * 4, &f32_bytes(&k.inv_depth.data)), "keyframe inverse depth", scratch)?;
+            encode_raw_image(&mut tpl.image, k.t_ns, dw, dh, "32FC1", dw * 4, Pixels::F32(&k.inv_depth.data), "keyframe inverse depth", scratch)?;
             emit(Encoded { topic: Topic::KeyframeInvDepth, sequence, log_time_ns }, scratch)?;
             let (vw, vh) = (k.inv_depth_variance.width, k.inv_depth_variance.height);
-            encode(&raw_image(k.t_ns, CAMERA_FRAME, vw, vh, "32FC1", vw * 4, &f32_bytes(&k.inv_depth_variance.data)), "keyframe variance", scratch)?;
+            encode_raw_image(&mut tpl.image, k.t_ns, vw, vh, "32FC1", vw * 4, Pixels::F32(&k.inv_depth_variance.data), "keyframe variance", scratch)?;
             emit(Encoded { topic: Topic::KeyframeVariance, sequence, log_time_ns }, scratch)?;
-            let msg = fg::PoseInFrame { timestamp: Some(fg_time(k.t_ns)), frame_id: WORLD_FRAME.into(), pose: Some(fg_pose(&k.world_from_cam)) };
-            encode(&msg, "keyframe pose", scratch)?;
+            tpl.pose.timestamp = Some(fg_time(k.t_ns));
+            tpl.pose.pose = Some(fg_pose(&k.world_from_cam));
+            encode(&tpl.pose, "keyframe pose", scratch)?;
             emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
         }
         LogItem::Map { t_ns, centres_in_world, checkpoint } => {
@@ -586,7 +633,7 @@ mod tests {
         let frame = Frame { t_ns: Timestamp::from_ns(1_500_000_123), seq: 42, image: FrameImage::Rgb8(img) };
         let mut enc = ItemEncoder::new(FrameEncoding::Raw);
         let mut got = Vec::new();
-        enc.encode(&LogItem::Frame(frame.clone()), |e, b| {
+        enc.encode(&LogItem::Frame(std::sync::Arc::new(frame.clone())), |e, b| {
             got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
             Ok(())
         })
@@ -637,7 +684,7 @@ mod tests {
         for image in [FrameImage::Rgb8(rgb.clone()), FrameImage::Gray8(grey)] {
             let frame = Frame { t_ns: Timestamp::from_ns(2_000_000_007), seq: 9, image };
             let mut body = Vec::new();
-            enc.encode(&LogItem::Frame(frame.clone()), |e, b| {
+            enc.encode(&LogItem::Frame(std::sync::Arc::new(frame.clone())), |e, b| {
                 assert_eq!((e.topic, e.sequence, e.log_time_ns), (Topic::CameraImage, 9, 2_000_000_007));
                 body = b.to_vec();
                 Ok(())
@@ -690,7 +737,7 @@ mod tests {
         let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
         let (mut scratch, mut jpeg) = (Vec::new(), Vec::new());
         let mut got = Vec::new();
-        encode_item(&LogItem::Keyframe(Box::new(kf)), FrameEncoding::Raw, &mut scratch, &mut jpeg, |e, b| {
+        encode_item(&LogItem::Keyframe(std::sync::Arc::new(kf)), FrameEncoding::Raw, &mut scratch, &mut jpeg, &mut Templates::default(), |e, b| {
             got.push((e.topic, e.sequence, b.to_vec()));
             Ok(())
         })

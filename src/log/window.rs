@@ -32,8 +32,17 @@ pub struct WindowKeyframe {
     pub world_from_cam: Se3,
     /// Inverse depth on the depth grid, 1/m.
     pub inv_depth: PlaneF32,
-    /// Its variance, (1/m)^2; `None` before the keyframe's first covariance.
-    pub variance: Option<PlaneF32>,
+    /// Its variance, (1/m)^2, when `has_variance` (not before the keyframe's first
+    /// covariance; the plane is kept either way, so a reused record never reallocates).
+    pub variance: PlaneF32,
+    pub has_variance: bool,
+}
+
+impl WindowKeyframe {
+    /// The variance plane when the keyframe has one.
+    pub fn variance(&self) -> Option<&PlaneF32> {
+        self.has_variance.then_some(&self.variance)
+    }
 }
 
 /// The newest keyframes of the tracker after frame `seq`, oldest first.
@@ -52,7 +61,7 @@ impl TrackerWindow {
             + self
                 .keyframes
                 .iter()
-                .map(|k| KEYFRAME_HEADER_BYTES + 4 * grid * (1 + k.variance.is_some() as usize))
+                .map(|k| KEYFRAME_HEADER_BYTES + 4 * grid * (1 + k.has_variance as usize))
                 .sum::<usize>()
     }
 
@@ -63,7 +72,7 @@ impl TrackerWindow {
             .first()
             .map_or((0, 0), |k| (k.inv_depth.width, k.inv_depth.height));
         for k in &self.keyframes {
-            let planes = std::iter::once(&k.inv_depth).chain(k.variance.as_ref());
+            let planes = std::iter::once(&k.inv_depth).chain(k.variance());
             if planes
                 .into_iter()
                 .any(|p| p.width != w || p.height != h || p.data.len() != w * h)
@@ -90,8 +99,8 @@ impl TrackerWindow {
             for v in crate::core::pose::se3_to_tum(&k.world_from_cam) {
                 out.extend_from_slice(&v.to_le_bytes());
             }
-            out.push(k.variance.is_some() as u8);
-            for p in std::iter::once(&k.inv_depth).chain(k.variance.as_ref()) {
+            out.push(k.has_variance as u8);
+            for p in std::iter::once(&k.inv_depth).chain(k.variance()) {
                 for x in &p.data {
                     out.extend_from_slice(&x.to_le_bytes());
                 }
@@ -149,7 +158,7 @@ impl TrackerWindow {
                 Ok(p)
             };
             let inv_depth = plane()?;
-            let variance = if has_variance { Some(plane()?) } else { None };
+            let variance = if has_variance { plane()? } else { PlaneF32::new(0, 0) };
             keyframes.push(WindowKeyframe {
                 id,
                 seq: kf_seq,
@@ -157,6 +166,7 @@ impl TrackerWindow {
                 world_from_cam,
                 inv_depth,
                 variance,
+                has_variance,
             });
         }
         if r.at != data.len() {
@@ -223,14 +233,12 @@ mod tests {
                 .iter_mut()
                 .enumerate()
                 .for_each(|(i, x)| *x = 0.1 + i as f32 * 0.01 + id as f32);
-            let variance = var.then(|| {
-                let mut v = PlaneF32::new(5, 3);
-                v.data
-                    .iter_mut()
-                    .enumerate()
-                    .for_each(|(i, x)| *x = 1e-3 * (i + 1) as f32);
-                v
-            });
+            let mut variance = PlaneF32::new(5, 3);
+            variance
+                .data
+                .iter_mut()
+                .enumerate()
+                .for_each(|(i, x)| *x = 1e-3 * (i + 1) as f32);
             WindowKeyframe {
                 id,
                 seq: 10 * id + 3,
@@ -241,6 +249,7 @@ mod tests {
                 ),
                 inv_depth: inv,
                 variance,
+                has_variance: var,
             }
         };
         TrackerWindow {
@@ -264,7 +273,7 @@ mod tests {
         for (a, b) in w.keyframes.iter().zip(&back.keyframes) {
             assert_eq!((a.id, a.seq, a.t_ns), (b.id, b.seq, b.t_ns));
             assert_eq!(a.inv_depth, b.inv_depth);
-            assert_eq!(a.variance, b.variance);
+            assert_eq!(a.variance(), b.variance());
             let d = a.world_from_cam.inv_mul(&b.world_from_cam);
             assert!(d.translation.vector.norm() < 1e-12 && d.rotation.angle() < 1e-12);
         }

@@ -536,7 +536,8 @@ impl Mapper {
 
     /// Stores the keyframe and seeds Gaussians from its confident inverse depth where the map
     /// does not cover it yet; returns how many Gaussians were added.
-    pub fn add_keyframe(&mut self, kf: Keyframe) -> Result<usize, MapperError> {
+    pub fn add_keyframe(&mut self, kf: impl std::borrow::Borrow<Keyframe>) -> Result<usize, MapperError> {
+        let kf: &Keyframe = kf.borrow();
         self.check_camera(kf.index, &kf.camera)?;
         if !kf.is_consistent() {
             return Err(MapperError::BadKeyframe { index: kf.index, why: "image, inverse depth and variance sizes differ from the camera's" });
@@ -609,7 +610,7 @@ impl Mapper {
         } else {
             self.spare_keyframes.pop().unwrap_or_else(|| MapKeyframe::blank(w, h))
         };
-        self.store_keyframe(slot, &kf);
+        self.store_keyframe(slot, kf);
 
         tracing::debug!(added, total = self.gaussians.len(), "map.add_keyframe");
         Ok(added)

@@ -143,7 +143,8 @@ impl MappingStage {
     }
 
     /// Takes a keyframe from tracking and optimises within the budget.
-    pub fn on_keyframe(&mut self, keyframe: Keyframe) -> Result<MappingStep, StageError> {
+    pub fn on_keyframe(&mut self, keyframe: impl std::borrow::Borrow<Keyframe>) -> Result<MappingStep, StageError> {
+        let keyframe: &Keyframe = keyframe.borrow();
         let _span = tracing::debug_span!("map.keyframe", index = keyframe.index).entered();
         let start = Instant::now();
         let added = self.mapper.add_keyframe(keyframe)?;

@@ -52,7 +52,7 @@ impl StageMapping {
 }
 
 impl MapStage for StageMapping {
-    fn add_keyframe(&mut self, kf: Keyframe) -> Result<(), String> {
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String> {
         let id = kf.index;
         let dir = &self.keyframe_dir;
         std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;

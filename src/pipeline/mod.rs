@@ -17,15 +17,17 @@ pub mod budget;
 pub mod checkpoints;
 mod handoff;
 pub mod mapping;
+pub mod pool;
 pub mod queue;
 pub mod resume;
 
 use crate::camera::FrameSource;
 use crate::config::board::{Board, FrameLogEncoding};
+use crate::core::alloc::{self, ThreadRole};
 use crate::core::{Frame, Keyframe, Se3, Sim3, Timestamp};
 use crate::log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
 use crate::track::{TrackOutput, Tracker, TrajectoryRecorder};
-use handoff::Handoff;
+use handoff::{Handoff, HandoffConfig};
 use queue::{BoundedQueue, FullPolicy, Pushed, QueueStats};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -60,8 +62,8 @@ pub enum PipelineError {
 /// The mapping stage as the pipeline drives it. The mapper binds to this at merge; tests and
 /// tracking-only runs use [`NoMapping`].
 pub trait MapStage: Send {
-    /// A keyframe from tracking.
-    fn add_keyframe(&mut self, kf: Keyframe) -> Result<(), String>;
+    /// A keyframe from tracking (a pooled buffer: copy what is kept).
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String>;
     /// One unit of optimisation when no keyframe is waiting; `false` when idle.
     fn step(&mut self) -> Result<bool, String>;
     /// A checkpoint to persist now: (bytes, Gaussian centres in the world frame).
@@ -83,8 +85,15 @@ pub struct NoMapping {
     dirty: bool,
 }
 
+impl NoMapping {
+    /// Room for `keyframes` poses before the list grows.
+    pub fn with_capacity(keyframes: usize) -> Self {
+        NoMapping { keyframes: Vec::with_capacity(keyframes), dirty: false }
+    }
+}
+
 impl MapStage for NoMapping {
-    fn add_keyframe(&mut self, kf: Keyframe) -> Result<(), String> {
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String> {
         self.keyframes.push((kf.index, kf.t_ns.t_ns(), crate::core::pose::se3_to_tum(&kf.world_from_cam)));
         self.dirty = true;
         Ok(())
@@ -105,6 +114,9 @@ impl MapStage for NoMapping {
         Ok(())
     }
 }
+
+/// Frames a run records (poses, latencies) before its records grow: an hour at 30 frames/s.
+const RECORD_FRAMES: usize = 30 * 3600;
 
 /// How the pipeline runs.
 #[derive(Clone, Debug)]
@@ -147,6 +159,17 @@ pub struct PipelineConfig {
 }
 
 impl PipelineConfig {
+    fn handoff(&self) -> HandoffConfig {
+        HandoffConfig {
+            keyframe_lag: self.keyframe_lag,
+            // The keyframe queue, one in mapping, and some waiting in the log queue.
+            keyframe_slots: self.keyframe_queue + 4,
+            window_keyframes: self.window_keyframes,
+            window_interval: self.window_interval,
+            align: self.world_from_tracker,
+        }
+    }
+
     /// Capacities from the board, log into `out_dir/log`.
     pub fn from_board(board: &Board, out_dir: PathBuf) -> Self {
         let mut log = LogConfig::new(out_dir.join("log"));
@@ -199,6 +222,8 @@ fn latency_of(v: &mut [f64]) -> LatencyMs {
 pub struct Health {
     pub uptime_s: f64,
     pub frames_captured: u64,
+    /// Frames dropped at capture because every pooled frame buffer was held downstream.
+    pub frames_dropped_no_buffer: u64,
     pub frames_tracked: u64,
     pub keyframes: u64,
     pub frame_queue: QueueStats,
@@ -213,7 +238,30 @@ pub struct Health {
     pub host_budget_mb: f64,
     pub host_headroom_mb: f64,
     pub counting_allocator: bool,
+    /// Heap allocations made so far by each stage's threads (with the counting allocator):
+    /// flat in the steady state for capture and tracking.
+    pub allocations: StageAllocations,
     pub log_failure: Option<String>,
+}
+
+/// Allocations made so far per stage ([`alloc::role_allocations`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct StageAllocations {
+    pub capture: usize,
+    pub tracking: usize,
+    pub mapping: usize,
+    pub logging: usize,
+}
+
+impl StageAllocations {
+    pub fn now() -> Self {
+        StageAllocations {
+            capture: alloc::role_allocations(ThreadRole::Capture),
+            tracking: alloc::role_allocations(ThreadRole::Tracking),
+            mapping: alloc::role_allocations(ThreadRole::Mapping),
+            logging: alloc::role_allocations(ThreadRole::Logging),
+        }
+    }
 }
 
 /// What a finished run hands back.
@@ -241,6 +289,8 @@ pub struct PipelineResult<S> {
 struct Shared {
     stop: Arc<AtomicBool>,
     frames_captured: AtomicU64,
+    /// Frames read and dropped because every pooled frame buffer was in use.
+    frames_no_buffer: AtomicU64,
     frames_tracked: AtomicU64,
     keyframes: AtomicU64,
     latest_t_ns: AtomicI64,
@@ -319,6 +369,7 @@ pub fn run<S: FrameSource + 'static>(
     retrack: Vec<Frame>,
     stop: Arc<AtomicBool>,
 ) -> Result<PipelineResult<S>, PipelineError> {
+    let retrack: Vec<Arc<Frame>> = retrack.into_iter().map(Arc::new).collect();
     let started = Instant::now();
     let mut writer = SegmentWriter::create(cfg.log.clone())?;
     if cfg.announce {
@@ -331,12 +382,13 @@ pub fn run<S: FrameSource + 'static>(
         return run_deterministic(source, tracker, map, cfg, writer, checkpoints, retrack, stop, started);
     }
 
-    let frames: Arc<BoundedQueue<(Frame, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::DropOldest));
-    let keyframes: Arc<BoundedQueue<Keyframe>> = Arc::new(BoundedQueue::new("keyframes", cfg.keyframe_queue, 0, FullPolicy::DropNewest));
+    let frames: Arc<BoundedQueue<(Arc<Frame>, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::DropOldest));
+    let keyframes: Arc<BoundedQueue<Arc<Keyframe>>> = Arc::new(BoundedQueue::new("keyframes", cfg.keyframe_queue, 0, FullPolicy::DropNewest));
     let log_q: Arc<BoundedQueue<LogItem>> = Arc::new(BoundedQueue::new("log", 1 << 16, cfg.log_queue_bytes, FullPolicy::DropNewest));
     let shared = Arc::new(Shared {
         stop: stop.clone(),
         frames_captured: AtomicU64::new(0),
+        frames_no_buffer: AtomicU64::new(0),
         frames_tracked: AtomicU64::new(0),
         keyframes: AtomicU64::new(0),
         latest_t_ns: AtomicI64::new(0),
@@ -354,6 +406,7 @@ pub fn run<S: FrameSource + 'static>(
         let sh = shared.clone();
         let tick = cfg.log.chunk_interval / 4;
         spawn("logging", move || {
+            alloc::label_current_thread(ThreadRole::Logging);
             let _span = tracing::info_span!("log").entered();
             let mut first_error: Option<String> = None;
             loop {
@@ -389,6 +442,7 @@ pub fn run<S: FrameSource + 'static>(
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
             let kq_on_exit = kq.clone();
             let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
+                alloc::label_current_thread(ThreadRole::Mapping);
                 let _span = tracing::info_span!("map").entered();
                 let mut last_ckpt = Instant::now();
                 let mut last_t = Timestamp::from_ns(0);
@@ -403,7 +457,7 @@ pub fn run<S: FrameSource + 'static>(
                     let idle = match kq.try_pop() {
                         Some(kf) => {
                             last_t = kf.t_ns;
-                            map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                            map.add_keyframe(&kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
                             false
                         }
                         None => !map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?,
@@ -416,7 +470,7 @@ pub fn run<S: FrameSource + 'static>(
                         match kq.pop_timeout(Duration::from_millis(100)) {
                             Ok(Some(kf)) => {
                                 last_t = kf.t_ns;
-                                map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                                map.add_keyframe(&kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
                             }
                             Ok(None) => {}
                             Err(()) => break,
@@ -442,13 +496,15 @@ pub fn run<S: FrameSource + 'static>(
         let announce = cfg.announce;
         let align = cfg.world_from_tracker;
         let mut tracker = tracker;
-        let mut handoff = Handoff::new(cfg.keyframe_lag, cfg.window_keyframes, cfg.window_interval, align);
+        let mut handoff = Handoff::new(cfg.handoff(), &tracker);
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
+            alloc::label_current_thread(ThreadRole::Tracking);
             let _span = tracing::info_span!("track").entered();
-            let mut recorder = TrajectoryRecorder::new();
-            let mut latencies = Vec::with_capacity(1 << 16);
-            let mut track_times = Vec::with_capacity(1 << 16);
-            let to_mapping = |kf: Keyframe| {
+            // A run's record: an hour at 30 frames/s before it grows.
+            let mut recorder = TrajectoryRecorder::with_capacity(RECORD_FRAMES, RECORD_FRAMES / 4);
+            let mut latencies = Vec::with_capacity(RECORD_FRAMES);
+            let mut track_times = Vec::with_capacity(RECORD_FRAMES);
+            let to_mapping = |kf: Arc<Keyframe>| {
                 sh.keyframes.fetch_add(1, Ordering::Relaxed);
                 let _ = kq.push(kf, 0);
                 Ok(())
@@ -496,7 +552,12 @@ pub fn run<S: FrameSource + 'static>(
         })?
     };
 
-    // Capture (this function's source moves into the thread and comes back at the end).
+    // Capture (this function's source moves into the thread and comes back at the end). Frames
+    // are filled into a fixed pool (`pool::Pool`) and shared, not copied, with tracking and the
+    // log: enough slots for a full frame queue, a full log queue of frames, the keyframes
+    // waiting in the lag and the frame in tracking.
+    let frame_bytes = camera.width * camera.height * 3;
+    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + 3;
     let capture = {
         let fq = frames.clone();
         let lq = log_q.clone();
@@ -504,24 +565,47 @@ pub fn run<S: FrameSource + 'static>(
         let mut pacer = cfg.pace_speed.map(|speed| Pacer { speed, start: None });
         let lossless = cfg.lossless_frames;
         spawn("capture", move || -> (S, Option<String>) {
+            alloc::label_current_thread(ThreadRole::Capture);
             let _span = tracing::info_span!("capture").entered();
+            // Every slot at the camera's size now (start-up), so none grows while frames flow.
+            let mut pool = pool::Pool::new(pool_slots, || Frame::rgb(camera.width, camera.height));
+            // Where a frame goes when every slot is held (live sources): read and dropped.
+            let mut overflow = Frame::empty();
             let mut error = None;
             while !sh.stop.load(Ordering::Relaxed) {
-                match source.next_frame() {
-                    Ok(Some(frame)) => {
+                let mut slot = match pool.take() {
+                    Some(s) => Some(s),
+                    None if lossless => {
+                        std::thread::sleep(Duration::from_millis(1));
+                        continue;
+                    }
+                    None => None,
+                };
+                let target = match slot.as_mut() {
+                    Some(s) => s.get_mut(),
+                    None => &mut overflow,
+                };
+                match source.next_frame_into(target) {
+                    Ok(true) => {
+                        let Some(slot) = slot else {
+                            sh.frames_no_buffer.fetch_add(1, Ordering::Relaxed);
+                            tracing::trace!(seq = overflow.seq, "frame dropped (every frame buffer in use)");
+                            continue;
+                        };
+                        let frame = slot.share();
                         if let Some(p) = pacer.as_mut() {
                             p.wait(frame.t_ns, &sh.stop);
                         }
                         sh.frames_captured.fetch_add(1, Ordering::Relaxed);
                         sh.latest_t_ns.store(frame.t_ns.t_ns(), Ordering::Relaxed);
-                        log_push(&lq, LogItem::Frame(frame.clone()));
+                        log_push(&lq, LogItem::Frame(Arc::clone(&frame)));
                         let item = (frame, Instant::now());
                         let pushed = if lossless { fq.push_wait(item, 0) } else { fq.push(item, 0) };
                         if let Pushed::QueuedDroppedOldest(old) = pushed {
                             tracing::trace!(seq = old.0.seq, "frame dropped (tracking behind)");
                         }
                     }
-                    Ok(None) => break,
+                    Ok(false) => break,
                     Err(e @ crate::camera::CameraError::BadFrame { .. }) => tracing::warn!("frame dropped: {e}"),
                     Err(e) => {
                         tracing::error!("capture stopped: {e}");
@@ -551,6 +635,7 @@ pub fn run<S: FrameSource + 'static>(
             let h = Health {
                 uptime_s: started.elapsed().as_secs_f64(),
                 frames_captured: shared.frames_captured.load(Ordering::Relaxed),
+                frames_dropped_no_buffer: shared.frames_no_buffer.load(Ordering::Relaxed),
                 frames_tracked: shared.frames_tracked.load(Ordering::Relaxed),
                 keyframes: shared.keyframes.load(Ordering::Relaxed),
                 frame_queue: frames.stats(),
@@ -563,6 +648,7 @@ pub fn run<S: FrameSource + 'static>(
                 host_budget_mb,
                 host_headroom_mb: host_budget_mb - live,
                 counting_allocator: crate::core::alloc::is_installed(),
+                allocations: StageAllocations::now(),
                 log_failure: shared.log_failure.lock().unwrap_or_else(|p| p.into_inner()).clone(),
             };
             if let Ok(json) = serde_json::to_string(&h) {
@@ -608,7 +694,7 @@ fn run_deterministic<S: FrameSource + 'static>(
     cfg: &PipelineConfig,
     mut writer: SegmentWriter,
     checkpoints: CheckpointStore,
-    retrack: Vec<Frame>,
+    retrack: Vec<Arc<Frame>>,
     stop: Arc<AtomicBool>,
     started: Instant,
 ) -> Result<PipelineResult<S>, PipelineError> {
@@ -624,9 +710,9 @@ fn run_deterministic<S: FrameSource + 'static>(
         }
     };
     let mut last_t = Timestamp::from_ns(0);
-    let mut handoff = Handoff::new(cfg.keyframe_lag, cfg.window_keyframes, cfg.window_interval, align);
-    let mut to_mapping = |kf: Keyframe| -> Result<(), PipelineError> {
-        map.add_keyframe(kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+    let mut handoff = Handoff::new(cfg.handoff(), &tracker);
+    let mut to_mapping = |kf: Arc<Keyframe>| -> Result<(), PipelineError> {
+        map.add_keyframe(&kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
         while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
         Ok(())
     };
@@ -653,7 +739,8 @@ fn run_deterministic<S: FrameSource + 'static>(
             };
             captured += 1;
             last_t = frame.t_ns;
-            log(&mut writer, LogItem::Frame(frame.clone()));
+            let frame = Arc::new(frame);
+            log(&mut writer, LogItem::Frame(Arc::clone(&frame)));
             let t0 = Instant::now();
             let out = tracker.track(&frame)?;
             track_times.push(t0.elapsed());

@@ -393,7 +393,7 @@ fn window_keyframes(w: &TrackerWindow, camera: &PinholeCamera, frames: &BTreeMap
             world_from_cam: k.world_from_cam,
             camera: *camera,
             inv_depth: spread(Some(&k.inv_depth)),
-            inv_depth_variance: spread(k.variance.as_ref()),
+            inv_depth_variance: spread(k.variance()),
         };
         out.push((k.seq, kf));
     }

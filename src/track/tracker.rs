@@ -333,6 +333,7 @@ impl Tracker {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cap.threads)
             .thread_name(|i| format!("duv-track-{i}"))
+            .start_handler(|_| crate::core::alloc::label_current_thread(crate::core::alloc::ThreadRole::Tracking))
             .build()
             .map_err(|e| TrackError::ThreadPool(e.to_string()))?;
         let st = pool.install(|| State::new(camera, config, cap))?;

@@ -59,6 +59,12 @@ impl TrajectoryRecorder {
         Self::default()
     }
 
+    /// Room for `frames` frames and `keyframes` keyframes before the record grows (it holds
+    /// the whole run, so a run longer than that grows it, by doubling).
+    pub fn with_capacity(frames: usize, keyframes: usize) -> Self {
+        TrajectoryRecorder { frames: Vec::with_capacity(frames), evicted: BTreeMap::new(), keyframes: Vec::with_capacity(keyframes) }
+    }
+
     pub fn record(&mut self, out: &TrackOutput) {
         self.frames.push(RecordedFrame { t_ns: out.t_ns, seq: out.seq, live: out.world_from_cam, state: out.state, anchor: out.anchor });
         if let Some(id) = out.new_keyframe {
