@@ -102,8 +102,29 @@ pub const PREFAULT_MIN_BYTES: usize = 256 << 10;
 /// least [`PREFAULT_MIN_BYTES`] has each page written once when it is made (zeros: the memory
 /// is zeroed or uninitialised, so nothing changes), so the resident set matches the live heap
 /// from start-up and a steady state that allocates nothing keeps it flat.
+///
+/// On glibc it also fixes malloc's mmap threshold at [`PREFAULT_MIN_BYTES`] (glibc raises it
+/// as large blocks are freed, after which large buffers come from the heap and their memory is
+/// kept after they are freed) and caps malloc at 4 arenas: every large allocation is then a
+/// mapping of its own, returned to the system when freed, so transient buffers (a map
+/// checkpoint being written, a chunk of the log) do not leave the resident set higher.
 pub fn prefault_large_allocations(on: bool) {
     PREFAULT_LARGE.store(on, Ordering::Relaxed);
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    if on {
+        use std::ffi::c_int;
+        extern "C" {
+            fn mallopt(param: c_int, value: c_int) -> c_int;
+        }
+        const M_MMAP_THRESHOLD: c_int = -3;
+        const M_ARENA_MAX: c_int = -8;
+        // SAFETY: glibc's mallopt takes two ints and only changes malloc's tunables; it is
+        // safe to call at any time (it takes malloc's lock).
+        unsafe {
+            mallopt(M_MMAP_THRESHOLD, PREFAULT_MIN_BYTES as c_int);
+            mallopt(M_ARENA_MAX, 4);
+        }
+    }
 }
 
 /// Writes a zero into every page of a fresh allocation of `size` bytes at `p`.
