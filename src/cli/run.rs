@@ -525,12 +525,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     e2e.sort();
     println!("frame-in to pose-out latency median {:.1} ms, p99 {:.1} ms", percentile_ms(&e2e, 0.5), percentile_ms(&e2e, 0.99));
     let wall_s = result.wall.as_secs_f64().max(1e-9);
+    let per_frame = result.log.bytes as f64 / result.frames_captured.max(1) as f64;
+    let fps = 1e3 / pcfg.frame_period_ms;
     println!(
-        "captured {:.1} frames/s; log {:.1} MB in {wall_s:.1} s: {:.2} MB/s, {:.0} bytes per captured frame (all topics)",
-        result.frames_captured as f64 / wall_s,
+        "log {:.1} MB: {per_frame:.0} bytes per captured frame (all topics), {:.1} MB/s at the board's {fps:.0} frames/s ({:.2} MB/s over the {wall_s:.1} s run)",
         result.log.bytes as f64 / 1e6,
-        result.log.bytes as f64 / 1e6 / wall_s,
-        result.log.bytes as f64 / result.frames_captured.max(1) as f64
+        per_frame * fps / 1e6,
+        result.log.bytes as f64 / 1e6 / wall_s
     );
 
     // Final trajectory and keyframes.
