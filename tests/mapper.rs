@@ -73,6 +73,11 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("map.ckpt");
     m.save_checkpoint(&path).unwrap();
+    // Binary (version 2), in one buffer of the exact size: the file is those bytes.
+    let bytes = m.checkpoint_bytes().unwrap();
+    assert_eq!(bytes.capacity(), bytes.len(), "checkpoint buffer sized exactly");
+    assert_eq!(std::fs::read(&path).unwrap(), bytes);
+    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 2);
     let mut r = Mapper::load_checkpoint(&path).unwrap();
     assert_eq!(r.iteration(), m.iteration());
     assert_eq!(r.gaussians(), m.gaussians());

@@ -85,14 +85,11 @@ impl MapStage for StageMapping {
             return None;
         }
         let mapper = self.stage.mapper();
-        if let Err(e) = mapper.save_checkpoint(&self.scratch) {
-            tracing::warn!("map checkpoint not written: {e}");
-            return None;
-        }
-        let bytes = match std::fs::read(&self.scratch) {
+        // Straight from the mapper's buffers into one buffer (the caller writes it once).
+        let bytes = match mapper.checkpoint_bytes() {
             Ok(b) => b,
             Err(e) => {
-                tracing::warn!("map checkpoint {} unreadable: {e}", self.scratch.display());
+                tracing::warn!("map checkpoint not made: {e}");
                 return None;
             }
         };
