@@ -14,9 +14,12 @@ pub struct BudgetPlan {
     pub frame_bytes: usize,
     /// One keyframe as handed to the mapper (image, inverse depth, variance at full size).
     pub keyframe_bytes: usize,
-    /// capture -> tracking queue at capacity.
+    /// Pooled frames beside those the log queue holds: the capture -> tracking queue at
+    /// capacity, the keyframes waiting out the BA window, and those in flight
+    /// ([`FRAME_SLOTS_IN_FLIGHT`](super::FRAME_SLOTS_IN_FLIGHT)).
     pub frame_queue_bytes: usize,
-    /// tracking -> mapping queue at capacity.
+    /// Pooled keyframes: the tracking -> mapping queue at capacity and those in mapping and
+    /// the log ([`KEYFRAME_SLOTS_IN_FLIGHT`](super::KEYFRAME_SLOTS_IN_FLIGHT)).
     pub keyframe_queue_bytes: usize,
     /// The tracker's keyframe store (image pyramid as f32 plus colour, per keyframe).
     pub keyframe_store_bytes: usize,
@@ -50,8 +53,8 @@ pub fn plan(board: &Board, width: usize, height: usize) -> Result<BudgetPlan, Pi
         height,
         frame_bytes,
         keyframe_bytes,
-        frame_queue_bytes: b.frame_queue as usize * frame_bytes,
-        keyframe_queue_bytes: b.keyframe_queue as usize * keyframe_bytes,
+        frame_queue_bytes: (b.frame_queue as usize + b.ba_window as usize + super::FRAME_SLOTS_IN_FLIGHT) * frame_bytes,
+        keyframe_queue_bytes: (b.keyframe_queue as usize + super::KEYFRAME_SLOTS_IN_FLIGHT) * keyframe_bytes,
         keyframe_store_bytes: b.max_keyframes as usize * per_stored_keyframe,
         map_keyframe_bytes: b.map_keyframes as usize * per_map_keyframe,
         log_queue_bytes: b.log_queue_mb as usize * (1 << 20),
@@ -76,13 +79,13 @@ pub fn plan(board: &Board, width: usize, height: usize) -> Result<BudgetPlan, Pi
         return Err(PipelineError::Budget {
             board: board.name.clone(),
             problem: format!(
-                "{width}x{height} needs {:.1} MiB of host memory but budgets.host_mb = {}: frame queue {} x {:.2} MiB = {:.1} MiB, keyframe queue {} x {:.2} MiB = {:.1} MiB, keyframe store {} x {:.2} MiB = {:.1} MiB, mapper keyframes {} x {:.2} MiB = {:.1} MiB, log queue {:.1} MiB",
+                "{width}x{height} needs {:.1} MiB of host memory but budgets.host_mb = {}: frames (queue, BA window, in flight) {} x {:.2} MiB = {:.1} MiB, keyframes (queue, in flight) {} x {:.2} MiB = {:.1} MiB, keyframe store {} x {:.2} MiB = {:.1} MiB, mapper keyframes {} x {:.2} MiB = {:.1} MiB, log queue {:.1} MiB",
                 mib(total),
                 b.host_mb,
-                b.frame_queue,
+                b.frame_queue as usize + b.ba_window as usize + super::FRAME_SLOTS_IN_FLIGHT,
                 mib(frame_bytes),
                 mib(plan.frame_queue_bytes),
-                b.keyframe_queue,
+                b.keyframe_queue as usize + super::KEYFRAME_SLOTS_IN_FLIGHT,
                 mib(keyframe_bytes),
                 mib(plan.keyframe_queue_bytes),
                 b.max_keyframes,

@@ -115,6 +115,12 @@ impl MapStage for NoMapping {
     }
 }
 
+/// Pooled frames beyond the frame queue, the log queue's share and the keyframe lag: the one
+/// in tracking, the one being filled, one spare.
+pub const FRAME_SLOTS_IN_FLIGHT: usize = 3;
+/// Pooled keyframes beyond the keyframe queue: the one in mapping and some in the log queue.
+pub const KEYFRAME_SLOTS_IN_FLIGHT: usize = 4;
+
 /// Frames a run records (poses, latencies) before its records grow: an hour at 30 frames/s.
 const RECORD_FRAMES: usize = 30 * 3600;
 
@@ -163,7 +169,7 @@ impl PipelineConfig {
         HandoffConfig {
             keyframe_lag: self.keyframe_lag,
             // The keyframe queue, one in mapping, and some waiting in the log queue.
-            keyframe_slots: self.keyframe_queue + 4,
+            keyframe_slots: self.keyframe_queue + KEYFRAME_SLOTS_IN_FLIGHT,
             window_keyframes: self.window_keyframes,
             window_interval: self.window_interval,
             align: self.world_from_tracker,
@@ -557,7 +563,7 @@ pub fn run<S: FrameSource + 'static>(
     // log: enough slots for a full frame queue, a full log queue of frames, the keyframes
     // waiting in the lag and the frame in tracking.
     let frame_bytes = camera.width * camera.height * 3;
-    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + 3;
+    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + FRAME_SLOTS_IN_FLIGHT;
     let capture = {
         let fq = frames.clone();
         let lq = log_q.clone();
