@@ -3,6 +3,7 @@
 //! names the file, and the line where there is one.
 
 pub mod keyframes;
+pub mod le;
 pub mod pfm;
 pub mod png_io;
 pub mod tum;

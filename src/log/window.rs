@@ -14,6 +14,7 @@
 //! again for the variance when it has one.
 
 use crate::core::{PlaneF32, Se3, Timestamp};
+use crate::io::le::LeReader;
 
 /// Message encoding of the `/slam/window` channel.
 pub const WINDOW_ENCODING: &str = "duv.tracker_window";
@@ -113,7 +114,7 @@ impl TrackerWindow {
     /// body before anything is allocated, so a damaged message cannot ask for more memory
     /// than it holds.
     pub fn decode(data: &[u8]) -> Result<TrackerWindow, String> {
-        let mut r = Cursor { data, at: 0 };
+        let mut r = LeReader::new(data);
         if r.take(4)? != MAGIC {
             return Err("not a tracker window (magic)".into());
         }
@@ -144,7 +145,7 @@ impl TrackerWindow {
             }
             let world_from_cam = crate::core::pose::se3_from_tum(tum)
                 .map_err(|e| format!("keyframe {id}: pose: {e}"))?;
-            let has_variance = match r.take(1)?[0] {
+            let has_variance = match r.u8()? {
                 0 => false,
                 1 => true,
                 b => return Err(format!("keyframe {id}: variance flag {b}")),
@@ -169,10 +170,10 @@ impl TrackerWindow {
                 has_variance,
             });
         }
-        if r.at != data.len() {
+        if r.remaining() != 0 {
             return Err(format!(
                 "{} bytes after the last keyframe",
-                data.len() - r.at
+                r.remaining()
             ));
         }
         Ok(TrackerWindow {
@@ -180,44 +181,6 @@ impl TrackerWindow {
             t_ns,
             keyframes,
         })
-    }
-}
-
-struct Cursor<'a> {
-    data: &'a [u8],
-    at: usize,
-}
-
-impl<'a> Cursor<'a> {
-    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
-        let end = self
-            .at
-            .checked_add(n)
-            .filter(|&e| e <= self.data.len())
-            .ok_or_else(|| format!("truncated at byte {} of {}", self.at, self.data.len()))?;
-        let s = &self.data[self.at..end];
-        self.at = end;
-        Ok(s)
-    }
-    fn u32(&mut self) -> Result<u32, String> {
-        Ok(u32::from_le_bytes(
-            self.take(4)?.try_into().expect("4 bytes"),
-        ))
-    }
-    fn u64(&mut self) -> Result<u64, String> {
-        Ok(u64::from_le_bytes(
-            self.take(8)?.try_into().expect("8 bytes"),
-        ))
-    }
-    fn i64(&mut self) -> Result<i64, String> {
-        Ok(i64::from_le_bytes(
-            self.take(8)?.try_into().expect("8 bytes"),
-        ))
-    }
-    fn f64(&mut self) -> Result<f64, String> {
-        Ok(f64::from_le_bytes(
-            self.take(8)?.try_into().expect("8 bytes"),
-        ))
     }
 }
 

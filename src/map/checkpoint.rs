@@ -28,6 +28,7 @@ use super::mapper::{Mapper, MapperCapacity, MapperConfig, MapperError};
 use super::medium::{MediumCheckpoint, MediumNet, MEDIUM_CHECKPOINT_VERSION};
 use crate::core::rng::Rng;
 use crate::core::{ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+use crate::io::le::LeReader;
 use crate::io::{write_atomic, IoError};
 
 /// File magic.
@@ -144,61 +145,35 @@ fn put_adam(w: &mut Vec<u8>, g: &super::adam::AdamGroup) {
 /// Reads a version 2 payload; every count is checked against the bytes left before anything
 /// is allocated, so a damaged file cannot ask for more memory than it holds.
 fn decode_binary(body: &[u8]) -> Result<Payload, String> {
-    struct R<'a> {
-        b: &'a [u8],
-        at: usize,
-    }
-    impl<'a> R<'a> {
-        fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
-            let end = self.at.checked_add(n).filter(|&e| e <= self.b.len()).ok_or_else(|| format!("truncated payload at byte {} of {}", self.at, self.b.len()))?;
-            let s = &self.b[self.at..end];
-            self.at = end;
-            Ok(s)
-        }
-        fn u64(&mut self) -> Result<u64, String> {
-            Ok(u64::from_le_bytes(self.take(8)?.try_into().expect("8 bytes")))
-        }
-        fn count(&mut self, width: usize) -> Result<usize, String> {
-            let n = self.u64()?;
-            if n.saturating_mul(width as u64) > (self.b.len() - self.at) as u64 {
-                return Err(format!("an array of {n} items at byte {} does not fit the payload", self.at));
-            }
-            Ok(n as usize)
-        }
-        fn bytes(&mut self) -> Result<Vec<u8>, String> {
-            let n = self.count(1)?;
-            Ok(self.take(n)?.to_vec())
-        }
-        fn words(&mut self) -> Result<Vec<u32>, String> {
-            let n = self.count(4)?;
-            Ok(self.take(4 * n)?.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect())
-        }
-        fn adam(&mut self) -> Result<AdamRecord, String> {
-            Ok(AdamRecord { steps: self.u64()?, m: self.words()?, v: self.words()? })
-        }
-        fn usize(&mut self) -> Result<usize, String> {
-            usize::try_from(self.u64()?).map_err(|e| e.to_string())
-        }
-    }
-    let mut r = R { b: body, at: 0 };
-    let config_toml = String::from_utf8(r.bytes()?).map_err(|e| format!("config: {e}"))?;
-    let capacity = MapperCapacity { max_gaussians: r.usize()?, max_keyframes: r.usize()?, width: r.usize()?, height: r.usize()? };
+    let mut r = LeReader::new(body);
+    let size = |r: &mut LeReader<'_>| usize::try_from(r.u64()?).map_err(|e| e.to_string());
+    let bytes = |r: &mut LeReader<'_>| -> Result<Vec<u8>, String> {
+        let n = r.count(1)?;
+        Ok(r.take(n)?.to_vec())
+    };
+    let words = |r: &mut LeReader<'_>| -> Result<Vec<u32>, String> {
+        let n = r.count(4)?;
+        Ok(r.words(n)?.collect())
+    };
+    let adam_of = |r: &mut LeReader<'_>| -> Result<AdamRecord, String> { Ok(AdamRecord { steps: r.u64()?, m: words(r)?, v: words(r)? }) };
+    let config_toml = String::from_utf8(bytes(&mut r)?).map_err(|e| format!("config: {e}"))?;
+    let capacity = MapperCapacity { max_gaussians: size(&mut r)?, max_keyframes: size(&mut r)?, width: size(&mut r)?, height: size(&mut r)? };
     let iteration = r.u64()?;
     let rng_state = [r.u64()?, r.u64()?, r.u64()?, r.u64()?];
-    let gaussians = ParamGroup::ALL.iter().map(|_| r.words()).collect::<Result<Vec<_>, _>>()?;
-    let densify_grad_norm = r.words()?;
-    let pixels_touched = r.words()?;
-    let views = r.words()?;
-    let adam = ParamGroup::ALL.iter().map(|_| r.adam()).collect::<Result<Vec<_>, _>>()?;
-    let medium_pe_frequencies = r.usize()?;
-    let medium_params = r.words()?;
-    let medium_adam = r.adam()?;
+    let gaussians = ParamGroup::ALL.iter().map(|_| words(&mut r)).collect::<Result<Vec<_>, _>>()?;
+    let densify_grad_norm = words(&mut r)?;
+    let pixels_touched = words(&mut r)?;
+    let views = words(&mut r)?;
+    let adam = ParamGroup::ALL.iter().map(|_| adam_of(&mut r)).collect::<Result<Vec<_>, _>>()?;
+    let medium_pe_frequencies = size(&mut r)?;
+    let medium_params = words(&mut r)?;
+    let medium_adam = adam_of(&mut r)?;
     let n = r.count(15 * 8)?;
     let mut keyframes = Vec::with_capacity(n);
     for _ in 0..n {
         let index = r.u64()?;
         let t_ns = r.u64()? as i64;
-        let (width, height) = (r.usize()?, r.usize()?);
+        let (width, height) = (size(&mut r)?, size(&mut r)?);
         let mut v = [0u64; 11];
         for x in v.iter_mut() {
             *x = r.u64()?;
@@ -211,13 +186,13 @@ fn decode_binary(body: &[u8]) -> Result<Payload, String> {
             intrinsics: [v[0], v[1], v[2], v[3]],
             translation: [v[4], v[5], v[6]],
             rotation_xyzw: [v[7], v[8], v[9], v[10]],
-            image: r.bytes()?,
-            inv_depth: r.words()?,
-            inv_depth_variance: r.words()?,
+            image: bytes(&mut r)?,
+            inv_depth: words(&mut r)?,
+            inv_depth_variance: words(&mut r)?,
         });
     }
-    if r.at != body.len() {
-        return Err(format!("{} bytes after the last keyframe", body.len() - r.at));
+    if r.remaining() != 0 {
+        return Err(format!("{} bytes after the last keyframe", r.remaining()));
     }
     Ok(Payload { config_toml, capacity, iteration, rng_state, gaussians, densify_grad_norm, pixels_touched, views, adam, medium_pe_frequencies, medium_params, medium_adam, keyframes })
 }

@@ -13,7 +13,7 @@
 
 use super::pool::Pool;
 use super::{apply, PipelineError};
-use crate::core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32, Se3, Sim3, Timestamp};
+use crate::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Sim3, Timestamp};
 use crate::log::{LogItem, TrackerWindow, WindowKeyframe};
 use crate::track::{TrackOutput, Tracker};
 use std::collections::VecDeque;
@@ -45,15 +45,6 @@ impl Handoff {
     pub(super) fn new(cfg: HandoffConfig, tracker: &Tracker) -> Self {
         let cam = *tracker.camera();
         let grid = *tracker.depth_camera();
-        let blank_keyframe = || Keyframe {
-            index: 0,
-            t_ns: Timestamp::from_ns(0),
-            image: ImageRgb8::new(cam.width, cam.height),
-            world_from_cam: Se3::identity(),
-            camera: cam,
-            inv_depth: PlaneF32::new(cam.width, cam.height),
-            inv_depth_variance: PlaneF32::new(cam.width, cam.height),
-        };
         let blank_window = || TrackerWindow {
             seq: 0,
             t_ns: Timestamp::from_ns(0),
@@ -64,7 +55,7 @@ impl Handoff {
         Handoff {
             lag: VecDeque::with_capacity(cfg.keyframe_lag + 1),
             keyframe_lag: cfg.keyframe_lag,
-            keyframes: Pool::new(cfg.keyframe_slots, blank_keyframe),
+            keyframes: Pool::new(cfg.keyframe_slots, || blank_keyframe(&cam)),
             // One being logged, one waiting, one to fill.
             window: WindowLog {
                 keyframes: cfg.window_keyframes,
@@ -119,8 +110,7 @@ impl Handoff {
                 Some(s) => s.get_mut(),
                 None => {
                     tracing::debug!("keyframe {id}: every keyframe buffer is held downstream; a fresh one");
-                    let cam = *tracker.camera();
-                    fresh.insert(Keyframe { index: id, t_ns: frame.t_ns, image: ImageRgb8::new(cam.width, cam.height), world_from_cam: Se3::identity(), camera: cam, inv_depth: PlaneF32::new(cam.width, cam.height), inv_depth_variance: PlaneF32::new(cam.width, cam.height) })
+                    fresh.insert(blank_keyframe(tracker.camera()))
                 }
             };
             if fill_keyframe(tracker, &frame, id, self.align.as_ref(), kf) {
@@ -132,6 +122,19 @@ impl Handoff {
             }
         }
         None
+    }
+}
+
+/// A black keyframe buffer at the camera's size.
+fn blank_keyframe(cam: &PinholeCamera) -> Keyframe {
+    Keyframe {
+        index: 0,
+        t_ns: Timestamp::from_ns(0),
+        image: ImageRgb8::new(cam.width, cam.height),
+        world_from_cam: Se3::identity(),
+        camera: *cam,
+        inv_depth: PlaneF32::new(cam.width, cam.height),
+        inv_depth_variance: PlaneF32::new(cam.width, cam.height),
     }
 }
 
