@@ -35,7 +35,9 @@ fn main() {
         let source = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let module = naga::front::wgsl::parse_str(&source)
             .unwrap_or_else(|e| panic!("\n{}", e.emit_to_string_with_path(&source, &path.display().to_string())));
-        let info = Validator::new(ValidationFlags::all(), Capabilities::IMMEDIATES)
+        let info = Validator::new(ValidationFlags::all(), Capabilities::IMMEDIATES | Capabilities::SUBGROUP)
+            .subgroup_stages(naga::valid::ShaderStages::COMPUTE)
+            .subgroup_operations(naga::valid::SubgroupOperationSet::all())
             .validate(&module)
             .unwrap_or_else(|e| panic!("\n{}", e.emit_to_string_with_path(&source, &path.display().to_string())));
         for (ep_index, ep) in module.entry_points.iter().enumerate() {

@@ -18,7 +18,7 @@ use duv::map::render::{
 };
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
-    record_adam_step, ForwardBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
+    record_adam_step, RenderBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
     SETUP_WORDS, SPLAT_FLOATS,
 };
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
@@ -811,7 +811,7 @@ fn no_vulkan_device_falls_back_to_the_cpu_reference_and_other_errors_do_not() {
     let (w, h) = (48, 32);
     let capacity = RasterCapacity { width: w, height: h, max_gaussians: 100, max_intersections: 1000 };
     let unavailable = Err(duv::gpu::GpuError::NoDevice { seen: String::new() });
-    let mut backend = ForwardBackend::from_open_result(unavailable, capacity).unwrap();
+    let mut backend = RenderBackend::from_open_result(unavailable, capacity).unwrap();
     assert!(!backend.is_vulkan());
     let cam = camera(w, h, 40.0);
     let world_from_cam = world_from_cam();
@@ -824,7 +824,7 @@ fn no_vulkan_device_falls_back_to_the_cpu_reference_and_other_errors_do_not() {
     assert_eq!(a, b, "the fallback is the CPU reference");
     // A device that exists but was asked for wrongly is an error, not a silent fallback.
     let wrong = Err(duv::gpu::GpuError::NoMatchingDevice { env: duv::gpu::DEVICE_ENV, wanted: "nope".into(), seen: "0: llvmpipe".into() });
-    match ForwardBackend::from_open_result(wrong, capacity) {
+    match RenderBackend::from_open_result(wrong, capacity) {
         Err(VulkanRenderError::Gpu(duv::gpu::GpuError::NoMatchingDevice { wanted, .. })) => assert_eq!(wanted, "nope"),
         other => panic!("expected NoMatchingDevice, got {}", if other.is_ok() { "a backend".to_string() } else { "another error".into() }),
     }

@@ -19,6 +19,8 @@ use duv::core::MediumParams;
 use duv::eval::image::{psnr, ssim, SsimConvention};
 use duv::io::png_io::write_rgb8;
 use duv::io::write_atomic;
+use duv::gpu::GpuOptions;
+use duv::map::vulkan::MapperDevice;
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
@@ -58,6 +60,12 @@ pub struct BenchMapArgs {
     /// backscatter, which only a weaker medium fits: 0 keeps the medium identifiable.
     #[arg(long, default_value_t = 0.0)]
     vignetting: f64,
+    /// Where the mapper renders (as `duv run --mapper`); the report names the renderer.
+    #[arg(long, value_enum, default_value_t = MapperDevice::Auto)]
+    mapper: MapperDevice,
+    /// GPU memory for the Vulkan mapper, MiB.
+    #[arg(long, default_value_t = 2048)]
+    gpu_mb: u32,
     /// Only these variants (comma-separated); all by default.
     #[arg(long, value_delimiter = ',')]
     only: Vec<String>,
@@ -78,6 +86,8 @@ struct RunResult {
     medium_rel_error: [[f64; 3]; 3],
     ms_per_iteration: f64,
     gaussians_over_time: Vec<(u64, usize)>,
+    /// What rendered (`Mapper::render_device`).
+    renderer: String,
 }
 
 const VARIANTS: [&str; 5] = ["full", "no_medium", "one_coefficient", "no_mahalanobis", "no_kl"];
@@ -140,6 +150,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             let cam = kfs[0].keyframe.camera;
             let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: kfs.len(), width: cam.width, height: cam.height };
             let mut mapper = Mapper::new(config, capacity)?;
+            let renderer = mapper.use_device(a.mapper, &GpuOptions::with_budget_mb(a.gpu_mb))?;
             // Keyframes arrive one by one with iterations in between, as in `duv run`.
             let per_kf = a.iterations / (2 * kfs.len() as u64).max(1);
             let mut over_time = vec![(0u64, 0usize)];
@@ -187,6 +198,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 medium_rel_error: [e(medium.beta_d, truth.beta_d), e(medium.beta_b, truth.beta_b), e(medium.b_inf, truth.b_inf)],
                 ms_per_iteration,
                 gaussians_over_time: over_time,
+                renderer,
             };
             println!(
                 "{:8} {:16} PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB  max medium rel.err {:.3}  {:.1} ms/it  {} Gaussians",
@@ -232,6 +244,9 @@ fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> 
             r.gaussians_over_time.last().map_or(0, |g| g.1)
         );
     }
+    let mut renderers: Vec<&str> = results.iter().map(|r| r.renderer.as_str()).collect();
+    renderers.dedup();
+    let _ = writeln!(md, "\nRendered with: {}", renderers.join("; "));
     write_atomic(&a.out.join("report.md"), md.as_bytes())?;
     Ok(())
 }

@@ -18,6 +18,8 @@ use duv::io::keyframes::read_keyframe_folder;
 use duv::io::png_io::write_rgb8;
 use duv::io::write_atomic;
 use duv::log::{read_log_keyframes, ReadLimits};
+use duv::gpu::GpuOptions;
+use duv::map::vulkan::MapperDevice;
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::ply::write_ply;
 use duv::map::stage::render_panel;
@@ -73,6 +75,12 @@ pub struct RefineArgs {
     /// Mapper config (TOML, `MapperConfig` fields); defaults otherwise.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Where the mapper renders (as `duv run --mapper`).
+    #[arg(long, value_enum, default_value_t = MapperDevice::Auto)]
+    mapper: MapperDevice,
+    /// GPU memory for the Vulkan mapper, MiB (every buffer is allocated from it once).
+    #[arg(long, default_value_t = 2048)]
+    gpu_mb: u32,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -150,6 +158,10 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let cam = keyframes[0].camera;
     let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: a.max_keyframes.max(keyframes.len()), width: cam.width, height: cam.height };
     let mut mapper = Mapper::new(config, capacity)?;
+    let renderer = mapper.use_device(a.mapper, &GpuOptions::with_budget_mb(a.gpu_mb))?;
+    if !a.quiet {
+        eprintln!("refine: rendering with {renderer}");
+    }
     for kf in &keyframes {
         mapper.add_keyframe(kf.clone())?;
     }

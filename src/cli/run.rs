@@ -14,7 +14,9 @@ use duv::io::pfm::write_pfm;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::camera::{open_source, CameraError, FrameSource};
 use duv::log::ReadLimits;
+use duv::gpu::GpuOptions;
 use duv::map::mapper::{MapperCapacity, MapperConfig};
+use duv::map::vulkan::MapperDevice;
 use duv::map::stage::{MappingBudget, MappingStage};
 use duv::pipeline::mapping::StageMapping;
 use duv::pipeline::{resume, MapStage, NoMapping, PipelineConfig};
@@ -96,6 +98,12 @@ pub struct RunArgs {
     /// Mapper parameters (TOML, `MapperConfig` fields); defaults otherwise.
     #[arg(long, value_name = "FILE")]
     map_config: Option<PathBuf>,
+    /// Where the mapper renders: `auto` = the Vulkan kernels on a GPU (the CPU reference when
+    /// the only Vulkan device runs on the CPU, e.g. lavapipe, unless DUV_VULKAN_DEVICE names
+    /// it), `vulkan` = the Vulkan kernels on any device, `cpu` = the CPU reference. No Vulkan
+    /// device at all: the CPU reference with one warning. GPU memory: the board's gpu_mb.
+    #[arg(long, value_enum, default_value_t = MapperDevice::Auto)]
+    pub mapper: MapperDevice,
     /// Soak test: an `mcap:` source starts over at its end until this many seconds have
     /// passed, with time stamps and sequence numbers continued (`duv bench replay`).
     #[arg(long, hide = true, value_name = "SECONDS")]
@@ -436,7 +444,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let stage = MappingStage::new(map_config, MapperCapacity::from_board(&board, camera.width, camera.height), budget)?;
         let scratch = args.out.join("checkpoints").join("map-scratch.ckpt");
         std::fs::create_dir_all(args.out.join("checkpoints"))?;
-        Box::new(StageMapping::new(stage, kf_dir.clone(), scratch, args.map_idle_iterations, args.map_final_iterations))
+        let mut mapping = StageMapping::new(stage, kf_dir.clone(), scratch, args.map_idle_iterations, args.map_final_iterations);
+        let renderer = mapping.use_device(args.mapper, GpuOptions::with_budget_mb(board.budgets.gpu_mb)).map_err(|e| anyhow::anyhow!("mapper (--mapper {:?}): {e}", args.mapper))?;
+        eprintln!("mapper renders with {renderer}");
+        Box::new(mapping)
     };
     let mut retrack = Vec::new();
     if let Some(r) = &mut resume_state {
@@ -691,6 +702,7 @@ impl RunArgs {
             map_idle_iterations: 30,
             map_final_iterations: 100,
             map_config: None,
+            mapper: MapperDevice::Auto,
             loop_for_s: None,
         }
     }

@@ -225,6 +225,16 @@ impl GpuContext {
             if !has_push {
                 continue;
             }
+            // The rasterisers share splats within a subgroup (shuffle) and leave a loop when
+            // every lane is done (vote), in compute shaders.
+            let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
+            let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup);
+            unsafe { instance.get_physical_device_properties2(physical, &mut props2) };
+            let needed_ops = vk::SubgroupFeatureFlags::BASIC | vk::SubgroupFeatureFlags::VOTE | vk::SubgroupFeatureFlags::SHUFFLE | vk::SubgroupFeatureFlags::ARITHMETIC;
+            if !subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE) || !subgroup.supported_operations.contains(needed_ops) {
+                seen.last_mut().expect("pushed above").push_str(" without compute subgroup basic/vote/shuffle/arithmetic");
+                continue;
+            }
             let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
             // Prefer a compute-only queue family, else any with compute.
             let family = families

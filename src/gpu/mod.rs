@@ -35,7 +35,7 @@ use ash::vk;
 pub enum GpuError {
     #[error("no Vulkan loader (libvulkan.so.1): {reason}")]
     NoLoader { reason: String },
-    #[error("no usable Vulkan device (compute queue, Vulkan 1.1, VK_KHR_push_descriptor); devices seen: [{seen}]")]
+    #[error("no usable Vulkan device (compute queue, Vulkan 1.1, VK_KHR_push_descriptor, compute subgroups with vote, shuffle and arithmetic); devices seen: [{seen}]")]
     NoDevice { seen: String },
     #[error("{env}={wanted} matches no usable Vulkan device; devices: [{seen}]")]
     NoMatchingDevice { env: &'static str, wanted: String, seen: String },

@@ -75,6 +75,44 @@ impl DensifyScratch {
     }
 }
 
+/// The tile-overflow policy (a render needed more tile intersections than its buffers hold):
+/// removes the `count` Gaussians with the largest axis, which cover the most tiles, with their
+/// Adam moments, and resets the gradients for the new length; returns how many went. Allocates
+/// nothing (the order lives in the scratch).
+pub fn prune_largest(
+    gaussians: &mut Gaussians,
+    grads: &mut GaussianGrads,
+    adam: &mut [AdamGroup],
+    count: usize,
+    s: &mut DensifyScratch,
+) -> Result<usize, AdamError> {
+    let n = gaussians.len();
+    let count = count.min(n);
+    if count == 0 {
+        return Ok(0);
+    }
+    let log_scale = gaussians.group(ParamGroup::LogScale);
+    s.order.clear();
+    for i in 0..n {
+        s.avg_grad[i] = log_scale[i * 3..i * 3 + 3].iter().fold(f32::MIN, |a, &b| a.max(b));
+        s.order.push(i as u32);
+        s.keep[i] = true;
+    }
+    let key = &s.avg_grad;
+    // Largest first; ties by index, so the choice is deterministic.
+    s.order.select_nth_unstable_by(count - 1, |&a, &b| key[b as usize].total_cmp(&key[a as usize]).then(a.cmp(&b)));
+    for &i in &s.order[..count] {
+        s.keep[i as usize] = false;
+    }
+    let mut kept = n;
+    for (k, g) in ParamGroup::ALL.iter().enumerate() {
+        kept = adam[k].retain(gaussians.group_mut(*g), &s.keep[..n])?;
+    }
+    gaussians.truncate(kept);
+    grads.reset(kept).map_err(|_| AdamError::CapacityExceeded { requested: kept, capacity: grads.capacity() })?;
+    Ok(n - kept)
+}
+
 /// Prunes, then clones/splits, within the map's capacity; `adam` holds one group per
 /// [`ParamGroup::ALL`] entry, in that order, aligned with the map. See the module doc.
 pub fn densify_and_prune(

@@ -20,12 +20,13 @@
 use serde::{Deserialize, Serialize};
 
 use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
-use super::densify::{densify_and_prune, DensifyParams, DensifyReport, DensifyScratch};
+use super::densify::{densify_and_prune, prune_largest, DensifyParams, DensifyReport, DensifyScratch};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
 use super::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
-use super::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput, RenderUpstream};
+use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
 use super::schedule::pick_keyframe;
+use super::vulkan::{MapperDevice, RenderBackend, VulkanRenderError};
 use crate::core::rng::Rng;
 use crate::core::alloc::prefault;
 use crate::core::{ImageRgb8, ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
@@ -49,8 +50,20 @@ pub enum MapperError {
     KeyframeSize { index: u64, width: usize, height: usize, expected_width: usize, expected_height: usize },
     #[error("no keyframe to optimise")]
     NoKeyframes,
+    /// The Vulkan device failed (the message names the kernel).
+    #[error("Vulkan mapper: {0}")]
+    Gpu(String),
     #[error("keyframe slot {slot} out of range ({count} keyframes)")]
     NoSuchKeyframe { slot: usize, count: usize },
+}
+
+impl From<VulkanRenderError> for MapperError {
+    fn from(e: VulkanRenderError) -> Self {
+        match e {
+            VulkanRenderError::Render(r) => MapperError::Render(r),
+            VulkanRenderError::Gpu(g) => MapperError::Gpu(g.to_string()),
+        }
+    }
 }
 
 /// Adam learning rates, one per parameter group.
@@ -355,7 +368,8 @@ pub struct Mapper {
     pub(crate) medium_adam: AdamGroup,
     medium_grads: Vec<f32>,
     medium_ws: MediumWorkspace,
-    raster: RasterWorkspace,
+    raster: RenderBackend,
+    raster_capacity: RasterCapacity,
     loss_ws: LossWorkspace,
     view: ViewBuffers,
     densify_scratch: DensifyScratch,
@@ -365,7 +379,28 @@ pub struct Mapper {
     spare_keyframes: Vec<MapKeyframe>,
     pub(crate) iteration: u64,
     pub(crate) rng: Rng,
+    overflow: OverflowStats,
+    /// The last render used over 90% of the intersection buffer.
+    intersections_tight: bool,
 }
+
+/// Renders that needed more tile intersections than the buffers hold, and what the policy did
+/// ([`Mapper::forward_within_capacity`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct OverflowStats {
+    /// Renders that overflowed (each followed by a prune and a new render).
+    pub events: u64,
+    /// Gaussians pruned by the policy.
+    pub pruned: u64,
+    /// Densification steps skipped because the intersection buffer was over 90% full.
+    pub densify_skipped: u64,
+    /// The largest number of intersections a view asked for, and the buffer's size.
+    pub largest_needed: u64,
+    pub capacity: usize,
+}
+
+/// Renders of one view after an overflow before the mapper reports the overflow as an error.
+pub const OVERFLOW_RETRIES: usize = 4;
 
 impl Mapper {
     /// An empty map with every buffer allocated for `capacity`.
@@ -382,12 +417,13 @@ impl Mapper {
             .collect::<Result<Vec<_>, _>>()?;
         let medium = MediumNet::new(&config.medium)?;
         let medium_adam = AdamGroup::new(AdamGroupConfig { lr: config.lr.medium, ..AdamGroupConfig::default() }, 1, medium.param_count(), medium.param_count())?;
-        let raster = RasterWorkspace::new(RasterCapacity {
+        let raster_capacity = RasterCapacity {
             width: w,
             height: h,
             max_gaussians: cap,
             max_intersections: cap.saturating_mul(config.intersections_per_gaussian).max(1024),
-        })?;
+        };
+        let raster = RenderBackend::cpu(raster_capacity, "the default until Mapper::use_device")?;
         Ok(Mapper {
             medium_grads: vec![0.0; medium.param_count()],
             medium_ws: MediumWorkspace::with_grid(&medium, w, h, config.medium.grid_step_px),
@@ -407,13 +443,43 @@ impl Mapper {
             spare_keyframes: (0..capacity.max_keyframes).map(|_| MapKeyframe::blank(w, h)).collect(),
             iteration: 0,
             rng: Rng::new(config.seed),
+            overflow: OverflowStats::default(),
+            intersections_tight: false,
             adam,
             medium,
             medium_adam,
             raster,
+            raster_capacity,
             config,
             capacity,
         })
+    }
+
+    /// Renders from now on with `device` (the map and every optimiser state stay as they are);
+    /// `gpu` sizes the GPU arena (the board's `budgets.gpu_mb`) and names the device. Returns
+    /// [`Self::render_device`]. On an error the renderer in use is kept.
+    pub fn use_device(&mut self, device: MapperDevice, gpu: &crate::gpu::GpuOptions) -> Result<String, MapperError> {
+        // The old renderer's GPU memory is released before the new one is allocated.
+        self.raster = RenderBackend::cpu(self.raster_capacity, "while switching renderers")?;
+        self.raster = RenderBackend::open(device, gpu, self.raster_capacity)?;
+        let what = self.render_device();
+        tracing::info!(renderer = %what, "map.device");
+        Ok(what)
+    }
+
+    /// The renderer in use, one line: `Vulkan on <device>` or `CPU reference (<why>)`.
+    pub fn render_device(&self) -> String {
+        self.raster.describe()
+    }
+
+    /// Whether the Vulkan kernels render this map.
+    pub fn renders_on_vulkan(&self) -> bool {
+        self.raster.is_vulkan()
+    }
+
+    /// The open Vulkan device of the renderer (kernel timings, GPU memory), if any.
+    pub fn gpu(&self) -> Option<&crate::gpu::GpuContext> {
+        self.raster.gpu()
     }
 
     pub fn config(&self) -> &MapperConfig {
@@ -505,7 +571,7 @@ impl Mapper {
     pub fn render(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<&RenderOutput, MapperError> {
         self.check_camera(u64::MAX, camera)?;
         self.medium_forward(camera, world_from_cam)?;
-        self.raster.forward(&self.gaussians, camera, &world_from_cam.inverse(), &self.view.planes, &self.config.render, &mut self.view.out)?;
+        self.forward_within_capacity(camera, &world_from_cam.inverse())?;
         Ok(&self.view.out)
     }
 
@@ -646,9 +712,9 @@ impl Mapper {
         let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
         let (camera, pose) = (kf.kf.camera, kf.kf.world_from_cam);
         self.medium_forward(&camera, &pose)?;
+        self.forward_within_capacity(&camera, &pose.inverse())?;
         let kf = &self.keyframes[slot];
         let v = &mut self.view;
-        self.raster.forward(&self.gaussians, &camera, &pose.inverse(), &v.planes, &self.config.render, &mut v.out)?;
         let rendered = RenderedView { color: &v.out.colour, depth: &v.out.depth, depth_variance: &v.out.depth_var, alpha: &v.out.alpha, medium: Some(&v.planes9) };
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
         let loss = total_loss(&mut self.loss_ws, &self.config.loss, &rendered, &target)?;
@@ -684,12 +750,57 @@ impl Mapper {
         }
         self.iteration += 1;
         let cfg = &self.config;
-        let densify = if cfg.optimise_gaussians && cfg.densify_every > 0 && self.iteration >= cfg.densify_start && self.iteration % cfg.densify_every == 0 {
+        let due = cfg.optimise_gaussians && cfg.densify_every > 0 && self.iteration >= cfg.densify_start && self.iteration % cfg.densify_every == 0;
+        // Overflow policy: no densification while the last render left under 10% of the
+        // intersection buffer free (pruning still happens through the overflow path).
+        let densify = if due && self.intersections_tight {
+            self.overflow.densify_skipped += 1;
+            None
+        } else if due {
             Some(self.densify_and_prune()?)
         } else {
             None
         };
         Ok(IterationReport { iteration: self.iteration, keyframe: self.keyframes[slot].kf.index, loss, psnr_db, gaussians: self.gaussians.len(), densify })
+    }
+
+    /// The forward render of the current map into the view buffers, with the tile-overflow
+    /// policy: when the view needs more tile intersections than the renderer's buffers hold
+    /// (sized once from the Gaussian cap x `intersections_per_gaussian`), the Gaussians with
+    /// the largest axis are pruned, enough for the reported need plus 5%, and the view is
+    /// rendered again (up to [`OVERFLOW_RETRIES`] times); densification waits while the buffer
+    /// stays over 90% full. No buffer is ever reallocated. Counted in [`Self::overflow_stats`].
+    fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3) -> Result<RenderStats, MapperError> {
+        let mut tries = 0;
+        loop {
+            let v = &mut self.view;
+            match self.raster.forward(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out) {
+                Ok(stats) => {
+                    self.intersections_tight = stats.intersections * 10 > self.raster_capacity.max_intersections * 9;
+                    return Ok(stats);
+                }
+                Err(VulkanRenderError::Render(RenderError::TileOverflow { needed, capacity })) if tries < OVERFLOW_RETRIES && !self.gaussians.is_empty() => {
+                    tries += 1;
+                    let n = self.gaussians.len();
+                    let share = (1.0 - capacity as f64 / needed.max(1) as f64 + 0.05).clamp(0.01, 1.0);
+                    let count = ((n as f64 * share).ceil() as usize).clamp(1, n);
+                    let pruned = prune_largest(&mut self.gaussians, &mut self.grads, &mut self.adam, count, &mut self.densify_scratch)?;
+                    self.intersections_tight = true;
+                    let o = &mut self.overflow;
+                    o.events += 1;
+                    o.pruned += pruned as u64;
+                    o.largest_needed = o.largest_needed.max(needed);
+                    o.capacity = capacity;
+                    tracing::warn!(needed, capacity, pruned, "map: tile intersections overflow; pruned the largest Gaussians, densification paused");
+                }
+                Err(e) => return Err(e.into()),
+            }
+        }
+    }
+
+    /// What the tile-overflow policy has done so far.
+    pub fn overflow_stats(&self) -> OverflowStats {
+        self.overflow
     }
 
     /// Prunes and densifies now (see [`densify_and_prune`]) and resets the medium's Adam

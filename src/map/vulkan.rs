@@ -19,7 +19,8 @@
 //! does, [`GpuRenderer`] the forward and the backward as `RasterWorkspace::{forward,
 //! backward}` do (one submission for the backward). No kernel uses float atomics (the backward writes one gradient per intersection and
 //! sums them per Gaussian), so results are bit-identical from run to run on one device.
-//! [`ForwardBackend`] is the CPU fallback when no Vulkan device exists.
+//! [`RenderBackend`] is what the mapper renders with: these stages, or the CPU reference
+//! ([`MapperDevice`] chooses; no Vulkan device at all falls back with one warning).
 
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
@@ -909,40 +910,101 @@ impl GpuRenderer {
     }
 }
 
-/// Where the forward render runs: the Vulkan kernels, or the CPU reference when no Vulkan
-/// device exists at all (one warning when that is decided).
-pub enum ForwardBackend {
-    Vulkan { ctx: Box<GpuContext>, renderer: Box<GpuForwardRenderer> },
-    Cpu(Box<crate::map::render::RasterWorkspace>),
+/// Which renderer the mapper uses (`duv run --mapper`, `duv refine --mapper`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum MapperDevice {
+    /// The Vulkan kernels on a GPU; the CPU reference when the only device is a CPU
+    /// implementation such as lavapipe (slower there than the reference) unless
+    /// `DUV_VULKAN_DEVICE` names it, or when there is no Vulkan at all (one warning).
+    #[default]
+    Auto,
+    /// The Vulkan kernels on whatever device is chosen, lavapipe included; the CPU reference
+    /// only when there is no Vulkan device at all (one warning).
+    Vulkan,
+    /// The CPU reference (`map::render::RasterWorkspace`).
+    Cpu,
 }
 
-impl ForwardBackend {
-    /// Opens the device with `options` and allocates the renderer; no Vulkan loader or device
-    /// gives the CPU reference with one warning, any other failure is an error.
-    pub fn open(options: &crate::gpu::GpuOptions, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
-        Self::from_open_result(GpuContext::new(options), capacity)
+/// Where the mapper's forward and backward render runs: the Vulkan kernels
+/// ([`GpuRenderer`]) or the CPU reference ([`crate::map::render::RasterWorkspace`]), chosen
+/// once by [`RenderBackend::open`]; the same calls, the same checks and errors either way.
+pub enum RenderBackend {
+    Vulkan { ctx: Box<GpuContext>, renderer: Box<GpuRenderer> },
+    Cpu { ws: Box<crate::map::render::RasterWorkspace>, why: String },
+}
+
+impl RenderBackend {
+    /// The CPU reference, for `why` (shown by [`Self::describe`]).
+    pub fn cpu(capacity: RasterCapacity, why: &str) -> Result<Self, RenderError> {
+        Ok(RenderBackend::Cpu { ws: Box::new(crate::map::render::RasterWorkspace::new(capacity)?), why: why.to_string() })
     }
 
-    /// The fallback policy of [`ForwardBackend::open`], for a given outcome of opening the device.
+    /// Opens the renderer `choice` asks for with `options` (arena = the board's GPU budget)
+    /// and allocates every buffer for `capacity`. No Vulkan loader or device gives the CPU
+    /// reference with one warning; any other device failure (a `DUV_VULKAN_DEVICE` that
+    /// matches nothing, the buffers not fitting the GPU budget) is an error.
+    pub fn open(choice: MapperDevice, options: &crate::gpu::GpuOptions, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
+        match choice {
+            MapperDevice::Cpu => Ok(Self::cpu(capacity, "--mapper cpu")?),
+            MapperDevice::Vulkan => Self::from_open_result(GpuContext::new(options), capacity),
+            MapperDevice::Auto => {
+                let picked = options.device.is_some() || std::env::var_os(crate::gpu::DEVICE_ENV).is_some();
+                let backend = Self::from_open_result(GpuContext::new(options), capacity)?;
+                match &backend {
+                    RenderBackend::Vulkan { ctx, .. } if ctx.info().device_type == "CPU" && !picked => {
+                        let why = format!(
+                            "the only Vulkan device, {}, runs on the CPU, where the CPU reference is faster (--mapper vulkan or {} selects it)",
+                            ctx.info().name,
+                            crate::gpu::DEVICE_ENV
+                        );
+                        tracing::info!("map: {why}");
+                        drop(backend);
+                        Ok(Self::cpu(capacity, &why)?)
+                    }
+                    _ => Ok(backend),
+                }
+            }
+        }
+    }
+
+    /// The fallback policy of [`RenderBackend::open`], for a given outcome of opening the device.
     pub fn from_open_result(opened: Result<GpuContext, GpuError>, capacity: RasterCapacity) -> Result<Self, VulkanRenderError> {
         match opened {
             Ok(mut ctx) => {
-                let renderer = GpuForwardRenderer::new(&mut ctx, capacity)?;
-                Ok(ForwardBackend::Vulkan { ctx: Box::new(ctx), renderer: Box::new(renderer) })
+                let renderer = GpuRenderer::new(&mut ctx, capacity)?;
+                Ok(RenderBackend::Vulkan { ctx: Box::new(ctx), renderer: Box::new(renderer) })
             }
             Err(e) if e.is_unavailable() => {
-                tracing::warn!("map: {e}; rendering on the CPU reference instead of Vulkan");
-                Ok(ForwardBackend::Cpu(Box::new(crate::map::render::RasterWorkspace::new(capacity)?)))
+                let why = format!("{e}; rendering on the CPU reference instead of Vulkan");
+                tracing::warn!("map: {why}");
+                Ok(Self::cpu(capacity, &why)?)
             }
             Err(e) => Err(e.into()),
         }
     }
 
     pub fn is_vulkan(&self) -> bool {
-        matches!(self, ForwardBackend::Vulkan { .. })
+        matches!(self, RenderBackend::Vulkan { .. })
     }
 
-    /// One forward render on whichever backend this is.
+    /// One line for the operator: the device, or the CPU reference and why.
+    pub fn describe(&self) -> String {
+        match self {
+            RenderBackend::Vulkan { ctx, .. } => format!("Vulkan on {}", ctx.info()),
+            RenderBackend::Cpu { why, .. } => format!("CPU reference ({why})"),
+        }
+    }
+
+    /// The open device, when this is the Vulkan renderer (profile, arena figures).
+    pub fn gpu(&self) -> Option<&GpuContext> {
+        match self {
+            RenderBackend::Vulkan { ctx, .. } => Some(ctx),
+            RenderBackend::Cpu { .. } => None,
+        }
+    }
+
+    /// One forward render ([`GpuRenderer::forward`] / `RasterWorkspace::forward`).
     pub fn forward(
         &mut self,
         gaussians: &Gaussians,
@@ -953,8 +1015,25 @@ impl ForwardBackend {
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
         match self {
-            ForwardBackend::Vulkan { ctx, renderer } => renderer.forward(ctx, gaussians, camera, cam_from_world, medium, config, out),
-            ForwardBackend::Cpu(ws) => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+            RenderBackend::Vulkan { ctx, renderer } => renderer.forward(ctx, gaussians, camera, cam_from_world, medium, config, out),
+            RenderBackend::Cpu { ws, .. } => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+        }
+    }
+
+    /// The backward of the last forward ([`GpuRenderer::backward`] /
+    /// `RasterWorkspace::backward`): adds into `grads`, overwrites `medium_grads`.
+    pub fn backward(
+        &mut self,
+        gaussians: &Gaussians,
+        medium: &MediumPlanes,
+        out: &RenderOutput,
+        upstream: &RenderUpstream,
+        grads: &mut GaussianGrads,
+        medium_grads: &mut MediumPlanes,
+    ) -> Result<(), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.backward(ctx, gaussians, medium, out, upstream, grads, medium_grads),
+            RenderBackend::Cpu { ws, .. } => Ok(ws.backward(gaussians, medium, out, upstream, grads, medium_grads)?),
         }
     }
 }

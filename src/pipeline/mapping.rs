@@ -15,7 +15,9 @@ use super::MapStage;
 use crate::core::{Keyframe, Se3};
 use crate::io::pfm::write_pfm;
 use crate::io::png_io::write_rgb8;
+use crate::gpu::GpuOptions;
 use crate::map::stage::{MappingBudget, MappingStage};
+use crate::map::vulkan::MapperDevice;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -31,6 +33,8 @@ pub struct StageMapping {
     fed: usize,
     dirty: bool,
     time: Duration,
+    /// The renderer asked for, applied again to a stage rebuilt by `restore`.
+    device: Option<(MapperDevice, GpuOptions)>,
 }
 
 impl StageMapping {
@@ -38,7 +42,15 @@ impl StageMapping {
     /// checkpoint bytes pass through.
     pub fn new(stage: MappingStage, keyframe_dir: PathBuf, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
         let budget = stage.budget();
-        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO }
+        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None }
+    }
+
+    /// Renders with `device` from now on, also after a `restore` (see
+    /// [`crate::map::mapper::Mapper::use_device`]); the renderer in use, one line.
+    pub fn use_device(&mut self, device: MapperDevice, gpu: GpuOptions) -> Result<String, String> {
+        let what = self.stage.mapper_mut().use_device(device, &gpu).map_err(|e| e.to_string())?;
+        self.device = Some((device, gpu));
+        Ok(what)
     }
 
     pub fn stage(&self) -> &MappingStage {
@@ -100,7 +112,13 @@ impl MapStage for StageMapping {
 
     fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
         crate::io::write_atomic(&self.scratch, bytes).map_err(|e| e.to_string())?;
-        self.stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
+        let mut stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
+        if let Some((device, gpu)) = &self.device {
+            // The old stage gives its GPU memory back before the restored one takes it.
+            self.stage.mapper_mut().use_device(MapperDevice::Cpu, gpu).map_err(|e| e.to_string())?;
+            stage.mapper_mut().use_device(*device, gpu).map_err(|e| e.to_string())?;
+        }
+        self.stage = stage;
         self.fed = self.stage.mapper().keyframe_count();
         Ok(())
     }

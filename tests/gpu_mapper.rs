@@ -1,0 +1,154 @@
+//! The whole mapper on the Vulkan renderer (`Mapper::use_device`) against the same mapper on
+//! the CPU reference: a whole optimisation run on a generated sequence, bit-identical repeat
+//! runs, and the tile-overflow policy on both renderers. Runs on lavapipe in CI; no Vulkan
+//! device fails these tests (the mapper would fall back to the CPU, which they check for).
+
+use duv::gpu::GpuOptions;
+use duv::map::gaussians::{GaussianParam, Gaussians};
+use duv::map::mapper::{psnr_db, Mapper, MapperCapacity, MapperConfig};
+use duv::map::vulkan::MapperDevice;
+use duv::sim::keyframes::{sim_keyframes, SimKeyframe};
+use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+
+const W: usize = 96;
+const H: usize = 72;
+
+fn sequence(water: WaterPreset) -> Vec<SimKeyframe> {
+    let mut cfg = SimConfig::preset(water, TrajectoryKind::Survey);
+    cfg.width = W;
+    cfg.height = H;
+    cfg.frames = 16;
+    let r = SimRenderer::new(&cfg).expect("sim");
+    sim_keyframes(&r, 4, 8)
+}
+
+fn gpu_options() -> GpuOptions {
+    // The sim board's GPU budget.
+    GpuOptions::with_budget_mb(512)
+}
+
+/// A mapper on `device` with the keyframes added (the Vulkan one must really be on Vulkan).
+fn mapper_on(device: MapperDevice, config: MapperConfig, kfs: &[SimKeyframe], max_gaussians: usize) -> Mapper {
+    let mut m = Mapper::new(config, MapperCapacity { max_gaussians, max_keyframes: 8, width: W, height: H }).unwrap();
+    let what = m.use_device(device, &gpu_options()).unwrap();
+    if device == MapperDevice::Vulkan {
+        assert!(m.renders_on_vulkan(), "no Vulkan device: the mapper fell back to {what}");
+    } else {
+        assert!(!m.renders_on_vulkan());
+    }
+    for k in kfs {
+        m.add_keyframe(k.keyframe.clone()).unwrap();
+    }
+    m
+}
+
+fn mean_psnr(m: &mut Mapper) -> f64 {
+    let n = m.keyframe_count();
+    let mut s = 0.0;
+    for i in 0..n {
+        let img = m.keyframe(i).unwrap().image.to_rgb_f32();
+        let out = m.render_keyframe(i).unwrap();
+        s += psnr_db(&out.colour, &img);
+    }
+    s / n as f64
+}
+
+fn map_bits(g: &Gaussians) -> Vec<u32> {
+    (0..g.len()).flat_map(|i| g.get(i).to_array()).map(f32::to_bits).collect()
+}
+
+#[test]
+fn vulkan_mapper_ends_within_0_2_db_of_the_cpu_mapper() {
+    let kfs = sequence(WaterPreset::Turbid);
+    let config = MapperConfig { densify_every: 40, densify_start: 40, ..MapperConfig::default() };
+    let iterations = 160;
+    let mut results = Vec::new();
+    for device in [MapperDevice::Cpu, MapperDevice::Vulkan] {
+        let mut m = mapper_on(device, config.clone(), &kfs, 6000);
+        let seeded = m.gaussians().len();
+        let before = mean_psnr(&mut m);
+        let t = std::time::Instant::now();
+        for _ in 0..iterations {
+            m.iterate().unwrap();
+        }
+        let elapsed = t.elapsed();
+        let after = mean_psnr(&mut m);
+        eprintln!(
+            "{:?} ({}): {seeded} Gaussians seeded, PSNR {before:.3} -> {after:.3} dB in {iterations} iterations ({:.1} ms/it), {} Gaussians",
+            device,
+            m.render_device(),
+            elapsed.as_secs_f64() * 1e3 / iterations as f64,
+            m.gaussians().len()
+        );
+        if let Some(ctx) = m.gpu() {
+            for (k, d, ms) in ctx.profile().rows() {
+                eprintln!("    {:<48} {:8.3} ms per iteration ({} dispatches)", k.name(), ms / iterations as f64, d / iterations as u64);
+            }
+        }
+        results.push((seeded, before, after));
+    }
+    let (cpu, gpu) = (results[0], results[1]);
+    assert_eq!(cpu.0, gpu.0, "both renderers seed the same map from the keyframes");
+    assert!((cpu.1 - gpu.1).abs() < 0.01, "the seeded maps render alike: CPU {:.3} dB, Vulkan {:.3} dB", cpu.1, gpu.1);
+    assert!(cpu.2 > cpu.1 + 1.0, "the CPU run must improve the map: {:.2} -> {:.2} dB", cpu.1, cpu.2);
+    assert!((cpu.2 - gpu.2).abs() <= 0.2, "after {iterations} iterations: CPU {:.3} dB, Vulkan {:.3} dB", cpu.2, gpu.2);
+}
+
+#[test]
+fn vulkan_mapper_runs_are_bit_identical() {
+    let kfs = sequence(WaterPreset::Coastal);
+    let config = MapperConfig { densify_every: 10, densify_start: 10, ..MapperConfig::default() };
+    let mut maps = Vec::new();
+    for _ in 0..2 {
+        let mut m = mapper_on(MapperDevice::Vulkan, config.clone(), &kfs, 3000);
+        for _ in 0..25 {
+            m.iterate().unwrap();
+        }
+        let medium: Vec<u32> = m.medium().params().iter().map(|v| v.to_bits()).collect();
+        maps.push((map_bits(m.gaussians()), medium, m.gaussians().len()));
+    }
+    assert!(maps[0].2 > 0);
+    assert_eq!(maps[0].2, maps[1].2, "Gaussian counts differ");
+    assert!(maps[0].0 == maps[1].0, "two Vulkan runs gave different maps");
+    assert!(maps[0].1 == maps[1].1, "two Vulkan runs gave different medium weights");
+}
+
+/// Large Gaussians right in front of the camera, with an intersection buffer of one per
+/// Gaussian (the 1024 floor): every render overflows until the policy has pruned enough.
+#[test]
+fn tile_overflow_prunes_instead_of_failing_on_both_renderers() {
+    let kfs = sequence(WaterPreset::Clear);
+    let config = MapperConfig { intersections_per_gaussian: 1, densify_every: 5, densify_start: 5, ..MapperConfig::default() };
+    for device in [MapperDevice::Cpu, MapperDevice::Vulkan] {
+        let mut m = mapper_on(device, config.clone(), &kfs[..1], 2000);
+        let pose = kfs[0].keyframe.world_from_cam;
+        let mut big = Gaussians::with_capacity(2000);
+        for i in 0..2000 {
+            let (u, v) = ((i % 50) as f64 / 50.0 - 0.5, (i / 50) as f64 / 40.0 - 0.5);
+            let p = pose.transform_point(&nalgebra::Point3::new(u * 2.0, v * 1.5, 1.5 + (i % 7) as f64 * 0.1));
+            big.push(&GaussianParam {
+                mean: [p.x as f32, p.y as f32, p.z as f32],
+                log_scale: [(0.05f32 + 0.1 * (i % 5) as f32).ln(); 3],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                opacity_logit: 0.0,
+                f_dc: [0.5; 3],
+                f_rest: [0.0; 9],
+            })
+            .unwrap();
+        }
+        m.set_gaussians(&big).unwrap();
+        for _ in 0..12 {
+            m.iterate().unwrap_or_else(|e| panic!("{device:?}: an overflow must be handled, got {e}"));
+        }
+        let o = m.overflow_stats();
+        eprintln!("{device:?}: {o:?}, {} Gaussians left", m.gaussians().len());
+        assert!(o.events >= 1, "{device:?}: the scene must overflow the buffer: {o:?}");
+        assert!(o.largest_needed > o.capacity as u64);
+        assert_eq!(o.capacity, 2000, "2000 Gaussians x 1 intersection");
+        assert!(o.pruned > 0 && m.gaussians().len() < 2000, "{device:?}: pruned {}", o.pruned);
+        assert!(m.gaussians().len() > 0, "{device:?}: pruned everything");
+        // The map now renders within the buffer.
+        m.render_keyframe(0).unwrap();
+        assert_eq!(m.overflow_stats().events, o.events, "{device:?}: a render after the policy overflowed again");
+    }
+}
