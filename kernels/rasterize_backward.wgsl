@@ -1,15 +1,19 @@
 // Rasterisation backward with the underwater medium (CPU reference: `rasterize_backward` /
 // `backprop_pixel` and `reduce_isect_grads`, src/map/render/raster_bwd.rs, the same
-// arithmetic in the same order).
+// per-pixel arithmetic in the same order).
 //
-// `rasterize_backward`: one workgroup per 16x16 tile, one thread per pixel. The tile's sorted
-// splats are walked back to front (staged through workgroup memory 256 at a time); each
-// thread back-propagates its pixel through the splats it blended in the forward pass
-// (`start .. isect_end`), recovering the transmittance from the stored final T. For every
-// intersection of the tile, the workgroup sums its pixels' contributions in workgroup memory
-// (fixed order: 16 rows of 16 pixels each, then the 16 row sums) and writes one SplatGrad per
-// sorted intersection, so no float atomics are used and the result is deterministic. Each
-// pixel writes the gradient with respect to its medium parameters.
+// `rasterize_backward`: one workgroup per 16x16 tile, one thread per pixel (row-major in the
+// tile). The tile's sorted splats are walked back to front, `sg` (the subgroup size) at a
+// time: lane l loads splat `base + l` and the subgroup shares them by `subgroupShuffle`, as
+// the forward does. Each thread back-propagates its pixel through the splats it blended in
+// the forward pass (`start .. isect_end`), recovering the transmittance from the stored final
+// T. Per intersection, the 13 contributions (12 gradient floats and the pixel count) are
+// summed within the subgroup (`subgroupAdd`) and each subgroup's sums go to workgroup memory;
+// after each step of `sg` intersections one barrier, then the subgroups' sums are added in
+// subgroup order and one SplatGrad per sorted intersection is written. No float atomics, a
+// fixed order on a given device: repeated runs are bit-identical. Two barriers per `sg`
+// intersections (before: three per intersection, which dominated on lavapipe). Each pixel
+// writes the gradient with respect to its medium parameters.
 //
 // `reduce_isect_grads`: one thread per Gaussian sums its intersections' partials, found
 // through the inverse sort permutation.
@@ -18,7 +22,6 @@
 // conic (3), opacity, colour (3), z, mean2d_densify (2); `partial_pixels` the pixel count.
 
 const TILE: u32 = 16u;
-const BATCH: u32 = 256u;
 const SPLAT_FLOATS: u32 = 11u;
 const GRAD_FLOATS: u32 = 12u;
 // Reduced values per intersection: the 12 floats and the pixel count.
@@ -60,32 +63,26 @@ var<immediate> params: RasterParams;
 @group(0) @binding(14) var<storage, read_write> grad_sigma_att: array<f32>;
 @group(0) @binding(15) var<storage, read_write> grad_sigma_bs: array<f32>;
 
-struct Splat {
-    mean2d: vec2<f32>,
-    conic: vec3<f32>,
-    z: f32,
-    opacity: f32,
-    colour: vec3<f32>,
-    q_max: f32,
+// A projected splat as three vectors (what one shuffle moves):
+// a = (mean2d.x, mean2d.y, conic.x, conic.y), b = (conic.z, z, opacity, q_max), c = (colour, 0).
+struct SplatVecs {
+    a: vec4<f32>,
+    b: vec4<f32>,
+    c: vec4<f32>,
 }
 
-var<workgroup> batch: array<Splat, 256>;
-// Contributions of the 256 pixels to one intersection, value-major: red[v * 256 + pixel].
+// Per subgroup and intersection of the current step, the 13 subgroup sums:
+// red[(subgroup * sg + j) * RED_VALUES + v] (256 x 13 floats for any subgroup size).
 var<workgroup> red: array<f32, 3328>;
-// Row sums: row_sums[v * 16 + row].
-var<workgroup> row_sums: array<f32, 208>;
 var<workgroup> wg_start: u32;
 var<workgroup> wg_stop: u32;
 
-fn load_splat(g: u32) -> Splat {
+fn load_splat_vecs(g: u32) -> SplatVecs {
     let o = g * SPLAT_FLOATS;
-    var s: Splat;
-    s.mean2d = vec2<f32>(splats[o], splats[o + 1u]);
-    s.conic = vec3<f32>(splats[o + 2u], splats[o + 3u], splats[o + 4u]);
-    s.z = splats[o + 5u];
-    s.opacity = splats[o + 6u];
-    s.colour = vec3<f32>(splats[o + 7u], splats[o + 8u], splats[o + 9u]);
-    s.q_max = splats[o + 10u];
+    var s: SplatVecs;
+    s.a = vec4<f32>(splats[o], splats[o + 1u], splats[o + 2u], splats[o + 3u]);
+    s.b = vec4<f32>(splats[o + 4u], splats[o + 5u], splats[o + 6u], splats[o + 10u]);
+    s.c = vec4<f32>(splats[o + 7u], splats[o + 8u], splats[o + 9u], 0.0);
     return s;
 }
 
@@ -103,12 +100,13 @@ fn depth_value_dz(z: f32) -> f32 {
     return 1.0;
 }
 
-@compute @workgroup_size(16, 16)
-fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
-                      @builtin(local_invocation_index) t_index: u32) {
+@compute @workgroup_size(256)
+fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
+                      @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32,
+                      @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
     let tile = wg.y * params.tiles_x + wg.x;
-    let x = wg.x * TILE + lid.x;
-    let y = wg.y * TILE + lid.y;
+    let x = wg.x * TILE + t_index % TILE;
+    let y = wg.y * TILE + t_index / TILE;
     let inside = x < params.width && y < params.height;
     let fx = f32(x);
     let fy = f32(y);
@@ -128,7 +126,7 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
         wg_start = tile_offsets[tile];
         wg_stop = tile_offsets[tile + 1u];
     }
-    // Uniform across the workgroup, so the loops' barriers are in uniform control flow.
+    // Uniform across the workgroup, so the loop's barriers are in uniform control flow.
     let start = workgroupUniformLoad(&wg_start);
     let stop = workgroupUniformLoad(&wg_stop);
     // Clamped to the tile's range, as the CPU reference does.
@@ -147,16 +145,18 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
 
     var batch_end = stop;
     while (batch_end > start) {
-        let count = min(BATCH, batch_end - start);
+        let count = min(sg, batch_end - start);
         let base = batch_end - count;
-        workgroupBarrier();
-        if (t_index < count) {
-            batch[t_index] = load_splat(sorted_gaussian[base + t_index]);
+        var own: SplatVecs;
+        if (lane < count) {
+            own = load_splat_vecs(sorted_gaussian[base + lane]);
         }
-        workgroupBarrier();
         for (var jj = 0u; jj < count; jj = jj + 1u) {
             let j = count - 1u - jj;
             let k = base + j;
+            let va = subgroupShuffle(own.a, j);
+            let vb = subgroupShuffle(own.b, j);
+            let vc = subgroupShuffle(own.c, j);
             // This pixel's contribution to intersection k (zero unless blended there).
             var c_mean2d = vec2<f32>(0.0);
             var c_conic = vec3<f32>(0.0);
@@ -166,16 +166,18 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
             var c_densify = vec2<f32>(0.0);
             var c_pixels = 0.0;
             if (inside && k < end) {
-                let s = batch[j];
-                let dx = fx - s.mean2d.x;
-                let dy = fy - s.mean2d.y;
-                let q = s.conic.x * dx * dx + 2.0 * s.conic.y * dx * dy + s.conic.z * dy * dy;
-                var hit = q <= s.q_max * 1.0001 + 1e-3;
+                let conic = vec3<f32>(va.z, va.w, vb.x);
+                let z = vb.y;
+                let opacity = vb.z;
+                let dx = fx - va.x;
+                let dy = fy - va.y;
+                let q = conic.x * dx * dx + 2.0 * conic.y * dx * dy + conic.z * dy * dy;
+                var hit = q <= vb.w * 1.0001 + 1e-3;
                 var gauss = 0.0;
                 var raw = 0.0;
                 if (hit) {
                     gauss = exp(-0.5 * q);
-                    raw = s.opacity * gauss;
+                    raw = opacity * gauss;
                     hit = raw >= ALPHA_MIN;
                 }
                 if (hit) {
@@ -187,14 +189,14 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
                     let one_minus = 1.0 - alpha;
                     t = t / one_minus;
                     let w = t * alpha;
-                    let range_m = s.z * ray_norm;
+                    let range_m = z * ray_norm;
                     c_pixels = 1.0;
                     var value = 0.0;
                     var g_range = 0.0;
                     for (var c = 0u; c < 3u; c = c + 1u) {
                         let e_att = exp(-m_att[c] * range_m);
                         let e_bs = exp(-m_bs[c] * range_m);
-                        let col = s.colour[c];
+                        let col = vc[c];
                         value = value + (up_c[c] * (col * e_att - m_c[c] * e_bs) + up_r[c] * col);
                         c_colour[c] = w * (up_c[c] * e_att + up_r[c]);
                         g_range = g_range + w * up_c[c] * (m_bs[c] * m_c[c] * e_bs - m_att[c] * col * e_att);
@@ -202,64 +204,68 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
                         g_att[c] = g_att[c] - up_c[c] * w * col * range_m * e_att;
                         g_bs[c] = g_bs[c] + up_c[c] * w * m_c[c] * range_m * e_bs;
                     }
-                    let d = depth_value(s.z);
+                    let d = depth_value(z);
                     let dd = d - state.x;
                     value = value + ((up_s.x * dd + up_s.y * (dd * dd - state.y)) * inv_w + up_s.z);
                     let g_d = w * (up_s.x + 2.0 * up_s.y * dd) * inv_w;
-                    c_z = g_range * ray_norm + g_d * depth_value_dz(s.z);
+                    c_z = g_range * ray_norm + g_d * depth_value_dz(z);
                     let g_alpha = t * value - behind / one_minus;
                     behind = behind + w * value;
                     if (!clamped) {
                         c_opacity = g_alpha * gauss;
                         let g_q = -0.5 * alpha * g_alpha;
                         c_conic = vec3<f32>(g_q * dx * dx, g_q * 2.0 * dx * dy, g_q * dy * dy);
-                        c_mean2d = vec2<f32>(-2.0 * g_q * (s.conic.x * dx + s.conic.y * dy),
-                                             -2.0 * g_q * (s.conic.y * dx + s.conic.z * dy));
+                        c_mean2d = vec2<f32>(-2.0 * g_q * (conic.x * dx + conic.y * dy),
+                                             -2.0 * g_q * (conic.y * dx + conic.z * dy));
                         let scale = exp(min(sigma_med * range_m, MAX_DENSIFY_EXPONENT));
                         c_densify = c_mean2d * scale;
                     }
                 }
             }
-            red[t_index] = c_mean2d.x;
-            red[256u + t_index] = c_mean2d.y;
-            red[512u + t_index] = c_conic.x;
-            red[768u + t_index] = c_conic.y;
-            red[1024u + t_index] = c_conic.z;
-            red[1280u + t_index] = c_opacity;
-            red[1536u + t_index] = c_colour.x;
-            red[1792u + t_index] = c_colour.y;
-            red[2048u + t_index] = c_colour.z;
-            red[2304u + t_index] = c_z;
-            red[2560u + t_index] = c_densify.x;
-            red[2816u + t_index] = c_densify.y;
-            red[3072u + t_index] = c_pixels;
-            workgroupBarrier();
-            // Row sums: thread v * 16 + row sums the 16 pixels of one row for value v.
-            if (t_index < RED_VALUES * TILE) {
-                let v = t_index / TILE;
-                let row = t_index % TILE;
-                let o = v * 256u + row * TILE;
-                var acc = 0.0;
-                for (var p = 0u; p < TILE; p = p + 1u) {
-                    acc = acc + red[o + p];
-                }
-                row_sums[t_index] = acc;
-            }
-            workgroupBarrier();
-            // Thread v sums the 16 rows of value v and writes it (read before the next
-            // intersection's row sums, which follow a barrier).
-            if (t_index < RED_VALUES) {
-                var acc = 0.0;
-                for (var r = 0u; r < TILE; r = r + 1u) {
-                    acc = acc + row_sums[t_index * TILE + r];
-                }
-                if (t_index < GRAD_FLOATS) {
-                    partials[k * GRAD_FLOATS + t_index] = acc;
-                } else {
-                    partial_pixels[k] = u32(acc);
-                }
+            // Subgroup sums (every lane takes part), written by lane 0.
+            let s_mean2d = subgroupAdd(c_mean2d);
+            let s_conic = subgroupAdd(c_conic);
+            let s_opacity = subgroupAdd(c_opacity);
+            let s_colour = subgroupAdd(c_colour);
+            let s_z = subgroupAdd(c_z);
+            let s_densify = subgroupAdd(c_densify);
+            let s_pixels = subgroupAdd(c_pixels);
+            if (lane == 0u) {
+                let o = (sg_id * sg + j) * RED_VALUES;
+                red[o] = s_mean2d.x;
+                red[o + 1u] = s_mean2d.y;
+                red[o + 2u] = s_conic.x;
+                red[o + 3u] = s_conic.y;
+                red[o + 4u] = s_conic.z;
+                red[o + 5u] = s_opacity;
+                red[o + 6u] = s_colour.x;
+                red[o + 7u] = s_colour.y;
+                red[o + 8u] = s_colour.z;
+                red[o + 9u] = s_z;
+                red[o + 10u] = s_densify.x;
+                red[o + 11u] = s_densify.y;
+                red[o + 12u] = s_pixels;
             }
         }
+        workgroupBarrier();
+        // Thread j * 13 + v adds value v of intersection base + j over the subgroups, in
+        // subgroup order.
+        if (t_index < count * RED_VALUES) {
+            let j = t_index / RED_VALUES;
+            let v = t_index % RED_VALUES;
+            var acc = 0.0;
+            for (var g = 0u; g < sg_count; g = g + 1u) {
+                acc = acc + red[(g * sg + j) * RED_VALUES + v];
+            }
+            let k = base + j;
+            if (v < GRAD_FLOATS) {
+                partials[k * GRAD_FLOATS + v] = acc;
+            } else {
+                partial_pixels[k] = u32(acc);
+            }
+        }
+        // The sums are read before the next step writes them.
+        workgroupBarrier();
         batch_end = base;
     }
     if (inside) {

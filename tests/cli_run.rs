@@ -41,6 +41,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     assert!(stdout.contains("frames/s") && stdout.contains("per frame: flow"), "{stdout}");
     assert!(stdout.contains("ATE RMSE"), "{stdout}");
     assert!(stderr.contains("tracking"), "state changes on stderr: {stderr}");
+    assert!(stderr.contains("mapper renders with "), "the renderer is named: {stderr}");
 
     let traj = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
     let poses = duv::io::tum::read_trajectory(&out.join("trajectory.txt")).unwrap();
@@ -85,10 +86,10 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let panel = read_image(&renders[0]).unwrap();
     assert_eq!((panel.width(), panel.height()), (5 * 160, 120), "input | render | restored | depth | uncertainty");
 
-    // Offshore refinement reads the finished run.
+    // Offshore refinement reads the finished run, on the Vulkan mapper (lavapipe in CI).
     let refined = dir.path().join("refined");
     let res = duv()
-        .args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--quiet"])
+        .args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--quiet", "--mapper", "vulkan", "--gpu-mb", "512"])
         .arg("--keyframes")
         .arg(&out)
         .arg("--out")
@@ -100,6 +101,8 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(refined.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["keyframes"].as_array().unwrap().len(), kfs.len());
     assert!(metrics["mean_psnr_db"].as_f64().unwrap() > 10.0, "{}", metrics["mean_psnr_db"]);
+    let renderer = metrics["renderer"].as_str().unwrap();
+    assert!(renderer.starts_with("Vulkan on ") || std::env::var_os("CI").is_none(), "--mapper vulkan in CI rendered with {renderer}");
     assert!(refined.join("map.ply").exists() && refined.join("medium.json").exists());
 }
 

@@ -362,7 +362,7 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
 fn rasterize_backward_matches_the_cpu_reference() {
     let Some(mut ctx) = gpu_common::gpu_or_skip("rasterize_backward_matches_the_cpu_reference") else { return };
     let table = Kernel::RasterizeBackwardRasterizeBackward.info();
-    assert_eq!(table.workgroup_size, [16, 16, 1]);
+    assert_eq!(table.workgroup_size, [256, 1, 1]);
     let names: Vec<&str> = table.bindings.iter().map(|b| b.name).collect();
     assert_eq!(names, [
         "splats",

@@ -57,41 +57,60 @@ fn map_bits(g: &Gaussians) -> Vec<u32> {
     (0..g.len()).flat_map(|i| g.get(i).to_array()).map(f32::to_bits).collect()
 }
 
+/// One run: (Gaussians seeded, mean keyframe PSNR before, after `iterations`).
+fn run(device: MapperDevice, config: &MapperConfig, kfs: &[SimKeyframe], iterations: usize) -> (usize, f64, f64) {
+    let mut m = mapper_on(device, config.clone(), kfs, 6000);
+    let seeded = m.gaussians().len();
+    let before = mean_psnr(&mut m);
+    let t = std::time::Instant::now();
+    for _ in 0..iterations {
+        m.iterate().unwrap();
+    }
+    let elapsed = t.elapsed();
+    let after = mean_psnr(&mut m);
+    eprintln!(
+        "{device:?}, seed {}, densify every {}: {seeded} Gaussians seeded, PSNR {before:.3} -> {after:.3} dB in {iterations} iterations ({:.1} ms/it), {} Gaussians",
+        config.seed,
+        config.densify_every,
+        elapsed.as_secs_f64() * 1e3 / iterations as f64,
+        m.gaussians().len()
+    );
+    if let Some(ctx) = m.gpu() {
+        for (k, d, ms) in ctx.profile().rows() {
+            eprintln!("    {:<48} {:8.3} ms per iteration ({} dispatches)", k.name(), ms / iterations as f64, d / iterations as u64);
+        }
+    }
+    (seeded, before, after)
+}
+
+/// The whole optimisation (medium, losses, Adam, density control) with the Vulkan renderer
+/// against the CPU reference. Without density control both runs visit the same keyframes in
+/// the same order and differ only by float rounding; with it, a different split count shifts
+/// the random stream (keyframe order, split offsets), so single runs drift apart by a few tenths
+/// of a dB either way (measured: CPU 40.89 dB, Vulkan 40.68 and, after a kernel change that
+/// moved rounding, 41.17 dB): that case compares the mean over three seeds.
 #[test]
 fn vulkan_mapper_ends_within_0_2_db_of_the_cpu_mapper() {
     let kfs = sequence(WaterPreset::Turbid);
-    let config = MapperConfig { densify_every: 40, densify_start: 40, ..MapperConfig::default() };
     let iterations = 160;
-    let mut results = Vec::new();
-    for device in [MapperDevice::Cpu, MapperDevice::Vulkan] {
-        let mut m = mapper_on(device, config.clone(), &kfs, 6000);
-        let seeded = m.gaussians().len();
-        let before = mean_psnr(&mut m);
-        let t = std::time::Instant::now();
-        for _ in 0..iterations {
-            m.iterate().unwrap();
-        }
-        let elapsed = t.elapsed();
-        let after = mean_psnr(&mut m);
-        eprintln!(
-            "{:?} ({}): {seeded} Gaussians seeded, PSNR {before:.3} -> {after:.3} dB in {iterations} iterations ({:.1} ms/it), {} Gaussians",
-            device,
-            m.render_device(),
-            elapsed.as_secs_f64() * 1e3 / iterations as f64,
-            m.gaussians().len()
-        );
-        if let Some(ctx) = m.gpu() {
-            for (k, d, ms) in ctx.profile().rows() {
-                eprintln!("    {:<48} {:8.3} ms per iteration ({} dispatches)", k.name(), ms / iterations as f64, d / iterations as u64);
-            }
-        }
-        results.push((seeded, before, after));
-    }
-    let (cpu, gpu) = (results[0], results[1]);
+    let fixed = MapperConfig { densify_every: 0, ..MapperConfig::default() };
+    let cpu = run(MapperDevice::Cpu, &fixed, &kfs, iterations);
+    let gpu = run(MapperDevice::Vulkan, &fixed, &kfs, iterations);
     assert_eq!(cpu.0, gpu.0, "both renderers seed the same map from the keyframes");
     assert!((cpu.1 - gpu.1).abs() < 0.01, "the seeded maps render alike: CPU {:.3} dB, Vulkan {:.3} dB", cpu.1, gpu.1);
     assert!(cpu.2 > cpu.1 + 1.0, "the CPU run must improve the map: {:.2} -> {:.2} dB", cpu.1, cpu.2);
-    assert!((cpu.2 - gpu.2).abs() <= 0.2, "after {iterations} iterations: CPU {:.3} dB, Vulkan {:.3} dB", cpu.2, gpu.2);
+    assert!((cpu.2 - gpu.2).abs() <= 0.05, "no density control, {iterations} iterations: CPU {:.3} dB, Vulkan {:.3} dB", cpu.2, gpu.2);
+
+    let (mut cpu_sum, mut gpu_sum) = (0.0, 0.0);
+    let seeds = [1u64, 2, 3];
+    for seed in seeds {
+        let config = MapperConfig { densify_every: 40, densify_start: 40, seed, ..MapperConfig::default() };
+        cpu_sum += run(MapperDevice::Cpu, &config, &kfs, iterations).2;
+        gpu_sum += run(MapperDevice::Vulkan, &config, &kfs, iterations).2;
+    }
+    let (cpu_mean, gpu_mean) = (cpu_sum / seeds.len() as f64, gpu_sum / seeds.len() as f64);
+    eprintln!("with density control, mean over {} seeds: CPU {cpu_mean:.3} dB, Vulkan {gpu_mean:.3} dB", seeds.len());
+    assert!((cpu_mean - gpu_mean).abs() <= 0.2, "with density control, mean of {} runs: CPU {cpu_mean:.3} dB, Vulkan {gpu_mean:.3} dB", seeds.len());
 }
 
 #[test]
@@ -146,7 +165,8 @@ fn tile_overflow_prunes_instead_of_failing_on_both_renderers() {
         assert!(o.largest_needed > o.capacity as u64);
         assert_eq!(o.capacity, 2000, "2000 Gaussians x 1 intersection");
         assert!(o.pruned > 0 && m.gaussians().len() < 2000, "{device:?}: pruned {}", o.pruned);
-        assert!(m.gaussians().len() > 0, "{device:?}: pruned everything");
+        assert!(o.densify_skipped >= 1, "{device:?}: densification must wait while the buffer is nearly full: {o:?}");
+        assert!(!m.gaussians().is_empty(), "{device:?}: pruned everything");
         // The map now renders within the buffer.
         m.render_keyframe(0).unwrap();
         assert_eq!(m.overflow_stats().events, o.events, "{device:?}: a render after the policy overflowed again");

@@ -106,6 +106,8 @@ struct Metrics {
     medium_rel_error: Option<[[f64; 3]; 3]>,
     /// (iteration, Gaussians) every 1/20 of the run.
     gaussians_over_time: Vec<(u64, usize)>,
+    /// What rendered (`Mapper::render_device`).
+    renderer: String,
     ms_per_iteration: f64,
     iterations: u64,
 }
@@ -227,6 +229,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         gaussians_over_time: over_time,
         ms_per_iteration,
         iterations: a.iterations,
+        renderer,
     };
     write_atomic(&a.out.join("metrics.json"), serde_json::to_string_pretty(&metrics)?.as_bytes())?;
 

@@ -400,7 +400,7 @@ pub struct OverflowStats {
 }
 
 /// Renders of one view after an overflow before the mapper reports the overflow as an error.
-pub const OVERFLOW_RETRIES: usize = 4;
+pub const OVERFLOW_RETRIES: usize = 8;
 
 impl Mapper {
     /// An empty map with every buffer allocated for `capacity`.
@@ -767,7 +767,7 @@ impl Mapper {
     /// The forward render of the current map into the view buffers, with the tile-overflow
     /// policy: when the view needs more tile intersections than the renderer's buffers hold
     /// (sized once from the Gaussian cap x `intersections_per_gaussian`), the Gaussians with
-    /// the largest axis are pruned, enough for the reported need plus 5%, and the view is
+    /// the largest axis are pruned (half the excess share of the map plus 2%) and the view is
     /// rendered again (up to [`OVERFLOW_RETRIES`] times); densification waits while the buffer
     /// stays over 90% full. No buffer is ever reallocated. Counted in [`Self::overflow_stats`].
     fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3) -> Result<RenderStats, MapperError> {
@@ -782,7 +782,9 @@ impl Mapper {
                 Err(VulkanRenderError::Render(RenderError::TileOverflow { needed, capacity })) if tries < OVERFLOW_RETRIES && !self.gaussians.is_empty() => {
                     tries += 1;
                     let n = self.gaussians.len();
-                    let share = (1.0 - capacity as f64 / needed.max(1) as f64 + 0.05).clamp(0.01, 1.0);
+                    // Half the excess share: the largest go first and cover more tiles than
+                    // the average, so this converges from below in a few renders.
+                    let share = (0.5 * (1.0 - capacity as f64 / needed.max(1) as f64) + 0.02).clamp(0.01, 1.0);
                     let count = ((n as f64 * share).ceil() as usize).clamp(1, n);
                     let pruned = prune_largest(&mut self.gaussians, &mut self.grads, &mut self.adam, count, &mut self.densify_scratch)?;
                     self.intersections_tight = true;
