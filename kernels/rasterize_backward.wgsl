@@ -193,17 +193,20 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
                     c_pixels = 1.0;
                     var value = 0.0;
                     var g_range = 0.0;
-                    for (var c = 0u; c < 3u; c = c + 1u) {
-                        let e_att = exp(-m_att[c] * range_m);
-                        let e_bs = exp(-m_bs[c] * range_m);
-                        let col = vc[c];
-                        value = value + (up_c[c] * (col * e_att - m_c[c] * e_bs) + up_r[c] * col);
-                        c_colour[c] = w * (up_c[c] * e_att + up_r[c]);
-                        g_range = g_range + w * up_c[c] * (m_bs[c] * m_c[c] * e_bs - m_att[c] * col * e_att);
-                        g_c_med[c] = g_c_med[c] - up_c[c] * w * e_bs;
-                        g_att[c] = g_att[c] - up_c[c] * w * col * range_m * e_att;
-                        g_bs[c] = g_bs[c] + up_c[c] * w * m_c[c] * range_m * e_bs;
-                    }
+                    // The three channels as vectors (no per-channel indexing, which a CPU
+                    // device turns into memory accesses); the sums over channels in channel
+                    // order, as the CPU reference adds them.
+                    let e_att = exp(-m_att * range_m);
+                    let e_bs = exp(-m_bs * range_m);
+                    let col = vc.xyz;
+                    let v3 = up_c * (col * e_att - m_c * e_bs) + up_r * col;
+                    value = ((value + v3.x) + v3.y) + v3.z;
+                    c_colour = w * (up_c * e_att + up_r);
+                    let r3 = w * up_c * (m_bs * m_c * e_bs - m_att * col * e_att);
+                    g_range = ((g_range + r3.x) + r3.y) + r3.z;
+                    g_c_med = g_c_med - up_c * w * e_bs;
+                    g_att = g_att - up_c * w * col * range_m * e_att;
+                    g_bs = g_bs + up_c * w * m_c * range_m * e_bs;
                     let d = depth_value(z);
                     let dd = d - state.x;
                     value = value + ((up_s.x * dd + up_s.y * (dd * dd - state.y)) * inv_w + up_s.z);
@@ -222,29 +225,34 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
                     }
                 }
             }
-            // Subgroup sums (every lane takes part), written by lane 0.
-            let s_mean2d = subgroupAdd(c_mean2d);
-            let s_conic = subgroupAdd(c_conic);
-            let s_opacity = subgroupAdd(c_opacity);
-            let s_colour = subgroupAdd(c_colour);
-            let s_z = subgroupAdd(c_z);
-            let s_densify = subgroupAdd(c_densify);
-            let s_pixels = subgroupAdd(c_pixels);
+            // Subgroup sums of the 13 values packed in four vectors (every lane takes part),
+            // written by lane 0; zeros without an add when no pixel of this subgroup blended
+            // the splat (most of a tile's splats for most subgroups).
+            var s0 = vec4<f32>(0.0);
+            var s1 = vec4<f32>(0.0);
+            var s2 = vec4<f32>(0.0);
+            var s3 = 0.0;
+            if (subgroupAny(c_pixels > 0.0)) {
+                s0 = subgroupAdd(vec4<f32>(c_mean2d, c_conic.xy));
+                s1 = subgroupAdd(vec4<f32>(c_conic.z, c_opacity, c_colour.xy));
+                s2 = subgroupAdd(vec4<f32>(c_colour.z, c_z, c_densify));
+                s3 = subgroupAdd(c_pixels);
+            }
             if (lane == 0u) {
                 let o = (sg_id * sg + j) * RED_VALUES;
-                red[o] = s_mean2d.x;
-                red[o + 1u] = s_mean2d.y;
-                red[o + 2u] = s_conic.x;
-                red[o + 3u] = s_conic.y;
-                red[o + 4u] = s_conic.z;
-                red[o + 5u] = s_opacity;
-                red[o + 6u] = s_colour.x;
-                red[o + 7u] = s_colour.y;
-                red[o + 8u] = s_colour.z;
-                red[o + 9u] = s_z;
-                red[o + 10u] = s_densify.x;
-                red[o + 11u] = s_densify.y;
-                red[o + 12u] = s_pixels;
+                red[o] = s0.x;
+                red[o + 1u] = s0.y;
+                red[o + 2u] = s0.z;
+                red[o + 3u] = s0.w;
+                red[o + 4u] = s1.x;
+                red[o + 5u] = s1.y;
+                red[o + 6u] = s1.z;
+                red[o + 7u] = s1.w;
+                red[o + 8u] = s2.x;
+                red[o + 9u] = s2.y;
+                red[o + 10u] = s2.z;
+                red[o + 11u] = s2.w;
+                red[o + 12u] = s3;
             }
         }
         workgroupBarrier();
