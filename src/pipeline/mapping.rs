@@ -1,5 +1,5 @@
-//! The mapper (`map::stage::MappingStage`, the CPU reference) bound to the pipeline's mapping
-//! thread through [`MapStage`].
+//! The mapper (`map::stage::MappingStage`; it renders on the Vulkan kernels or the CPU reference, see
+//! [`StageMapping::use_device`]) bound to the pipeline's mapping thread through [`MapStage`].
 //!
 //! - A keyframe from tracking is written into the run's keyframe folder (`keyframes/NNNNNN.png`,
 //!   `_invdepth.pfm`, `_variance.pfm`, the layout `duv refine --keyframes` reads) and handed to
