@@ -172,3 +172,28 @@ fn tile_overflow_prunes_instead_of_failing_on_both_renderers() {
         assert_eq!(m.overflow_stats().events, o.events, "{device:?}: a render after the policy overflowed again");
     }
 }
+
+/// A map checkpoint restored into the pipeline's mapping stage keeps rendering on the device
+/// it was asked for, with the same map.
+#[test]
+fn restored_mapping_stage_keeps_the_vulkan_renderer() {
+    use duv::map::stage::{MappingBudget, MappingStage};
+    use duv::pipeline::mapping::StageMapping;
+    use duv::pipeline::MapStage;
+    let kfs = sequence(WaterPreset::Coastal);
+    let dir = tempfile::tempdir().unwrap();
+    let budget = MappingBudget { iterations_per_keyframe: 3, millis_per_keyframe: 0 };
+    let stage = MappingStage::new(MapperConfig::default(), MapperCapacity { max_gaussians: 3000, max_keyframes: 8, width: W, height: H }, budget).unwrap();
+    let mut mapping = StageMapping::new(stage, dir.path().join("keyframes"), dir.path().join("scratch.ckpt"), 0, 0);
+    let what = mapping.use_device(MapperDevice::Vulkan, gpu_options()).unwrap();
+    assert!(what.starts_with("Vulkan on "), "no Vulkan device: {what}");
+    for k in &kfs[..2] {
+        mapping.add_keyframe(&k.keyframe).unwrap();
+    }
+    let (bytes, centres) = mapping.checkpoint().expect("a checkpoint after keyframes");
+    assert!(!centres.is_empty());
+    let before = map_bits(mapping.stage().mapper().gaussians());
+    mapping.restore(&bytes).unwrap();
+    assert!(mapping.stage().mapper().renders_on_vulkan(), "restored onto {}", mapping.stage().mapper().render_device());
+    assert!(map_bits(mapping.stage().mapper().gaussians()) == before, "the restored map differs");
+}

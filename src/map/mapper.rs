@@ -457,10 +457,13 @@ impl Mapper {
 
     /// Renders from now on with `device` (the map and every optimiser state stay as they are);
     /// `gpu` sizes the GPU arena (the board's `budgets.gpu_mb`) and names the device. Returns
-    /// [`Self::render_device`]. On an error the renderer in use is kept.
+    /// [`Self::render_device`]. On an error the mapper renders with the CPU reference (a
+    /// Vulkan renderer in use is released before the new one is opened).
     pub fn use_device(&mut self, device: MapperDevice, gpu: &crate::gpu::GpuOptions) -> Result<String, MapperError> {
-        // The old renderer's GPU memory is released before the new one is allocated.
-        self.raster = RenderBackend::cpu(self.raster_capacity, "while switching renderers")?;
+        if self.raster.is_vulkan() {
+            // Its GPU memory goes before the new renderer's arena is allocated.
+            self.raster = RenderBackend::cpu(self.raster_capacity, "a Vulkan renderer was released")?;
+        }
         self.raster = RenderBackend::open(device, gpu, self.raster_capacity)?;
         let what = self.render_device();
         tracing::info!(renderer = %what, "map.device");

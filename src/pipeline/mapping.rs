@@ -112,13 +112,11 @@ impl MapStage for StageMapping {
 
     fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
         crate::io::write_atomic(&self.scratch, bytes).map_err(|e| e.to_string())?;
-        let mut stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
+        // The old stage (and its GPU memory) goes before the restored one opens the device.
+        self.stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
         if let Some((device, gpu)) = &self.device {
-            // The old stage gives its GPU memory back before the restored one takes it.
-            self.stage.mapper_mut().use_device(MapperDevice::Cpu, gpu).map_err(|e| e.to_string())?;
-            stage.mapper_mut().use_device(*device, gpu).map_err(|e| e.to_string())?;
+            self.stage.mapper_mut().use_device(*device, gpu).map_err(|e| e.to_string())?;
         }
-        self.stage = stage;
         self.fed = self.stage.mapper().keyframe_count();
         Ok(())
     }
