@@ -6,7 +6,8 @@
 //!   `foxglove.CameraCalibration`, `foxglove.PoseInFrame`, `foxglove.FrameTransform`,
 //!   `foxglove.PointCloud`) and the JSON schemas of our own records (`duv.TrackingState`,
 //!   `duv.Health`); [`LogItem`] is what the other stages hand to the log.
-//! - [`writer`]: segment files, a chunk closed and fsynced at least every
+//! - [`chunked`]: our MCAP writer (chunked, indexed, allocation-free once warm);
+//!   [`writer`]: segment files, a chunk closed and fsynced at least every
 //!   [`LogConfig::chunk_interval`], rotation by size and age, disk errors that stop logging
 //!   cleanly instead of failing the run.
 //! - [`reader`]: a streaming reader with a record-size limit that reads a damaged file up to
@@ -17,6 +18,7 @@
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 
+pub mod chunked;
 pub mod inspect;
 pub mod keyframes;
 pub mod reader;

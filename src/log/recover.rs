@@ -3,6 +3,7 @@
 //! temporary name, fsync, rename). The recovered file carries a `duv.recovered` metadata
 //! record that `duv inspect` reports.
 
+use super::chunked::{ChunkedWriter, WriterBuffers, MAGIC};
 use super::reader::{read_segment_events, ReadEvent, ReadLimits};
 use super::writer::sync_dir;
 use super::{list_segments, LogError};
@@ -24,18 +25,21 @@ pub struct RecoveryReport {
     pub damage: String,
 }
 
+/// Chunk size of recovered files.
+const RECOVERY_CHUNK_BYTES: usize = 768 << 10;
+
 /// Whether `path` ends with the MCAP closing magic (a finished file).
 pub fn is_finished(path: &Path) -> Result<bool, LogError> {
     let io = |source| LogError::Io { path: path.to_path_buf(), source };
     let mut f = std::fs::File::open(path).map_err(io)?;
     let len = f.metadata().map_err(io)?.len();
-    if len < (2 * mcap::MAGIC.len()) as u64 {
+    if len < (2 * MAGIC.len()) as u64 {
         return Ok(false);
     }
-    f.seek(SeekFrom::End(-(mcap::MAGIC.len() as i64))).map_err(io)?;
+    f.seek(SeekFrom::End(-(MAGIC.len() as i64))).map_err(io)?;
     let mut tail = [0u8; 8];
     f.read_exact(&mut tail).map_err(io)?;
-    Ok(tail == mcap::MAGIC)
+    Ok(tail == MAGIC)
 }
 
 /// Re-writes the readable part of `path` into a valid MCAP file in its place.
@@ -46,21 +50,22 @@ pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport
         move |source| LogError::Io { path: p, source }
     };
     let file = std::fs::File::create(&tmp).map_err(io(&tmp))?;
-    let options = mcap::WriteOptions::new().compression(None).library(concat!("duv-slam ", env!("CARGO_PKG_VERSION"), " recovery"));
-    let mut writer = options.create(BufWriter::new(file)).map_err(|source| LogError::Mcap { path: tmp.clone(), source })?;
-    let mut write_error: Option<mcap::McapError> = None;
+    let library = concat!("duv-slam ", env!("CARGO_PKG_VERSION"), " recovery");
+    let mut writer = ChunkedWriter::new(BufWriter::new(file), library, RECOVERY_CHUNK_BYTES, WriterBuffers::default()).map_err(io(&tmp))?;
+    let mut write_error: Option<std::io::Error> = None;
     let outcome = read_segment_events(path, limits, |event| {
         if write_error.is_some() {
             return;
         }
         let r = match event {
-            ReadEvent::Schema(s) => writer.add_schema_with_id(s.id, &s.name, &s.encoding, &s.data).map(|_| ()),
-            ReadEvent::Channel(c) => writer.add_channel_with_id(c.id, c.schema_id, &c.topic, &c.message_encoding, &c.metadata).map(|_| ()),
-            ReadEvent::Message(m) => writer.write_to_known_channel(
-                &mcap::records::MessageHeader { channel_id: m.channel.id, sequence: m.sequence, log_time: m.log_time_ns, publish_time: m.publish_time_ns },
-                m.data,
-            ),
-            ReadEvent::Metadata { name, metadata } => writer.write_metadata(&mcap::records::Metadata { name: name.to_string(), metadata: metadata.clone() }),
+            // A schema or channel the damaged file repeats (a summary read before the damage)
+            // is already registered: keep the first.
+            ReadEvent::Schema(s) if writer.has_schema(s.id) => Ok(()),
+            ReadEvent::Channel(c) if writer.has_channel(c.id) => Ok(()),
+            ReadEvent::Schema(s) => writer.add_schema(s.id, &s.name, &s.encoding, &s.data),
+            ReadEvent::Channel(c) => writer.add_channel(c.id, c.schema_id, &c.topic, &c.message_encoding, &c.metadata),
+            ReadEvent::Message(m) => writer.write_message(m.channel.id, m.sequence, m.log_time_ns, m.publish_time_ns, m.data),
+            ReadEvent::Metadata { name, metadata } => writer.write_metadata(name, metadata),
         };
         if let Err(e) = r {
             write_error = Some(e);
@@ -68,21 +73,22 @@ pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport
     })?;
     if let Some(source) = write_error {
         let _ = std::fs::remove_file(&tmp);
-        return Err(LogError::Mcap { path: tmp, source });
+        return Err(LogError::Io { path: tmp, source });
     }
     let damage = outcome.damage.clone().unwrap_or_else(|| "no footer".into());
     let mut meta = BTreeMap::new();
     meta.insert("original_bytes".to_string(), outcome.file_bytes.to_string());
     meta.insert("messages_kept".to_string(), outcome.messages.to_string());
     meta.insert("damage".to_string(), damage.clone());
-    let finish = writer
-        .write_metadata(&mcap::records::Metadata { name: RECOVERED_METADATA.into(), metadata: meta })
-        .and_then(|()| writer.finish().map(|_| ()));
-    if let Err(source) = finish {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(LogError::Mcap { path: tmp, source });
-    }
-    let file = writer.into_inner().into_inner().map_err(|e| LogError::Io { path: tmp.clone(), source: e.into_error() })?;
+    let finish = writer.write_metadata(RECOVERED_METADATA, &meta).and_then(|()| writer.finish());
+    let out = match finish {
+        Ok((out, _)) => out,
+        Err(source) => {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(LogError::Io { path: tmp, source });
+        }
+    };
+    let file = out.into_inner().map_err(|e| LogError::Io { path: tmp.clone(), source: e.into_error() })?;
     file.sync_all().map_err(io(&tmp))?;
     let bytes_after = file.metadata().map(|m| m.len()).unwrap_or(0);
     drop(file);

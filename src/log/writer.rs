@@ -1,18 +1,22 @@
 //! Segment files: one MCAP writer at a time, chunks closed and fsynced on a timer, rotation by
 //! size and age, and a write error (disk full, device gone) that stops logging cleanly.
 
+use super::chunked::{ChunkedWriter, WriterBuffers};
 use super::schema::{FrameEncoding, ItemEncoder, LogItem, Topic, ALL_TOPICS};
 use super::{list_segments, segment_name, LogError};
 use crate::core::{PinholeCamera, Timestamp};
 use std::collections::BTreeMap;
 use std::fs::File;
-use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 /// Chunks also close at this size (besides every `chunk_interval`): a write failure loses at
 /// most the open chunk, and a reader's memory per chunk stays small.
 const CHUNK_BYTES: u64 = 512 << 10;
+
+/// The library string in every segment's header.
+const LIBRARY: &str = concat!("duv-slam ", env!("CARGO_PKG_VERSION"));
 
 /// Where and how the log is written.
 #[derive(Clone, Debug)]
@@ -59,39 +63,15 @@ pub struct LogStats {
     pub failure: Option<String>,
 }
 
-/// A file that counts its position (the MCAP writer needs `Seek`).
-struct CountingFile {
-    inner: BufWriter<File>,
-    pos: u64,
-}
-
-impl Write for CountingFile {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        let n = self.inner.write(buf)?;
-        self.pos += n as u64;
-        Ok(n)
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.inner.flush()
-    }
-}
-
-impl Seek for CountingFile {
-    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
-        self.pos = self.inner.seek(to)?;
-        Ok(self.pos)
-    }
-}
-
 struct OpenSegment {
     path: PathBuf,
-    writer: mcap::Writer<CountingFile>,
+    writer: ChunkedWriter<BufWriter<File>>,
     /// A second handle on the file, for fsync.
     sync: File,
     opened: Instant,
     last_sync: Instant,
-    /// Channel id per topic, registered on first use.
-    channels: [Option<u16>; ALL_TOPICS.len()],
+    /// Whether the topic's channel (id = topic index) is registered in this segment.
+    channels: [bool; ALL_TOPICS.len()],
     messages: u64,
 }
 
@@ -105,6 +85,8 @@ pub struct SegmentWriter {
     last_calibration: Option<(Timestamp, PinholeCamera)>,
     /// Message bodies and JPEG streams, buffers reused from item to item.
     encoder: ItemEncoder,
+    /// The MCAP writer's buffers, handed from one segment to the next.
+    spare: Option<WriterBuffers>,
     /// Called after every fsync with (segment path, messages in it, file bytes).
     on_sync: Option<Box<dyn FnMut(&Path, u64, u64) + Send>>,
 }
@@ -119,7 +101,13 @@ impl SegmentWriter {
         std::fs::create_dir_all(&cfg.dir).map_err(io_err(&cfg.dir))?;
         let next_index = list_segments(&cfg.dir)?.last().map(|(i, _)| i + 1).unwrap_or(0);
         let encoder = ItemEncoder::new(cfg.frame_encoding);
-        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, encoder, on_sync: None })
+        // Chunks close every `chunk_interval` or at CHUNK_BYTES, so a segment holds at most
+        // about this many; the chunk index table is reserved for it once.
+        let by_age = cfg.segment_max_age.as_secs_f64() / cfg.chunk_interval.as_secs_f64().max(1e-3);
+        let by_size = cfg.segment_max_bytes / CHUNK_BYTES;
+        let chunks = (2.0 * by_age).min(1e6) as usize + by_size as usize + 64;
+        let spare = Some(WriterBuffers::with_capacity(CHUNK_BYTES as usize, ALL_TOPICS.len(), chunks));
+        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, encoder, spare, on_sync: None })
     }
 
     /// Reports every fsync (the crash harness reads this to know what must survive).
@@ -148,15 +136,13 @@ impl SegmentWriter {
         // failed to rename it, and then it is overwritten on purpose.
         let file = std::fs::OpenOptions::new().write(true).create(true).truncate(true).open(&path).map_err(io_err(&path))?;
         let sync = file.try_clone().map_err(io_err(&path))?;
-        let out = CountingFile { inner: BufWriter::with_capacity(1 << 20, file), pos: 0 };
-        let options = mcap::WriteOptions::new().compression(None).profile("").library(concat!("duv-slam ", env!("CARGO_PKG_VERSION"))).chunk_size(Some(CHUNK_BYTES));
-        let writer = options.create(out).map_err(|source| LogError::Mcap { path: path.clone(), source })?;
+        let out = BufWriter::with_capacity(1 << 20, file);
+        let buffers = self.spare.take().unwrap_or_default();
+        let writer = ChunkedWriter::new(out, LIBRARY, CHUNK_BYTES as usize, buffers).map_err(io_err(&path))?;
         let now = Instant::now();
-        let mut seg = OpenSegment { path, writer, sync, opened: now, last_sync: now, channels: [None; ALL_TOPICS.len()], messages: 0 };
+        let mut seg = OpenSegment { path, writer, sync, opened: now, last_sync: now, channels: [false; ALL_TOPICS.len()], messages: 0 };
         for (name, map) in &self.cfg.metadata {
-            seg.writer
-                .write_metadata(&mcap::records::Metadata { name: name.clone(), metadata: map.clone() })
-                .map_err(|source| LogError::Mcap { path: seg.path.clone(), source })?;
+            seg.writer.write_metadata(name, map).map_err(io_err(&seg.path))?;
         }
         self.stats.segments += 1;
         tracing::info!(segment = %seg.path.display(), "log segment opened");
@@ -168,19 +154,22 @@ impl SegmentWriter {
         Ok(())
     }
 
+    /// The topic's channel id (its index in [`ALL_TOPICS`]; its schema, if any, has id
+    /// index + 1), registered on first use in the segment.
     fn channel(seg: &mut OpenSegment, topic: Topic, frames: FrameEncoding) -> Result<u16, LogError> {
-        if let Some(id) = seg.channels[topic.index()] {
+        let id = topic.index() as u16;
+        if seg.channels[topic.index()] {
             return Ok(id);
         }
-        let map_err = |source| LogError::Mcap { path: seg.path.clone(), source };
-        let id = match topic.schema_for(frames) {
-            Some(s) => {
-                let schema_id = seg.writer.add_schema(&s.name, &s.encoding, &s.data).map_err(map_err)?;
-                seg.writer.add_channel(schema_id, topic.name(), &s.message_encoding, &BTreeMap::new()).map_err(map_err)?
-            }
-            None => seg.writer.add_channel(0, topic.name(), topic.schemaless_encoding(), &BTreeMap::new()).map_err(map_err)?,
+        let r = match topic.schema_for(frames) {
+            Some(s) => seg
+                .writer
+                .add_schema(id + 1, &s.name, &s.encoding, &s.data)
+                .and_then(|()| seg.writer.add_channel(id, id + 1, topic.name(), &s.message_encoding, &BTreeMap::new())),
+            None => seg.writer.add_channel(id, 0, topic.name(), topic.schemaless_encoding(), &BTreeMap::new()),
         };
-        seg.channels[topic.index()] = Some(id);
+        r.map_err(io_err(&seg.path))?;
+        seg.channels[topic.index()] = true;
         Ok(id)
     }
 
@@ -193,8 +182,7 @@ impl SegmentWriter {
         let frames = self.encoder.frame_encoding();
         self.encoder.encode(item, |e, body| {
             let channel_id = Self::channel(seg, e.topic, frames)?;
-            let header = mcap::records::MessageHeader { channel_id, sequence: e.sequence, log_time: e.log_time_ns, publish_time: e.log_time_ns };
-            seg.writer.write_to_known_channel(&header, body).map_err(|source| LogError::Mcap { path: seg.path.clone(), source })?;
+            seg.writer.write_message(channel_id, e.sequence, e.log_time_ns, e.log_time_ns, body).map_err(io_err(&seg.path))?;
             written += 1;
             Ok(())
         })?;
@@ -242,10 +230,10 @@ impl SegmentWriter {
             self.stats.failure = Some(e.to_string());
             tracing::error!("logging stopped: {e}");
             if let Some(seg) = self.open.take() {
-                // Dropping the writer would try to finish the file; forget it instead so the
-                // file stays exactly as far as it was written (recovery reads it on the next
-                // start).
-                std::mem::forget(seg.writer);
+                // Leave the file exactly as far as it was written (recovery reads it on the
+                // next start): what the BufWriter still holds is discarded, not flushed.
+                let (out, _) = seg.writer.abandon();
+                let (_file, _unflushed) = out.into_parts();
             }
         }
         result
@@ -276,15 +264,16 @@ impl SegmentWriter {
     }
 
     fn close_segment(&mut self) -> Result<(), LogError> {
-        let Some(mut seg) = self.open.take() else { return Ok(()) };
+        let Some(seg) = self.open.take() else { return Ok(()) };
         let fail = |path: &Path, problem: String| LogError::WriteFailed { path: path.to_path_buf(), bytes_written: 0, problem };
-        if let Err(e) = seg.writer.finish() {
-            let err = fail(&seg.path, e.to_string());
-            std::mem::forget(seg.writer);
-            return Err(err);
-        }
-        let out = seg.writer.into_inner();
-        drop(out);
+        let out = match seg.writer.finish() {
+            Ok((out, buffers)) => {
+                self.spare = Some(buffers);
+                out
+            }
+            Err(e) => return Err(fail(&seg.path, e.to_string())),
+        };
+        let (_file, _) = out.into_parts();
         seg.sync.sync_all().map_err(|e| fail(&seg.path, e.to_string()))?;
         let bytes = seg.sync.metadata().map(|m| m.len()).unwrap_or(0);
         self.stats.bytes += bytes;
@@ -307,11 +296,7 @@ impl SegmentWriter {
 
 impl OpenSegment {
     fn writer_pos(&self) -> u64 {
-        // The writer keeps the file position up to date in CountingFile; reading it needs
-        // the inner writer, which mcap does not expose, so ask the OS for the synced length
-        // plus what BufWriter holds is not needed: the metadata length is a lower bound that
-        // is exact after every chunk close.
-        self.sync.metadata().map(|m| m.len()).unwrap_or(0)
+        self.writer.position()
     }
 }
 
