@@ -86,6 +86,31 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let panel = read_image(&renders[0]).unwrap();
     assert_eq!((panel.width(), panel.height()), (5 * 160, 120), "input | render | restored | depth | uncertainty");
 
+    // The log's map checkpoints refer to the keyframes' own log messages instead of embedding
+    // their pixels; with the log's keyframes the newest one restores the same map as the
+    // newest checkpoint file, and refinement can continue from it.
+    let from_log = duv::log::read_log_keyframes(&out, duv::log::ReadLimits::default()).unwrap();
+    let logged_map = from_log.newest_map.clone().expect("a map checkpoint in the log");
+    let (_, file_ckpt) = duv::pipeline::CheckpointStore::new(out.join("checkpoints"), 3).load_newest().expect("a checkpoint file");
+    assert!(logged_map.bytes.len() < file_ckpt.len() / 2, "logged {} bytes, file {} bytes", logged_map.bytes.len(), file_ckpt.len());
+    let options = duv::map::checkpoint::RestoreOptions { keyframes: &from_log.keyframes, capacity: None };
+    let onboard = Mapper::from_checkpoint_bytes(&logged_map.bytes, "logged", options).unwrap();
+    let on_disk = Mapper::from_checkpoint_bytes(&file_ckpt, "file", Default::default()).unwrap();
+    assert_eq!(onboard.gaussians(), on_disk.gaussians());
+    assert_eq!(onboard.keyframe_count(), on_disk.keyframe_count());
+    let res = duv()
+        .args(["refine", "--iterations", "5", "--quiet", "--from-logged-map", "--mcap"])
+        .arg(&out)
+        .arg("--out")
+        .arg(dir.path().join("from-logged-map"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "{stderr}");
+    let said = format!("/map/checkpoint at {} ns: {} Gaussians, {} keyframes, iteration {}", logged_map.log_time_ns, on_disk.gaussians().len(), on_disk.keyframe_count(), on_disk.iteration());
+    assert!(stderr.contains(&said), "expected '{said}' in:\n{stderr}");
+    assert!(on_disk.iteration() > 0);
+
     // Offshore refinement reads the finished run, on the Vulkan mapper (lavapipe in CI).
     let refined = dir.path().join("refined");
     let res = duv()
@@ -180,6 +205,11 @@ fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
     assert!(stderr.contains("log damaged, read up to the damage") && stderr.contains("segment-000000.mcap"), "{stderr}");
     assert!(stderr.contains(&format!("{kept} keyframe(s) from 1 segment(s)")), "{stderr}");
     assert_eq!(metrics("cut-out")["keyframes"].as_array().unwrap().len(), kept);
+
+    // A tracking-only run logs keyframe poses, not a map: --from-logged-map says so.
+    let r = duv().args(["refine", "--iterations", "1", "--quiet", "--from-logged-map", "--mcap"]).arg(&out).arg("--out").arg(dir.path().join("no-map")).output().unwrap();
+    let stderr = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success() && stderr.contains("/map/checkpoint") && stderr.contains("not a mapper checkpoint") && !stderr.contains("panicked"), "{stderr}");
 
     // Cut before the first keyframe: an error that names the log and the damage.
     std::fs::write(cut.join("segment-000000.mcap"), &bytes[..4096]).unwrap();

@@ -190,10 +190,10 @@ fn restored_mapping_stage_keeps_the_vulkan_renderer() {
     for k in &kfs[..2] {
         mapping.add_keyframe(&k.keyframe).unwrap();
     }
-    let (bytes, centres) = mapping.checkpoint().expect("a checkpoint after keyframes");
-    assert!(!centres.is_empty());
+    let ckpt = mapping.checkpoint().expect("a checkpoint after keyframes");
+    assert!(!ckpt.centres_in_world.is_empty());
     let before = map_bits(mapping.stage().mapper().gaussians());
-    mapping.restore(&bytes).unwrap();
+    mapping.restore(&ckpt.file).unwrap();
     assert!(mapping.stage().mapper().renders_on_vulkan(), "restored onto {}", mapping.stage().mapper().render_device());
     assert!(map_bits(mapping.stage().mapper().gaussians()) == before, "the restored map differs");
 }

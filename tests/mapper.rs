@@ -106,6 +106,50 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
 }
 
 #[test]
+fn a_checkpoint_that_references_its_keyframes_restores_with_them_and_names_a_missing_one() {
+    use duv::map::checkpoint::{KeyframePixels, RestoreOptions};
+    let (mut m, kfs) = small_mapper(MapperConfig::default(), 2000);
+    for _ in 0..6 {
+        m.iterate().unwrap();
+    }
+    // A pose correction after the keyframe was logged: the checkpoint's pose wins.
+    let mut moved = m.keyframe(1).unwrap().world_from_cam;
+    moved.translation.vector.x += 0.01;
+    m.set_keyframe_pose(m.keyframe(1).unwrap().index, moved).unwrap();
+    let full = m.checkpoint_bytes_with(KeyframePixels::Embedded).unwrap();
+    let logged = m.checkpoint_bytes_with(KeyframePixels::Referenced).unwrap();
+    assert_eq!(logged.capacity(), logged.len(), "referenced checkpoint sized exactly");
+    let pixels: usize = kfs.iter().map(|k| k.keyframe.image.data.len() + 8 * k.keyframe.inv_depth.data.len()).sum();
+    assert_eq!(full.len() - logged.len(), pixels, "exactly the keyframes' pixels are left out");
+    // The log's keyframes (the pixels, in another order, with the logged poses) bring it back.
+    let mut from_log: Vec<_> = kfs.iter().rev().map(|k| k.keyframe.clone()).collect();
+    from_log[0].world_from_cam.translation.vector.y += 1.0;
+    let mut r = Mapper::from_checkpoint_bytes(&logged, "logged", RestoreOptions { keyframes: &from_log, capacity: None }).unwrap();
+    assert_eq!(r.gaussians(), m.gaussians());
+    assert_eq!(r.keyframe_count(), m.keyframe_count());
+    for slot in 0..m.keyframe_count() {
+        assert_eq!(r.keyframe(slot).unwrap().world_from_cam, m.keyframe(slot).unwrap().world_from_cam, "the checkpoint's pose");
+        let a = m.render_keyframe(slot).unwrap().clone();
+        let b = r.render_keyframe(slot).unwrap();
+        assert_eq!(a.colour.data, b.colour.data, "keyframe {slot}: bit-identical render");
+    }
+    assert_eq!(m.iterate().unwrap(), r.iterate().unwrap());
+    // Into a larger Gaussian cap (offshore refinement); a smaller one is taken as the checkpoint's.
+    let bigger = MapperCapacity { max_gaussians: 5000, ..capacity(0) };
+    let g = Mapper::from_checkpoint_bytes(&logged, "logged", RestoreOptions { keyframes: &from_log, capacity: Some(bigger) }).unwrap();
+    assert_eq!(g.capacity().max_gaussians, 5000);
+    let other_size = MapperCapacity { width: 32, ..bigger };
+    let e = Mapper::from_checkpoint_bytes(&logged, "logged", RestoreOptions { keyframes: &from_log, capacity: Some(other_size) }).err().expect("another image size refused");
+    assert!(e.to_string().contains("32x48"), "{e}");
+    // Without one of the keyframes: an error that names it.
+    let missing = kfs[2].keyframe.index;
+    let without: Vec<_> = from_log.iter().filter(|k| k.index != missing).cloned().collect();
+    let e = Mapper::from_checkpoint_bytes(&logged, "LOG /map/checkpoint", RestoreOptions { keyframes: &without, capacity: None }).err().expect("a missing keyframe refused");
+    let msg = e.to_string();
+    assert!(msg.contains("LOG /map/checkpoint") && msg.contains(&format!("keyframe {missing} ")) && msg.contains("not supplied"), "{msg}");
+}
+
+#[test]
 fn hard_cap_holds_under_aggressive_densification() {
     let cap = 400;
     let config = MapperConfig {

@@ -1,7 +1,8 @@
 //! `duv refine`: offshore map refinement from a keyframe folder (the layout is documented in
 //! `duv::io::keyframes`), from the keyframes in a run's MCAP log (`--mcap`, read by
 //! `duv::log::keyframes`: image, pose, inverse depth and variance of every logged keyframe, up
-//! to any damage), or from generated keyframes with ground-truth poses and depth
+//! to any damage; `--from-logged-map` continues the onboard map from the log's newest map
+//! checkpoint), or from generated keyframes with ground-truth poses and depth
 //! (`--sim WATER`) so that mapping is evaluated without the tracker.
 //!
 //! Writes into `--out`: `map.ply` (3DGS PLY), `map.ckpt` (full mapper checkpoint),
@@ -17,9 +18,10 @@ use duv::eval::image::{psnr, ssim, SsimConvention};
 use duv::io::keyframes::read_keyframe_folder;
 use duv::io::png_io::write_rgb8;
 use duv::io::write_atomic;
-use duv::log::{read_log_keyframes, ReadLimits};
+use duv::log::{read_log_keyframes, LoggedMap, ReadLimits};
 use duv::gpu::GpuOptions;
 use duv::map::vulkan::MapperDevice;
+use duv::map::checkpoint::{RestoreOptions, CHECKPOINT_MAGIC};
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::ply::write_ply;
 use duv::map::stage::render_panel;
@@ -39,6 +41,12 @@ pub struct RefineArgs {
     /// --keyframes reads).
     #[arg(long, value_name = "LOG", conflicts_with_all = ["sim", "keyframes"])]
     mcap: Option<PathBuf>,
+    /// With --mcap: start from the newest map checkpoint in the log (the onboard map: its
+    /// Gaussians, medium, optimiser state, keyframe poses and mapper config, with the
+    /// keyframes' pixels from their own log messages) instead of a fresh map; keyframes logged
+    /// after it are added. The Gaussian cap is the larger of --max-gaussians and the onboard one.
+    #[arg(long, requires = "mcap", conflicts_with = "config")]
+    from_logged_map: bool,
     /// The true medium (a generator's `medium.json`) to score the recovered one against
     /// (with --keyframes or --mcap; --sim knows its own).
     #[arg(long, value_name = "FILE")]
@@ -112,8 +120,8 @@ struct Metrics {
     iterations: u64,
 }
 
-/// The keyframes of a log, with what was left out said on stderr.
-fn read_log(path: &std::path::Path) -> anyhow::Result<Vec<Keyframe>> {
+/// The keyframes of a log, with what was left out said on stderr, and its newest map checkpoint.
+fn read_log(path: &std::path::Path) -> anyhow::Result<(Vec<Keyframe>, Option<LoggedMap>)> {
     let got = read_log_keyframes(path, ReadLimits::default())?;
     for d in &got.damage {
         eprintln!("log damaged, read up to the damage: {d}");
@@ -125,10 +133,23 @@ fn read_log(path: &std::path::Path) -> anyhow::Result<Vec<Keyframe>> {
         eprintln!("keyframe {from} logged twice (a resumed run): the later one is keyframe {to}");
     }
     eprintln!("{}: {} keyframe(s) from {} segment(s)", path.display(), got.keyframes.len(), got.segments.len());
-    Ok(got.keyframes)
+    Ok((got.keyframes, got.newest_map))
+}
+
+/// The onboard map from the log's newest checkpoint, its keyframes' pixels from `keyframes`.
+fn mapper_from_logged_map(map: Option<LoggedMap>, keyframes: &[Keyframe], capacity: MapperCapacity) -> anyhow::Result<Mapper> {
+    let map = map.context("--from-logged-map: the log holds no /map/checkpoint (the run mapped nothing, or the log was cut before the first checkpoint)")?;
+    let what = format!("{} /map/checkpoint at {} ns", map.segment.display(), map.log_time_ns);
+    if !map.bytes.starts_with(CHECKPOINT_MAGIC) {
+        anyhow::bail!("{what}: not a mapper checkpoint (a run with --no-map logs only its keyframe poses there)");
+    }
+    let mapper = Mapper::from_checkpoint_bytes(&map.bytes, &what, RestoreOptions { keyframes, capacity: Some(capacity) })?;
+    eprintln!("{what}: {} Gaussians, {} keyframes, iteration {}", mapper.gaussians().len(), mapper.keyframe_count(), mapper.iteration());
+    Ok(mapper)
 }
 
 pub fn run(a: RefineArgs) -> anyhow::Result<()> {
+    let mut logged_map = None;
     let (keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
         let mut cfg = SimConfig::preset(water, a.trajectory);
         cfg.frames = a.frames;
@@ -141,7 +162,11 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         (k, c, Some(truth))
     } else {
         let k = match (&a.mcap, &a.keyframes) {
-            (Some(log), _) => read_log(log)?,
+            (Some(log), _) => {
+                let (k, map) = read_log(log)?;
+                logged_map = map;
+                k
+            }
             (None, Some(dir)) => read_keyframe_folder(dir)?,
             (None, None) => anyhow::bail!("--keyframes, --mcap or --sim is required"),
         };
@@ -159,13 +184,20 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     };
     let cam = keyframes[0].camera;
     let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: a.max_keyframes.max(keyframes.len()), width: cam.width, height: cam.height };
-    let mut mapper = Mapper::new(config, capacity)?;
+    let mut mapper = if a.from_logged_map { mapper_from_logged_map(logged_map, &keyframes, capacity)? } else { Mapper::new(config, capacity)? };
     let renderer = mapper.use_device(a.mapper, &GpuOptions::with_budget_mb(a.gpu_mb))?;
     if !a.quiet {
         eprintln!("refine: rendering with {renderer}");
     }
-    for kf in &keyframes {
+    // A fresh map takes every keyframe; a restored one those logged after its checkpoint.
+    let held: Vec<i64> = (0..mapper.keyframe_count()).filter_map(|s| mapper.keyframe(s).map(|k| k.t_ns.t_ns())).collect();
+    let mut added = 0;
+    for kf in keyframes.iter().filter(|k| !held.contains(&k.t_ns.t_ns())) {
         mapper.add_keyframe(kf.clone())?;
+        added += 1;
+    }
+    if a.from_logged_map {
+        eprintln!("{added} keyframe(s) logged after the map checkpoint added");
     }
     std::fs::create_dir_all(a.out.join("renders")).with_context(|| format!("creating {}", a.out.display()))?;
 

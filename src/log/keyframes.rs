@@ -4,6 +4,8 @@
 //!
 //! The poses are the ones logged when each keyframe left tracking's BA window; corrections
 //! made later (loop closure, the global BA) are in the run's `keyframes.txt`, not in the log.
+//! The newest logged map checkpoint comes along ([`LogKeyframes::newest_map`]): with these
+//! keyframes it restores the onboard map (`duv refine --from-logged-map`).
 //! A damaged segment is read up to the damage, and a keyframe whose messages were cut apart by
 //! it is left out and counted.
 
@@ -29,6 +31,17 @@ pub struct LogKeyframes {
     /// Keyframes whose index an earlier one already had (a resumed run's new tracker numbers
     /// from 0 again): given the next free index, (logged index, new index).
     pub renumbered: Vec<(u64, u64)>,
+    /// The newest `/map/checkpoint` read (up to the damage), for `duv refine --from-logged-map`.
+    pub newest_map: Option<LoggedMap>,
+}
+
+/// A map checkpoint as logged: the mapper's checkpoint bytes with the keyframes referring to
+/// their `/keyframe/*` messages (`map::checkpoint::KeyframePixels::Referenced`).
+#[derive(Clone, Debug)]
+pub struct LoggedMap {
+    pub log_time_ns: u64,
+    pub segment: PathBuf,
+    pub bytes: Vec<u8>,
 }
 
 /// The segment files of a log folder, a run's output folder (its `log/`), or one `.mcap` file.
@@ -64,7 +77,7 @@ struct Partial {
 /// none is [`LogError::NoKeyframes`]; damage is reported in [`LogKeyframes::damage`].
 pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframes, LogError> {
     let segments = log_files(path)?;
-    let mut out = LogKeyframes { keyframes: Vec::new(), segments: segments.clone(), damage: Vec::new(), skipped: Vec::new(), renumbered: Vec::new() };
+    let mut out = LogKeyframes { keyframes: Vec::new(), segments: segments.clone(), damage: Vec::new(), skipped: Vec::new(), renumbered: Vec::new(), newest_map: None };
     let mut used: BTreeSet<u64> = BTreeSet::new();
     for file in &segments {
         let mut r = SegmentReader::open(file, limits)?;
@@ -80,6 +93,10 @@ pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframe
             let p = match topic {
                 Topic::CameraCalibration => {
                     camera = decode_calibration(&data).ok().or(camera);
+                    continue;
+                }
+                Topic::MapCheckpoint => {
+                    out.newest_map = Some(LoggedMap { log_time_ns, segment: file.clone(), bytes: data });
                     continue;
                 }
                 Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance | Topic::KeyframePose if !failed.contains(&index) => partial.entry(index).or_default(),

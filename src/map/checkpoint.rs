@@ -18,6 +18,14 @@
 //! ([`Mapper::checkpoint_bytes`]). Version 1 (still read): the same fields as UTF-8 JSON with
 //! floats as their bit patterns in decimal, about 2.7 times larger. The file is written through
 //! a temporary sibling, fsync and rename ([`write_atomic`]).
+//!
+//! A checkpoint carries its keyframes' pixels ([`KeyframePixels::Embedded`], the files a resume
+//! reads) or only each keyframe's index, time, camera and the mapper's pose for it
+//! ([`KeyframePixels::Referenced`], the same layout with empty image, depth and variance
+//! arrays). The log stores the second kind: the pixels are already the keyframes' own
+//! `/keyframe/*` messages, and without them a map at the board's caps fits the log queue (a
+//! 50k-Gaussian, 64-keyframe map at 320x240: 15 MB instead of 68.6 MB). Restoring one needs
+//! those keyframes back ([`RestoreOptions::keyframes`], matched by time stamp and size).
 
 use std::path::Path;
 
@@ -100,6 +108,27 @@ struct Payload {
     medium_params: Vec<u32>,
     medium_adam: AdamRecord,
     keyframes: Vec<KeyframeRecord>,
+}
+
+/// Whether a checkpoint holds its keyframes' pixels or refers to them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KeyframePixels {
+    /// Image, inverse depth and variance in the checkpoint (the files a resume reads).
+    Embedded,
+    /// Index, time, camera and pose only; the pixels are the keyframes' own log messages.
+    Referenced,
+}
+
+/// How [`Mapper::from_checkpoint_bytes`] rebuilds a mapper.
+#[derive(Clone, Copy, Default)]
+pub struct RestoreOptions<'a> {
+    /// Where the pixels of referenced keyframes come from (e.g. the log's keyframes),
+    /// matched by time stamp and size; the checkpoint's index and pose are kept.
+    pub keyframes: &'a [Keyframe],
+    /// At least this capacity (offshore refinement with a higher Gaussian cap): the Gaussian
+    /// and keyframe caps are the larger of this and the checkpoint's; the image size must be
+    /// the checkpoint's.
+    pub capacity: Option<MapperCapacity>,
 }
 
 /// FNV-1a, 64 bit.
@@ -208,8 +237,18 @@ impl Mapper {
     /// The complete state as checkpoint file bytes (header, binary payload, checksum), written
     /// from the mapper's buffers into one buffer of the exact size.
     pub fn checkpoint_bytes(&self) -> Result<Vec<u8>, String> {
+        self.checkpoint_bytes_with(KeyframePixels::Embedded)
+    }
+
+    /// [`Mapper::checkpoint_bytes`] with the keyframes' pixels embedded or referenced.
+    pub fn checkpoint_bytes_with(&self, pixels: KeyframePixels) -> Result<Vec<u8>, String> {
+        let embed = pixels == KeyframePixels::Embedded;
         let config_toml = toml::to_string(&self.config).map_err(|e| e.to_string())?;
-        let kf_bytes: usize = self.keyframes.iter().map(|k| 8 * 15 + 8 + k.kf.image.data.len() + 16 + 4 * (k.kf.inv_depth.data.len() + k.kf.inv_depth_variance.data.len())).sum();
+        let kf_bytes: usize = self
+            .keyframes
+            .iter()
+            .map(|k| 8 * 15 + 8 + 16 + if embed { k.kf.image.data.len() + 4 * (k.kf.inv_depth.data.len() + k.kf.inv_depth_variance.data.len()) } else { 0 })
+            .sum();
         let groups: usize = ParamGroup::ALL.iter().map(|&g| 8 + 4 * self.gaussians.group(g).len()).sum();
         let adam: usize = self.adam.iter().map(|a| 24 + 8 * a.moments().0.len()).sum::<usize>() + 24 + 8 * self.medium_adam.moments().0.len();
         let n = self.grads.densify_grad_norm().len();
@@ -252,10 +291,17 @@ impl Mapper {
             for v in [kf.camera.fx, kf.camera.fy, kf.camera.cx, kf.camera.cy, t.x, t.y, t.z, q.x, q.y, q.z, q.w] {
                 put_u64(w, v.to_bits());
             }
-            put_bytes(w, &kf.image.data);
-            put_f32s(w, &kf.inv_depth.data);
-            put_f32s(w, &kf.inv_depth_variance.data);
+            if embed {
+                put_bytes(w, &kf.image.data);
+                put_f32s(w, &kf.inv_depth.data);
+                put_f32s(w, &kf.inv_depth_variance.data);
+            } else {
+                put_bytes(w, &[]);
+                put_f32s(w, &[]);
+                put_f32s(w, &[]);
+            }
         }
+        debug_assert_eq!(out.len(), 20 + payload_len, "checkpoint size computed wrongly");
         let n = out.len() - 20;
         out[12..20].copy_from_slice(&(n as u64).to_le_bytes());
         let sum = fnv1a64(&out[20..]);
@@ -266,8 +312,14 @@ impl Mapper {
     /// Reads a checkpoint written by [`Mapper::save_checkpoint`], checking magic, version,
     /// length and checksum, and rebuilds the mapper.
     pub fn load_checkpoint(path: &Path) -> Result<Mapper, CheckpointError> {
-        let p = path.display().to_string();
         let bytes = std::fs::read(path).map_err(|e| IoError::file(path, e))?;
+        Mapper::from_checkpoint_bytes(&bytes, &path.display().to_string(), RestoreOptions::default())
+    }
+
+    /// Rebuilds a mapper from checkpoint bytes (`what` names them in errors), checking magic,
+    /// version, length and checksum; referenced keyframes are taken from `options.keyframes`.
+    pub fn from_checkpoint_bytes(bytes: &[u8], what: &str, options: RestoreOptions<'_>) -> Result<Mapper, CheckpointError> {
+        let p = what.to_string();
         if bytes.len() < 20 || &bytes[..8] != CHECKPOINT_MAGIC {
             return Err(CheckpointError::BadMagic { path: p });
         }
@@ -289,7 +341,13 @@ impl Mapper {
         let bad = |why: String| CheckpointError::BadPayload { path: p.clone(), why };
         let payload: Payload = if version == CHECKPOINT_VERSION_JSON { serde_json::from_slice(body).map_err(|e| bad(e.to_string()))? } else { decode_binary(body).map_err(bad)? };
         let config: MapperConfig = toml::from_str(&payload.config_toml).map_err(|e| bad(e.to_string()))?;
-        let mut m = Mapper::new(config, payload.capacity)?;
+        let c = payload.capacity;
+        let capacity = match options.capacity {
+            Some(o) if o.width == c.width && o.height == c.height => MapperCapacity { max_gaussians: o.max_gaussians.max(c.max_gaussians), max_keyframes: o.max_keyframes.max(c.max_keyframes), ..c },
+            Some(o) => return Err(bad(format!("the checkpoint's images are {}x{}, not {}x{}", c.width, c.height, o.width, o.height))),
+            None => c,
+        };
+        let mut m = Mapper::new(config, capacity)?;
         if payload.gaussians.len() != ParamGroup::ALL.len() || payload.adam.len() != ParamGroup::ALL.len() {
             return Err(bad("wrong number of parameter groups".into()));
         }
@@ -338,10 +396,19 @@ impl Mapper {
             let [qx, qy, qz, qw] = r.rotation_xyzw.map(f64::from_bits);
             let rotation = nalgebra::UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(qw, qx, qy, qz));
             let world_from_cam = Se3::from_parts(nalgebra::Translation3::new(tx, ty, tz), rotation);
-            let image = ImageRgb8::from_vec(r.width, r.height, r.image.clone()).ok_or_else(|| bad(format!("keyframe {}: image size", r.index)))?;
-            let inv_depth = PlaneF32::from_vec(r.width, r.height, floats(&r.inv_depth)).ok_or_else(|| bad(format!("keyframe {}: depth size", r.index)))?;
-            let inv_depth_variance =
-                PlaneF32::from_vec(r.width, r.height, floats(&r.inv_depth_variance)).ok_or_else(|| bad(format!("keyframe {}: variance size", r.index)))?;
+            let referenced = r.image.is_empty() && r.inv_depth.is_empty() && r.inv_depth_variance.is_empty() && r.width * r.height > 0;
+            let (image, inv_depth, inv_depth_variance) = if referenced {
+                let found = options.keyframes.iter().find(|k| k.t_ns.t_ns() == r.t_ns && k.camera.width == r.width && k.camera.height == r.height).ok_or_else(|| {
+                    bad(format!("keyframe {} (t = {} ns) is referenced, not embedded, and was not supplied (a logged checkpoint: restore it with the log's keyframes)", r.index, r.t_ns))
+                })?;
+                (found.image.clone(), found.inv_depth.clone(), found.inv_depth_variance.clone())
+            } else {
+                (
+                    ImageRgb8::from_vec(r.width, r.height, r.image.clone()).ok_or_else(|| bad(format!("keyframe {}: image size", r.index)))?,
+                    PlaneF32::from_vec(r.width, r.height, floats(&r.inv_depth)).ok_or_else(|| bad(format!("keyframe {}: depth size", r.index)))?,
+                    PlaneF32::from_vec(r.width, r.height, floats(&r.inv_depth_variance)).ok_or_else(|| bad(format!("keyframe {}: variance size", r.index)))?,
+                )
+            };
             let kf = Keyframe { index: r.index, t_ns: Timestamp(r.t_ns), image, world_from_cam, camera, inv_depth, inv_depth_variance };
             if !kf.is_consistent() {
                 return Err(bad(format!("keyframe {}: inconsistent sizes", r.index)));

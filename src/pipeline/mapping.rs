@@ -6,16 +6,18 @@
 //!   the stage, which optimises within its per-keyframe budget.
 //! - While no keyframe waits, `step` runs one more iteration, at most `idle_iterations` after
 //!   each keyframe (so a deterministic run, which steps until idle, ends).
-//! - Checkpoints are the mapper's own checkpoint bytes (Gaussians, medium weights, Adam moments);
-//!   `restore` rebuilds the stage from them.
+//! - Checkpoints are the mapper's own checkpoint bytes (Gaussians, medium weights, Adam moments,
+//!   keyframes): the file for resume embeds the keyframes' pixels, the logged one refers to
+//!   the keyframes' own log messages; `restore` rebuilds the stage from the file.
 //! - `finish` sets the final keyframe poses, optimises `final_iterations` more and exports
 //!   `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
 
-use super::MapStage;
+use super::{MapCheckpoint, MapStage};
 use crate::core::{Keyframe, Se3};
 use crate::io::pfm::write_pfm;
 use crate::io::png_io::write_rgb8;
 use crate::gpu::GpuOptions;
+use crate::map::checkpoint::KeyframePixels;
 use crate::map::stage::{MappingBudget, MappingStage};
 use crate::map::vulkan::MapperDevice;
 use std::path::{Path, PathBuf};
@@ -92,13 +94,14 @@ impl MapStage for StageMapping {
         Ok(true)
     }
 
-    fn checkpoint(&mut self) -> Option<(Vec<u8>, Vec<[f32; 3]>)> {
+    fn checkpoint(&mut self) -> Option<MapCheckpoint> {
         if !std::mem::take(&mut self.dirty) {
             return None;
         }
         let mapper = self.stage.mapper();
-        // Straight from the mapper's buffers into one buffer (the caller writes it once).
-        let bytes = match mapper.checkpoint_bytes() {
+        // Straight from the mapper's buffers, each into one buffer of its exact size.
+        let made = mapper.checkpoint_bytes_with(KeyframePixels::Embedded).and_then(|file| Ok((file, mapper.checkpoint_bytes_with(KeyframePixels::Referenced)?)));
+        let (file, logged) = match made {
             Ok(b) => b,
             Err(e) => {
                 tracing::warn!("map checkpoint not made: {e}");
@@ -106,8 +109,8 @@ impl MapStage for StageMapping {
             }
         };
         let g = mapper.gaussians();
-        let centres = (0..g.len()).map(|i| g.get(i).mean).collect();
-        Some((bytes, centres))
+        let centres_in_world = (0..g.len()).map(|i| g.get(i).mean).collect();
+        Some(MapCheckpoint { file, logged, centres_in_world })
     }
 
     fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {

@@ -66,8 +66,8 @@ pub trait MapStage: Send {
     fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String>;
     /// One unit of optimisation when no keyframe is waiting; `false` when idle.
     fn step(&mut self) -> Result<bool, String>;
-    /// A checkpoint to persist now: (bytes, Gaussian centres in the world frame).
-    fn checkpoint(&mut self) -> Option<(Vec<u8>, Vec<[f32; 3]>)>;
+    /// A checkpoint to persist now (`None` when nothing changed since the last one).
+    fn checkpoint(&mut self) -> Option<MapCheckpoint>;
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
     fn restore(&mut self, bytes: &[u8]) -> Result<(), String>;
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
@@ -75,6 +75,18 @@ pub trait MapStage: Send {
     fn finish(&mut self, _final_poses: &[(u64, Se3)], _out: &Path) -> Result<Option<String>, String> {
         Ok(None)
     }
+}
+
+/// What the mapping stage persists: the checkpoint file a resume restores, the smaller one the
+/// log stores, and the Gaussian centres the log shows as a point cloud.
+#[derive(Clone, Debug)]
+pub struct MapCheckpoint {
+    /// Everything, keyframe pixels included (`checkpoints/map-NNNNNN.ckpt`; [`MapStage::restore`]).
+    pub file: Vec<u8>,
+    /// For `/map/checkpoint`: the same state with the keyframes referring to their own log
+    /// messages instead of embedding their pixels (`map::checkpoint::KeyframePixels`).
+    pub logged: Vec<u8>,
+    pub centres_in_world: Vec<[f32; 3]>,
 }
 
 /// A mapping stage that keeps the keyframe poses it was sent (its checkpoint is their list):
@@ -101,13 +113,13 @@ impl MapStage for NoMapping {
     fn step(&mut self) -> Result<bool, String> {
         Ok(false)
     }
-    fn checkpoint(&mut self) -> Option<(Vec<u8>, Vec<[f32; 3]>)> {
+    fn checkpoint(&mut self) -> Option<MapCheckpoint> {
         if !std::mem::take(&mut self.dirty) {
             return None;
         }
-        let bytes = serde_json::to_vec(&self.keyframes).ok()?;
-        let centres = self.keyframes.iter().map(|k| [k.2[0] as f32, k.2[1] as f32, k.2[2] as f32]).collect();
-        Some((bytes, centres))
+        let file = serde_json::to_vec(&self.keyframes).ok()?;
+        let centres_in_world = self.keyframes.iter().map(|k| [k.2[0] as f32, k.2[1] as f32, k.2[2] as f32]).collect();
+        Some(MapCheckpoint { logged: file.clone(), file, centres_in_world })
     }
     fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
         self.keyframes = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
@@ -453,9 +465,9 @@ pub fn run<S: FrameSource + 'static>(
                 let mut last_ckpt = Instant::now();
                 let mut last_t = Timestamp::from_ns(0);
                 let save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
-                    if let Some((bytes, centres)) = map.checkpoint() {
-                        checkpoints.save(&bytes)?;
-                        log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: centres, checkpoint: bytes });
+                    if let Some(c) = map.checkpoint() {
+                        checkpoints.save(&c.file)?;
+                        log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged });
                     }
                     Ok(())
                 };
@@ -758,9 +770,9 @@ fn run_deterministic<S: FrameSource + 'static>(
         handoff.flush(tracker, |item| log(&mut writer, item), &mut to_mapping)
     })?;
     drop(to_mapping);
-    if let Some((bytes, centres)) = map.checkpoint() {
-        checkpoints.save(&bytes)?;
-        log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: centres, checkpoint: bytes });
+    if let Some(c) = map.checkpoint() {
+        checkpoints.save(&c.file)?;
+        log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged });
     }
     let (log_stats, r) = writer.finish();
     if let Err(e) = r {
