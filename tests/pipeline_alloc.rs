@@ -117,3 +117,40 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
     // closes and fsyncs: those are counted too.
     assert!(window.as_secs_f64() >= 3.0 * 0.5, "the counted window ({window:?}) must span several chunk closes");
 }
+
+/// The log writer on its own, per frame encoding: once warm, encoding a frame (raw, or JPEG
+/// through `log::jpeg` at 4:4:4 and 4:2:0 qualities), writing it, closing the chunk and
+/// fsyncing allocate nothing. (The threaded test above logs raw frames, as `boards/sim.toml`
+/// does; the real boards log JPEG.)
+#[test]
+fn the_log_writer_allocates_nothing_per_frame_once_warm_for_raw_and_jpeg_frames() {
+    use duv::core::alloc::count_allocations_on_this_thread;
+    use duv::log::{FrameEncoding, LogConfig, LogItem, SegmentWriter};
+    let cfg = track_sim::sim_config(WaterPreset::Turbid, TrajectoryKind::Survey, 24, 160, 120, 0.3);
+    let frames: Vec<Arc<Frame>> = track_sim::render_all(&SimRenderer::new(&cfg).unwrap()).into_iter().map(Arc::new).collect();
+    for encoding in [FrameEncoding::Raw, FrameEncoding::Jpeg { quality: 90 }, FrameEncoding::Jpeg { quality: 75 }] {
+        let dir = tempfile::tempdir().unwrap();
+        let mut lcfg = LogConfig::new(dir.path());
+        lcfg.frame_encoding = encoding;
+        // Every tick closes the chunk and fsyncs: that path is counted too.
+        lcfg.chunk_interval = Duration::ZERO;
+        let mut writer = SegmentWriter::create(lcfg).unwrap();
+        let mut log = |f: &Arc<Frame>| {
+            writer.write(&LogItem::Frame(Arc::clone(f))).unwrap();
+            writer.tick().unwrap();
+        };
+        for f in &frames[..12] {
+            log(f);
+        }
+        let n = count_allocations_on_this_thread(|| {
+            for f in &frames[12..] {
+                log(f);
+            }
+        });
+        assert_eq!(n, 0, "{encoding:?}: {n} allocations over {} frames", frames.len() - 12);
+        let (stats, r) = writer.finish();
+        r.unwrap();
+        assert_eq!(stats.messages, frames.len() as u64);
+        assert!(stats.syncs >= frames.len() as u64, "{encoding:?}: {} syncs", stats.syncs);
+    }
+}

@@ -6,6 +6,7 @@
 //!   `foxglove.CameraCalibration`, `foxglove.PoseInFrame`, `foxglove.FrameTransform`,
 //!   `foxglove.PointCloud`) and the JSON schemas of our own records (`duv.TrackingState`,
 //!   `duv.Health`); [`LogItem`] is what the other stages hand to the log.
+//! - [`jpeg`]: baseline JPEG encoding of input frames for boards that log JPEG, allocation-free.
 //! - [`chunked`]: our MCAP writer (chunked, indexed, allocation-free once warm);
 //!   [`writer`]: segment files, a chunk closed and fsynced at least every
 //!   [`LogConfig::chunk_interval`], rotation by size and age, disk errors that stop logging
@@ -20,6 +21,7 @@
 
 pub mod chunked;
 pub mod inspect;
+pub mod jpeg;
 pub mod keyframes;
 pub mod reader;
 pub mod recover;

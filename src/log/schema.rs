@@ -6,6 +6,7 @@
 //! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
 
 use super::window::TrackerWindow;
+use super::jpeg::{JpegEncoder, JpegError};
 use super::LogError;
 use crate::core::{Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use foxglove::messages as fg;
@@ -254,19 +255,29 @@ fn encode<T: Encode>(msg: &T, what: &'static str, out: &mut Vec<u8>) -> Result<(
 
 /// Messages whose strings are set once, so that encoding one allocates nothing: only their
 /// numbers change from item to item.
-#[derive(Debug)]
 struct Templates {
     image: fg::RawImage,
+    compressed: fg::CompressedImage,
     pose: fg::PoseInFrame,
     transform: fg::FrameTransform,
+    /// The JPEG encoder for the board's quality (its tables, built once).
+    jpeg: Option<JpegEncoder>,
+}
+
+impl std::fmt::Debug for Templates {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Templates").field("jpeg_quality", &self.jpeg.as_ref().map(|e| e.quality())).finish_non_exhaustive()
+    }
 }
 
 impl Default for Templates {
     fn default() -> Self {
         Templates {
             image: fg::RawImage { frame_id: CAMERA_FRAME.into(), encoding: String::with_capacity(8), ..Default::default() },
+            compressed: fg::CompressedImage { frame_id: CAMERA_FRAME.into(), format: "jpeg".into(), ..Default::default() },
             pose: fg::PoseInFrame { frame_id: WORLD_FRAME.into(), ..Default::default() },
             transform: fg::FrameTransform { parent_frame_id: WORLD_FRAME.into(), child_frame_id: CAMERA_FRAME.into(), ..Default::default() },
+            jpeg: None,
         }
     }
 }
@@ -289,20 +300,10 @@ fn encode_raw_image(tpl: &mut fg::RawImage, t_ns: Timestamp, width: usize, heigh
     tpl.encoding.push_str(encoding);
     tpl.step = step as u32;
     encode(&*tpl, what, out)?;
-    let len = match pixels {
-        Pixels::Bytes(b) => b.len(),
-        Pixels::F32(v) => 4 * v.len(),
-    };
-    out.push((6 << 3) | 2);
-    let mut v = len as u64;
-    while v >= 0x80 {
-        out.push((v as u8 & 0x7f) | 0x80);
-        v >>= 7;
-    }
-    out.push(v as u8);
     match pixels {
-        Pixels::Bytes(b) => out.extend_from_slice(b),
+        Pixels::Bytes(b) => append_bytes_field(6, b, out),
         Pixels::F32(v) => {
+            field_header(6, 4 * v.len(), out);
             for x in v {
                 out.extend_from_slice(&x.to_le_bytes());
             }
@@ -355,22 +356,38 @@ impl ItemEncoder {
     }
 }
 
-/// Compresses `image` into `out` (cleared first; its capacity is reused).
+/// Compresses `image` into `out` (cleared first; its capacity is reused) with a one-off
+/// encoder; the log keeps one per quality ([`ItemEncoder`]).
 pub fn encode_jpeg(image: &FrameImage, quality: u8, out: &mut Vec<u8>) -> Result<(), LogError> {
-    use jpeg_encoder::{ColorType, Encoder};
-    let (data, w, h, colour) = match image {
-        FrameImage::Rgb8(i) => (&i.data, i.width, i.height, ColorType::Rgb),
-        FrameImage::Gray8(i) => (&i.data, i.width, i.height, ColorType::Luma),
-    };
-    let problem = |p: String| LogError::Encode { what: "frame (jpeg)", problem: p };
-    if !JPEG_QUALITY_RANGE.contains(&quality) {
-        return Err(problem(format!("quality {quality} is outside 1..=100")));
+    let problem = |e: JpegError| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() };
+    let encoder = JpegEncoder::new(quality).map_err(problem)?;
+    encode_jpeg_with(&encoder, image, out)
+}
+
+fn encode_jpeg_with(encoder: &JpegEncoder, image: &FrameImage, out: &mut Vec<u8>) -> Result<(), LogError> {
+    let problem = |e: JpegError| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() };
+    match image {
+        FrameImage::Rgb8(i) => encoder.encode(&i.data, i.width, i.height, 3, out),
+        FrameImage::Gray8(i) => encoder.encode(&i.data, i.width, i.height, 1, out),
     }
-    let (Ok(w16), Ok(h16)) = (u16::try_from(w), u16::try_from(h)) else {
-        return Err(problem(format!("{w}x{h} exceeds the JPEG limit of 65535x65535")));
-    };
-    out.clear();
-    Encoder::new(&mut *out, quality).encode(data, w16, h16, colour).map_err(|e| problem(e.to_string()))
+    .map_err(problem)
+}
+
+/// Appends the key and length of protobuf field `field` (length delimited, `len` bytes).
+fn field_header(field: u32, len: usize, out: &mut Vec<u8>) {
+    out.push(((field << 3) | 2) as u8);
+    let mut v = len as u64;
+    while v >= 0x80 {
+        out.push((v as u8 & 0x7f) | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+/// Appends protobuf field `field` (length delimited) holding `bytes` to `out`.
+fn append_bytes_field(field: u32, bytes: &[u8], out: &mut Vec<u8>) {
+    field_header(field, bytes.len(), out);
+    out.extend_from_slice(bytes);
 }
 
 fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, tpl: &mut Templates, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
@@ -383,14 +400,15 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
                     FrameImage::Gray8(i) => encode_raw_image(&mut tpl.image, f.t_ns, i.width, i.height, "mono8", i.width, Pixels::Bytes(&i.data), "frame", scratch)?,
                 },
                 FrameEncoding::Jpeg { quality } => {
-                    encode_jpeg(&f.image, quality, jpeg)?;
-                    let msg = fg::CompressedImage {
-                        timestamp: Some(fg_time(f.t_ns)),
-                        frame_id: CAMERA_FRAME.into(),
-                        data: foxglove::bytes::Bytes::copy_from_slice(jpeg),
-                        format: "jpeg".into(),
-                    };
-                    encode(&msg, "frame", scratch)?;
+                    if tpl.jpeg.as_ref().is_none_or(|e| e.quality() != quality) {
+                        let e = JpegEncoder::new(quality).map_err(|e| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() })?;
+                        tpl.jpeg = Some(e);
+                    }
+                    encode_jpeg_with(tpl.jpeg.as_ref().expect("set above"), &f.image, jpeg)?;
+                    // The template's fields, then `data` (field 2) appended from the JPEG buffer.
+                    tpl.compressed.timestamp = Some(fg_time(f.t_ns));
+                    encode(&tpl.compressed, "frame", scratch)?;
+                    append_bytes_field(2, jpeg, scratch);
                 }
             }
             emit(Encoded { topic: Topic::CameraImage, sequence: f.seq as u32, log_time_ns }, scratch)
