@@ -60,6 +60,50 @@ const AC_CHROMA_VALS: [u8; 162] = [
     0xf4, 0xf5, 0xf6, 0xf7, 0xf8, 0xf9, 0xfa,
 ];
 
+/// Output scale of the AAN factorisation per frequency: 1, then sqrt(2) cos(k pi / 16).
+const AAN_SCALE: [f64; 8] = [1.0, 1.387_039_845, 1.306_562_965, 1.175_875_602, 1.0, 0.785_694_958, 0.541_196_100, 0.275_899_379];
+
+/// One 8-point forward DCT of the Arai-Agui-Nakajima factorisation (5 multiplications) on
+/// `d[0], d[step], ..., d[7 step]`, in place; output k is the DCT-II coefficient times
+/// `AAN_SCALE[k]` (and the JPEG normalisation left to the quantiser).
+#[inline]
+fn aan_8(d: &mut [f32; 64], at: usize, step: usize) {
+    let i = |k: usize| at + k * step;
+    let (t0, t7) = (d[i(0)] + d[i(7)], d[i(0)] - d[i(7)]);
+    let (t1, t6) = (d[i(1)] + d[i(6)], d[i(1)] - d[i(6)]);
+    let (t2, t5) = (d[i(2)] + d[i(5)], d[i(2)] - d[i(5)]);
+    let (t3, t4) = (d[i(3)] + d[i(4)], d[i(3)] - d[i(4)]);
+    // Even part.
+    let (t10, t13, t11, t12) = (t0 + t3, t0 - t3, t1 + t2, t1 - t2);
+    d[i(0)] = t10 + t11;
+    d[i(4)] = t10 - t11;
+    let z1 = (t12 + t13) * std::f32::consts::FRAC_1_SQRT_2;
+    d[i(2)] = t13 + z1;
+    d[i(6)] = t13 - z1;
+    // Odd part.
+    let (t10, t11, t12) = (t4 + t5, t5 + t6, t6 + t7);
+    let z5 = (t10 - t12) * 0.382_683_43;
+    let z2 = 0.541_196_1 * t10 + z5;
+    let z4 = 1.306_563 * t12 + z5;
+    let z3 = t11 * std::f32::consts::FRAC_1_SQRT_2;
+    let (z11, z13) = (t7 + z3, t7 - z3);
+    d[i(5)] = z13 + z2;
+    d[i(3)] = z13 - z2;
+    d[i(1)] = z11 + z4;
+    d[i(7)] = z11 - z4;
+}
+
+/// 2-D forward DCT of a level-shifted block (rows, then columns), outputs scaled as
+/// [`aan_8`] says in each direction.
+fn fdct_aan(block: &mut [f32; 64]) {
+    for y in 0..8 {
+        aan_8(block, y * 8, 1);
+    }
+    for x in 0..8 {
+        aan_8(block, x, 8);
+    }
+}
+
 /// A Huffman table as (code, length) per symbol.
 #[derive(Clone, Copy)]
 struct HuffCodes {
@@ -135,12 +179,10 @@ pub struct JpegEncoder {
     quality: u8,
     /// Quantisation tables (luma, chroma) in natural order, as written.
     quant: [[u16; 64]; 2],
-    /// 1 / (quantiser * 8) folded with the DCT scale, natural order.
+    /// 1 / quantiser, folded with the scale of [`fdct_aan`]'s outputs, natural order.
     inv_quant: [[f32; 64]; 2],
     dc: [HuffCodes; 2],
     ac: [HuffCodes; 2],
-    /// cos((2x+1) u pi / 16) * C(u) / 2, [u][x].
-    dct: [[f32; 8]; 8],
 }
 
 impl JpegEncoder {
@@ -152,21 +194,19 @@ impl JpegEncoder {
         let scale = if q < 50 { 5000 / q } else { 200 - 2 * q };
         let scaled = |base: &[u16; 64]| base.map(|b| ((b as u32 * scale + 50) / 100).clamp(1, 255) as u16);
         let quant = [scaled(&LUMA_QUANT), scaled(&CHROMA_QUANT)];
-        let inv_quant = quant.map(|t| t.map(|v| 1.0 / v as f32));
-        let mut dct = [[0f32; 8]; 8];
-        for (u, row) in dct.iter_mut().enumerate() {
-            let c = if u == 0 { std::f64::consts::FRAC_1_SQRT_2 } else { 1.0 };
-            for (x, v) in row.iter_mut().enumerate() {
-                *v = (0.5 * c * ((2 * x + 1) as f64 * u as f64 * std::f64::consts::PI / 16.0).cos()) as f32;
+        let inv_quant = quant.map(|t| {
+            let mut inv = [0f32; 64];
+            for (k, v) in inv.iter_mut().enumerate() {
+                *v = (1.0 / (t[k] as f64 * 8.0 * AAN_SCALE[k / 8] * AAN_SCALE[k % 8])) as f32;
             }
-        }
+            inv
+        });
         Ok(JpegEncoder {
             quality,
             quant,
             inv_quant,
             dc: [HuffCodes::new(&DC_LUMA_BITS, &DC_LUMA_VALS), HuffCodes::new(&DC_CHROMA_BITS, &DC_CHROMA_VALS)],
             ac: [HuffCodes::new(&AC_LUMA_BITS, &AC_LUMA_VALS), HuffCodes::new(&AC_CHROMA_BITS, &AC_CHROMA_VALS)],
-            dct,
         })
     }
 
@@ -192,14 +232,16 @@ impl JpegEncoder {
         self.write_headers(width, height, channels, out);
         let mut bw = BitWriter { out, acc: 0, n: 0 };
         let mut pred = [0i32; 3];
-        let at = |x: usize, y: usize, c: usize| pixels[(y.min(height - 1) * width + x.min(width - 1)) * channels + c] as f32;
+        // The first channel's byte of pixel (x, y), edges repeated.
+        let at = |x: usize, y: usize| (y.min(height - 1) * width + x.min(width - 1)) * channels;
+        let rgb = |i: usize| (pixels[i] as f32, pixels[i + 1] as f32, pixels[i + 2] as f32);
         let mut block = [0f32; 64];
         if channels == 1 {
             for by in (0..height).step_by(8) {
                 for bx in (0..width).step_by(8) {
                     for y in 0..8 {
                         for x in 0..8 {
-                            block[y * 8 + x] = at(bx + x, by + y, 0) - 128.0;
+                            block[y * 8 + x] = pixels[at(bx + x, by + y)] as f32 - 128.0;
                         }
                     }
                     self.code_block(&mut block, 0, &mut pred[0], &mut bw);
@@ -207,7 +249,7 @@ impl JpegEncoder {
             }
         } else if self.subsample_chroma() {
             let ycc = |x: usize, y: usize| {
-                let (r, g, b) = (at(x, y, 0), at(x, y, 1), at(x, y, 2));
+                let (r, g, b) = rgb(at(x, y));
                 (0.299 * r + 0.587 * g + 0.114 * b, -0.168_736 * r - 0.331_264 * g + 0.5 * b, 0.5 * r - 0.418_688 * g - 0.081_312 * b)
             };
             let mut cb = [0f32; 64];
@@ -240,7 +282,7 @@ impl JpegEncoder {
                 for bx in (0..width).step_by(8) {
                     for y in 0..8 {
                         for x in 0..8 {
-                            let (r, g, b) = (at(bx + x, by + y, 0), at(bx + x, by + y, 1), at(bx + x, by + y, 2));
+                            let (r, g, b) = rgb(at(bx + x, by + y));
                             block[y * 8 + x] = 0.299 * r + 0.587 * g + 0.114 * b - 128.0;
                             cb[y * 8 + x] = -0.168_736 * r - 0.331_264 * g + 0.5 * b;
                             cr[y * 8 + x] = 0.5 * r - 0.418_688 * g - 0.081_312 * b;
@@ -259,26 +301,12 @@ impl JpegEncoder {
 
     /// DCT, quantisation and Huffman coding of one level-shifted block (`table` 0 luma, 1 chroma).
     fn code_block(&self, block: &mut [f32; 64], table: usize, pred: &mut i32, bw: &mut BitWriter<'_>) {
-        // Rows, then columns: F(v, u) = sum_y c[v][y] sum_x c[u][x] f(y, x).
-        let mut tmp = [0f32; 64];
-        for y in 0..8 {
-            for u in 0..8 {
-                let c = &self.dct[u];
-                let r = &block[y * 8..y * 8 + 8];
-                tmp[y * 8 + u] = c[0] * r[0] + c[1] * r[1] + c[2] * r[2] + c[3] * r[3] + c[4] * r[4] + c[5] * r[5] + c[6] * r[6] + c[7] * r[7];
-            }
-        }
+        fdct_aan(block);
         let mut q = [0i32; 64];
-        for v in 0..8 {
-            let c = &self.dct[v];
-            for u in 0..8 {
-                let mut s = 0.0;
-                for y in 0..8 {
-                    s += c[y] * tmp[y * 8 + u];
-                }
-                let k = v * 8 + u;
-                q[k] = (s * self.inv_quant[table][k]).round() as i32;
-            }
+        for (k, v) in q.iter_mut().enumerate() {
+            // Rounded half away from zero; `as` truncates (f32::round is a libm call here).
+            let x = block[k] * self.inv_quant[table][k];
+            *v = (x + 0.5f32.copysign(x)) as i32;
         }
         let (dc, ac) = (&self.dc[table], &self.ac[table]);
         let diff = q[0] - *pred;
@@ -397,6 +425,38 @@ mod tests {
             let px = d.decode().unwrap();
             let p = psnr(&px, &grey);
             assert!(p > 35.0, "grey {w}x{h}: {p:.1} dB");
+        }
+    }
+
+    #[test]
+    fn the_fast_dct_matches_the_direct_formula() {
+        // F(u, v) = C(u) C(v) / 4 sum_x sum_y f(x, y) cos((2x+1) u pi / 16) cos((2y+1) v pi / 16),
+        // in f64, against the AAN outputs divided by their scale.
+        let mut rng = 12345u64;
+        for _ in 0..20 {
+            let mut block = [0f32; 64];
+            for v in block.iter_mut() {
+                rng = rng.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                *v = ((rng >> 33) % 256) as f32 - 128.0;
+            }
+            let input = block;
+            fdct_aan(&mut block);
+            let c = |u: usize| if u == 0 { std::f64::consts::FRAC_1_SQRT_2 } else { 1.0 };
+            for v in 0..8 {
+                for u in 0..8 {
+                    let mut sum = 0.0;
+                    for y in 0..8 {
+                        for x in 0..8 {
+                            let cx = ((2 * x + 1) as f64 * u as f64 * std::f64::consts::PI / 16.0).cos();
+                            let cy = ((2 * y + 1) as f64 * v as f64 * std::f64::consts::PI / 16.0).cos();
+                            sum += input[y * 8 + x] as f64 * cx * cy;
+                        }
+                    }
+                    let exact = 0.25 * c(u) * c(v) * sum;
+                    let fast = block[v * 8 + u] as f64 / (8.0 * AAN_SCALE[u] * AAN_SCALE[v]);
+                    assert!((fast - exact).abs() < 1e-3 * (1.0 + exact.abs()), "({u}, {v}): {fast} vs {exact}");
+                }
+            }
         }
     }
 
