@@ -43,8 +43,10 @@ pub struct RefineArgs {
     mcap: Option<PathBuf>,
     /// With --mcap: start from the newest map checkpoint in the log (the onboard map: its
     /// Gaussians, medium, optimiser state, keyframe poses and mapper config, with the
-    /// keyframes' pixels from their own log messages) instead of a fresh map; keyframes logged
-    /// after it are added. The Gaussian cap is the larger of --max-gaussians and the onboard one.
+    /// keyframes' pixels from their own log messages) instead of a fresh map; the logged
+    /// keyframes it does not hold (logged after it, dropped by the onboard mapping queue, or
+    /// evicted from the onboard store) are added. The Gaussian cap is the larger of
+    /// --max-gaussians and the onboard one.
     #[arg(long, requires = "mcap", conflicts_with = "config")]
     from_logged_map: bool,
     /// The true medium (a generator's `medium.json`) to score the recovered one against
@@ -189,7 +191,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     if !a.quiet {
         eprintln!("refine: rendering with {renderer}");
     }
-    // A fresh map takes every keyframe; a restored one those logged after its checkpoint.
+    // A fresh map takes every keyframe; a restored one those it does not hold.
     let held: Vec<i64> = (0..mapper.keyframe_count()).filter_map(|s| mapper.keyframe(s).map(|k| k.t_ns.t_ns())).collect();
     let mut added = 0;
     for kf in keyframes.iter().filter(|k| !held.contains(&k.t_ns.t_ns())) {
@@ -197,7 +199,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         added += 1;
     }
     if a.from_logged_map {
-        eprintln!("{added} keyframe(s) logged after the map checkpoint added");
+        eprintln!("{added} logged keyframe(s) the map checkpoint does not hold added");
     }
     std::fs::create_dir_all(a.out.join("renders")).with_context(|| format!("creating {}", a.out.display()))?;
 
