@@ -171,7 +171,6 @@ pub struct ChunkedWriter<W: Write> {
     buf: WriterBuffers,
     chunk_start_ns: u64,
     chunk_end_ns: u64,
-    chunk_messages: u64,
     schemas: Vec<SchemaSlot>,
     /// Sorted by id.
     channels: Vec<ChannelSlot>,
@@ -201,7 +200,6 @@ impl<W: Write> ChunkedWriter<W> {
             buf,
             chunk_start_ns: u64::MAX,
             chunk_end_ns: 0,
-            chunk_messages: 0,
             schemas: Vec::new(),
             channels: Vec::new(),
             messages: 0,
@@ -223,16 +221,6 @@ impl<W: Write> ChunkedWriter<W> {
     /// Bytes written so far (what the file holds once the output is flushed).
     pub fn position(&self) -> u64 {
         self.out.pos
-    }
-
-    /// Messages written so far.
-    pub fn message_count(&self) -> u64 {
-        self.messages
-    }
-
-    /// The output, for flushing or syncing between chunks.
-    pub fn get_mut(&mut self) -> &mut W {
-        &mut self.out.inner
     }
 
     fn put_scratch(&mut self) -> io::Result<()> {
@@ -318,7 +306,6 @@ impl<W: Write> ChunkedWriter<W> {
             self.buf.channel_entries[slot].push((log_time_ns, offset));
             self.chunk_start_ns = self.chunk_start_ns.min(log_time_ns);
             self.chunk_end_ns = self.chunk_end_ns.max(log_time_ns);
-            self.chunk_messages += 1;
         }
         self.channels[slot].messages += 1;
         self.messages += 1;
@@ -404,7 +391,6 @@ impl<W: Write> ChunkedWriter<W> {
         self.buf.chunk.clear();
         self.chunk_start_ns = u64::MAX;
         self.chunk_end_ns = 0;
-        self.chunk_messages = 0;
         self.index_chunk(start_ns, end_ns, offset, records_bytes)
     }
 
