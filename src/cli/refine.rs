@@ -70,6 +70,10 @@ pub struct RefineArgs {
     width: usize,
     #[arg(long, default_value_t = 240)]
     height: usize,
+    /// Vignetting strength of the generated images (with --sim). The mapper has no vignetting
+    /// model (a calibrated camera is flat-fielded first), so 0 keeps the medium identifiable.
+    #[arg(long, default_value_t = 0.0)]
+    vignetting: f64,
     /// Output folder (created if missing).
     #[arg(long)]
     out: PathBuf,
@@ -111,6 +115,8 @@ struct Metrics {
     mean_ssim: f64,
     mean_restored_psnr_db: Option<f64>,
     medium: MediumParams,
+    /// The closed-form estimate the optimisation started from (`MapperConfig::estimate_medium_at_keyframes`).
+    medium_estimate: Option<duv::map::medium_estimate::MediumEstimate>,
     medium_truth: Option<MediumParams>,
     /// Relative error of each recovered coefficient, in the order beta_D, beta_B, B_inf (R G B each).
     medium_rel_error: Option<[[f64; 3]; 3]>,
@@ -157,6 +163,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         cfg.frames = a.frames;
         cfg.width = a.width;
         cfg.height = a.height;
+        cfg.vignetting = a.vignetting;
         let r = SimRenderer::new(&cfg).context("building the generated sequence")?;
         let kfs = sim_keyframes(&r, a.every, a.max_keyframes);
         let truth = *r.medium();
@@ -258,6 +265,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         mean_restored_psnr_db: if restored.is_empty() { None } else { Some(restored.iter().sum::<f64>() / restored.len() as f64) },
         keyframes: per_kf,
         medium,
+        medium_estimate: mapper.medium_estimate().cloned(),
         medium_truth: truth,
         medium_rel_error: rel,
         gaussians_over_time: over_time,
@@ -274,6 +282,10 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     }
     println!("mean      {:8.2}  {:6.4}  {}", metrics.mean_psnr_db, metrics.mean_ssim, metrics.mean_restored_psnr_db.map_or("-".into(), |v| format!("{v:.2}")));
     let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
+    if let Some(e) = &metrics.medium_estimate {
+        let m = &e.medium;
+        println!("estimate  beta_D {} beta_B {} B_inf {}  ({} depth blocks, {:?} view pairs)", f(m.beta_d), f(m.beta_b), f(m.b_inf), e.samples, e.attenuation_pairs);
+    }
     println!("medium    beta_D {} beta_B {} B_inf {}", f(medium.beta_d), f(medium.beta_b), f(medium.b_inf));
     if let (Some(t), Some(e)) = (truth, rel) {
         println!("truth     beta_D {} beta_B {} B_inf {}", f(t.beta_d), f(t.beta_b), f(t.b_inf));

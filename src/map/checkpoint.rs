@@ -416,6 +416,11 @@ impl Mapper {
             m.push_restored_keyframe(&kf);
         }
         m.iteration = payload.iteration;
+        // A map restored with at least as many keyframes as the first medium estimate needs
+        // was estimated (or chose not to be): its optimised medium is not replaced.
+        if m.keyframes.len() >= m.config.estimate_medium_at_keyframes {
+            m.medium_estimate_at = 0;
+        }
         m.rng = Rng::from_state(payload.rng_state);
         Ok(m)
     }

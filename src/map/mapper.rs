@@ -23,6 +23,7 @@ use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
 use super::densify::{densify_and_prune, prune_largest, DensifyParams, DensifyReport, DensifyScratch};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
 use super::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
+use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, MediumEstimateConfig, MediumEstimateError};
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
 use super::schedule::pick_keyframe;
@@ -55,6 +56,8 @@ pub enum MapperError {
     Gpu(String),
     #[error("keyframe slot {slot} out of range ({count} keyframes)")]
     NoSuchKeyframe { slot: usize, count: usize },
+    #[error("{0}")]
+    MediumEstimate(#[from] MediumEstimateError),
 }
 
 impl From<VulkanRenderError> for MapperError {
@@ -154,6 +157,21 @@ pub struct MapperConfig {
     /// Ablation (paper Table 6): one coefficient for both medium terms, `sigma_bs = sigma_att`
     /// (the network's `sigma_bs` head is unused).
     pub single_medium_coefficient: bool,
+    /// When the map first holds this many keyframes, the medium is set to the closed-form
+    /// estimate from their images and depths ([`super::medium_estimate`]) before the joint
+    /// optimisation goes on, per colour channel whose fit is well determined; while a channel
+    /// is not, the estimate is made again at twice as many keyframes (up to
+    /// `max_keyframes`). 0 keeps the configured initial water.
+    pub estimate_medium_at_keyframes: usize,
+    /// Settings of that estimate.
+    pub medium_estimate: MediumEstimateConfig,
+    /// Weight of the prior that keeps the medium near the accepted estimate
+    /// ([`super::medium_estimate::MediumPrior`]); 0 lets the joint optimisation move it freely.
+    pub medium_prior_weight: f64,
+    /// The prior's standard deviation of `ln sigma_att` and `ln sigma_bs` (relative).
+    pub medium_prior_rel_std: f64,
+    /// The prior's standard deviation of `c_med` (fraction of full scale).
+    pub medium_prior_b_inf_std: f64,
 }
 
 impl Default for MapperConfig {
@@ -183,6 +201,11 @@ impl Default for MapperConfig {
             optimise_medium: true,
             intersections_per_gaussian: 8,
             single_medium_coefficient: false,
+            estimate_medium_at_keyframes: 4,
+            medium_estimate: MediumEstimateConfig::default(),
+            medium_prior_weight: 0.01,
+            medium_prior_rel_std: 0.1,
+            medium_prior_b_inf_std: 0.02,
         }
     }
 }
@@ -193,11 +216,20 @@ impl MapperConfig {
         self.loss.validate()?;
         self.render.validate()?;
         self.medium.validate()?;
+        self.medium_estimate.validate()?;
         let bad = |field: &'static str, value: f64, why: &'static str| Err(MapperError::InvalidConfig { field, value, why });
         for g in ParamGroup::ALL {
             AdamGroupConfig { lr: self.lr.of(g), ..AdamGroupConfig::default() }.validate()?;
         }
         AdamGroupConfig { lr: self.lr.medium, ..AdamGroupConfig::default() }.validate()?;
+        if !(self.medium_prior_weight.is_finite() && self.medium_prior_weight >= 0.0) {
+            return bad("medium_prior_weight", self.medium_prior_weight, "must be finite and >= 0");
+        }
+        for (field, v) in [("medium_prior_rel_std", self.medium_prior_rel_std), ("medium_prior_b_inf_std", self.medium_prior_b_inf_std)] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(field, v, "must be finite and > 0");
+            }
+        }
         if self.init_stride_px == 0 {
             return bad("init_stride_px", 0.0, "must be >= 1");
         }
@@ -382,6 +414,12 @@ pub struct Mapper {
     overflow: OverflowStats,
     /// The last render used over 90% of the intersection buffer.
     intersections_tight: bool,
+    /// The newest closed-form medium estimate (some of its channels set the medium).
+    medium_estimate: Option<MediumEstimate>,
+    /// The prior from the accepted channels of the estimates so far.
+    medium_prior: Option<MediumPrior>,
+    /// Keyframe count of the next medium estimate; 0 once every channel is set (or off).
+    pub(crate) medium_estimate_at: usize,
 }
 
 /// Renders that needed more tile intersections than the buffers hold, and what the policy did
@@ -445,6 +483,9 @@ impl Mapper {
             rng: Rng::new(config.seed),
             overflow: OverflowStats::default(),
             intersections_tight: false,
+            medium_estimate: None,
+            medium_prior: None,
+            medium_estimate_at: config.estimate_medium_at_keyframes,
             adam,
             medium,
             medium_adam,
@@ -680,9 +721,101 @@ impl Mapper {
             self.spare_keyframes.pop().unwrap_or_else(|| MapKeyframe::blank(w, h))
         };
         self.store_keyframe(slot, kf);
+        let estimate_at = self.medium_estimate_at.min(self.capacity.max_keyframes);
+        if estimate_at > 0 && self.config.optimise_medium && self.keyframes.len() == estimate_at {
+            let all = match self.estimate_medium() {
+                Ok(e) => {
+                    tracing::info!(beta_d = ?e.medium.beta_d, beta_b = ?e.medium.beta_b, b_inf = ?e.medium.b_inf, accepted = ?e.accepted, samples = e.samples, pairs = ?e.attenuation_pairs, "map.medium_estimate");
+                    e.accepted.iter().all(|&a| a)
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "map.medium_estimate: the medium stays as it is");
+                    false
+                }
+            };
+            self.medium_estimate_at = if all || estimate_at == self.capacity.max_keyframes { 0 } else { estimate_at * 2 };
+        }
 
         tracing::debug!(added, total = self.gaussians.len(), "map.add_keyframe");
         Ok(added)
+    }
+
+    /// The closed-form medium estimate the medium was set to, if one was made.
+    pub fn medium_estimate(&self) -> Option<&MediumEstimate> {
+        self.medium_estimate.as_ref()
+    }
+
+    /// Estimates the water from the held keyframes ([`super::medium_estimate`]), sets the
+    /// medium network to it (uniform in direction, as a fresh network; moments reset; the
+    /// channels the estimate did not accept keep the current medium along the first
+    /// keyframe's axis) and re-derives every Gaussian's base colour for the new water. When no
+    /// channel is accepted, or on an error, nothing changes.
+    pub fn estimate_medium(&mut self) -> Result<MediumEstimate, MapperError> {
+        let _span = tracing::info_span!("map.medium_estimate", keyframes = self.keyframes.len()).entered();
+        let keyframes: Vec<&Keyframe> = self.keyframes.iter().map(|k| &k.kf).collect();
+        let first = keyframes.first().ok_or(MapperError::NoKeyframes)?.world_from_cam;
+        let before = self.medium.summary_along_axis(&first);
+        let estimate = estimate_medium(&keyframes, before.beta_d, &self.config.medium_estimate)?;
+        self.medium_estimate = Some(estimate.clone());
+        if !estimate.accepted.iter().any(|&a| a) {
+            return Ok(estimate);
+        }
+        let water = estimate.or(&before);
+        let mut medium = self.config.medium;
+        for c in 0..3 {
+            medium.init_c_med[c] = water.b_inf[c].clamp(1e-3, 0.999);
+            medium.init_sigma_att[c] = water.beta_d[c].clamp(1e-3, 20.0);
+            medium.init_sigma_bs[c] = water.beta_b[c].clamp(1e-3, 20.0);
+        }
+        let old = std::mem::replace(&mut self.medium, MediumNet::new(&medium)?);
+        let mut prior = self.medium_prior.unwrap_or(MediumPrior {
+            medium: water,
+            channels: [false; 3],
+            weight: self.config.medium_prior_weight,
+            rel_std: self.config.medium_prior_rel_std,
+            b_inf_std: self.config.medium_prior_b_inf_std,
+        });
+        for c in (0..3).filter(|&c| estimate.accepted[c]) {
+            prior.channels[c] = true;
+            prior.medium.beta_d[c] = water.beta_d[c];
+            prior.medium.beta_b[c] = water.beta_b[c];
+            prior.medium.b_inf[c] = water.b_inf[c];
+        }
+        self.medium_prior = Some(prior);
+        self.medium_adam.reset_moments();
+        self.recolour_for_new_medium(&old);
+        Ok(estimate)
+    }
+
+    /// Keeps what every Gaussian looked like from the keyframe that seeded it (the oldest held
+    /// keyframe that sees it) when the medium changes from `old` to the current one:
+    /// `J' = (J T + B - B') / T'`, `T = exp(-sigma_att r)`, `B = c_med (1 - exp(-sigma_bs r))`.
+    fn recolour_for_new_medium(&mut self, old: &MediumNet) {
+        let views: Vec<(Se3, PinholeCamera)> = self.keyframes.iter().map(|k| (k.kf.world_from_cam.inverse(), k.kf.camera)).collect();
+        for i in 0..self.gaussians.len() {
+            let mut p = self.gaussians.get(i);
+            let mean = nalgebra::Point3::new(p.mean[0] as f64, p.mean[1] as f64, p.mean[2] as f64);
+            let seen = views.iter().find_map(|(cam_from_world, cam)| {
+                let q = cam_from_world * mean;
+                let (u, v) = (cam.fx * q.x / q.z + cam.cx, cam.fy * q.y / q.z + cam.cy);
+                (q.z > 0.0 && u >= 0.0 && v >= 0.0 && u < cam.width as f64 && v < cam.height as f64).then_some((cam_from_world, q))
+            });
+            let Some((cam_from_world, q)) = seen else { continue };
+            let range = q.coords.norm();
+            let dir = cam_from_world.rotation.inverse() * (q.coords / range);
+            let dir = [dir.x as f32, dir.y as f32, dir.z as f32];
+            let (was, now) = (old.eval_direction(dir), self.medium.eval_direction(dir));
+            let range = range as f32;
+            for c in 0..3 {
+                let seen_as = |m: &[f32; MEDIUM_CHANNELS], j: f32| j * (-m[SIGMA_ATT + c] * range).exp() + m[C_MED + c] * (1.0 - (-m[SIGMA_BS + c] * range).exp());
+                let j = 0.5 + SH_C0 as f32 * p.f_dc[c];
+                let observed = seen_as(&was, j);
+                let backscatter = seen_as(&now, 0.0);
+                let colour = ((observed - backscatter) * (now[SIGMA_ATT + c] * range).exp()).clamp(0.0, 1.0);
+                p.f_dc[c] = ((colour - 0.5) as f64 / SH_C0) as f32;
+            }
+            self.gaussians.set(i, &p);
+        }
     }
 
     /// Fills `slot` from `kf` and makes it the newest keyframe.
@@ -732,6 +865,9 @@ impl Mapper {
         nine_from_planes(&v.planes_grad, &mut v.d_planes9);
         for (d, &l) in v.d_planes9.data.iter_mut().zip(&lg.d_medium.data) {
             *d += l;
+        }
+        if let Some(prior) = &self.medium_prior {
+            prior.loss_and_grad(&v.planes9.data, &mut v.d_planes9.data);
         }
         if self.config.single_medium_coefficient {
             for px in v.d_planes9.data.chunks_exact_mut(MEDIUM_CHANNELS) {

@@ -19,6 +19,7 @@ pub mod gaussians;
 pub mod loss;
 pub mod mapper;
 pub mod medium;
+pub mod medium_estimate;
 pub mod ply;
 pub mod real;
 pub mod render;
