@@ -73,11 +73,21 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("map.ckpt");
     m.save_checkpoint(&path).unwrap();
-    // Binary (version 2), in one buffer of the exact size: the file is those bytes.
+    // Binary (version 3), in one buffer of the exact size: the file is those bytes.
     let bytes = m.checkpoint_bytes().unwrap();
     assert_eq!(bytes.capacity(), bytes.len(), "checkpoint buffer sized exactly");
     assert_eq!(std::fs::read(&path).unwrap(), bytes);
-    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 2);
+    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 3);
+    // A version 2 file (the same without the medium estimate's state: 16 bytes here, no
+    // prior yet with 3 keyframes) is still read.
+    let mut v2 = bytes[..bytes.len() - 8 - 16].to_vec();
+    v2[8..12].copy_from_slice(&2u32.to_le_bytes());
+    let n = (v2.len() - 20) as u64;
+    v2[12..20].copy_from_slice(&n.to_le_bytes());
+    let sum = duv::map::checkpoint::fnv1a64(&v2[20..]);
+    v2.extend_from_slice(&sum.to_le_bytes());
+    let old = Mapper::from_checkpoint_bytes(&v2, "version 2", duv::map::checkpoint::RestoreOptions::default()).unwrap();
+    assert_eq!(old.gaussians(), m.gaussians());
     let mut r = Mapper::load_checkpoint(&path).unwrap();
     assert_eq!(r.iteration(), m.iteration());
     assert_eq!(r.gaussians(), m.gaussians());
@@ -382,4 +392,11 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
     let after = worst_medium_error(&m.medium_summary(&pose0), &truth);
     eprintln!("after 60 iterations: worst medium error {after:.3}");
     assert!(after < 0.15, "worst medium error after 60 iterations {after:.3}");
+    // The prior and the estimate schedule are part of the checkpoint: a restored map takes
+    // the same next step, medium included.
+    let bytes = m.checkpoint_bytes().unwrap();
+    let mut restored = Mapper::from_checkpoint_bytes(&bytes, "in memory", duv::map::checkpoint::RestoreOptions::default()).unwrap();
+    m.step_on(1).unwrap();
+    restored.step_on(1).unwrap();
+    assert_eq!(m.medium().params(), restored.medium().params());
 }

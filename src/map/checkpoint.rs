@@ -11,7 +11,9 @@
 //! bytes 20..20+n payload
 //! last 8 bytes   FNV-1a 64 checksum of the payload, u64 little endian
 //! ```
-//! Version 2 (written): a binary payload, little endian, in the order of the `Payload` struct
+//! Version 3 (written) is version 2 followed by the medium estimate's state (the keyframe count
+//! of the next estimate and the prior that holds the medium near the accepted one: a u64 count,
+//! 0 or 17, then channels as 0/1 and the prior's numbers as f64 bits). Version 2 (still read): a binary payload, little endian, in the order of the `Payload` struct
 //! below: the config as TOML text, then numbers as u64 / f64 and arrays as a u64 count followed
 //! by their f32 (or u32, u8) values, so a float takes its 4 bytes and nothing is lost. It is
 //! written straight from the mapper's buffers into one buffer of its exact size
@@ -34,15 +36,18 @@ use serde::{Deserialize, Serialize};
 use super::gaussians::ParamGroup;
 use super::mapper::{Mapper, MapperCapacity, MapperConfig, MapperError};
 use super::medium::{MediumCheckpoint, MediumNet, MEDIUM_CHECKPOINT_VERSION};
+use super::medium_estimate::MediumPrior;
 use crate::core::rng::Rng;
-use crate::core::{ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+use crate::core::{ImageRgb8, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3, Timestamp};
 use crate::io::le::LeReader;
 use crate::io::{write_atomic, IoError};
 
 /// File magic.
 pub const CHECKPOINT_MAGIC: &[u8; 8] = b"DUVMAPCK";
-/// Format version this build writes (it reads this and version 1).
-pub const CHECKPOINT_VERSION: u32 = 2;
+/// Format version this build writes (it reads this, version 2 and version 1).
+pub const CHECKPOINT_VERSION: u32 = 3;
+/// The binary format without the medium estimate's state.
+const CHECKPOINT_VERSION_NO_MEDIUM_STATE: u32 = 2;
 /// The JSON format of the first builds.
 const CHECKPOINT_VERSION_JSON: u32 = 1;
 
@@ -108,6 +113,53 @@ struct Payload {
     medium_params: Vec<u32>,
     medium_adam: AdamRecord,
     keyframes: Vec<KeyframeRecord>,
+    /// Version 3 on; absent in older checkpoints.
+    #[serde(default)]
+    medium_state: Option<MediumStateRecord>,
+}
+
+/// Number of u64 in a stored [`MediumPrior`]: 3 channel flags, 9 coefficients, weight and two stds.
+const PRIOR_WORDS: usize = 15;
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MediumStateRecord {
+    estimate_at: u64,
+    /// Empty (no prior) or [`PRIOR_WORDS`] values: channels as 0/1, then `beta_D`, `beta_B`,
+    /// `B_inf` (R G B each), weight, rel_std, b_inf_std as f64 bits.
+    prior: Vec<u64>,
+}
+
+impl MediumStateRecord {
+    fn of(m: &Mapper) -> Self {
+        let prior = match &m.medium_prior {
+            None => Vec::new(),
+            Some(p) => {
+                let mut v: Vec<u64> = p.channels.iter().map(|&c| c as u64).collect();
+                let md = &p.medium;
+                v.extend(md.beta_d.iter().chain(&md.beta_b).chain(&md.b_inf).chain(&[p.weight, p.rel_std, p.b_inf_std]).map(|x| x.to_bits()));
+                v
+            }
+        };
+        MediumStateRecord { estimate_at: m.medium_estimate_at as u64, prior }
+    }
+    fn prior(&self) -> Result<Option<MediumPrior>, String> {
+        match self.prior.len() {
+            0 => Ok(None),
+            PRIOR_WORDS => {
+                let f = |i: usize| f64::from_bits(self.prior[i]);
+                let three = |i: usize| [f(i), f(i + 1), f(i + 2)];
+                Ok(Some(MediumPrior {
+                    channels: [self.prior[0] != 0, self.prior[1] != 0, self.prior[2] != 0],
+                    medium: MediumParams { beta_d: three(3), beta_b: three(6), b_inf: three(9) },
+                    weight: f(12),
+                    rel_std: f(13),
+                    b_inf_std: f(14),
+                }))
+            }
+            n => Err(format!("medium prior has {n} values, expected 0 or {PRIOR_WORDS}")),
+        }
+    }
 }
 
 /// Whether a checkpoint holds its keyframes' pixels or refers to them.
@@ -171,9 +223,9 @@ fn put_adam(w: &mut Vec<u8>, g: &super::adam::AdamGroup) {
     put_f32s(w, v);
 }
 
-/// Reads a version 2 payload; every count is checked against the bytes left before anything
+/// Reads a version 2 or 3 payload; every count is checked against the bytes left before anything
 /// is allocated, so a damaged file cannot ask for more memory than it holds.
-fn decode_binary(body: &[u8]) -> Result<Payload, String> {
+fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
     let mut r = LeReader::new(body);
     let size = |r: &mut LeReader<'_>| usize::try_from(r.u64()?).map_err(|e| e.to_string());
     let bytes = |r: &mut LeReader<'_>| -> Result<Vec<u8>, String> {
@@ -220,10 +272,17 @@ fn decode_binary(body: &[u8]) -> Result<Payload, String> {
             inv_depth_variance: words(&mut r)?,
         });
     }
+    let medium_state = if version > CHECKPOINT_VERSION_NO_MEDIUM_STATE {
+        let estimate_at = r.u64()?;
+        let n = r.count(8)?;
+        Some(MediumStateRecord { estimate_at, prior: (0..n).map(|_| r.u64()).collect::<Result<_, _>>()? })
+    } else {
+        None
+    };
     if r.remaining() != 0 {
         return Err(format!("{} bytes after the last keyframe", r.remaining()));
     }
-    Ok(Payload { config_toml, capacity, iteration, rng_state, gaussians, densify_grad_norm, pixels_touched, views, adam, medium_pe_frequencies, medium_params, medium_adam, keyframes })
+    Ok(Payload { config_toml, capacity, iteration, rng_state, gaussians, densify_grad_norm, pixels_touched, views, adam, medium_pe_frequencies, medium_params, medium_adam, keyframes, medium_state })
 }
 
 impl Mapper {
@@ -252,7 +311,8 @@ impl Mapper {
         let groups: usize = ParamGroup::ALL.iter().map(|&g| 8 + 4 * self.gaussians.group(g).len()).sum();
         let adam: usize = self.adam.iter().map(|a| 24 + 8 * a.moments().0.len()).sum::<usize>() + 24 + 8 * self.medium_adam.moments().0.len();
         let n = self.grads.densify_grad_norm().len();
-        let payload_len = 8 + config_toml.len() + 32 + 8 + 32 + groups + 3 * 8 + 12 * n + adam + 8 + 8 + 4 * self.medium.params().len() + 8 + kf_bytes;
+        let medium_state = MediumStateRecord::of(self);
+        let payload_len = 8 + config_toml.len() + 32 + 8 + 32 + groups + 3 * 8 + 12 * n + adam + 8 + 8 + 4 * self.medium.params().len() + 8 + kf_bytes + 16 + 8 * medium_state.prior.len();
         let mut out = Vec::with_capacity(20 + payload_len + 8);
         out.extend_from_slice(CHECKPOINT_MAGIC);
         out.extend_from_slice(&CHECKPOINT_VERSION.to_le_bytes());
@@ -301,6 +361,11 @@ impl Mapper {
                 put_f32s(w, &[]);
             }
         }
+        put_u64(w, medium_state.estimate_at);
+        put_u64(w, medium_state.prior.len() as u64);
+        for &v in &medium_state.prior {
+            put_u64(w, v);
+        }
         debug_assert_eq!(out.len(), 20 + payload_len, "checkpoint size computed wrongly");
         let n = out.len() - 20;
         out[12..20].copy_from_slice(&(n as u64).to_le_bytes());
@@ -324,7 +389,7 @@ impl Mapper {
             return Err(CheckpointError::BadMagic { path: p });
         }
         let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap_or([0; 4]));
-        if version != CHECKPOINT_VERSION && version != CHECKPOINT_VERSION_JSON {
+        if ![CHECKPOINT_VERSION, CHECKPOINT_VERSION_NO_MEDIUM_STATE, CHECKPOINT_VERSION_JSON].contains(&version) {
             return Err(CheckpointError::UnsupportedVersion { path: p, found: version, expected: CHECKPOINT_VERSION });
         }
         let n = u64::from_le_bytes(bytes[12..20].try_into().unwrap_or([0; 8])) as usize;
@@ -339,7 +404,7 @@ impl Mapper {
             return Err(CheckpointError::BadChecksum { path: p, saved, calculated });
         }
         let bad = |why: String| CheckpointError::BadPayload { path: p.clone(), why };
-        let payload: Payload = if version == CHECKPOINT_VERSION_JSON { serde_json::from_slice(body).map_err(|e| bad(e.to_string()))? } else { decode_binary(body).map_err(bad)? };
+        let payload: Payload = if version == CHECKPOINT_VERSION_JSON { serde_json::from_slice(body).map_err(|e| bad(e.to_string()))? } else { decode_binary(body, version).map_err(bad)? };
         let config: MapperConfig = toml::from_str(&payload.config_toml).map_err(|e| bad(e.to_string()))?;
         let c = payload.capacity;
         let capacity = match options.capacity {
@@ -416,10 +481,15 @@ impl Mapper {
             m.push_restored_keyframe(&kf);
         }
         m.iteration = payload.iteration;
-        // A map restored with at least as many keyframes as the first medium estimate needs
-        // was estimated (or chose not to be): its optimised medium is not replaced.
-        if m.keyframes.len() >= m.config.estimate_medium_at_keyframes {
-            m.medium_estimate_at = 0;
+        match &payload.medium_state {
+            Some(state) => {
+                m.medium_estimate_at = usize::try_from(state.estimate_at).map_err(|e| bad(e.to_string()))?;
+                m.medium_prior = state.prior().map_err(bad)?;
+            }
+            // An older checkpoint with at least as many keyframes as the first medium estimate
+            // needs: its optimised medium is not replaced by a new estimate.
+            None if m.keyframes.len() >= m.config.estimate_medium_at_keyframes => m.medium_estimate_at = 0,
+            None => {}
         }
         m.rng = Rng::from_state(payload.rng_state);
         Ok(m)
@@ -439,17 +509,17 @@ mod tests {
     fn binary_payload_round_trips_and_damage_is_named() {
         let bytes = small();
         let body = &bytes[20..bytes.len() - 8];
-        let p = decode_binary(body).unwrap();
+        let p = decode_binary(body, CHECKPOINT_VERSION).unwrap();
         assert_eq!((p.capacity.max_gaussians, p.capacity.max_keyframes, p.capacity.width, p.capacity.height), (64, 2, 8, 6));
         assert!(p.keyframes.is_empty() && p.gaussians.iter().all(|g| g.is_empty()));
         // A count far beyond the payload: refused before anything is allocated.
         let mut huge = body.to_vec();
         huge[..8].copy_from_slice(&u64::MAX.to_le_bytes());
-        assert!(decode_binary(&huge).err().unwrap().contains("does not fit"));
-        let cut = decode_binary(&body[..body.len() - 3]).err().unwrap();
+        assert!(decode_binary(&huge, CHECKPOINT_VERSION).err().unwrap().contains("does not fit"));
+        let cut = decode_binary(&body[..body.len() - 3], CHECKPOINT_VERSION).err().unwrap();
         assert!(cut.contains("truncated") || cut.contains("does not fit"), "{cut}");
         let mut longer = body.to_vec();
         longer.push(0);
-        assert!(decode_binary(&longer).err().unwrap().contains("after the last keyframe"));
+        assert!(decode_binary(&longer, CHECKPOINT_VERSION).err().unwrap().contains("after the last keyframe"));
     }
 }

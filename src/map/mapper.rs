@@ -417,7 +417,7 @@ pub struct Mapper {
     /// The newest closed-form medium estimate (some of its channels set the medium).
     medium_estimate: Option<MediumEstimate>,
     /// The prior from the accepted channels of the estimates so far.
-    medium_prior: Option<MediumPrior>,
+    pub(crate) medium_prior: Option<MediumPrior>,
     /// Keyframe count of the next medium estimate; 0 once every channel is set (or off).
     pub(crate) medium_estimate_at: usize,
 }
