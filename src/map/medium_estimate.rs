@@ -28,9 +28,20 @@
 //!    other keyframe's range there agrees within `occlusion_tolerance`), the ranges differ by
 //!    at least `min_range_difference_m` and both direct signals exceed `min_direct`.
 //!    `beta_D` is the weighted least-squares slope through the origin, reweighted three times
-//!    with Tukey's biweight on the residuals.
+//!    with Tukey's biweight on the residuals (the start of step 5).
 //! 4. Steps 2 and 3 alternate `rounds` times: the residual direct term of step 2 decays with
 //!    the `beta_D` of step 3.
+//! 5. **Joint two-view fit.** From there, per channel, `(B_inf, ln beta_B, ln beta_D)` are
+//!    fitted together (Levenberg-Marquardt, Huber weights) to every pair:
+//!    `I_j - B(r_j) = (I_i - B(r_i)) exp(-beta_D (r_j - r_i))`, as an orthogonal distance since
+//!    both colours are noisy. Across many albedos at the same two ranges this line's slope is
+//!    the attenuation and its offset the backscatter difference, so all three are determined
+//!    without assuming anything about the albedo, given enough range difference.
+//! 6. **Gate.** The fit's standard errors (Gauss-Newton covariance, scaled up by the square
+//!    root of the pairs per sample, since a sample enters several pairs) decide which channels
+//!    are [`MediumEstimate::accepted`]. In clear water a short sequence sees the backscatter
+//!    only in its nearly linear start, where `B_inf` and `beta_B` trade against each other;
+//!    the gate refuses such a channel instead of handing the mapper a wrong one.
 //!
 //! A channel without enough pairs keeps the configured initial water for `beta_D`; no
 //! sample at all is an error that says what was missing. Everything is f64 and
@@ -602,6 +613,10 @@ pub fn estimate_medium(keyframes: &[&Keyframe], beta_d_start: [f64; 3], cfg: &Me
         (models[c], std_error[c]) = if pairs.len() >= cfg.min_pairs { fit_two_view(&pairs, c, open_colour.map(|o| (o[c], open_weight)), start) } else { (start, [f64::INFINITY; 3]) };
     }
     let (lo, hi) = samples.iter().fold((f64::INFINITY, 0.0f64), |(lo, hi), s| (lo.min(s.range_m), hi.max(s.range_m)));
+    // Every sample enters up to one pair per other keyframe, so the pairs are not independent:
+    // the standard errors are scaled as if there were one observation per sample.
+    let reuse = (pairs.len() as f64 / samples.len() as f64).max(1.0).sqrt();
+    let std_error = std_error.map(|s| s.map(|v| v * reuse));
     let accepted = std_error.map(|s| s[0] < cfg.max_b_inf_std_error && s[1] < cfg.max_rel_std_error && s[2] < cfg.max_rel_std_error);
     Ok(MediumEstimate {
         accepted,
