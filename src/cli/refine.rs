@@ -89,6 +89,11 @@ pub struct RefineArgs {
     /// Mapper config (TOML, `MapperConfig` fields); defaults otherwise.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Seed a Gaussian every this many pixels of confident keyframe depth (overrides the
+    /// config's `init_stride_px`). Offshore the cap is large, so every pixel (1) by default;
+    /// onboard the boards use 2. Not with --from-logged-map (the onboard map's config holds).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=64))]
+    init_stride_px: u64,
     /// Where the mapper renders (as `duv run --mapper`).
     #[arg(long, value_enum, default_value_t = MapperDevice::Auto)]
     mapper: MapperDevice,
@@ -187,10 +192,11 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         (k, vec![None; n], truth)
     };
     anyhow::ensure!(!keyframes.is_empty(), "no keyframes");
-    let config: MapperConfig = match &a.config {
+    let mut config: MapperConfig = match &a.config {
         Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
         None => MapperConfig::default(),
     };
+    config.init_stride_px = a.init_stride_px as usize;
     let cam = keyframes[0].camera;
     let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: a.max_keyframes.max(keyframes.len()), width: cam.width, height: cam.height };
     let mut mapper = if a.from_logged_map { mapper_from_logged_map(logged_map, &keyframes, capacity)? } else { Mapper::new(config, capacity)? };
@@ -284,7 +290,18 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
     if let Some(e) = &metrics.medium_estimate {
         let m = &e.medium;
-        println!("estimate  beta_D {} beta_B {} B_inf {}  ({} depth blocks, {:?} view pairs)", f(m.beta_d), f(m.beta_b), f(m.b_inf), e.samples, e.attenuation_pairs);
+        let yes = |a: bool| if a { "yes" } else { "no" };
+        println!(
+            "estimate  beta_D {} beta_B {} B_inf {}  ({} depth blocks, {:?} view pairs; used for R G B: {} {} {})",
+            f(m.beta_d),
+            f(m.beta_b),
+            f(m.b_inf),
+            e.samples,
+            e.attenuation_pairs,
+            yes(e.accepted[0]),
+            yes(e.accepted[1]),
+            yes(e.accepted[2])
+        );
     }
     println!("medium    beta_D {} beta_B {} B_inf {}", f(medium.beta_d), f(medium.beta_b), f(medium.b_inf));
     if let (Some(t), Some(e)) = (truth, rel) {
