@@ -161,7 +161,9 @@ pub struct MapperConfig {
     /// estimate from their images and depths ([`super::medium_estimate`]) before the joint
     /// optimisation goes on, per colour channel whose fit is well determined; while a channel
     /// is not, the estimate is made again at twice as many keyframes (up to
-    /// `max_keyframes`). 0 keeps the configured initial water.
+    /// `max_keyframes`). 0 keeps the configured initial water. The estimate allocates its
+    /// working set (samples and view pairs) each time it runs: at most 5 times with 64
+    /// keyframes, never per frame.
     pub estimate_medium_at_keyframes: usize,
     /// Settings of that estimate.
     pub medium_estimate: MediumEstimateConfig,
@@ -740,7 +742,7 @@ impl Mapper {
         Ok(added)
     }
 
-    /// The closed-form medium estimate the medium was set to, if one was made.
+    /// The newest closed-form medium estimate, if one was made; its `accepted` channels set the medium.
     pub fn medium_estimate(&self) -> Option<&MediumEstimate> {
         self.medium_estimate.as_ref()
     }
