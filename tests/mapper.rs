@@ -344,17 +344,6 @@ fn mapping_stage_spends_its_budget_and_exports() {
     }
 }
 
-/// Worst relative error of the recovered coefficients against the truth.
-fn worst_medium_error(m: &duv::core::MediumParams, truth: &duv::core::MediumParams) -> f64 {
-    let mut worst = 0.0f64;
-    for c in 0..3 {
-        for (a, b) in [(m.beta_d[c], truth.beta_d[c]), (m.beta_b[c], truth.beta_b[c]), (m.b_inf[c], truth.b_inf[c])] {
-            worst = worst.max((a - b).abs() / b);
-        }
-    }
-    worst
-}
-
 #[test]
 fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there() {
     let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
@@ -373,7 +362,7 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
         }
         let img = m.keyframe(0).unwrap().image.to_rgb_f32();
         let psnr = duv::map::mapper::psnr_db(&m.render_keyframe(0).unwrap().colour, &img);
-        let err = worst_medium_error(&m.medium_summary(&pose0), &truth);
+        let err = m.medium_summary(&pose0).worst_rel_error(&truth);
         eprintln!("estimate at {at}: first render {psnr:.2} dB, worst medium error {err:.3}");
         maps.push((m, psnr, err));
     }
@@ -389,7 +378,7 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
     for _ in 0..60 {
         m.iterate().unwrap();
     }
-    let after = worst_medium_error(&m.medium_summary(&pose0), &truth);
+    let after = m.medium_summary(&pose0).worst_rel_error(&truth);
     eprintln!("after 60 iterations: worst medium error {after:.3}");
     assert!(after < 0.15, "worst medium error after 60 iterations {after:.3}");
     // The prior and the estimate schedule are part of the checkpoint: a restored map takes

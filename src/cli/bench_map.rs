@@ -191,7 +191,6 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             }
             let n = kfs.len() as f64;
             let medium = mapper.medium_summary(&kfs[0].keyframe.world_from_cam);
-            let e = |r: [f64; 3], t: [f64; 3]| [0, 1, 2].map(|c| (r[c] - t[c]).abs() / t[c].abs().max(1e-9));
             let r = RunResult {
                 water: water_name(water).into(),
                 variant: variant.into(),
@@ -202,7 +201,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 mean_restored_psnr_db: r_sum / n,
                 medium,
                 medium_truth: truth,
-                medium_rel_error: [e(medium.beta_d, truth.beta_d), e(medium.beta_b, truth.beta_b), e(medium.b_inf, truth.b_inf)],
+                medium_rel_error: medium.rel_error(&truth),
                 ms_per_iteration,
                 gaussians_over_time: over_time,
                 renderer,
@@ -214,7 +213,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 r.mean_psnr_db,
                 r.mean_ssim,
                 r.mean_restored_psnr_db,
-                r.medium_rel_error.iter().flatten().fold(0.0f64, |m, &v| m.max(v)),
+                r.medium.worst_rel_error(&r.medium_truth),
                 r.ms_per_iteration,
                 mapper.gaussians().len()
             );

@@ -261,10 +261,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     }
     let n = per_kf.len() as f64;
     let restored: Vec<f64> = per_kf.iter().filter_map(|k| k.restored_psnr_db).collect();
-    let rel = truth.map(|t| {
-        let e = |r: [f64; 3], t: [f64; 3]| [0, 1, 2].map(|c| (r[c] - t[c]).abs() / t[c].abs().max(1e-9));
-        [e(medium.beta_d, t.beta_d), e(medium.beta_b, t.beta_b), e(medium.b_inf, t.b_inf)]
-    });
+    let rel = truth.map(|t| medium.rel_error(&t));
     let metrics = Metrics {
         mean_psnr_db: per_kf.iter().map(|k| k.psnr_db).sum::<f64>() / n,
         mean_ssim: per_kf.iter().map(|k| k.ssim).sum::<f64>() / n,

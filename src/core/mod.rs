@@ -37,3 +37,15 @@ pub struct MediumParams {
     #[serde(rename = "B_inf")]
     pub b_inf: [f64; 3],
 }
+
+impl MediumParams {
+    /// `|self - truth| / truth` per coefficient: rows `beta_D`, `beta_B`, `B_inf`; columns R G B.
+    pub fn rel_error(&self, truth: &MediumParams) -> [[f64; 3]; 3] {
+        let e = |r: [f64; 3], t: [f64; 3]| [0, 1, 2].map(|c| (r[c] - t[c]).abs() / t[c].abs().max(1e-9));
+        [e(self.beta_d, truth.beta_d), e(self.beta_b, truth.beta_b), e(self.b_inf, truth.b_inf)]
+    }
+    /// The largest of [`Self::rel_error`].
+    pub fn worst_rel_error(&self, truth: &MediumParams) -> f64 {
+        self.rel_error(truth).iter().flatten().fold(0.0, |m, &v| m.max(v))
+    }
+}
