@@ -12,7 +12,9 @@
 //! - *Every frame*: grey conversion into a preallocated plane, a health check (black,
 //!   saturated, contrast collapse), the pyramid, then flow from the reference keyframe seeded
 //!   by the flow the constant-velocity prediction induces (reprojecting the keyframe's depth
-//!   grid), and a motion-only BA against the keyframe: every frame gets a pose.
+//!   grid; forward only unless `frame_forward_backward`: keyframe edges carry the
+//!   forward-backward check), and a motion-only BA against the keyframe: every frame gets a
+//!   pose.
 //! - *Keyframes*: when the mean flow from the reference keyframe exceeds
 //!   `keyframe_flow_px` (depth-grid pixels, as DROID measures it). The new keyframe's depth
 //!   starts as the previous keyframe's splatted into it; it is linked (two directed edges
@@ -24,10 +26,12 @@
 //!   poses fixed, at least two: gauge and scale; every depth free).
 //!   The depth variance of every window keyframe follows from Eq. 4. A new keyframe whose
 //!   refined induced flow to its predecessor is under `prune_flow_px` (after the first round)
-//!   is dropped again. With `defer_rounds` (default) only the first round runs on the
-//!   keyframe's own frame; the later rounds, then the loop search (or the periodic global
-//!   BA), run one stage at the start of each following frame, so no frame pays for all
-//!   (`defer_insertion` defers the first round too, one edge pair or solve per stage).
+//!   is dropped again. By default (`defer_rounds` and `defer_insertion`) the keyframe's own
+//!   frame only inserts it; the rounds (one edge pair or one window solve with Eq. 4 per
+//!   stage), then the loop search (one candidate per stage) or the periodic global BA, run
+//!   `stages_per_frame` stages at the start of each following frame, so no frame pays for a
+//!   whole insertion. A new keyframe first finishes what is left of the previous one and
+//!   starts from the frame's pose re-anchored to the solved reference.
 //! - *Measurements*: pooled flow targets within `border_margin_px` of the image border get no
 //!   weight: the cell's pixels that left the view bias its pooled mean, and with forward
 //!   motion that bias stretched the map by a few percent per keyframe.
@@ -39,8 +43,9 @@
 //!   window (its neighbours closest by induced flow) is evicted and re-expressed relative to
 //!   its predecessor ([`EvictedKeyframe`]).
 //! - *Loop closure*: after each insertion, old keyframes (all but the newest
-//!   `loop_exclude_recent`) are ranked by thumbnail NCC; the best are verified by unseeded
-//!   flow (mean flow magnitude and confident fraction, as the paper thresholds mean flow). An
+//!   `loop_exclude_recent`) are ranked by thumbnail NCC; the best `loop_candidates` are
+//!   verified by flow seeded from the current estimate (mean flow magnitude and confident
+//!   fraction, as the paper thresholds mean flow). An
 //!   accepted loop gives a relative pose (motion-only BA against the old keyframe's depth) and
 //!   a relative scale (median depth ratio), a loop edge, a Sim(3) pose graph over every
 //!   keyframe (scale drift corrected, depths rescaled), then a dense global BA over every

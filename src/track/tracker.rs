@@ -277,6 +277,9 @@ struct State {
     window: Vec<usize>,
     new_edges: Vec<usize>,
     candidates: Vec<(f32, usize)>,
+    /// Loop candidates of the pending insertion (NCC, slot), best first; verified one per
+    /// stage (relocalisation ranks into `candidates`, so a loss between stages keeps them).
+    loop_candidates: Vec<(f32, usize)>,
     phase: Phase,
     state: TrackingState,
     ref_slot: usize,
@@ -304,6 +307,8 @@ struct Pending {
     /// estimate in this round; `new_edges.len()`: the round's BA is next.
     next_edge: usize,
     fine: bool,
+    /// Loop search: `None` before its candidates are ranked, then the next one to verify.
+    next_candidate: Option<usize>,
 }
 
 /// Inverse depth floor when loading a keyframe into BA (1/m).
@@ -639,6 +644,7 @@ impl State {
             window: Vec::with_capacity(cap.max_keyframes),
             new_edges: Vec::with_capacity(max_edges),
             candidates: Vec::with_capacity(cap.max_keyframes),
+            loop_candidates: Vec::with_capacity(cap.max_keyframes),
             phase: Phase::Empty,
             state: TrackingState::Initializing,
             ref_slot: 0,
@@ -751,10 +757,11 @@ impl State {
     }
 
     /// Flow `ref -> current` with `seed` (or none), result in `self.res`.
-    fn flow_ref_to_current(&mut self, slot: usize, seeded: bool) -> Result<(), TrackError> {
+    fn flow_ref_to_current(&mut self, slot: usize, seeded: bool, forward_backward: bool) -> Result<(), TrackError> {
         let t0 = Instant::now();
         let seed = if seeded { Some(&self.seed) } else { None };
-        self.flow.estimate(&self.kfs.slots[slot].frame, &self.cur, seed, &mut self.res)?;
+        let fb = forward_backward && self.cfg.flow.forward_backward;
+        self.flow.estimate_with(&self.kfs.slots[slot].frame, &self.cur, seed, &mut self.res, fb)?;
         self.times.flow += t0.elapsed();
         self.times.flow_estimates += 1;
         Ok(())
@@ -778,7 +785,7 @@ impl State {
             self.seed.dx.data.copy_from_slice(&self.prev_flow.dx.data);
             self.seed.dy.data.copy_from_slice(&self.prev_flow.dy.data);
         }
-        self.flow_ref_to_current(r, self.have_prev_flow)?;
+        self.flow_ref_to_current(r, self.have_prev_flow, true)?;
         let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
         if conf < self.cfg.min_confident_fraction {
             // Nothing to trust: wait for a better frame (the first keyframe stays).
@@ -1247,7 +1254,7 @@ impl State {
             let kf = &self.kfs.slots[r];
             induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &predicted, Some(&mut self.seed));
         }
-        self.flow_ref_to_current(r, true)?;
+        self.flow_ref_to_current(r, true, self.cfg.frame_forward_backward)?;
         let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
         tracing::trace!(seq = frame.seq, keyframe = self.kfs.slots[r].id, conf, mean_flow_input_px = self.res.stats.mean_flow_input_px, "track: frame flow");
         if conf < self.cfg.min_confident_fraction {
@@ -1269,7 +1276,7 @@ impl State {
         };
         let overlap = in_view.min(conf);
         if measured.max(induced) > self.cfg.keyframe_flow_px || overlap < self.cfg.keyframe_min_overlap {
-            self.add_keyframe(frame, &pose, &mut out)?;
+            self.add_keyframe(frame, &mut out)?;
         }
         Ok(out)
     }
@@ -1343,11 +1350,16 @@ impl State {
 
     /// Inserts the current frame as a keyframe: links, flow/BA rounds, covariance, pruning,
     /// loop closure.
-    fn add_keyframe(&mut self, frame: &Frame, pose: &Se3, out: &mut TrackOutput) -> Result<(), TrackError> {
-        // The previous insertion's deferred stages use the window and its new edges.
+    /// The frame's pose is `last_pose` (just accepted).
+    fn add_keyframe(&mut self, frame: &Frame, out: &mut TrackOutput) -> Result<(), TrackError> {
+        // The previous insertion's deferred stages use the window and its new edges. They move
+        // the reference keyframe, and `last_pose` with it: the new keyframe starts from the
+        // re-anchored pose, not the one measured against the reference before (with keyframes
+        // every two or three frames that stale pose drifted the map by 8 % of the path).
         out.loop_closed |= self.finish_pending()?;
+        let pose = self.last_pose;
         let prev = self.ref_slot;
-        let s = self.insert_keyframe_slot(frame, pose);
+        let s = self.insert_keyframe_slot(frame, &pose);
         self.splat_depth(prev, s);
         let n = self.kfs.len();
         self.window.clear();
@@ -1382,10 +1394,10 @@ impl State {
                 self.prune_new_keyframe(s, prev, &refined, out);
                 return Ok(());
             }
-            self.accept_new_keyframe(s, out, Pending { slot: s, fixed, next_round: 0, next_edge: 0, fine: true });
+            self.accept_new_keyframe(s, out, Pending { slot: s, fixed, next_round: 0, next_edge: 0, fine: true, next_candidate: None });
             return Ok(());
         }
-        self.keyframe_round(s, fixed)?;
+        self.keyframe_round(fixed)?;
         if self.cfg.local_rounds == 1 {
             self.window_covariance(fixed);
         }
@@ -1399,7 +1411,7 @@ impl State {
         }
         // The remaining rounds, then loop closure or the periodic global BA: one stage per
         // following frame when deferred (latency), all now otherwise.
-        self.accept_new_keyframe(s, out, Pending { slot: s, fixed, next_round: 1, next_edge: 0, fine: false });
+        self.accept_new_keyframe(s, out, Pending { slot: s, fixed, next_round: 1, next_edge: 0, fine: false, next_candidate: None });
         if !self.cfg.defer_rounds {
             while self.pending.is_some() {
                 out.loop_closed |= self.run_pending_stage()?;
@@ -1437,21 +1449,19 @@ impl State {
     }
 
     /// One flow/BA round of a keyframe insertion: re-estimate the new edges seeded by the
-    /// current estimate, then solve the window. The last pose follows keyframe `s` if it is
-    /// the reference.
-    fn keyframe_round(&mut self, s: usize, fixed: usize) -> Result<(), TrackError> {
+    /// current estimate, then solve the window.
+    fn keyframe_round(&mut self, fixed: usize) -> Result<(), TrackError> {
         self.estimate_new_edges()?;
-        self.round_solve(s, fixed);
+        self.round_solve(fixed);
         Ok(())
     }
 
-    /// The window BA of a round; the last pose follows keyframe `s` if it is the reference.
-    fn round_solve(&mut self, s: usize, fixed: usize) {
-        let before = self.kfs.slots[s].world_from_cam;
+    /// The window BA of a round; the last pose follows the reference keyframe.
+    fn round_solve(&mut self, fixed: usize) {
+        let r = self.ref_slot;
+        let before = self.kfs.slots[r].world_from_cam;
         self.solve_window(self.cfg.local_iterations, fixed);
-        if self.ref_slot == s {
-            self.last_pose = self.kfs.slots[s].world_from_cam * before.inv_mul(&self.last_pose);
-        }
+        self.last_pose = self.kfs.slots[r].world_from_cam * before.inv_mul(&self.last_pose);
     }
 
     /// Runs the next deferred stage of the last insertion; true when it closed a loop.
@@ -1461,7 +1471,7 @@ impl State {
             if p.next_edge < self.new_edges.len() {
                 p.next_edge += self.estimate_new_edge_at(p.next_edge)?;
             } else {
-                self.round_solve(p.slot, p.fixed);
+                self.round_solve(p.fixed);
                 p.next_round += 1;
                 p.next_edge = 0;
                 if p.next_round == self.cfg.local_rounds {
@@ -1472,7 +1482,7 @@ impl State {
             return Ok(false);
         }
         if p.next_round < self.cfg.local_rounds {
-            self.keyframe_round(p.slot, p.fixed)?;
+            self.keyframe_round(p.fixed)?;
             p.next_round += 1;
             if p.next_round == self.cfg.local_rounds {
                 self.window_covariance(p.fixed);
@@ -1480,10 +1490,28 @@ impl State {
             self.pending = Some(p);
             return Ok(false);
         }
-        self.pending = None;
-        if self.cfg.loop_closure && self.try_loop_closure(p.slot)? {
-            return Ok(true);
+        // Then the loop search, one candidate verified (a flow) per stage.
+        if self.cfg.loop_closure {
+            let next = match p.next_candidate {
+                Some(k) => k,
+                None => {
+                    self.rank_loop_candidates(p.slot);
+                    0
+                }
+            };
+            if next < self.loop_candidates.len() {
+                let closed = self.try_loop_candidate(p.slot, next)?;
+                if closed {
+                    self.pending = None;
+                    return Ok(true);
+                }
+                if next + 1 < self.loop_candidates.len() {
+                    self.pending = Some(Pending { next_candidate: Some(next + 1), ..p });
+                    return Ok(false);
+                }
+            }
         }
+        self.pending = None;
         if self.cfg.global_ba_period > 0 && self.inserted_since_global >= self.cfg.global_ba_period {
             self.global_ba();
         }
@@ -1587,81 +1615,89 @@ impl State {
         self.candidates.truncate(self.cfg.search_candidates);
     }
 
-    /// Looks for a loop between new keyframe `s` and an old keyframe; on success corrects the
-    /// graph (Sim(3) pose graph, then dense global BA).
-    fn try_loop_closure(&mut self, s: usize) -> Result<bool, TrackError> {
+    /// Ranks the loop candidates of new keyframe `s` into `loop_candidates` (none while a loop
+    /// was closed too recently or the graph is too short).
+    fn rank_loop_candidates(&mut self, s: usize) {
         let n = self.kfs.len();
         if self.inserted_since_loop < self.cfg.loop_min_interval || n < self.cfg.loop_exclude_recent + 3 {
-            return Ok(false);
+            self.loop_candidates.clear();
+            return;
         }
         let t0 = Instant::now();
+        self.rank_candidates(Some(s), n - 1 - self.cfg.loop_exclude_recent, self.cfg.loop_min_ncc);
+        self.loop_candidates.clear();
+        let k = self.candidates.len().min(self.cfg.loop_candidates);
+        self.loop_candidates.extend_from_slice(&self.candidates[..k]);
+        self.times.loop_closure += t0.elapsed();
+    }
+
+    /// Verifies loop candidate `k` of new keyframe `s` (flow, motion-only pose, relative
+    /// scale); on success corrects the graph (Sim(3) pose graph, then dense global BA).
+    fn try_loop_candidate(&mut self, s: usize, k: usize) -> Result<bool, TrackError> {
+        let t0 = Instant::now();
         let (flow0, ba0, gba0) = (self.times.flow, self.times.ba, self.times.global_ba);
-        let result = self.loop_closure_inner(s, n);
+        let result = self.loop_candidate_inner(s, k);
         // Exclusive of the flow and BA it ran (counted in those stages).
         let inner = (self.times.flow - flow0) + (self.times.ba - ba0) + (self.times.global_ba - gba0);
         self.times.loop_closure += t0.elapsed().saturating_sub(inner);
         result
     }
 
-    fn loop_closure_inner(&mut self, s: usize, n: usize) -> Result<bool, TrackError> {
-        self.rank_candidates(Some(s), n - 1 - self.cfg.loop_exclude_recent, self.cfg.loop_min_ncc);
-        for k in 0..self.candidates.len() {
-            let c = self.candidates[k].1;
-            // Seeded by the flow the current (drifted) estimate induces: drift is small next
-            // to what the pyramid recovers, and the seed only offers each patch a candidate.
-            {
-                let (kc, ks) = (&self.kfs.slots[c], &self.kfs.slots[s]);
-                induced_flow(&self.low, &kc.world_from_cam, &kc.inv_depth, &ks.world_from_cam, Some(&mut self.seed));
-            }
-            let t0 = Instant::now();
-            self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, Some(&self.seed), &mut self.res)?;
-            self.times.flow += t0.elapsed();
-            self.times.flow_estimates += 1;
-            let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
-            let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
-            if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
-                continue;
-            }
-            // Start from the current estimate (close: drift is a few percent of the loop).
-            let mut world_from_s = self.kfs.slots[s].world_from_cam;
-            if self.motion_only(c, &mut world_from_s).is_err() {
-                continue;
-            }
-            let Some(scale) = self.relative_scale(c, &world_from_s, s) else { continue };
-            if !(0.2..5.0).contains(&scale) {
-                continue;
-            }
-            // The loop edge c -> s keeps this flow for the global BA.
-            if let Some(e) = self.edges.add(c, s, true) {
-                let ed = &mut self.edges.edges[e];
-                ed.target.data.copy_from_slice(&self.obs_target.data);
-                ed.weight.data.copy_from_slice(&self.obs_weight.data);
-            }
-            let z = sim3_relative(&self.kfs.slots[c].world_from_cam.inv_mul(&world_from_s), scale);
-            self.pose_graph(c, s, z);
-            if self.cfg.loop_global_ba {
-                self.global_ba();
-            }
-            self.inserted_since_loop = 0;
-            self.counters.loops_closed += 1;
-            self.times.loops += 1;
-            let rel = self.kfs.slots[c].world_from_cam.inv_mul(&world_from_s);
-            tracing::debug!(
-                from = self.kfs.slots[c].id,
-                to = self.kfs.slots[s].id,
-                from_seq = self.kfs.slots[c].seq,
-                to_seq = self.kfs.slots[s].seq,
-                ncc = self.candidates[k].0,
-                conf,
-                mean_flow,
-                scale,
-                rel_t = rel.translation.vector.norm(),
-                rel_deg = rel.rotation.angle().to_degrees(),
-                "track: loop closed"
-            );
-            return Ok(true);
+    fn loop_candidate_inner(&mut self, s: usize, k: usize) -> Result<bool, TrackError> {
+        let c = self.loop_candidates[k].1;
+        // Seeded by the flow the current (drifted) estimate induces: drift is small next
+        // to what the pyramid recovers, and the seed only offers each patch a candidate.
+        {
+            let (kc, ks) = (&self.kfs.slots[c], &self.kfs.slots[s]);
+            induced_flow(&self.low, &kc.world_from_cam, &kc.inv_depth, &ks.world_from_cam, Some(&mut self.seed));
         }
-        Ok(false)
+        let t0 = Instant::now();
+        self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, Some(&self.seed), &mut self.res)?;
+        self.times.flow += t0.elapsed();
+        self.times.flow_estimates += 1;
+        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
+        let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
+        if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
+            return Ok(false);
+        }
+        // Start from the current estimate (close: drift is a few percent of the loop).
+        let mut world_from_s = self.kfs.slots[s].world_from_cam;
+        if self.motion_only(c, &mut world_from_s).is_err() {
+            return Ok(false);
+        }
+        let Some(scale) = self.relative_scale(c, &world_from_s, s) else { return Ok(false) };
+        if !(0.2..5.0).contains(&scale) {
+            return Ok(false);
+        }
+        // The loop edge c -> s keeps this flow for the global BA.
+        if let Some(e) = self.edges.add(c, s, true) {
+            let ed = &mut self.edges.edges[e];
+            ed.target.data.copy_from_slice(&self.obs_target.data);
+            ed.weight.data.copy_from_slice(&self.obs_weight.data);
+        }
+        let z = sim3_relative(&self.kfs.slots[c].world_from_cam.inv_mul(&world_from_s), scale);
+        self.pose_graph(c, s, z);
+        if self.cfg.loop_global_ba {
+            self.global_ba();
+        }
+        self.inserted_since_loop = 0;
+        self.counters.loops_closed += 1;
+        self.times.loops += 1;
+        let rel = self.kfs.slots[c].world_from_cam.inv_mul(&world_from_s);
+        tracing::debug!(
+            from = self.kfs.slots[c].id,
+            to = self.kfs.slots[s].id,
+            from_seq = self.kfs.slots[c].seq,
+            to_seq = self.kfs.slots[s].seq,
+            ncc = self.loop_candidates[k].0,
+            conf,
+            mean_flow,
+            scale,
+            rel_t = rel.translation.vector.norm(),
+            rel_deg = rel.rotation.angle().to_degrees(),
+            "track: loop closed"
+        );
+        Ok(true)
     }
 
     /// Sim(3) pose graph over every live keyframe: consecutive relative poses as they are, plus
@@ -1733,7 +1769,7 @@ impl State {
     /// Flow from keyframe `c` (seeded by `self.seed` when `predicted` is given) and
     /// motion-only BA; the pose when the match is verified.
     fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
-        self.flow_ref_to_current(c, predicted.is_some())?;
+        self.flow_ref_to_current(c, predicted.is_some(), true)?;
         let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
         let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {

@@ -9,6 +9,7 @@ use rayon::prelude::*;
 /// destination's at the target: both ends of a match need texture.
 pub(crate) fn weights<const C: usize>(
     cfg: &FlowConfig,
+    fb_on: bool,
     finest: usize,
     src: &PreparedLevel,
     dst: &PreparedLevel,
@@ -27,7 +28,6 @@ pub(crate) fn weights<const C: usize>(
     let (fdx, fdy, bdx, bdy) = (&flow.dx.data, &flow.dy.data, &backward.dx.data, &backward.dy.data);
     let (tex_x, tex_y) = (&src_frame.texture_x, &src_frame.texture_y);
     let (dtex_x, dtex_y) = (&dst_frame.texture_x, &dst_frame.texture_y);
-    let fb_on = cfg.forward_backward;
     weight_x
         .data
         .par_chunks_mut(w)

@@ -825,12 +825,26 @@ impl FlowEstimator {
         seed: Option<&FlowField>,
         out: &mut FlowResult,
     ) -> Result<(), FlowError> {
+        self.estimate_with(src, dst, seed, out, self.cfg.forward_backward)
+    }
+
+    /// [`estimate`](Self::estimate) with the forward-backward check on or off for this call
+    /// only, whatever the configuration says (off: the backward pass is not run, half the
+    /// cost, and the confidences have no forward-backward term). Never allocates.
+    pub fn estimate_with(
+        &mut self,
+        src: &PreparedFrame,
+        dst: &PreparedFrame,
+        seed: Option<&FlowField>,
+        out: &mut FlowResult,
+        forward_backward: bool,
+    ) -> Result<(), FlowError> {
         let (w, h) = (self.layout.width, self.layout.height);
         let _span = tracing::debug_span!("track.flow", width = w, height = h, seeded = seed.is_some()).entered();
         self.check_inputs(src, dst, seed, out)?;
-        let start = self.run_passes(src, dst, seed, self.cfg.forward_backward);
+        let start = self.run_passes(src, dst, seed, forward_backward);
         let finest = self.layout.finest_level;
-        if self.cfg.forward_backward {
+        if forward_backward {
             out.backward.dx.data.copy_from_slice(&self.bwd[finest].dx);
             out.backward.dy.data.copy_from_slice(&self.bwd[finest].dy);
         } else {
@@ -839,7 +853,7 @@ impl FlowEstimator {
         }
         out.flow.dx.data.copy_from_slice(&self.fwd[finest].dx);
         out.flow.dy.data.copy_from_slice(&self.fwd[finest].dy);
-        finish(&self.cfg, finest, start, src, dst, out);
+        finish(&self.cfg, forward_backward, finest, start, src, dst, out);
         Ok(())
     }
 
@@ -871,8 +885,9 @@ impl FlowEstimator {
         out_reverse.flow.dy.data.copy_from_slice(&self.bwd[finest].dy);
         out_reverse.backward.dx.data.copy_from_slice(&self.fwd[finest].dx);
         out_reverse.backward.dy.data.copy_from_slice(&self.fwd[finest].dy);
-        finish(&self.cfg, finest, start, src, dst, out);
-        finish(&self.cfg, finest, start, dst, src, out_reverse);
+        let fb = self.cfg.forward_backward;
+        finish(&self.cfg, fb, finest, start, src, dst, out);
+        finish(&self.cfg, fb, finest, start, dst, src, out_reverse);
         Ok(())
     }
 
@@ -968,10 +983,10 @@ impl FlowEstimator {
 }
 
 /// Confidences, pooling and stats of `out` (its `flow` and `backward` filled) for `src -> dst`.
-fn finish(cfg: &FlowConfig, finest: usize, start: usize, src: &PreparedFrame, dst: &PreparedFrame, out: &mut FlowResult) {
+fn finish(cfg: &FlowConfig, forward_backward: bool, finest: usize, start: usize, src: &PreparedFrame, dst: &PreparedFrame, out: &mut FlowResult) {
     match cfg.feature.channels() {
-        1 => confidence::weights::<1>(cfg, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
-        _ => confidence::weights::<4>(cfg, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
+        1 => confidence::weights::<1>(cfg, forward_backward, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
+        _ => confidence::weights::<4>(cfg, forward_backward, finest, &src.levels[finest], &dst.levels[finest], src, dst, out),
     }
     confidence::pool(cfg, finest, out);
     out.stats = confidence::stats(out, start);

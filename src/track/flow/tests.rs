@@ -552,3 +552,29 @@ fn a_pair_estimate_gives_both_edges_of_separate_estimates() {
     let mut wrong = FlowEstimator::new(FlowConfig::default(), src.width / 2, src.height / 2).unwrap().new_result();
     assert!(matches!(est.estimate_pair(&a, &b, None, &mut fwd, &mut wrong), Err(FlowError::SizeMismatch { .. })));
 }
+
+#[test]
+fn a_forward_only_estimate_matches_the_forward_pass_and_drops_only_the_check() {
+    let warp = similarity(2.0, 1.02, 2.5, -1.5);
+    let (src, dst) = pair(&warp, 5);
+    let (mut est, both) = run(FlowConfig::default(), &src, &dst, None);
+    let (a, b) = (est.prepare(&src).unwrap(), est.prepare(&dst).unwrap());
+    let mut fwd = est.new_result();
+    est.estimate_with(&a, &b, None, &mut fwd, false).unwrap();
+    // The forward pass is the same computation either way.
+    assert_eq!(fwd.flow.dx.data, both.flow.dx.data);
+    assert_eq!(fwd.flow.dy.data, both.flow.dy.data);
+    assert!(fwd.backward.dx.data.iter().chain(&fwd.backward.dy.data).all(|v| *v == 0.0));
+    assert!(fwd.fb_error.data.iter().all(|e| *e == 0.0 || e.is_infinite()), "no forward-backward error without the check");
+    // Without the check's factor no weight is lower, and somewhere (where the check
+    // disagreed) it is higher.
+    let pairs = fwd.weight_x.data.iter().zip(&both.weight_x.data);
+    assert!(pairs.clone().all(|(f, b)| f >= b));
+    assert!(pairs.clone().any(|(f, b)| *f > b + 1e-3));
+    let e = median_epe(&fwd.flow, &warp);
+    assert!(e < WARP_EPE_PX, "median EPE {e} px");
+    // The configured `forward_backward` is still what `estimate` uses.
+    let mut again = est.new_result();
+    est.estimate(&a, &b, None, &mut again).unwrap();
+    assert_eq!(again.weight_x.data, both.weight_x.data);
+}
