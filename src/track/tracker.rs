@@ -6,7 +6,7 @@ use super::config::{ConfigError, TrackerCapacity, TrackerConfig};
 use super::flow::{FlowError, FlowEstimator, FlowField, FlowResult, PreparedFrame};
 use super::graph::{sim3_relative, sim3_split, EdgeStore, PoseConstraint, PoseGraph};
 use super::keyframes::{block_means, image_health, ncc, thumbnail, Keyframe, KeyframeStore, THUMB_N};
-use super::upsample::joint_bilateral;
+use super::upsample::{border_variance, joint_bilateral};
 use crate::core::frame::LUMA_WEIGHTS;
 use crate::core::pose::{se3_exp, se3_log};
 use crate::core::{Frame, FrameImage, Image, PinholeCamera, PlaneF32, Se3, Timestamp};
@@ -446,6 +446,7 @@ impl Tracker {
         self.pool.install(|| {
             if kf.has_variance {
                 joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
+                border_variance(variance, st.factor, cfg.border_variance_px);
             } else {
                 joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
@@ -524,14 +525,20 @@ fn induced_flow(low: &PinholeCamera, world_from_i: &Se3, inv_depth: &PlaneF32, w
     ((sum / n_in.max(1) as f64) as f32, n_in as f32 / n as f32)
 }
 
-/// Copies the pooled flow into BA measurements (targets in depth-grid pixels, weights scaled)
-/// and returns the confident fraction (mean of the two weights above `confident`). Targets
-/// closer than `margin` to the border get no weight: some of the cell's pixels may have left
-/// the view, and the pooled mean of those that stayed is biased towards the smaller flows
-/// (with forward motion this stretched the map a few percent per keyframe).
-fn write_measurement(res: &FlowResult, weight_scale: f32, confident: f32, margin: f32, target: &mut Image<f32, 2>, weight: &mut Image<f32, 2>) -> f32 {
+/// Copies the pooled flow into BA measurements (targets in depth-grid pixels, weights scaled
+/// by `weight_scale`) and returns the confident fraction (mean of the two weights above
+/// `confident_weight`). Targets closer than `border_margin_px` to the border get no weight:
+/// some of the cell's pixels may have left the view, and the pooled mean of those that stayed
+/// is biased towards the smaller flows (with forward motion this stretched the map a few
+/// percent per keyframe). Within `border_taper_px` of either image's border (source pixel or
+/// target, past the margin) the weights fall off quadratically: there the patches that
+/// measured the flow were clipped by the border and the pooled cells partly out of view, a
+/// bias the confidences do not see. The taper only lowers BA weights; the confident fraction
+/// (tracking loss, overlap, loop checks) is counted before it.
+fn write_measurement(res: &FlowResult, cfg: &TrackerConfig, target: &mut Image<f32, 2>, weight: &mut Image<f32, 2>) -> f32 {
     let pooled = &res.pooled;
     let (w, h) = (pooled.flow.width(), pooled.flow.height());
+    let (margin, taper) = (cfg.border_margin_px, cfg.border_taper_px);
     let mut n_conf = 0usize;
     for y in 0..h {
         for x in 0..w {
@@ -540,18 +547,26 @@ fn write_measurement(res: &FlowResult, weight_scale: f32, confident: f32, margin
             let (tx, ty) = (x as f32 + u, y as f32 + v);
             let (mut wx, mut wy) = (pooled.weight_x.data[p], pooled.weight_y.data[p]);
             let finite = tx.is_finite() && ty.is_finite() && wx.is_finite() && wy.is_finite();
-            let in_view = tx >= margin && ty >= margin && tx <= w as f32 - 1.0 - margin && ty <= h as f32 - 1.0 - margin;
+            let (xmax, ymax) = (w as f32 - 1.0 - margin, h as f32 - 1.0 - margin);
+            let in_view = tx >= margin && ty >= margin && tx <= xmax && ty <= ymax;
             if !finite || !in_view {
                 wx = 0.0;
                 wy = 0.0;
             }
-            if 0.5 * (wx + wy) > confident {
+            if 0.5 * (wx + wy) > cfg.confident_weight {
                 n_conf += 1;
+            }
+            if taper > 0.0 && wx + wy > 0.0 {
+                let to_target = (tx - margin).min(ty - margin).min(xmax - tx).min(ymax - ty);
+                let to_source = (x.min(y).min(w - 1 - x).min(h - 1 - y)) as f32;
+                let f = ((to_target.min(to_source) + 0.5) / taper).clamp(0.0, 1.0);
+                wx *= f * f;
+                wy *= f * f;
             }
             target.data[2 * p] = if finite { tx } else { x as f32 };
             target.data[2 * p + 1] = if finite { ty } else { y as f32 };
-            weight.data[2 * p] = wx.max(0.0) * weight_scale;
-            weight.data[2 * p + 1] = wy.max(0.0) * weight_scale;
+            weight.data[2 * p] = wx.max(0.0) * cfg.weight_scale;
+            weight.data[2 * p + 1] = wy.max(0.0) * cfg.weight_scale;
         }
     }
     n_conf as f32 / (w * h).max(1) as f32
@@ -786,7 +801,7 @@ impl State {
             self.seed.dy.data.copy_from_slice(&self.prev_flow.dy.data);
         }
         self.flow_ref_to_current(r, self.have_prev_flow, true)?;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, &self.cfg, &mut self.obs_target, &mut self.obs_weight);
         if conf < self.cfg.min_confident_fraction {
             // Nothing to trust: wait for a better frame (the first keyframe stays).
             self.have_prev_flow = false;
@@ -1134,11 +1149,10 @@ impl State {
         self.flow.estimate_pair(&kf.frame, &kt.frame, seed, &mut self.res, &mut self.res_reverse)?;
         self.times.flow += t0.elapsed();
         self.times.flow_estimates += 2;
-        let (ws, cw, m) = (self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px);
         let edge = &mut self.edges.edges[e];
-        write_measurement(&self.res, ws, cw, m, &mut edge.target, &mut edge.weight);
+        write_measurement(&self.res, &self.cfg, &mut edge.target, &mut edge.weight);
         let edge = &mut self.edges.edges[r];
-        write_measurement(&self.res_reverse, ws, cw, m, &mut edge.target, &mut edge.weight);
+        write_measurement(&self.res_reverse, &self.cfg, &mut edge.target, &mut edge.weight);
         Ok(())
     }
 
@@ -1154,7 +1168,7 @@ impl State {
         self.times.flow += t0.elapsed();
         self.times.flow_estimates += 1;
         let edge = &mut self.edges.edges[e];
-        Ok(write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut edge.target, &mut edge.weight))
+        Ok(write_measurement(&self.res, &self.cfg, &mut edge.target, &mut edge.weight))
     }
 
     /// Loads the window, solves, writes back. A failed solve leaves the state as it was.
@@ -1255,7 +1269,7 @@ impl State {
             induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &predicted, Some(&mut self.seed));
         }
         self.flow_ref_to_current(r, true, self.cfg.frame_forward_backward)?;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, &self.cfg, &mut self.obs_target, &mut self.obs_weight);
         tracing::trace!(seq = frame.seq, keyframe = self.kfs.slots[r].id, conf, mean_flow_input_px = self.res.stats.mean_flow_input_px, "track: frame flow");
         if conf < self.cfg.min_confident_fraction {
             return Ok(self.lost(out, LostReason::LowConfidence));
@@ -1655,7 +1669,7 @@ impl State {
         self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, Some(&self.seed), &mut self.res)?;
         self.times.flow += t0.elapsed();
         self.times.flow_estimates += 1;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, &self.cfg, &mut self.obs_target, &mut self.obs_weight);
         let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
             return Ok(false);
@@ -1770,7 +1784,7 @@ impl State {
     /// motion-only BA; the pose when the match is verified.
     fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
         self.flow_ref_to_current(c, predicted.is_some(), true)?;
-        let conf = write_measurement(&self.res, self.cfg.weight_scale, self.cfg.confident_weight, self.cfg.border_margin_px, &mut self.obs_target, &mut self.obs_weight);
+        let conf = write_measurement(&self.res, &self.cfg, &mut self.obs_target, &mut self.obs_weight);
         let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
             return Ok(None);

@@ -72,3 +72,53 @@ pub(crate) fn joint_bilateral(
         None => out.data.par_chunks_mut(w).enumerate().for_each(|(y, r1)| row(y, r1, None, None)),
     }
 }
+
+/// Multiplies a full-resolution inverse-depth variance by `1 + (border_cells / d)^2`, `d` the
+/// pixel's distance to the nearest image border in depth-grid cells (pixel centres, so at
+/// least half an input pixel). Eq. 4 is the noise the flow weights propagate; near the border
+/// the flow is also biased (patches clipped by the border, pooled cells partly out of view, fewer
+/// keyframes seeing the point), which the Hessian cannot see. `border_cells` 0 leaves the
+/// variance as it is; saturated values (`f32::MAX`, no information) stay saturated.
+pub(crate) fn border_variance(variance: &mut PlaneF32, cell: usize, border_cells: f32) {
+    if border_cells <= 0.0 {
+        return;
+    }
+    let (w, h) = (variance.width, variance.height);
+    let c = cell as f32;
+    variance.data.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let dy = y.min(h - 1 - y);
+        for (x, v) in row.iter_mut().enumerate() {
+            let d = (x.min(w - 1 - x).min(dy) as f32 + 0.5) / c;
+            let r = border_cells / d;
+            *v = (*v * (1.0 + r * r)).min(f32::MAX);
+        }
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn border_variance_grows_towards_the_border_and_leaves_the_centre() {
+        let (w, h, cell) = (64, 48, 8);
+        let mut v = PlaneF32::new(w, h);
+        v.data.fill(1e-4);
+        v.data[0] = f32::MAX;
+        border_variance(&mut v, cell, 4.0);
+        assert_eq!(v.data[0], f32::MAX);
+        // Second column: 1.5 px = 0.1875 cells from the border -> 1 + (4 / 0.1875)^2.
+        let expect = 1e-4 * (1.0 + (4.0f32 / (1.5 / 8.0)).powi(2));
+        assert!((v.data[24 * w + 1] / expect - 1.0).abs() < 1e-5, "{} vs {expect}", v.data[24 * w + 1]);
+        // Monotone towards the centre along a row, and symmetric.
+        let row = &v.data[24 * w..25 * w];
+        assert!(row[..w / 2].windows(2).all(|p| p[0] >= p[1]));
+        assert!((0..w).all(|x| row[x] == row[w - 1 - x]));
+        // The centre (3 cells in) is inflated by 1 + (4 / 3)^2 at most there, never lowered.
+        assert!(v.data.iter().all(|x| *x >= 1e-4));
+        let mut off = PlaneF32::new(w, h);
+        off.data.fill(2.0);
+        border_variance(&mut off, cell, 0.0);
+        assert!(off.data.iter().all(|x| *x == 2.0));
+    }
+}
