@@ -2,8 +2,9 @@
 //! sequences in memory (`duv::sim`), tracks each `--runs` times with and without loop closure
 //! on the tracker's own thread pool (as a tracking thread does: `Tracker::run_in_pool`), and
 //! prints and writes (`bench_track.json`, `bench_track.md`) the medians: frames/s, per-stage
-//! milliseconds, frame latency p50/p99, ATE (m and % of path), AUSE against a random ordering,
-//! peak RSS and the tracker's heap peak.
+//! milliseconds, frame latency p50/p99/max, frames/s and latency p99/max after the monocular
+//! initialisation (the bootstrap runs once per dive), ATE (m and % of path), AUSE against a
+//! random ordering, peak RSS and the tracker's heap peak.
 //!
 //! Rendering the sequence and scoring it are outside every timing; the frames are held in
 //! memory for all runs (their bytes are reported beside the RSS, which includes them).
