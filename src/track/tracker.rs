@@ -1504,7 +1504,8 @@ impl State {
         let Some(mut p) = self.pending else { return Ok(false) };
         if p.collecting {
             // The edges, then one solve of `init_iterations` (cut into solves of
-            // `local_iterations`, the turbid survey at 320x240 lost its scale: 13.8 % ATE).
+            // `local_iterations` iterations each, it lost the turbid survey's scale at
+            // 320x240: 13.8 % ATE).
             if p.next_edge < self.new_edges.len() {
                 p.next_edge += self.estimate_new_edge_at(p.next_edge)?;
                 self.pending = Some(p);
