@@ -92,8 +92,8 @@ pub struct TrackerConfig {
     pub defer_insertion: bool,
     /// Deferred stages run at the start of each frame (a new keyframe first finishes what is
     /// left of the previous one). Two: an insertion (up to three edge pairs, the window solve
-    /// with Eq. 4, one loop candidate) is done within three frames, before the next keyframe
-    /// on all but the fastest motion.
+    /// with Eq. 4, which is a frame's only stage, one loop candidate) is done within four
+    /// frames, before the next keyframe on all but the fastest motion.
     pub stages_per_frame: usize,
     /// Newest window keyframes whose poses the local BA moves; the older ones are held fixed
     /// (at least two are always fixed: gauge and scale). Fewer free poses tie new keyframes
