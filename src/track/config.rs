@@ -50,9 +50,10 @@ pub struct TrackerConfig {
     /// the initial map from constant depth came out worse).
     pub pair_edges: bool,
     /// Run the forward-backward check on the flow that tracks each frame against its keyframe
-    /// (keyframe edges always have it). Off: the frame's flow costs half, and its confidences
+    /// (keyframe edges always have it). Off, the frame's flow costs half and its confidences
     /// rest on texture and the photometric residual alone; a wrong pose from a bad match then
-    /// only reaches the map through a keyframe, whose edges are checked.
+    /// reaches the map through the next keyframe's start: the 320x240 survey with seed 3
+    /// drifted to 8.7 % of the path (0.21 % with the check), so it is on by default.
     pub frame_forward_backward: bool,
     /// Local window BA (its `max_iterations` and `fixed_poses` are set per use).
     pub ba: BaConfig,
@@ -186,7 +187,7 @@ impl Default for TrackerConfig {
             flow: FlowConfig::default(),
             seed_edges: true,
             pair_edges: true,
-            frame_forward_backward: false,
+            frame_forward_backward: true,
             ba: BaConfig::default(),
             keyframe_flow_px: 2.5,
             keyframe_min_overlap: 0.5,

@@ -12,8 +12,8 @@
 //! - *Every frame*: grey conversion into a preallocated plane, a health check (black,
 //!   saturated, contrast collapse), the pyramid, then flow from the reference keyframe seeded
 //!   by the flow the constant-velocity prediction induces (reprojecting the keyframe's depth
-//!   grid; forward only unless `frame_forward_backward`: keyframe edges carry the
-//!   forward-backward check), and a motion-only BA against the keyframe: every frame gets a
+//!   grid; with the forward-backward check unless `frame_forward_backward` is off), and a
+//!   motion-only BA against the keyframe: every frame gets a
 //!   pose.
 //! - *Keyframes*: when the mean flow from the reference keyframe exceeds
 //!   `keyframe_flow_px` (depth-grid pixels, as DROID measures it). The new keyframe's depth
