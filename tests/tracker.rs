@@ -4,7 +4,7 @@
 //! and errors for frames of the wrong size.
 //!
 //! Thresholds were measured with `cargo run --release --example track_sim` (same sequences):
-//! survey 0.17 % of the path, loop 0.37 % with loop closure and 1.02 % without.
+//! survey 0.17 % of the path, loop 0.26 % with loop closure and 0.86 % without.
 
 #[path = "common/track_sim.rs"]
 mod track_sim;
@@ -18,7 +18,7 @@ use track_sim::{capacity, render_all, run, sim_config, small_tracker_config};
 
 /// ATE RMSE bound on the survey, percent of path length (measured 0.17 %).
 const SURVEY_ATE_PERCENT: f64 = 0.5;
-/// ATE RMSE bound on the loop with loop closure, percent of path length (measured 0.37 %).
+/// ATE RMSE bound on the loop with loop closure, percent of path length (measured 0.26 %).
 const LOOP_ATE_PERCENT: f64 = 0.5;
 /// A seeded tracker's distance from the uninterrupted one, RMS over the frames after the
 /// stop, as a fraction of the uninterrupted path over them (measured 0.029).
@@ -84,7 +84,7 @@ fn loop_closure_detects_the_loop_and_lowers_ate() {
 /// One deferred stage per frame on the 1 m/s loop: keyframes come every two or three frames,
 /// faster than their stages, so each new keyframe finishes the previous one's first. It must
 /// start from the frame's pose re-anchored to the solved reference: from the pose measured
-/// before the solve this loop drifted to 8.0 % of the path (measured 0.38 % now).
+/// before the solve this loop drifted to 8.0 % of the path (measured 0.30 % now).
 #[test]
 fn stages_falling_behind_fast_motion_do_not_drift_the_map() {
     let renderer = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
