@@ -542,6 +542,7 @@ fn write_measurement(res: &FlowResult, cfg: &TrackerConfig, target: &mut Image<f
     let pooled = &res.pooled;
     let (w, h) = (pooled.flow.width(), pooled.flow.height());
     let (margin, taper) = (cfg.border_margin_px, cfg.border_taper_px);
+    let (xmax, ymax) = (w as f32 - 1.0 - margin, h as f32 - 1.0 - margin);
     let mut n_conf = 0usize;
     for y in 0..h {
         for x in 0..w {
@@ -550,7 +551,6 @@ fn write_measurement(res: &FlowResult, cfg: &TrackerConfig, target: &mut Image<f
             let (tx, ty) = (x as f32 + u, y as f32 + v);
             let (mut wx, mut wy) = (pooled.weight_x.data[p], pooled.weight_y.data[p]);
             let finite = tx.is_finite() && ty.is_finite() && wx.is_finite() && wy.is_finite();
-            let (xmax, ymax) = (w as f32 - 1.0 - margin, h as f32 - 1.0 - margin);
             let in_view = tx >= margin && ty >= margin && tx <= xmax && ty <= ymax;
             if !finite || !in_view {
                 wx = 0.0;
