@@ -22,6 +22,10 @@
 //! [`RenderBackend`] is what the mapper renders with: these stages, or the CPU reference
 //! ([`MapperDevice`] chooses; no Vulkan device at all falls back with one warning).
 
+pub mod compact;
+pub mod loss;
+pub mod medium;
+
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
 use crate::map::adam::StepConstants;
