@@ -674,6 +674,18 @@ impl GpuContext {
         Ok(())
     }
 
+    /// [`Self::dispatch`] with the buffers looked up by the WGSL names of the kernel's
+    /// bindings (`lookup(name)`), so the caller writes no binding list by hand; a binding
+    /// `lookup` does not know is [`GpuError::UnknownBinding`].
+    pub fn dispatch_named(&mut self, kernel: Kernel, lookup: impl Fn(&str) -> Option<GpuRange>, immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
+        let info = kernel.info();
+        let mut ranges = [GpuRange { offset: 0, size: 0 }; MAX_BINDINGS];
+        for (slot, b) in ranges.iter_mut().zip(info.bindings) {
+            *slot = lookup(b.name).ok_or(GpuError::UnknownBinding { kernel: kernel.name(), name: b.name })?;
+        }
+        self.dispatch(kernel, &ranges[..info.bindings.len().min(MAX_BINDINGS)], immediates, groups)
+    }
+
     /// Records filling `range` with the u32 `value` (size a multiple of 4).
     pub fn fill(&mut self, range: GpuRange, value: u32) -> Result<(), GpuError> {
         if !self.recording {

@@ -45,6 +45,8 @@ pub enum GpuError {
     Kernel { kernel: &'static str, call: &'static str, result: vk::Result },
     #[error("kernel {kernel}: {got} buffers bound, the kernel has {expected} bindings")]
     BindingCount { kernel: &'static str, expected: usize, got: usize },
+    #[error("kernel {kernel}: no buffer given for its binding {name}")]
+    UnknownBinding { kernel: &'static str, name: &'static str },
     #[error("kernel {kernel}: binding {binding} ({name}) is an empty range")]
     EmptyBinding { kernel: &'static str, binding: u32, name: &'static str },
     #[error("kernel {kernel}: {got} immediate bytes given, the kernel declares {expected}")]

@@ -65,6 +65,7 @@ impl From<VulkanRenderError> for MapperError {
         match e {
             VulkanRenderError::Render(r) => MapperError::Render(r),
             VulkanRenderError::Gpu(g) => MapperError::Gpu(g.to_string()),
+            VulkanRenderError::Loss(l) => MapperError::Loss(l),
         }
     }
 }

@@ -706,6 +706,8 @@ pub enum VulkanRenderError {
     Render(#[from] RenderError),
     #[error(transparent)]
     Gpu(#[from] GpuError),
+    #[error(transparent)]
+    Loss(#[from] crate::map::loss::LossError),
 }
 
 /// The forward render on the GPU, every buffer allocated once for a [`RasterCapacity`]:
