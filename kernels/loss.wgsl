@@ -2,8 +2,8 @@
 // (CPU reference: `total_loss` and its terms in src/map/loss.rs, the same formulas, the same
 // order of additions per pixel). One invocation per pixel, 1-D grid of 256-wide workgroups.
 //
-//   count_valid         tracked pixels valid for the depth terms -> valid_count (u32 atomics:
-//                       integer sums, exact and order-free)
+//   count_valid         tracked pixels valid for the depth terms -> valid_count (a u32 atomic
+//                       add per subgroup: integer sums, exact and order-free)
 //   loss_pixels         L1 (dL/dC, overwrites up_colour), Mahalanobis + KL + smoothness
 //                       (dL/dD, dL/dV) and accuracy (dL/dA) into up_scalars (overwrites)
 //   ssim_rows           horizontal 11-tap filter of the 15 moment sources (x, y, x^2, y^2, xy
@@ -17,8 +17,11 @@
 //   medium_variation    dL/dc_med (overwrites d_c_med)
 //
 // Loss values: each workgroup writes its partial sums to partials[group * 8 + term] (terms:
-// 0 L1, 1 Mahalanobis, 2 KL, 3 smoothness, 4 accuracy, 5 SSIM map, 6 medium variation) by a
-// tree reduction in workgroup memory; the host adds them in group order. No float atomics:
+// 0 L1, 1 Mahalanobis, 2 KL, 3 smoothness, 4 accuracy, 5 SSIM map, 6 medium variation, 7 squared
+// colour error for the PSNR): `subgroupAdd` within each subgroup, then invocation 0 adds the
+// subgroups' sums in subgroup order (one barrier); the host adds the workgroups' sums in
+// workgroup order. The SSIM passes keep RGB in vectors (no per-channel arrays indexed at run
+// time, which lavapipe spills to memory). No float atomics:
 // the results are bit-identical from run to run on one device.
 
 struct LossParams {
@@ -67,31 +70,39 @@ const SSIM_C2: f32 = 0.0009;
 @group(0) @binding(7) var<storage, read_write> valid_count: array<atomic<u32>>;
 // The normalised 11-tap Gaussian window (`ssim_kernel`).
 @group(0) @binding(8) var<storage, read> window: array<f32>;
-@group(0) @binding(9) var<storage, read_write> moments_a: array<f32>;
-@group(0) @binding(10) var<storage, read_write> moments_b: array<f32>;
+// SSIM scratch: the five moments (then the row-filtered partials) and the partials, RGB in
+// vec4 slots: moments_a[5 p + k] / moments_a[3 p + k], moments_b[3 p + k].
+@group(0) @binding(9) var<storage, read_write> moments_a: array<vec4<f32>>;
+@group(0) @binding(10) var<storage, read_write> moments_b: array<vec4<f32>>;
 // Medium planes' c_med (RGB per pixel) and dL/dc_med.
 @group(0) @binding(11) var<storage, read> c_med: array<f32>;
 @group(0) @binding(12) var<storage, read_write> d_c_med: array<f32>;
 // Per-workgroup c_med sums (4 per group), then the mean (4 floats after the groups).
 @group(0) @binding(13) var<storage, read_write> c_med_sums: array<vec4<f32>>;
 
+// Per-subgroup sums of a reduction (at most 256 subgroups of one lane; 64 of four).
 var<workgroup> red_a: array<vec4<f32>, 256>;
 var<workgroup> red_b: array<vec4<f32>, 256>;
-var<workgroup> red_count: array<u32, 256>;
 
-// Tree reduction of two vec4 per invocation over the workgroup (fixed order); every
-// invocation of the workgroup must call it.
-fn reduce_pair(lid: u32, a: vec4<f32>, b: vec4<f32>) {
-    red_a[lid] = a;
-    red_b[lid] = b;
-    workgroupBarrier();
-    for (var s = WG / 2u; s > 0u; s = s >> 1u) {
-        if (lid < s) {
-            red_a[lid] = red_a[lid] + red_a[lid + s];
-            red_b[lid] = red_b[lid] + red_b[lid + s];
-        }
-        workgroupBarrier();
+// Sums two vec4 over the workgroup in a fixed order: `subgroupAdd` within each subgroup, then
+// invocation 0 adds the subgroups' sums in subgroup order (returned to invocation 0 only).
+// Every invocation of the workgroup must call it (one barrier).
+fn reduce_pair(lid: u32, lane: u32, sg_id: u32, sg_count: u32, a: vec4<f32>, b: vec4<f32>) -> array<vec4<f32>, 2> {
+    let sa = subgroupAdd(a);
+    let sb = subgroupAdd(b);
+    if (lane == 0u) {
+        red_a[sg_id] = sa;
+        red_b[sg_id] = sb;
     }
+    workgroupBarrier();
+    var out = array<vec4<f32>, 2>(vec4<f32>(0.0), vec4<f32>(0.0));
+    if (lid == 0u) {
+        for (var i = 0u; i < sg_count; i++) {
+            out[0] += red_a[i];
+            out[1] += red_b[i];
+        }
+    }
+    return out;
 }
 
 fn finite(x: f32) -> bool {
@@ -105,30 +116,29 @@ fn valid_track(p: u32) -> bool {
 }
 
 @compute @workgroup_size(256)
-fn count_valid(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+fn count_valid(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(subgroup_invocation_id) lane: u32) {
     let p = gid.x;
     var v = 0u;
     if (p < params.width * params.height && valid_track(p)) {
         v = 1u;
     }
-    red_count[lid] = v;
-    workgroupBarrier();
-    for (var s = WG / 2u; s > 0u; s = s >> 1u) {
-        if (lid < s) {
-            red_count[lid] = red_count[lid] + red_count[lid + s];
-        }
-        workgroupBarrier();
+    let total = subgroupAdd(v);
+    if (lane == 0u && total > 0u) {
+        atomicAdd(&valid_count[0], total);
     }
-    if (lid == 0u && red_count[0] > 0u) {
-        atomicAdd(&valid_count[0], red_count[0]);
-    }
+}
+
+fn rgb(buf_index: u32) -> vec3<f32> {
+    return vec3<f32>(target_image[buf_index], target_image[buf_index + 1u], target_image[buf_index + 2u]);
+}
+
+fn rendered_rgb(p: u32) -> vec3<f32> {
+    return vec3<f32>(colour[3u * p], colour[3u * p + 1u], colour[3u * p + 2u]);
 }
 
 // Largest absolute channel difference of two observed pixels.
 fn colour_step(p: u32, q: u32) -> f32 {
-    let a = vec3<f32>(target_image[3u * p], target_image[3u * p + 1u], target_image[3u * p + 2u]);
-    let b = vec3<f32>(target_image[3u * q], target_image[3u * q + 1u], target_image[3u * q + 2u]);
-    let d = abs(a - b);
+    let d = abs(rgb(3u * p) - rgb(3u * q));
     return max(max(d.x, d.y), d.z);
 }
 
@@ -142,7 +152,8 @@ fn edge(p: u32, q: u32) -> vec2<f32> {
 }
 
 @compute @workgroup_size(256)
-fn loss_pixels(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+fn loss_pixels(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>,
+               @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
     let w = params.width;
     let h = params.height;
     let n = w * h;
@@ -152,12 +163,13 @@ fn loss_pixels(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_inv
     if (p < n) {
         // L1: mean over pixels and channels.
         let g1 = params.l1_weight / f32(3u * n);
-        var l1 = 0.0;
-        for (var c = 0u; c < 3u; c++) {
-            let e = colour[3u * p + c] - target_image[3u * p + c];
-            l1 += abs(e);
-            up_colour[3u * p + c] = g1 * sign(e);
-        }
+        let e = rendered_rgb(p) - rgb(3u * p);
+        let l1 = abs(e.x) + abs(e.y) + abs(e.z);
+        let se = e.x * e.x + e.y * e.y + e.z * e.z;
+        let d_l1 = g1 * sign(e);
+        up_colour[3u * p] = d_l1.x;
+        up_colour[3u * p + 1u] = d_l1.y;
+        up_colour[3u * p + 2u] = d_l1.z;
         var dd = 0.0;
         var dv = 0.0;
         var maha = 0.0;
@@ -220,20 +232,22 @@ fn loss_pixels(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_inv
         }
         up_scalars[p] = vec4<f32>(dd, dv, da, 0.0);
         sa = vec4<f32>(l1, maha, kl, smooth_sum);
-        sb = vec4<f32>(acc, 0.0, 0.0, 0.0);
+        sb = vec4<f32>(acc, se, 0.0, 0.0);
     }
-    reduce_pair(lid, sa, sb);
+    let sums = reduce_pair(lid, lane, sg_id, sg_count, sa, sb);
     if (lid == 0u) {
         let base = wid.x * TERMS;
-        partials[base] = red_a[0].x;
-        partials[base + 1u] = red_a[0].y;
-        partials[base + 2u] = red_a[0].z;
-        partials[base + 3u] = red_a[0].w;
-        partials[base + 4u] = red_b[0].x;
+        partials[base] = sums[0].x;
+        partials[base + 1u] = sums[0].y;
+        partials[base + 2u] = sums[0].z;
+        partials[base + 3u] = sums[0].w;
+        partials[base + 4u] = sums[1].x;
+        partials[base + 7u] = sums[1].y;
     }
 }
 
-// Horizontal zero-padded 'same' filter of the 15 moment sources of pixel p (taps in order).
+// Horizontal zero-padded 'same' filter of the moment sources of pixel p (taps in order), as
+// five RGB vectors: x, y, x^2, y^2, xy -> moments_a[5 p + k].
 @compute @workgroup_size(256)
 fn ssim_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.width;
@@ -244,10 +258,11 @@ fn ssim_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let x = i32(p % w);
     let row = p - u32(x);
-    var acc: array<f32, 15>;
-    for (var k = 0u; k < 15u; k++) {
-        acc[k] = 0.0;
-    }
+    var mx = vec3<f32>(0.0);
+    var my = vec3<f32>(0.0);
+    var exx = vec3<f32>(0.0);
+    var eyy = vec3<f32>(0.0);
+    var exy = vec3<f32>(0.0);
     for (var t = 0; t < 11; t++) {
         let sx = x + t - RADIUS;
         if (sx < 0 || sx >= i32(w)) {
@@ -255,24 +270,26 @@ fn ssim_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         let g = window[t];
         let q = row + u32(sx);
-        for (var c = 0u; c < 3u; c++) {
-            let u = colour[3u * q + c];
-            let v = target_image[3u * q + c];
-            acc[c * 5u] += g * u;
-            acc[c * 5u + 1u] += g * v;
-            acc[c * 5u + 2u] += g * (u * u);
-            acc[c * 5u + 3u] += g * (v * v);
-            acc[c * 5u + 4u] += g * (u * v);
-        }
+        let u = rendered_rgb(q);
+        let v = rgb(3u * q);
+        mx += g * u;
+        my += g * v;
+        exx += g * (u * u);
+        eyy += g * (v * v);
+        exy += g * (u * v);
     }
-    for (var k = 0u; k < 15u; k++) {
-        moments_a[p * 15u + k] = acc[k];
-    }
+    moments_a[5u * p] = vec4<f32>(mx, 0.0);
+    moments_a[5u * p + 1u] = vec4<f32>(my, 0.0);
+    moments_a[5u * p + 2u] = vec4<f32>(exx, 0.0);
+    moments_a[5u * p + 3u] = vec4<f32>(eyy, 0.0);
+    moments_a[5u * p + 4u] = vec4<f32>(exy, 0.0);
 }
 
-// Vertical filter of the moments, then the SSIM map and its partials (9 per pixel).
+// Vertical filter of the moments, then the SSIM map and its partials dS/dmu_x, dS/dE_xx,
+// dS/dE_xy -> moments_b[3 p + k], per channel.
 @compute @workgroup_size(256)
-fn ssim_cols(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+fn ssim_cols(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>,
+             @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
     let w = params.width;
     let h = params.height;
     let n = w * h;
@@ -281,46 +298,43 @@ fn ssim_cols(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoc
     if (p < n) {
         let y = i32(p / w);
         let x = p % w;
-        var m: array<f32, 15>;
-        for (var k = 0u; k < 15u; k++) {
-            m[k] = 0.0;
-        }
+        var mx = vec3<f32>(0.0);
+        var my = vec3<f32>(0.0);
+        var exx = vec3<f32>(0.0);
+        var eyy = vec3<f32>(0.0);
+        var exy = vec3<f32>(0.0);
         for (var t = 0; t < 11; t++) {
             let sy = y + t - RADIUS;
             if (sy < 0 || sy >= i32(h)) {
                 continue;
             }
             let g = window[t];
-            let q = u32(sy) * w + x;
-            for (var k = 0u; k < 15u; k++) {
-                m[k] += g * moments_a[q * 15u + k];
-            }
+            let q = 5u * (u32(sy) * w + x);
+            mx += g * moments_a[q].xyz;
+            my += g * moments_a[q + 1u].xyz;
+            exx += g * moments_a[q + 2u].xyz;
+            eyy += g * moments_a[q + 3u].xyz;
+            exy += g * moments_a[q + 4u].xyz;
         }
-        for (var c = 0u; c < 3u; c++) {
-            let mx = m[c * 5u];
-            let my = m[c * 5u + 1u];
-            let exx = m[c * 5u + 2u];
-            let eyy = m[c * 5u + 3u];
-            let exy = m[c * 5u + 4u];
-            let a1 = 2.0 * mx * my + SSIM_C1;
-            let a2 = 2.0 * (exy - mx * my) + SSIM_C2;
-            let b1 = mx * mx + my * my + SSIM_C1;
-            let b2 = (exx - mx * mx) + (eyy - my * my) + SSIM_C2;
-            let inv_b = 1.0 / (b1 * b2);
-            let s = a1 * a2 * inv_b;
-            ssim += s;
-            moments_b[p * 9u + c * 3u] = 2.0 * my * (a2 - a1) * inv_b - 2.0 * mx * s * (1.0 / b1 - 1.0 / b2);
-            moments_b[p * 9u + c * 3u + 1u] = -s / b2;
-            moments_b[p * 9u + c * 3u + 2u] = 2.0 * a1 * inv_b;
-        }
+        let a1 = 2.0 * mx * my + SSIM_C1;
+        let a2 = 2.0 * (exy - mx * my) + SSIM_C2;
+        let b1 = mx * mx + my * my + SSIM_C1;
+        let b2 = (exx - mx * mx) + (eyy - my * my) + SSIM_C2;
+        let inv_b = 1.0 / (b1 * b2);
+        let s = a1 * a2 * inv_b;
+        ssim = s.x + s.y + s.z;
+        moments_b[3u * p] = vec4<f32>(2.0 * my * (a2 - a1) * inv_b - 2.0 * mx * s * (1.0 / b1 - 1.0 / b2), 0.0);
+        moments_b[3u * p + 1u] = vec4<f32>(-s / b2, 0.0);
+        moments_b[3u * p + 2u] = vec4<f32>(2.0 * a1 * inv_b, 0.0);
     }
-    reduce_pair(lid, vec4<f32>(ssim, 0.0, 0.0, 0.0), vec4<f32>(0.0));
+    let sums = reduce_pair(lid, lane, sg_id, sg_count, vec4<f32>(ssim, 0.0, 0.0, 0.0), vec4<f32>(0.0));
     if (lid == 0u) {
-        partials[wid.x * TERMS + 5u] = red_a[0].x;
+        partials[wid.x * TERMS + 5u] = sums[0].x;
     }
 }
 
-// Horizontal filter of the 9 partials (the transposed zero-padded filter is the same filter).
+// Horizontal filter of the partials (the transposed zero-padded filter is the same filter)
+// -> moments_a[3 p + k].
 @compute @workgroup_size(256)
 fn ssim_back_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.width;
@@ -331,24 +345,23 @@ fn ssim_back_rows(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let x = i32(p % w);
     let row = p - u32(x);
-    var acc: array<f32, 9>;
-    for (var k = 0u; k < 9u; k++) {
-        acc[k] = 0.0;
-    }
+    var f0 = vec4<f32>(0.0);
+    var f1 = vec4<f32>(0.0);
+    var f2 = vec4<f32>(0.0);
     for (var t = 0; t < 11; t++) {
         let sx = x + t - RADIUS;
         if (sx < 0 || sx >= i32(w)) {
             continue;
         }
         let g = window[t];
-        let q = row + u32(sx);
-        for (var k = 0u; k < 9u; k++) {
-            acc[k] += g * moments_b[q * 9u + k];
-        }
+        let q = 3u * (row + u32(sx));
+        f0 += g * moments_b[q];
+        f1 += g * moments_b[q + 1u];
+        f2 += g * moments_b[q + 2u];
     }
-    for (var k = 0u; k < 9u; k++) {
-        moments_a[p * 9u + k] = acc[k];
-    }
+    moments_a[3u * p] = f0;
+    moments_a[3u * p + 1u] = f1;
+    moments_a[3u * p + 2u] = f2;
 }
 
 // Vertical filter of the row-filtered partials, then
@@ -364,74 +377,78 @@ fn ssim_back_cols(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let y = i32(p / w);
     let x = p % w;
-    var f: array<f32, 9>;
-    for (var k = 0u; k < 9u; k++) {
-        f[k] = 0.0;
-    }
+    var f0 = vec3<f32>(0.0);
+    var f1 = vec3<f32>(0.0);
+    var f2 = vec3<f32>(0.0);
     for (var t = 0; t < 11; t++) {
         let sy = y + t - RADIUS;
         if (sy < 0 || sy >= i32(h)) {
             continue;
         }
         let g = window[t];
-        let q = u32(sy) * w + x;
-        for (var k = 0u; k < 9u; k++) {
-            f[k] += g * moments_a[q * 9u + k];
-        }
+        let q = 3u * (u32(sy) * w + x);
+        f0 += g * moments_a[q].xyz;
+        f1 += g * moments_a[q + 1u].xyz;
+        f2 += g * moments_a[q + 2u].xyz;
     }
     let scale = -params.ssim_weight / f32(3u * n);
-    for (var c = 0u; c < 3u; c++) {
-        let u = colour[3u * p + c];
-        let v = target_image[3u * p + c];
-        up_colour[3u * p + c] += scale * (f[c * 3u] + 2.0 * u * f[c * 3u + 1u] + v * f[c * 3u + 2u]);
-    }
+    let u = rendered_rgb(p);
+    let v = rgb(3u * p);
+    let d = scale * (f0 + 2.0 * u * f1 + v * f2);
+    up_colour[3u * p] += d.x;
+    up_colour[3u * p + 1u] += d.y;
+    up_colour[3u * p + 2u] += d.z;
 }
 
 @compute @workgroup_size(256)
-fn medium_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+fn medium_sums(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>,
+               @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
     let p = gid.x;
     var s = vec4<f32>(0.0);
     if (p < params.width * params.height) {
         s = vec4<f32>(c_med[3u * p], c_med[3u * p + 1u], c_med[3u * p + 2u], 0.0);
     }
-    reduce_pair(lid, s, vec4<f32>(0.0));
+    let sums = reduce_pair(lid, lane, sg_id, sg_count, s, vec4<f32>(0.0));
     if (lid == 0u) {
-        c_med_sums[wid.x] = red_a[0];
+        c_med_sums[wid.x] = sums[0];
     }
 }
 
-// One workgroup: invocation i adds groups i, i + 256, ... in order, then a tree reduction;
+// One workgroup: invocation i adds groups i, i + 256, ... in order, then the workgroup sum;
 // the mean goes after the groups.
 @compute @workgroup_size(256)
-fn medium_mean(@builtin(local_invocation_index) lid: u32) {
+fn medium_mean(@builtin(local_invocation_index) lid: u32,
+               @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
     let n = params.width * params.height;
     let groups = (n + WG - 1u) / WG;
     var s = vec4<f32>(0.0);
     for (var g = lid; g < groups; g += WG) {
         s += c_med_sums[g];
     }
-    reduce_pair(lid, s, vec4<f32>(0.0));
+    let sums = reduce_pair(lid, lane, sg_id, sg_count, s, vec4<f32>(0.0));
     if (lid == 0u) {
-        c_med_sums[groups] = red_a[0] / f32(n);
+        c_med_sums[groups] = sums[0] / f32(n);
     }
 }
 
 @compute @workgroup_size(256)
-fn medium_variation(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>) {
+fn medium_variation(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>,
+                    @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
     let n = params.width * params.height;
     let p = gid.x;
     var value = 0.0;
     if (p < n) {
-        let mean = c_med_sums[(n + WG - 1u) / WG];
+        let mean = c_med_sums[(n + WG - 1u) / WG].xyz;
         let g = params.mv_weight * (2.0 / f32(n));
-        for (var c = 0u; c < 3u; c++) {
-            let e = c_med[3u * p + c] - mean[c];
-            value += e * e;
-            d_c_med[3u * p + c] = g * e;
-        }
+        let e = vec3<f32>(c_med[3u * p], c_med[3u * p + 1u], c_med[3u * p + 2u]) - mean;
+        value = e.x * e.x + e.y * e.y + e.z * e.z;
+        let d = g * e;
+        d_c_med[3u * p] = d.x;
+        d_c_med[3u * p + 1u] = d.y;
+        d_c_med[3u * p + 2u] = d.z;
     }
-    reduce_pair(lid, vec4<f32>(value, 0.0, 0.0, 0.0), vec4<f32>(0.0));
+    let sums = reduce_pair(lid, lane, sg_id, sg_count, vec4<f32>(value, 0.0, 0.0, 0.0), vec4<f32>(0.0));
     if (lid == 0u) {
-        partials[wid.x * TERMS + 6u] = red_a[0].x;
+        partials[wid.x * TERMS + 6u] = sums[0].x;
     }
 }

@@ -10,6 +10,7 @@ use duv::core::rng::Rng;
 use duv::core::Image;
 use duv::gpu::{GpuBuffer, GpuContext};
 use duv::map::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
+use duv::map::mapper::psnr_db;
 use duv::map::medium::{MediumPlanes, C_MED, MEDIUM_CHANNELS};
 use duv::map::vulkan::loss::{GpuLoss, LossBuffers};
 use duv::map::vulkan::VulkanRenderError;
@@ -158,6 +159,9 @@ fn compare(ctx: &mut GpuContext, w: usize, h: usize, config: &LossConfig, with_m
     let v = upload_view(ctx, &s);
     let (terms, d_colour, d_scalars, d_c_med) = gpu_loss(ctx, &mut gpu, &v, &s, config, with_medium);
     check_values(label, &terms, &cpu_terms);
+    let (psnr_gpu, psnr_cpu) = (gpu.last_psnr_db(), psnr_db(&s.colour, &s.target));
+    eprintln!("{label}: PSNR GPU {psnr_gpu:.6} dB CPU {psnr_cpu:.6} dB");
+    assert!((psnr_gpu - psnr_cpu).abs() <= 1e-4, "{label}: PSNR GPU {psnr_gpu} vs CPU {psnr_cpu}");
     let g = ws.grads();
     check_grads(&format!("{label}: dL/dC"), d_colour.iter().copied(), g.d_color.data.iter().copied());
     check_grads(&format!("{label}: dL/dD"), d_scalars.iter().map(|s| s[0]), g.d_depth.data.iter().copied());

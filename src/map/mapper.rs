@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
 use super::densify::{densify_and_prune, prune_largest, DensifyParams, DensifyReport, DensifyScratch};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
-use super::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
+use super::loss::{LossConfig, LossError, LossTerms, LossWorkspace, TargetView};
 use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, MediumEstimateConfig, MediumEstimateError};
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
@@ -359,6 +359,8 @@ struct ViewBuffers {
     planes: MediumPlanes,
     planes_grad: MediumPlanes,
     d_planes9: MediumPlanes9,
+    /// The loss's own dL/dmedium (the medium prior).
+    d_medium_loss: MediumPlanes9,
 }
 
 /// Copies the medium network's 9-channel planes into the renderer's three RGB planes.
@@ -476,6 +478,7 @@ impl Mapper {
                 planes: MediumPlanes::new(w, h),
                 planes_grad: MediumPlanes::new(w, h),
                 d_planes9: MediumPlanes9::new(w, h),
+                d_medium_loss: MediumPlanes9::new(w, h),
             },
             densify_scratch: DensifyScratch::with_capacity(cap),
             gaussians: Gaussians::with_capacity(cap),
@@ -618,7 +621,7 @@ impl Mapper {
     pub fn render(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<&RenderOutput, MapperError> {
         self.check_camera(u64::MAX, camera)?;
         self.medium_forward(camera, world_from_cam)?;
-        self.forward_within_capacity(camera, &world_from_cam.inverse())?;
+        self.forward_within_capacity(camera, &world_from_cam.inverse(), true)?;
         Ok(&self.view.out)
     }
 
@@ -851,22 +854,26 @@ impl Mapper {
         let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
         let (camera, pose) = (kf.kf.camera, kf.kf.world_from_cam);
         self.medium_forward(&camera, &pose)?;
-        self.forward_within_capacity(&camera, &pose.inverse())?;
+        self.forward_within_capacity(&camera, &pose.inverse(), false)?;
         let kf = &self.keyframes[slot];
         let v = &mut self.view;
-        let rendered = RenderedView { color: &v.out.colour, depth: &v.out.depth, depth_variance: &v.out.depth_var, alpha: &v.out.alpha, medium: Some(&v.planes9) };
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
-        let loss = total_loss(&mut self.loss_ws, &self.config.loss, &rendered, &target)?;
-        let psnr_db = psnr_db(&v.out.colour, &kf.image);
-        let lg = self.loss_ws.grads();
-        v.upstream.colour.data.copy_from_slice(&lg.d_color.data);
-        v.upstream.depth.data.copy_from_slice(&lg.d_depth.data);
-        v.upstream.depth_var.data.copy_from_slice(&lg.d_depth_variance.data);
-        v.upstream.alpha.data.copy_from_slice(&lg.d_alpha.data);
         self.grads.zero_params();
-        self.raster.backward(&self.gaussians, &v.planes, &v.out, &v.upstream, &mut self.grads, &mut v.planes_grad)?;
+        let (loss, psnr_db) = self.raster.loss_and_backward(
+            &self.gaussians,
+            &v.planes,
+            &v.planes9,
+            &v.out,
+            &target,
+            &self.config.loss,
+            &mut self.loss_ws,
+            &mut v.upstream,
+            &mut self.grads,
+            &mut v.planes_grad,
+            &mut v.d_medium_loss,
+        )?;
         nine_from_planes(&v.planes_grad, &mut v.d_planes9);
-        for (d, &l) in v.d_planes9.data.iter_mut().zip(&lg.d_medium.data) {
+        for (d, &l) in v.d_planes9.data.iter_mut().zip(&v.d_medium_loss.data) {
             *d += l;
         }
         if let Some(prior) = &self.medium_prior {
@@ -912,11 +919,16 @@ impl Mapper {
     /// the largest axis are pruned (half the excess share of the map plus 2%) and the view is
     /// rendered again (up to [`OVERFLOW_RETRIES`] times); densification waits while the buffer
     /// stays over 90% full. No buffer is ever reallocated. Counted in [`Self::overflow_stats`].
-    fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3) -> Result<RenderStats, MapperError> {
+    fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3, images_on_host: bool) -> Result<RenderStats, MapperError> {
         let mut tries = 0;
         loop {
             let v = &mut self.view;
-            match self.raster.forward(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out) {
+            let rendered = if images_on_host {
+                self.raster.forward(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out)
+            } else {
+                self.raster.forward_for_loss(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out)
+            };
+            match rendered {
                 Ok(stats) => {
                     self.intersections_tight = stats.intersections * 10 > self.raster_capacity.max_intersections * 9;
                     return Ok(stats);
@@ -948,7 +960,11 @@ impl Mapper {
     }
 
     /// Prunes and densifies now (see [`densify_and_prune`]) and resets the medium's Adam
-    /// moments (§3.3).
+    /// moments (§3.3). The split offsets are drawn from a stream derived from the seed and the
+    /// iteration, not from the mapper's own generator, so the keyframe schedule does not
+    /// depend on how many Gaussians were split: two runs whose density control differs by a
+    /// few splits (the CPU reference and the Vulkan kernels round differently) still visit
+    /// the same keyframes in the same order.
     pub fn densify_and_prune(&mut self) -> Result<DensifyReport, MapperError> {
         let c = &self.config;
         let params = DensifyParams {
@@ -958,7 +974,8 @@ impl Mapper {
             prune_max_scale_m: c.prune_max_scale_m,
             max_replace_fraction: c.max_replace_fraction,
         };
-        let report = densify_and_prune(&mut self.gaussians, &mut self.grads, &mut self.adam, &params, &mut self.rng, &mut self.densify_scratch)?;
+        let mut split_rng = Rng::derive(c.seed, self.iteration);
+        let report = densify_and_prune(&mut self.gaussians, &mut self.grads, &mut self.adam, &params, &mut split_rng, &mut self.densify_scratch)?;
         self.medium_adam.reset_moments();
         tracing::debug!(?report, "map.densify");
         Ok(report)

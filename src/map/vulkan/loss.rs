@@ -31,8 +31,10 @@ use crate::map::loss::{ssim_kernel, LossConfig, LossError, LossTerms, TargetView
 const WG: usize = 256;
 /// Partial sums per workgroup (`partials[group * 8 + term]`).
 pub const LOSS_PARTIALS: usize = 8;
-/// Values per pixel of the SSIM scratch (5 moments x 3 channels).
-const MOMENTS: usize = 15;
+/// RGB vectors (vec4 slots) per pixel of the SSIM moments: x, y, x^2, y^2, xy.
+const MOMENTS: usize = 5;
+/// RGB vectors per pixel of the SSIM map's partials: dS/dmu_x, dS/dE_xx, dS/dE_xy.
+const SSIM_PARTIALS: usize = 3;
 
 /// Words of the immediate block of `loss.wgsl` (`LossParams`).
 const PARAM_WORDS: usize = 20;
@@ -91,8 +93,8 @@ pub struct GpuLoss {
     /// The tracker's `[depth, variance]` per pixel.
     pub track: GpuBuffer<[f32; 2]>,
     window: GpuBuffer<f32>,
-    moments_a: GpuBuffer<f32>,
-    moments_b: GpuBuffer<f32>,
+    moments_a: GpuBuffer<[f32; 4]>,
+    moments_b: GpuBuffer<[f32; 4]>,
     partials: GpuBuffer<f32>,
     valid_count: GpuBuffer<u32>,
     medium_sums: GpuBuffer<[f32; 4]>,
@@ -103,6 +105,7 @@ pub struct GpuLoss {
     /// Size of the uploaded target, and what the last [`Self::record`] evaluated.
     target_size: Option<(usize, usize)>,
     last: Option<(usize, usize, LossConfig, bool)>,
+    last_mse: f64,
 }
 
 impl GpuLoss {
@@ -118,8 +121,8 @@ impl GpuLoss {
             target: ctx.alloc("loss target image", n * 3)?,
             track: ctx.alloc("loss tracked depth and variance", n)?,
             window,
-            moments_a: ctx.alloc("SSIM moments A", n * MOMENTS)?,
-            moments_b: ctx.alloc("SSIM moments B", n * MOMENTS)?,
+            moments_a: ctx.alloc("SSIM moments", n * MOMENTS)?,
+            moments_b: ctx.alloc("SSIM partials", n * SSIM_PARTIALS)?,
             partials: ctx.alloc("loss partial sums", groups * LOSS_PARTIALS)?,
             valid_count: ctx.alloc("loss valid depth count", 1)?,
             medium_sums: ctx.alloc("c_med sums", groups + 1)?,
@@ -128,6 +131,7 @@ impl GpuLoss {
             staging_partials: vec![0.0; groups * LOSS_PARTIALS],
             target_size: None,
             last: None,
+            last_mse: f64::NAN,
         })
     }
 
@@ -256,6 +260,7 @@ impl GpuLoss {
             }
         }
         let (nf, validf) = (n as f64, valid.max(1) as f64);
+        self.last_mse = sums[7] / (3.0 * nf);
         let mut t = LossTerms::default();
         if cfg.photometric_weight > 0.0 {
             t.l1 = sums[0] / (3.0 * nf);
@@ -300,6 +305,16 @@ impl GpuLoss {
             }
         }
         Ok(t)
+    }
+
+    /// PSNR in dB of the render read by the last [`Self::read_terms`] against the target
+    /// (data range 1), as [`crate::map::mapper::psnr_db`] computes it on the host.
+    pub fn last_psnr_db(&self) -> f64 {
+        if self.last_mse == 0.0 {
+            f64::INFINITY
+        } else {
+            -10.0 * self.last_mse.log10()
+        }
     }
 }
 

@@ -29,6 +29,7 @@ pub mod medium;
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
 use crate::map::adam::StepConstants;
+use crate::map::medium::{C_MED, MEDIUM_CHANNELS};
 use crate::map::gaussians::{GaussianGrads, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use crate::core::{PinholeCamera, Se3};
 use crate::map::render::{
@@ -745,6 +746,35 @@ impl GpuForwardRenderer {
         config: &RenderConfig,
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, Some(out))
+    }
+
+    /// [`Self::forward`] that leaves the rendered images on the device (in [`Self::raster`]),
+    /// for the loss kernels; nothing but the intersection count and offsets is read back.
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_on_device(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, None)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn forward_impl(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        mut out: Option<&mut RenderOutput>,
+    ) -> Result<RenderStats, VulkanRenderError> {
         let _span = tracing::debug_span!("map.gpu_forward", gaussians = gaussians.len()).entered();
         if camera.width == 0 || camera.height == 0 {
             return Err(RenderError::EmptyImage { width: camera.width, height: camera.height }.into());
@@ -767,7 +797,9 @@ impl GpuForwardRenderer {
         for (_, plane) in medium.planes() {
             check_size("medium planes", plane.width, plane.height, &grid)?;
         }
-        check_output(out, &grid)?;
+        if let Some(out) = out.as_deref() {
+            check_output(out, &grid)?;
+        }
         validate_gaussians(gaussians)?;
         for (what, plane) in medium.planes() {
             check_rgb(what, plane, what != "c_med")?;
@@ -793,7 +825,9 @@ impl GpuForwardRenderer {
         let intrinsics = [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32];
         self.raster.record(ctx, &self.projection.splats, &self.binning, &grid, intrinsics, config.depth_mode)?;
         ctx.submit_and_wait()?;
-        self.raster.read(ctx, out)?;
+        if let Some(out) = out.as_deref_mut() {
+            self.raster.read(ctx, out)?;
+        }
         let mut visible = 0;
         if n > 0 {
             // Visible Gaussians: those with a non-empty tile range in the offsets.
@@ -826,7 +860,11 @@ pub struct GpuRenderer {
     pub fwd: GpuForwardRenderer,
     pub raster_backward: GpuRasterBackward,
     pub project_backward: GpuProjectBackward,
+    /// The loss kernels, for [`Self::loss_and_backward`].
+    pub loss: loss::GpuLoss,
     last: Option<GpuForwardState>,
+    /// Host staging of the loss's dL/dc_med (allocated once).
+    staging_c_med: Vec<f32>,
 }
 
 impl GpuRenderer {
@@ -840,8 +878,111 @@ impl GpuRenderer {
                 capacity.max_gaussians,
             )?,
             project_backward: GpuProjectBackward::new(ctx, capacity.max_gaussians)?,
+            loss: loss::GpuLoss::new(ctx, capacity.width, capacity.height)?,
             last: None,
+            staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
         })
+    }
+
+    /// [`GpuForwardRenderer::forward_on_device`], remembered for [`Self::loss_and_backward`].
+    pub fn forward_on_device(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        self.last = None;
+        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, config)?;
+        self.remember(camera, config, gaussians.len(), stats.intersections);
+        Ok(stats)
+    }
+
+    fn remember(&mut self, camera: &PinholeCamera, config: &RenderConfig, n_gaussians: usize, n_isects: usize) {
+        self.last = Some(GpuForwardState {
+            grid: TileGrid::new(camera.width, camera.height),
+            intrinsics: [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32],
+            depth_mode: config.depth_mode,
+            n_gaussians,
+            n_isects,
+        });
+    }
+
+    /// The loss of the last forward against `target` and its backward, on the device with no
+    /// image crossing to the host: `loss.wgsl` writes the upstream gradients where
+    /// `rasterize_backward` reads them, one submission from the loss to `project_backward`.
+    /// **Adds** the parameter gradients and densification statistics into `grads`,
+    /// **overwrites** `medium_grads` (the renderer's) and `d_medium_loss` (the loss's own
+    /// dL/dmedium, the medium prior on `c_med`). Returns the loss terms and the PSNR (dB).
+    /// CPU twin: `total_loss` then `RasterWorkspace::backward` ([`RenderBackend::loss_and_backward`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn loss_and_backward(
+        &mut self,
+        ctx: &mut GpuContext,
+        gaussians: &Gaussians,
+        target: &crate::map::loss::TargetView,
+        loss_config: &crate::map::loss::LossConfig,
+        grads: &mut GaussianGrads,
+        medium_grads: &mut MediumPlanes,
+        d_medium_loss: &mut crate::map::medium::MediumPlanes,
+    ) -> Result<(crate::map::loss::LossTerms, f64), VulkanRenderError> {
+        let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
+        let grid = last.grid;
+        if gaussians.len() != last.n_gaussians {
+            return Err(RenderError::NoForward { why: "the map changed size since the forward pass" }.into());
+        }
+        if grads.len() != gaussians.len() {
+            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: gaussians.len() }.into());
+        }
+        for (_, plane) in medium_grads.planes() {
+            check_size("medium planes", plane.width, plane.height, &grid)?;
+        }
+        check_size("loss dL/dmedium", d_medium_loss.width, d_medium_loss.height, &grid)?;
+        let _span = tracing::debug_span!("map.gpu_loss_backward", intersections = last.n_isects).entered();
+        let (w, h) = (grid.width, grid.height);
+        self.loss.upload_target(ctx, target)?;
+        self.project_backward.upload(ctx, grads)?;
+        let n = last.n_gaussians;
+        ctx.begin()?;
+        let fwd = &self.fwd;
+        let bufs = loss::LossBuffers {
+            colour: &fwd.raster.colour,
+            scalars: &fwd.raster.scalars,
+            c_med: Some(&fwd.raster.c_med),
+            up_colour: &self.raster_backward.up_colour,
+            up_scalars: &self.raster_backward.up_scalars,
+        };
+        self.loss.record(ctx, &bufs, w, h, loss_config)?;
+        ctx.fill(self.raster_backward.up_restored.range(), 0)?;
+        self.raster_backward.record(
+            ctx,
+            &fwd.projection.splats,
+            &fwd.projection.isect_offsets,
+            &fwd.binning,
+            &fwd.raster,
+            &grid,
+            last.intrinsics,
+            last.depth_mode,
+            n,
+            last.n_isects,
+        )?;
+        self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
+        ctx.submit_and_wait()?;
+        let terms = self.loss.read_terms(ctx)?;
+        self.project_backward.read(ctx, grads)?;
+        ctx.read(&self.raster_backward.grad_c_med, &mut medium_grads.c_med.data)?;
+        ctx.read(&self.raster_backward.grad_sigma_att, &mut medium_grads.sigma_att.data)?;
+        ctx.read(&self.raster_backward.grad_sigma_bs, &mut medium_grads.sigma_bs.data)?;
+        // The loss's dL/dmedium has only the c_med channels (the medium prior).
+        let staging = &mut self.staging_c_med[..3 * w * h];
+        ctx.read(&self.loss.d_c_med, staging)?;
+        for (px, d) in d_medium_loss.data.chunks_exact_mut(MEDIUM_CHANNELS).zip(staging.chunks_exact(3)) {
+            px.fill(0.0);
+            px[C_MED..C_MED + 3].copy_from_slice(d);
+        }
+        Ok((terms, self.loss.last_psnr_db()))
     }
 
     /// [`GpuForwardRenderer::forward`], remembered for [`Self::backward`].
@@ -858,13 +999,7 @@ impl GpuRenderer {
     ) -> Result<RenderStats, VulkanRenderError> {
         self.last = None;
         let stats = self.fwd.forward(ctx, gaussians, camera, cam_from_world, medium, config, out)?;
-        self.last = Some(GpuForwardState {
-            grid: TileGrid::new(camera.width, camera.height),
-            intrinsics: [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32],
-            depth_mode: config.depth_mode,
-            n_gaussians: gaussians.len(),
-            n_isects: stats.intersections,
-        });
+        self.remember(camera, config, gaussians.len(), stats.intersections);
         Ok(stats)
     }
 
@@ -1023,6 +1158,64 @@ impl RenderBackend {
         match self {
             RenderBackend::Vulkan { ctx, renderer } => renderer.forward(ctx, gaussians, camera, cam_from_world, medium, config, out),
             RenderBackend::Cpu { ws, .. } => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+        }
+    }
+
+    /// The forward of an optimisation step: on Vulkan the images stay on the device for
+    /// [`Self::loss_and_backward`] (`out` is not written); on the CPU reference it is
+    /// [`Self::forward`].
+    pub fn forward_for_loss(
+        &mut self,
+        gaussians: &Gaussians,
+        camera: &PinholeCamera,
+        cam_from_world: &Se3,
+        medium: &MediumPlanes,
+        config: &RenderConfig,
+        out: &mut RenderOutput,
+    ) -> Result<RenderStats, VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, config),
+            RenderBackend::Cpu { ws, .. } => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+        }
+    }
+
+    /// The loss of the last [`Self::forward_for_loss`] against `target` and the render's
+    /// backward: on Vulkan [`GpuRenderer::loss_and_backward`] (loss kernels, no image on the
+    /// host); on the CPU `total_loss` on `out`, its gradients copied into `upstream`, then
+    /// `RasterWorkspace::backward`. Either way **adds** into `grads`, **overwrites**
+    /// `medium_grads` and `d_medium_loss` (the loss's own dL/dmedium, 9 channels) and returns
+    /// the loss terms and the PSNR (dB) of the render against the target image.
+    #[allow(clippy::too_many_arguments)]
+    pub fn loss_and_backward(
+        &mut self,
+        gaussians: &Gaussians,
+        medium: &MediumPlanes,
+        medium9: &crate::map::medium::MediumPlanes,
+        out: &RenderOutput,
+        target: &crate::map::loss::TargetView,
+        loss_config: &crate::map::loss::LossConfig,
+        loss_ws: &mut crate::map::loss::LossWorkspace,
+        upstream: &mut RenderUpstream,
+        grads: &mut GaussianGrads,
+        medium_grads: &mut MediumPlanes,
+        d_medium_loss: &mut crate::map::medium::MediumPlanes,
+    ) -> Result<(crate::map::loss::LossTerms, f64), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.loss_and_backward(ctx, gaussians, target, loss_config, grads, medium_grads, d_medium_loss),
+            RenderBackend::Cpu { ws, .. } => {
+                let rendered =
+                    crate::map::loss::RenderedView { color: &out.colour, depth: &out.depth, depth_variance: &out.depth_var, alpha: &out.alpha, medium: Some(medium9) };
+                let terms = crate::map::loss::total_loss(loss_ws, loss_config, &rendered, target)?;
+                let psnr = crate::map::mapper::psnr_db(&out.colour, target.image);
+                let lg = loss_ws.grads();
+                upstream.colour.data.copy_from_slice(&lg.d_color.data);
+                upstream.depth.data.copy_from_slice(&lg.d_depth.data);
+                upstream.depth_var.data.copy_from_slice(&lg.d_depth_variance.data);
+                upstream.alpha.data.copy_from_slice(&lg.d_alpha.data);
+                ws.backward(gaussians, medium, out, upstream, grads, medium_grads)?;
+                d_medium_loss.data.copy_from_slice(&lg.d_medium.data);
+                Ok((terms, psnr))
+            }
         }
     }
 
