@@ -145,6 +145,24 @@ impl AdamGroup {
         (&self.m[..n], &self.v[..n])
     }
 
+    /// Both moments of the live items, to be written (the device optimiser hands its
+    /// moments back here, `map::vulkan::optimiser`).
+    pub fn moments_mut(&mut self) -> (&mut [f32], &mut [f32]) {
+        let n = self.len * self.stride;
+        (&mut self.m[..n], &mut self.v[..n])
+    }
+
+    /// The constants of the group's next step, for a step taken on the device; count it with
+    /// [`AdamGroup::count_step`] once it was taken.
+    pub fn next_step_constants(&self) -> StepConstants {
+        StepConstants::new(&self.config, self.steps + 1)
+    }
+
+    /// Counts one step taken on the device with [`AdamGroup::next_step_constants`].
+    pub fn count_step(&mut self) {
+        self.steps += 1;
+    }
+
     /// Appends `items` items with zero moments (densification); their parameters are the
     /// caller's to write.
     pub fn grow(&mut self, items: usize) -> Result<(), AdamError> {

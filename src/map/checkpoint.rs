@@ -287,7 +287,7 @@ fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
 
 impl Mapper {
     /// Writes the complete state to `path` (temporary file, fsync, rename).
-    pub fn save_checkpoint(&self, path: &Path) -> Result<(), CheckpointError> {
+    pub fn save_checkpoint(&mut self, path: &Path) -> Result<(), CheckpointError> {
         let bytes = self.checkpoint_bytes().map_err(|why| CheckpointError::BadPayload { path: path.display().to_string(), why })?;
         write_atomic(path, &bytes)?;
         Ok(())
@@ -295,12 +295,14 @@ impl Mapper {
 
     /// The complete state as checkpoint file bytes (header, binary payload, checksum), written
     /// from the mapper's buffers into one buffer of the exact size.
-    pub fn checkpoint_bytes(&self) -> Result<Vec<u8>, String> {
+    pub fn checkpoint_bytes(&mut self) -> Result<Vec<u8>, String> {
         self.checkpoint_bytes_with(KeyframePixels::Embedded)
     }
 
-    /// [`Mapper::checkpoint_bytes`] with the keyframes' pixels embedded or referenced.
-    pub fn checkpoint_bytes_with(&self, pixels: KeyframePixels) -> Result<Vec<u8>, String> {
+    /// [`Mapper::checkpoint_bytes`] with the keyframes' pixels embedded or referenced (the
+    /// device's optimiser state is synced first, [`Mapper::sync_from_device`]).
+    pub fn checkpoint_bytes_with(&mut self, pixels: KeyframePixels) -> Result<Vec<u8>, String> {
+        self.sync_from_device().map_err(|e| e.to_string())?;
         let embed = pixels == KeyframePixels::Embedded;
         let config_toml = toml::to_string(&self.config).map_err(|e| e.to_string())?;
         let kf_bytes: usize = self
@@ -501,7 +503,7 @@ mod tests {
     use super::*;
 
     fn small() -> Vec<u8> {
-        let m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 64, max_keyframes: 2, width: 8, height: 6 }).unwrap();
+        let mut m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 64, max_keyframes: 2, width: 8, height: 6 }).unwrap();
         m.checkpoint_bytes().unwrap()
     }
 

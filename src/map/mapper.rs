@@ -507,6 +507,7 @@ impl Mapper {
     /// [`Self::render_device`]. On an error the mapper renders with the CPU reference (a
     /// Vulkan renderer in use is released before the new one is opened).
     pub fn use_device(&mut self, device: MapperDevice, gpu: &crate::gpu::GpuOptions) -> Result<String, MapperError> {
+        self.release_device_map()?;
         if self.raster.is_vulkan() {
             // Its GPU memory goes before the new renderer's arena is allocated.
             self.raster = RenderBackend::cpu(self.raster_capacity, "a Vulkan renderer was released")?;
@@ -532,6 +533,20 @@ impl Mapper {
         self.raster.gpu()
     }
 
+    /// On the Vulkan renderer the optimiser's map lives on the device between densification
+    /// steps: [`Mapper::gaussians`] is read back after every step, but the Adam moments and
+    /// the densification statistics only here (and at every densify/prune, new keyframe and
+    /// checkpoint). Call it before reading [`Mapper::adam_group`] or the statistics; nothing to
+    /// do on the CPU reference.
+    pub fn sync_from_device(&mut self) -> Result<(), MapperError> {
+        Ok(self.raster.sync(&mut self.grads, &mut self.adam)?)
+    }
+
+    /// Synced, and the host copy is the map again: before the host changes the map.
+    fn release_device_map(&mut self) -> Result<(), MapperError> {
+        Ok(self.raster.release(&mut self.grads, &mut self.adam)?)
+    }
+
     pub fn config(&self) -> &MapperConfig {
         &self.config
     }
@@ -549,6 +564,7 @@ impl Mapper {
         self.iteration
     }
     /// Adam state of a Gaussian group (aligned with the map).
+    /// The Adam state of group `g` (on Vulkan, as of the last [`Mapper::sync_from_device`]).
     pub fn adam_group(&self, g: ParamGroup) -> &AdamGroup {
         &self.adam[g as usize]
     }
@@ -605,6 +621,7 @@ impl Mapper {
         if gaussians.len() > self.capacity.max_gaussians {
             return Err(RenderError::GaussianCapacity { capacity: self.capacity.max_gaussians }.into());
         }
+        self.raster.drop_resident();
         self.gaussians.clear();
         for i in 0..gaussians.len() {
             self.gaussians.push(&gaussians.get(i))?;
@@ -621,7 +638,7 @@ impl Mapper {
     pub fn render(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<&RenderOutput, MapperError> {
         self.check_camera(u64::MAX, camera)?;
         self.medium_forward(camera, world_from_cam)?;
-        self.forward_within_capacity(camera, &world_from_cam.inverse(), true)?;
+        self.forward_within_capacity(camera, &world_from_cam.inverse(), true, false)?;
         Ok(&self.view.out)
     }
 
@@ -661,6 +678,7 @@ impl Mapper {
         if !kf.world_from_cam.to_homogeneous().iter().all(|v| v.is_finite()) {
             return Err(MapperError::BadKeyframe { index: kf.index, why: "pose is not finite" });
         }
+        self.release_device_map()?;
         // Current coverage and medium at this pose.
         self.render(&kf.camera, &kf.world_from_cam)?;
         let cfg = &self.config;
@@ -758,6 +776,7 @@ impl Mapper {
     /// channel is accepted, or on an error, nothing changes.
     pub fn estimate_medium(&mut self) -> Result<MediumEstimate, MapperError> {
         let _span = tracing::info_span!("map.medium_estimate", keyframes = self.keyframes.len()).entered();
+        self.release_device_map()?;
         let keyframes: Vec<&Keyframe> = self.keyframes.iter().map(|k| &k.kf).collect();
         let first = keyframes.first().ok_or(MapperError::NoKeyframes)?.world_from_cam;
         let before = self.medium.summary_along_axis(&first);
@@ -854,7 +873,9 @@ impl Mapper {
         let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
         let (camera, pose) = (kf.kf.camera, kf.kf.world_from_cam);
         self.medium_forward(&camera, &pose)?;
-        self.forward_within_capacity(&camera, &pose.inverse(), false)?;
+        // On Vulkan the optimiser's map stays on the device (Adam there too).
+        let device_map = self.config.optimise_gaussians && self.raster.is_vulkan();
+        self.forward_within_capacity(&camera, &pose.inverse(), false, device_map)?;
         let kf = &self.keyframes[slot];
         let v = &mut self.view;
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
@@ -892,7 +913,16 @@ impl Mapper {
             self.medium_ws.backward(&self.medium, &camera, &pose, &v.d_planes9, &mut self.medium_grads)?;
             self.medium_adam.step(self.medium.params_mut(), &self.medium_grads)?;
         }
-        if self.config.optimise_gaussians {
+        if self.config.optimise_gaussians && self.raster.is_resident() {
+            if !self.raster.adam_step(&mut self.gaussians, &mut self.grads, &mut self.adam)? {
+                // Refused on the device, nothing changed; name the value as the host step would.
+                let bad = ParamGroup::ALL.iter().find_map(|&g| {
+                    let values = self.grads.group(g);
+                    values.iter().position(|v| !v.is_finite()).map(|index| AdamError::NonFiniteGradient { index, value: values[index] })
+                });
+                return Err(bad.map_or_else(|| MapperError::Gpu("Adam on the device refused a step but every gradient read back is finite".into()), MapperError::from));
+            }
+        } else if self.config.optimise_gaussians {
             for (k, g) in ParamGroup::ALL.iter().enumerate() {
                 self.adam[k].step(self.gaussians.group_mut(*g), self.grads.group(*g))?;
             }
@@ -919,9 +949,12 @@ impl Mapper {
     /// the largest axis are pruned (half the excess share of the map plus 2%) and the view is
     /// rendered again (up to [`OVERFLOW_RETRIES`] times); densification waits while the buffer
     /// stays over 90% full. No buffer is ever reallocated. Counted in [`Self::overflow_stats`].
-    fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3, images_on_host: bool) -> Result<RenderStats, MapperError> {
+    fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3, images_on_host: bool, device_map: bool) -> Result<RenderStats, MapperError> {
         let mut tries = 0;
         loop {
+            if device_map {
+                self.raster.ensure_resident(&self.gaussians, &self.grads, &self.adam)?;
+            }
             let v = &mut self.view;
             let rendered = if images_on_host {
                 self.raster.forward(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out)
@@ -938,6 +971,7 @@ impl Mapper {
                     let n = self.gaussians.len();
                     // Half the excess share: the largest go first and cover more tiles than
                     // the average, so this converges from below in a few renders.
+                    self.release_device_map()?;
                     let share = (0.5 * (1.0 - capacity as f64 / needed.max(1) as f64) + 0.02).clamp(0.01, 1.0);
                     let count = ((n as f64 * share).ceil() as usize).clamp(1, n);
                     let pruned = prune_largest(&mut self.gaussians, &mut self.grads, &mut self.adam, count, &mut self.densify_scratch)?;
@@ -966,6 +1000,7 @@ impl Mapper {
     /// few splits (the CPU reference and the Vulkan kernels round differently) still visit
     /// the same keyframes in the same order.
     pub fn densify_and_prune(&mut self) -> Result<DensifyReport, MapperError> {
+        self.release_device_map()?;
         let c = &self.config;
         let params = DensifyParams {
             grad_threshold: c.densify_grad_threshold,

@@ -98,7 +98,7 @@ impl MapStage for StageMapping {
         if !std::mem::take(&mut self.dirty) {
             return None;
         }
-        let mapper = self.stage.mapper();
+        let mapper = self.stage.mapper_mut();
         // Straight from the mapper's buffers, each into one buffer of its exact size.
         let made = mapper.checkpoint_bytes_with(KeyframePixels::Embedded).and_then(|file| Ok((file, mapper.checkpoint_bytes_with(KeyframePixels::Referenced)?)));
         let (file, logged) = match made {

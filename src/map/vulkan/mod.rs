@@ -12,6 +12,10 @@
 //! | rasterise backward, per-Gaussian sums | `rasterize_backward.{rasterize_backward, reduce_isect_grads}` | `rasterize_backward`, `reduce_isect_grads` |
 //! | projection backward | `project_backward.project_backward` | `project_backward` |
 //! | Adam | `adam.adam_step` | `AdamGroup::step` |
+//! | losses and their gradients ([`loss`]) | `loss.*` | `total_loss` |
+//! | Adam over the whole map ([`optimiser`]) | `adam_map.{check_grads, map_step}` | `AdamGroup::step` per group |
+//! | medium MLP forward and backward ([`medium`]) | `medium.*` | `MediumWorkspace::{forward, backward}` |
+//! | pruning: keep flags, compaction ([`compact`]) | `compact.{keep_flags, scatter}` | the prune rule of `densify_and_prune`, `retain_strided` |
 //!
 //! [`GpuProjection`], [`GpuBinning`], [`GpuRasterForward`], [`GpuRasterBackward`] and
 //! [`GpuProjectBackward`] own their buffers, allocated once from the arena for a fixed
@@ -21,14 +25,25 @@
 //! sums them per Gaussian), so results are bit-identical from run to run on one device.
 //! [`RenderBackend`] is what the mapper renders with: these stages, or the CPU reference
 //! ([`MapperDevice`] chooses; no Vulkan device at all falls back with one warning).
+//!
+//! A mapper step on Vulkan ([`RenderBackend::forward_for_loss`],
+//! [`RenderBackend::loss_and_backward`], [`RenderBackend::adam_step`]): the map is resident
+//! on the device between densification steps ([`GpuRenderer::make_resident`]), the forward
+//! leaves its images on the device, the loss kernels write the backward's upstream gradients
+//! in place, Adam updates the device map, and only the loss sums, the medium gradients and
+//! the updated parameters come back to the host. The medium network and densification
+//! (clone, split) still run on the host: the medium planes go up and their gradients come
+//! back every step, and at each densify/prune step the map, its statistics and moments come
+//! back ([`GpuRenderer::release`]) and go up again at the next step.
 
 pub mod compact;
 pub mod loss;
 pub mod medium;
+pub mod optimiser;
 
 use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
-use crate::map::adam::StepConstants;
+use crate::map::adam::{AdamGroup, StepConstants};
 use crate::map::medium::{C_MED, MEDIUM_CHANNELS};
 use crate::map::gaussians::{GaussianGrads, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use crate::core::{PinholeCamera, Se3};
@@ -127,6 +142,23 @@ impl GpuProjection {
             self.staging[i * PARAMS_PER_GAUSSIAN..(i + 1) * PARAMS_PER_GAUSSIAN].copy_from_slice(&gaussians.get(i).to_array());
         }
         ctx.write(&self.params, &self.staging[..n * PARAMS_PER_GAUSSIAN])
+    }
+
+    /// Reads the device map into `gaussians` (its `len()` Gaussians; AoS on the GPU, SoA on
+    /// the host).
+    pub fn read_params(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians) -> Result<(), GpuError> {
+        let n = gaussians.len();
+        if n > self.capacity {
+            return Err(GpuError::OutOfRange { what: "Gaussian parameters", requested: n, len: self.capacity });
+        }
+        ctx.read(&self.params, &mut self.staging[..n * PARAMS_PER_GAUSSIAN])?;
+        for g in ParamGroup::ALL {
+            let (w, off) = (g.width(), g.offset());
+            for (i, dst) in gaussians.group_mut(g).chunks_exact_mut(w).enumerate() {
+                dst.copy_from_slice(&self.staging[i * PARAMS_PER_GAUSSIAN + off..i * PARAMS_PER_GAUSSIAN + off + w]);
+            }
+        }
+        Ok(())
     }
 
     /// Records `project_forward` over `n` Gaussians (setup written by
@@ -602,6 +634,16 @@ impl GpuProjectBackward {
         ctx.write(&self.views, grads.views())
     }
 
+    /// Records zeroing the parameter gradients of `n` Gaussians (the densification statistics
+    /// keep accumulating, as `GaussianGrads::zero_params` leaves them).
+    pub fn record_zero_params(&self, ctx: &mut GpuContext, n: usize) -> Result<(), GpuError> {
+        self.check_len(n)?;
+        if n == 0 {
+            return Ok(());
+        }
+        ctx.fill(self.grads.slice_range(0, n * PARAMS_PER_GAUSSIAN)?, 0)
+    }
+
     /// Records zeroing the gradients and statistics of `n` Gaussians.
     pub fn record_zero(&self, ctx: &mut GpuContext, n: usize) -> Result<(), GpuError> {
         self.check_len(n)?;
@@ -746,11 +788,13 @@ impl GpuForwardRenderer {
         config: &RenderConfig,
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
-        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, Some(out))
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, Some(out), false)
     }
 
     /// [`Self::forward`] that leaves the rendered images on the device (in [`Self::raster`]),
     /// for the loss kernels; nothing but the intersection count and offsets is read back.
+    /// With `params_on_device` the map already in [`GpuProjection::params`] is rendered
+    /// (`gaussians` is checked, not uploaded: the device map is the optimiser's).
     #[allow(clippy::too_many_arguments)]
     pub fn forward_on_device(
         &mut self,
@@ -760,8 +804,9 @@ impl GpuForwardRenderer {
         cam_from_world: &Se3,
         medium: &MediumPlanes,
         config: &RenderConfig,
+        params_on_device: bool,
     ) -> Result<RenderStats, VulkanRenderError> {
-        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, None)
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, None, params_on_device)
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -774,6 +819,7 @@ impl GpuForwardRenderer {
         medium: &MediumPlanes,
         config: &RenderConfig,
         mut out: Option<&mut RenderOutput>,
+        params_on_device: bool,
     ) -> Result<RenderStats, VulkanRenderError> {
         let _span = tracing::debug_span!("map.gpu_forward", gaussians = gaussians.len()).entered();
         if camera.width == 0 || camera.height == 0 {
@@ -805,7 +851,9 @@ impl GpuForwardRenderer {
             check_rgb(what, plane, what != "c_med")?;
         }
 
-        self.projection.upload(ctx, gaussians)?;
+        if !params_on_device {
+            self.projection.upload(ctx, gaussians)?;
+        }
         self.projection.write_setup(ctx, &setup, &grid, n)?;
         self.raster.upload_medium(ctx, medium)?;
         ctx.begin()?;
@@ -862,6 +910,11 @@ pub struct GpuRenderer {
     pub project_backward: GpuProjectBackward,
     /// The loss kernels, for [`Self::loss_and_backward`].
     pub loss: loss::GpuLoss,
+    /// Adam over the map, for [`Self::adam_step`].
+    pub adam: optimiser::GpuMapAdam,
+    /// `Some(n)` while the device holds the optimiser's map of `n` Gaussians (parameters,
+    /// gradients and densification statistics, Adam moments): see [`Self::make_resident`].
+    resident: Option<usize>,
     last: Option<GpuForwardState>,
     /// Host staging of the loss's dL/dc_med (allocated once).
     staging_c_med: Vec<f32>,
@@ -879,6 +932,8 @@ impl GpuRenderer {
             )?,
             project_backward: GpuProjectBackward::new(ctx, capacity.max_gaussians)?,
             loss: loss::GpuLoss::new(ctx, capacity.width, capacity.height)?,
+            adam: optimiser::GpuMapAdam::new(ctx, capacity.max_gaussians)?,
+            resident: None,
             last: None,
             staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
         })
@@ -895,9 +950,99 @@ impl GpuRenderer {
         config: &RenderConfig,
     ) -> Result<RenderStats, VulkanRenderError> {
         self.last = None;
-        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, config)?;
+        let on_device = self.check_resident(gaussians.len())?;
+        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, config, on_device)?;
         self.remember(camera, config, gaussians.len(), stats.intersections);
         Ok(stats)
+    }
+
+    /// Whether the device holds the map; an error when it holds another size than the host's.
+    fn check_resident(&self, n: usize) -> Result<bool, RenderError> {
+        match self.resident {
+            Some(r) if r != n => Err(RenderError::NoForward { why: "the device map and the host map differ in size (release the device map before changing the host's)" }),
+            Some(_) => Ok(true),
+            None => Ok(false),
+        }
+    }
+
+    /// Hands the map to the device optimiser: uploads the parameters, the gradients with the
+    /// densification statistics (which then accumulate on the device) and the Adam moments
+    /// of `adam` (one group per [`ParamGroup`]). From here until [`Self::release`] the device
+    /// copy is the map: [`Self::forward_on_device`] renders it without an upload,
+    /// [`Self::loss_and_backward`] zeroes the parameter gradients on the device and reads none
+    /// back, and [`Self::adam_step`] updates it and reads only the parameters back.
+    pub fn make_resident(&mut self, ctx: &mut GpuContext, gaussians: &Gaussians, grads: &GaussianGrads, adam: &[AdamGroup]) -> Result<(), VulkanRenderError> {
+        let n = gaussians.len();
+        if grads.len() != n {
+            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: n }.into());
+        }
+        validate_gaussians(gaussians)?;
+        self.resident = None;
+        self.fwd.projection.upload(ctx, gaussians)?;
+        self.project_backward.upload(ctx, grads)?;
+        self.adam.upload_moments(ctx, adam, n)?;
+        self.resident = Some(n);
+        Ok(())
+    }
+
+    /// Whether the device holds the optimiser's map ([`Self::make_resident`]).
+    pub fn is_resident(&self) -> bool {
+        self.resident.is_some()
+    }
+
+    /// Reads the device's gradients, densification statistics and Adam moments into `grads`
+    /// and `adam` (the parameters are on the host after every [`Self::adam_step`]); the map
+    /// stays resident. Nothing to do when it is not.
+    pub fn sync(&mut self, ctx: &GpuContext, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+        let Some(n) = self.resident else { return Ok(()) };
+        if grads.len() != n {
+            return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: n }.into());
+        }
+        self.project_backward.read(ctx, grads)?;
+        self.adam.read_moments(ctx, adam, n)?;
+        Ok(())
+    }
+
+    /// [`Self::sync`], then the host copy is the map again (before the host changes it:
+    /// densification, pruning, new keyframes).
+    pub fn release(&mut self, ctx: &GpuContext, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+        self.sync(ctx, grads, adam)?;
+        self.resident = None;
+        Ok(())
+    }
+
+    /// Forgets the device map without reading it (the host replaced the whole map).
+    pub fn drop_resident(&mut self) {
+        self.resident = None;
+    }
+
+    /// One Adam step of every parameter group on the device map with the gradients of the
+    /// last [`Self::loss_and_backward`]; the updated parameters are read back into
+    /// `gaussians` and each group's step is counted. Returns `false`, changing nothing, when a
+    /// gradient is not finite (as `AdamGroup::step` refuses it).
+    pub fn adam_step(&mut self, ctx: &mut GpuContext, gaussians: &mut Gaussians, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
+        let Some(n) = self.resident else {
+            return Err(RenderError::NoForward { why: "the map is not on the device (make_resident)" }.into());
+        };
+        if gaussians.len() != n || adam.len() != ParamGroup::ALL.len() {
+            return Err(RenderError::NoForward { why: "the device map and the host map differ in size" }.into());
+        }
+        let consts: [StepConstants; 6] = std::array::from_fn(|k| adam[k].next_step_constants());
+        self.adam.write_constants(ctx, &consts)?;
+        ctx.begin()?;
+        self.adam.record_step(ctx, &self.fwd.projection.params, &self.project_backward.grads, n)?;
+        ctx.submit_and_wait()?;
+        if self.adam.step_refused(ctx)? {
+            return Ok(false);
+        }
+        adam.iter_mut().for_each(AdamGroup::count_step);
+        self.fwd.projection.read_params(ctx, gaussians)?;
+        Ok(true)
+    }
+
+    /// Reads the gradients of the last backward into `grads` (e.g. to name a non-finite one).
+    pub fn read_grads(&mut self, ctx: &GpuContext, grads: &mut GaussianGrads) -> Result<(), VulkanRenderError> {
+        Ok(self.project_backward.read(ctx, grads)?)
     }
 
     fn remember(&mut self, camera: &PinholeCamera, config: &RenderConfig, n_gaussians: usize, n_isects: usize) {
@@ -943,9 +1088,15 @@ impl GpuRenderer {
         let _span = tracing::debug_span!("map.gpu_loss_backward", intersections = last.n_isects).entered();
         let (w, h) = (grid.width, grid.height);
         self.loss.upload_target(ctx, target)?;
-        self.project_backward.upload(ctx, grads)?;
         let n = last.n_gaussians;
+        let resident = self.check_resident(n)?;
+        if !resident {
+            self.project_backward.upload(ctx, grads)?;
+        }
         ctx.begin()?;
+        if resident {
+            self.project_backward.record_zero_params(ctx, n)?;
+        }
         let fwd = &self.fwd;
         let bufs = loss::LossBuffers {
             colour: &fwd.raster.colour,
@@ -971,7 +1122,9 @@ impl GpuRenderer {
         self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
         ctx.submit_and_wait()?;
         let terms = self.loss.read_terms(ctx)?;
-        self.project_backward.read(ctx, grads)?;
+        if !resident {
+            self.project_backward.read(ctx, grads)?;
+        }
         ctx.read(&self.raster_backward.grad_c_med, &mut medium_grads.c_med.data)?;
         ctx.read(&self.raster_backward.grad_sigma_att, &mut medium_grads.sigma_att.data)?;
         ctx.read(&self.raster_backward.grad_sigma_bs, &mut medium_grads.sigma_bs.data)?;
@@ -1158,6 +1311,58 @@ impl RenderBackend {
         match self {
             RenderBackend::Vulkan { ctx, renderer } => renderer.forward(ctx, gaussians, camera, cam_from_world, medium, config, out),
             RenderBackend::Cpu { ws, .. } => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
+        }
+    }
+
+    /// Hands the map to the device optimiser ([`GpuRenderer::make_resident`]) unless it is
+    /// there already; nothing on the CPU reference.
+    pub fn ensure_resident(&mut self, gaussians: &Gaussians, grads: &GaussianGrads, adam: &[AdamGroup]) -> Result<(), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } if !renderer.is_resident() => renderer.make_resident(ctx, gaussians, grads, adam),
+            _ => Ok(()),
+        }
+    }
+
+    /// Whether the device holds the optimiser's map.
+    pub fn is_resident(&self) -> bool {
+        matches!(self, RenderBackend::Vulkan { renderer, .. } if renderer.is_resident())
+    }
+
+    /// [`GpuRenderer::sync`]: the device's statistics and moments into `grads` and `adam`.
+    pub fn sync(&mut self, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.sync(ctx, grads, adam),
+            RenderBackend::Cpu { .. } => Ok(()),
+        }
+    }
+
+    /// [`GpuRenderer::release`]: synced, and the host copy is the map again.
+    pub fn release(&mut self, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.release(ctx, grads, adam),
+            RenderBackend::Cpu { .. } => Ok(()),
+        }
+    }
+
+    /// Forgets the device map without reading it (the host replaced the whole map).
+    pub fn drop_resident(&mut self) {
+        if let RenderBackend::Vulkan { renderer, .. } = self {
+            renderer.drop_resident();
+        }
+    }
+
+    /// [`GpuRenderer::adam_step`] on the resident map; on a refused step the gradients are
+    /// read into `grads` so the caller can name the bad value.
+    pub fn adam_step(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => {
+                let taken = renderer.adam_step(ctx, gaussians, adam)?;
+                if !taken {
+                    renderer.read_grads(ctx, grads)?;
+                }
+                Ok(taken)
+            }
+            RenderBackend::Cpu { .. } => Err(RenderError::NoForward { why: "the CPU reference has no device map (AdamGroup::step on the host)" }.into()),
         }
     }
 

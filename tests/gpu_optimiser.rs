@@ -1,0 +1,115 @@
+//! Adam over the whole map on the Vulkan device (`kernels/adam_map.wgsl`,
+//! `map::vulkan::optimiser::GpuMapAdam`) against one `AdamGroup::step` per parameter group on
+//! the host: parameters and both moments after several steps with a different learning rate
+//! per group, moments round-tripped through the device layout, a non-finite gradient refused
+//! with nothing changed.
+
+mod gpu_common;
+
+use duv::core::rng::Rng;
+use duv::map::adam::{AdamGroup, AdamGroupConfig};
+use duv::map::gaussians::{ParamGroup, PARAMS_PER_GAUSSIAN};
+use duv::map::vulkan::optimiser::GpuMapAdam;
+
+/// Parameters and moments: `|gpu - cpu| <= tol * max(1e-3, |cpu|)` (the device may fuse
+/// multiply-adds and its sqrt is not correctly rounded; the same tolerance as `adam_step`).
+const ADAM_REL_TOL: f64 = 1e-5;
+
+/// Interleaves one value per group buffer into the device layout.
+fn interleave(groups: &[Vec<f32>], n: usize) -> Vec<f32> {
+    let mut out = vec![0.0; n * PARAMS_PER_GAUSSIAN];
+    for (k, g) in ParamGroup::ALL.iter().enumerate() {
+        for i in 0..n {
+            out[i * PARAMS_PER_GAUSSIAN + g.offset()..][..g.width()].copy_from_slice(&groups[k][i * g.width()..(i + 1) * g.width()]);
+        }
+    }
+    out
+}
+
+fn worst(got: &[f32], want: &[f32]) -> (usize, f64) {
+    got.iter().zip(want).map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(1e-3)).enumerate().fold((0, 0.0), |acc, (i, e)| if e > acc.1 { (i, e) } else { acc })
+}
+
+#[test]
+fn map_adam_matches_adam_group_per_group() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("map_adam_matches_adam_group_per_group") else { return };
+    // 256 * 5 + 11 Gaussians: 23 values each, 1291 * 23 values, the last workgroup partial.
+    let n = 256 * 5 + 11;
+    let capacity = n + 40;
+    let mut rng = Rng::new(23);
+    let mut groups: Vec<AdamGroup> = ParamGroup::ALL
+        .iter()
+        .enumerate()
+        .map(|(k, g)| AdamGroup::new(AdamGroupConfig { lr: 1e-3 * (k + 1) as f64, ..AdamGroupConfig::default() }, g.width(), n, capacity).unwrap())
+        .collect();
+    let mut params: Vec<Vec<f32>> = ParamGroup::ALL.iter().map(|g| (0..n * g.width()).map(|_| rng.range(-1.0, 1.0) as f32).collect()).collect();
+    let mark = ctx.arena_used_bytes();
+    let mut gpu = GpuMapAdam::new(&mut ctx, capacity).unwrap();
+    let dev_params = ctx.alloc::<f32>("params", capacity * PARAMS_PER_GAUSSIAN).unwrap();
+    let dev_grads = ctx.alloc::<f32>("grads", capacity * PARAMS_PER_GAUSSIAN).unwrap();
+    ctx.write(&dev_params, &interleave(&params, n)).unwrap();
+    // One host step first, so the device starts from non-zero moments uploaded from the host.
+    let mut grads: Vec<Vec<f32>> = ParamGroup::ALL.iter().map(|g| (0..n * g.width()).map(|_| rng.range(-2.0, 2.0) as f32).collect()).collect();
+    for k in 0..groups.len() {
+        groups[k].step(&mut params[k], &grads[k]).unwrap();
+    }
+    ctx.write(&dev_params, &interleave(&params, n)).unwrap();
+    gpu.upload_moments(&mut ctx, &groups, n).unwrap();
+    for step in 0..3 {
+        grads = ParamGroup::ALL.iter().map(|g| (0..n * g.width()).map(|i| if i % 7 == step { 0.0 } else { rng.range(-2.0, 2.0) as f32 }).collect()).collect();
+        let consts = std::array::from_fn(|k| groups[k].next_step_constants());
+        for k in 0..groups.len() {
+            groups[k].step(&mut params[k], &grads[k]).unwrap();
+        }
+        ctx.write(&dev_grads, &interleave(&grads, n)).unwrap();
+        gpu.write_constants(&mut ctx, &consts).unwrap();
+        ctx.begin().unwrap();
+        gpu.record_step(&mut ctx, &dev_params, &dev_grads, n).unwrap();
+        ctx.submit_and_wait().unwrap();
+        assert!(!gpu.step_refused(&ctx).unwrap(), "finite gradients must not be refused");
+    }
+    let mut got = vec![0.0f32; n * PARAMS_PER_GAUSSIAN];
+    ctx.read(&dev_params, &mut got).unwrap();
+    let (i, err) = worst(&got, &interleave(&params, n));
+    eprintln!("map Adam: parameters, max scaled error {err:.2e}");
+    assert!(err <= ADAM_REL_TOL, "parameter value {i}: scaled error {err:.2e}");
+    // The device moments, read back into a copy of the groups, against the host's.
+    let mut read: Vec<AdamGroup> = groups.clone();
+    for g in read.iter_mut() {
+        let (m, v) = g.moments_mut();
+        m.fill(f32::NAN);
+        v.fill(f32::NAN);
+    }
+    gpu.read_moments(&ctx, &mut read, n).unwrap();
+    for (k, g) in ParamGroup::ALL.iter().enumerate() {
+        let (wm, wv) = groups[k].moments();
+        let (gm, gv) = read[k].moments();
+        for (name, got, want) in [("m", gm, wm), ("v", gv, wv)] {
+            let (i, err) = worst(got, want);
+            eprintln!("map Adam: {} {name}, max scaled error {err:.2e}", g.name());
+            assert!(err <= ADAM_REL_TOL, "{} {name}[{i}]: GPU {} vs CPU {} (scaled error {err:.2e})", g.name(), got[i], want[i]);
+        }
+    }
+
+    // A NaN gradient: refused, parameters and moments unchanged.
+    let before = got.clone();
+    let mut bad = interleave(&grads, n);
+    bad[17 * PARAMS_PER_GAUSSIAN + 11] = f32::NAN;
+    ctx.write(&dev_grads, &bad).unwrap();
+    let consts = std::array::from_fn(|k| groups[k].next_step_constants());
+    gpu.write_constants(&mut ctx, &consts).unwrap();
+    ctx.begin().unwrap();
+    gpu.record_step(&mut ctx, &dev_params, &dev_grads, n).unwrap();
+    ctx.submit_and_wait().unwrap();
+    assert!(gpu.step_refused(&ctx).unwrap(), "a NaN gradient must refuse the step");
+    ctx.read(&dev_params, &mut got).unwrap();
+    assert!(got.iter().zip(&before).all(|(a, b)| a.to_bits() == b.to_bits()), "a refused step changed the parameters");
+    let mut again = read.clone();
+    gpu.read_moments(&ctx, &mut again, n).unwrap();
+    for k in 0..groups.len() {
+        assert_eq!(again[k].moments(), read[k].moments(), "a refused step changed the moments");
+    }
+    // More Gaussians than the buffers hold is an error.
+    assert!(gpu.upload_moments(&mut ctx, &groups, capacity + 1).is_err());
+    ctx.arena_reset_to(mark);
+}
