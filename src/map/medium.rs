@@ -590,13 +590,14 @@ fn check_grid(grid: &MediumGrid, camera: &PinholeCamera) -> Result<(), MediumErr
 }
 
 /// The per-call view constants: intrinsics and the rotation taking camera rays to the world.
-struct View<'a> {
+/// (Crate-visible: the GPU medium computes its node directions with it, `map::vulkan::medium`.)
+pub(crate) struct View<'a> {
     camera: &'a PinholeCamera,
     world_from_cam_rot: Matrix3<f64>,
 }
 
 impl<'a> View<'a> {
-    fn new(camera: &'a PinholeCamera, world_from_cam: &Se3) -> Result<Self, MediumError> {
+    pub(crate) fn new(camera: &'a PinholeCamera, world_from_cam: &Se3) -> Result<Self, MediumError> {
         camera.validate()?;
         let h = world_from_cam.to_homogeneous();
         if !h.iter().all(|v| v.is_finite()) {
@@ -608,7 +609,7 @@ impl<'a> View<'a> {
     /// Unit ray direction of pixel (x, y) in the world frame. If undistortion fails (far outside
     /// the lens model's valid field), the distorted normalised coordinates stand in.
     #[inline]
-    fn direction<T: Real>(&self, x: usize, y: usize) -> [T; 3] {
+    pub(crate) fn direction<T: Real>(&self, x: usize, y: usize) -> [T; 3] {
         let cam = self.camera;
         let uv = Vector2::new(x as f64, y as f64);
         let ray_in_cam = cam.ray(&uv).unwrap_or_else(|| Vector3::new((uv.x - cam.cx) / cam.fx, (uv.y - cam.cy) / cam.fy, 1.0).normalize());

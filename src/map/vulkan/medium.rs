@@ -1,2 +1,319 @@
-//! The medium network (Eq. 10) on the GPU: the twin of [`crate::map::medium::MediumWorkspace`]
-//! with a direction grid. (Being written.)
+//! The medium network (Eq. 10) on the GPU: the twin of
+//! [`MediumWorkspace::with_grid`](crate::map::medium::MediumWorkspace::with_grid) (the CPU
+//! reference, [`crate::map::medium`]), kernels in `kernels/medium.wgsl`.
+//!
+//! # Loop shape
+//! Forward ([`GpuMedium::record_forward`]): `medium.nodes`, one thread per grid node (the
+//! encoding of the node's world direction, two softplus layers of 64, the heads), then
+//! `medium.interpolate`, one thread per pixel, bilinear from the four nodes around it as
+//! `MediumWorkspace::forward` does, written straight into the rasteriser's medium planes
+//! (`c_med`, `sigma_att`, `sigma_bs`, RGB interleaved per pixel: the buffers of
+//! [`super::GpuRasterForward`]), so the render reads them with no host round trip.
+//!
+//! Backward ([`GpuMedium::record_backward`]), from dL/d the planes in the same layout (the
+//! buffers of [`super::GpuRasterBackward`]): the exact adjoint of the interpolation as the CPU
+//! computes it (`medium.interpolate_adjoint_rows`: per image row and node column, a gather over
+//! the row's pixels in x order; `medium.interpolate_adjoint_cols`: per node, a gather over the
+//! rows in y order), then `medium.nodes_backward`, one thread per node: the forward pass again
+//! and the backward of `backward_pixel`, storing the node's activations and deltas (a record of
+//! `inputs + 266` floats); then the parameter gradient as a fixed-order reduction over the
+//! nodes: `medium.param_grad_partials`, one thread per (parameter, chunk of [`NODE_CHUNK`]
+//! nodes), and `medium.param_grad_sum`, one thread per parameter summing the chunks in order
+//! and **adding** the result into [`GpuMedium::grads`] (as `MediumWorkspace::backward` adds
+//! into its `grads`; [`GpuMedium::record_zero_grads`] starts a fresh gradient). No atomics:
+//! two runs on one device are bit-identical.
+//!
+//! The node directions involve lens undistortion, so the host computes them per view with the
+//! CPU reference's own code ([`GpuMedium::write_view`]) and uploads `3 x nodes` floats.
+//! `step = 1` is the exact per-pixel network (nodes = pixels, interpolation weights 1 and 0).
+//!
+//! Every buffer is allocated once from the arena for a largest view and a grid step
+//! ([`GpuMedium::new`]); a smaller view uses a prefix of each. The node records take
+//! `4 (inputs + 266)` bytes per node: about 6 MB at 640x480 with the default step 8, but
+//! 360 MB at step 1, which is for tests and debugging only.
+
+use crate::core::{PinholeCamera, Se3};
+use crate::gpu::{GpuBuffer, GpuContext, GpuError, GpuRange, Kernel};
+use crate::map::medium::{MediumError, MediumGrid, MediumLayout, MediumNet, View, HIDDEN, MAX_PE_FREQUENCIES, MEDIUM_CHANNELS};
+
+/// Nodes per partial sum of the parameter gradient (`medium.param_grad_partials`).
+pub const NODE_CHUNK: usize = 128;
+/// Words of the `MediumDims` immediate block of `medium.wgsl`.
+const DIMS_WORDS: usize = 16;
+
+/// Floats per node record: `[1, x (inputs), h1, h2, d_o, d_z2, d_z1]`.
+pub fn record_floats(layout: &MediumLayout) -> usize {
+    1 + layout.inputs + 2 * HIDDEN + MEDIUM_CHANNELS + 2 * HIDDEN
+}
+
+/// Why the GPU medium could not run: bad input (the CPU reference's [`MediumError`], or a view
+/// past the capacity), or the device.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuMediumError {
+    #[error(transparent)]
+    Medium(#[from] MediumError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    #[error("view is {width}x{height}, the GPU medium was sized for at most {max_width}x{max_height}")]
+    ViewTooLarge { width: usize, height: usize, max_width: usize, max_height: usize },
+    #[error("no view written: call GpuMedium::write_view before recording the medium")]
+    NoView,
+}
+
+/// The medium network's buffers on the device, allocated once for views up to
+/// `max_width x max_height`, one grid step and one [`MediumLayout`].
+pub struct GpuMedium {
+    layout: MediumLayout,
+    pe_frequencies: usize,
+    step: usize,
+    max_width: usize,
+    max_height: usize,
+    max_nodes: usize,
+    record: usize,
+    /// The flat parameters, [`MediumLayout`] order ([`GpuMedium::upload_params`]).
+    pub params: GpuBuffer<f32>,
+    /// dL/d params, [`MediumLayout`] order; [`GpuMedium::record_backward`] adds into it.
+    pub grads: GpuBuffer<f32>,
+    /// Unit world direction per node, 3 floats.
+    dirs: GpuBuffer<f32>,
+    /// Network outputs per node, 9 floats in plane order.
+    pub node_out: GpuBuffer<f32>,
+    d_rows: GpuBuffer<f32>,
+    d_nodes: GpuBuffer<f32>,
+    records: GpuBuffer<f32>,
+    partials: GpuBuffer<f32>,
+    /// Host staging of the node directions (allocated once).
+    staging: Vec<f32>,
+    /// The grid of the view last written.
+    view: Option<MediumGrid>,
+}
+
+impl GpuMedium {
+    /// Buffers for views up to `max_width x max_height`, nodes every `step` pixels (1..=64, as
+    /// [`crate::map::medium::MediumConfig::grid_step_px`]) and networks of `layout`.
+    pub fn new(ctx: &mut GpuContext, max_width: usize, max_height: usize, step: usize, layout: MediumLayout) -> Result<Self, GpuMediumError> {
+        if !(1..=64).contains(&step) {
+            return Err(MediumError::InvalidConfig { field: "grid_step_px", value: step as f64, why: "must be in 1..=64" }.into());
+        }
+        let pe_frequencies = layout.inputs.saturating_sub(3) / 6;
+        if pe_frequencies > MAX_PE_FREQUENCIES || MediumLayout::new(pe_frequencies) != layout {
+            return Err(MediumError::InvalidConfig { field: "medium layout inputs", value: layout.inputs as f64, why: "must be 3 + 6 L with L <= 12" }.into());
+        }
+        if max_width == 0 || max_height == 0 {
+            return Err(MediumError::InvalidConfig { field: "GPU medium max_width x max_height", value: (max_width * max_height) as f64, why: "must be at least 1x1" }.into());
+        }
+        let grid = MediumGrid::new(max_width, max_height, step);
+        let max_nodes = grid.nodes();
+        let record = record_floats(&layout);
+        let c = MEDIUM_CHANNELS;
+        Ok(GpuMedium {
+            layout,
+            pe_frequencies,
+            step,
+            max_width,
+            max_height,
+            max_nodes,
+            record,
+            params: ctx.alloc("medium parameters", layout.len)?,
+            grads: ctx.alloc("medium parameter gradient", layout.len)?,
+            dirs: ctx.alloc("medium node directions", max_nodes * 3)?,
+            node_out: ctx.alloc("medium node outputs", max_nodes * c)?,
+            d_rows: ctx.alloc("medium adjoint row pass", max_height * grid.nodes_x * c)?,
+            d_nodes: ctx.alloc("medium node gradients", max_nodes * c)?,
+            records: ctx.alloc("medium node records", max_nodes * record)?,
+            partials: ctx.alloc("medium gradient partial sums", max_nodes.div_ceil(NODE_CHUNK) * layout.len)?,
+            staging: vec![0.0; max_nodes * 3],
+            view: None,
+        })
+    }
+
+    pub fn layout(&self) -> MediumLayout {
+        self.layout
+    }
+    pub fn step(&self) -> usize {
+        self.step
+    }
+    /// The largest view, `(width, height)`.
+    pub fn max_size(&self) -> (usize, usize) {
+        (self.max_width, self.max_height)
+    }
+    /// Nodes of the largest view (the capacity of the node buffers).
+    pub fn max_nodes(&self) -> usize {
+        self.max_nodes
+    }
+    /// The grid of the view last written, if any.
+    pub fn grid(&self) -> Option<MediumGrid> {
+        self.view
+    }
+
+    /// Uploads the network's parameters (it must have this medium's layout).
+    pub fn upload_params(&mut self, ctx: &mut GpuContext, net: &MediumNet) -> Result<(), GpuMediumError> {
+        if net.layout() != self.layout {
+            return Err(MediumError::LengthMismatch { what: "medium network (GPU medium built for another layout)", len: net.param_count(), expected: self.layout.len }.into());
+        }
+        ctx.write(&self.params, net.params())?;
+        Ok(())
+    }
+
+    /// Computes and uploads the world direction of every grid node of the view (the CPU
+    /// reference's `View::direction`, with lens undistortion). Errors as the CPU reference for
+    /// a bad camera or a non-finite pose, and for a view past the capacity; on an error nothing
+    /// changes (the previous view stays).
+    pub fn write_view(&mut self, ctx: &mut GpuContext, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<(), GpuMediumError> {
+        let view = View::new(camera, world_from_cam)?;
+        let (w, h) = (camera.width, camera.height);
+        if w > self.max_width || h > self.max_height {
+            return Err(GpuMediumError::ViewTooLarge { width: w, height: h, max_width: self.max_width, max_height: self.max_height });
+        }
+        let grid = MediumGrid::new(w, h, self.step);
+        let n = grid.nodes();
+        for j in 0..grid.nodes_y {
+            for i in 0..grid.nodes_x {
+                let d: [f32; 3] = view.direction(i * grid.step, j * grid.step);
+                let k = 3 * (j * grid.nodes_x + i);
+                self.staging[k..k + 3].copy_from_slice(&d);
+            }
+        }
+        ctx.write(&self.dirs, &self.staging[..3 * n])?;
+        self.view = Some(grid);
+        Ok(())
+    }
+
+    /// The immediate block of `medium.wgsl` for the current view.
+    fn dims_words(&self, grid: &MediumGrid) -> [u32; DIMS_WORDS] {
+        let l = &self.layout;
+        [
+            grid.width,
+            grid.height,
+            grid.step,
+            grid.nodes_x,
+            grid.nodes_y,
+            self.pe_frequencies,
+            l.inputs,
+            self.record,
+            l.w1,
+            l.b1,
+            l.w2,
+            l.b2,
+            l.w_heads,
+            l.b_heads,
+            l.len,
+            NODE_CHUNK,
+        ]
+        .map(|v| v as u32)
+    }
+
+    /// The buffer of each WGSL binding of `medium.wgsl` (for [`GpuContext::dispatch_named`]):
+    /// this medium's own, the planes of the forward (`planes`) and their gradients (`upstream`).
+    fn binding(&self, name: &str, planes: Option<[&GpuBuffer<f32>; 3]>, upstream: Option<[&GpuBuffer<f32>; 3]>) -> Option<GpuRange> {
+        let own = match name {
+            "params" => &self.params,
+            "dirs" => &self.dirs,
+            "node_out" => &self.node_out,
+            "d_rows" => &self.d_rows,
+            "d_nodes" => &self.d_nodes,
+            "records" => &self.records,
+            "partials" => &self.partials,
+            "grads" => &self.grads,
+            "c_med" => planes?[0],
+            "sigma_att" => planes?[1],
+            "sigma_bs" => planes?[2],
+            "grad_c_med" => upstream?[0],
+            "grad_sigma_att" => upstream?[1],
+            "grad_sigma_bs" => upstream?[2],
+            _ => return None,
+        };
+        Some(own.range())
+    }
+
+    fn current_view(&self) -> Result<MediumGrid, GpuMediumError> {
+        self.view.ok_or(GpuMediumError::NoView)
+    }
+
+    /// Records the forward pass for the view last written: the network on the nodes, then the
+    /// bilinear interpolation into the three planes (3 floats per pixel each, the layout of
+    /// [`super::GpuRasterForward`]'s `c_med`, `sigma_att`, `sigma_bs`), overwriting the view's
+    /// `width x height` pixels. CPU reference: `MediumWorkspace::forward` with a grid (then
+    /// `planes_from_nine`).
+    pub fn record_forward(&self, ctx: &mut GpuContext, c_med: &GpuBuffer<f32>, sigma_att: &GpuBuffer<f32>, sigma_bs: &GpuBuffer<f32>) -> Result<(), GpuMediumError> {
+        let grid = self.current_view()?;
+        let planes = [c_med, sigma_att, sigma_bs];
+        check_planes(&grid, planes)?;
+        let dims = self.dims_words(&grid);
+        let imm = bytemuck::bytes_of(&dims);
+        let bind = |name: &str| self.binding(name, Some(planes), None);
+        for (kernel, items) in [(Kernel::MediumNodes, grid.nodes()), (Kernel::MediumInterpolate, grid.width * grid.height)] {
+            ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
+        }
+        Ok(())
+    }
+
+    /// Records the backward pass for the view last written and the parameters uploaded (it
+    /// recomputes the network on the nodes and does not read the forward's outputs) from dL/d
+    /// the three planes (same layout as [`GpuMedium::record_forward`]'s
+    /// outputs, e.g. [`super::GpuRasterBackward`]'s `grad_c_med`, `grad_sigma_att`,
+    /// `grad_sigma_bs`), and **adds** dL/d params into [`GpuMedium::grads`]. CPU reference:
+    /// `MediumWorkspace::backward` with a grid (after `nine_from_planes`). Unlike the CPU
+    /// reference it does not check the upstream gradient for non-finite values (that would
+    /// need a read back); they propagate into the gradient.
+    pub fn record_backward(&self, ctx: &mut GpuContext, grad_c_med: &GpuBuffer<f32>, grad_sigma_att: &GpuBuffer<f32>, grad_sigma_bs: &GpuBuffer<f32>) -> Result<(), GpuMediumError> {
+        let grid = self.current_view()?;
+        let upstream = [grad_c_med, grad_sigma_att, grad_sigma_bs];
+        check_planes(&grid, upstream)?;
+        let dims = self.dims_words(&grid);
+        let imm = bytemuck::bytes_of(&dims);
+        let bind = |name: &str| self.binding(name, None, Some(upstream));
+        for (kernel, items) in [
+            (Kernel::MediumInterpolateAdjointRows, grid.height * grid.nodes_x),
+            (Kernel::MediumInterpolateAdjointCols, grid.nodes()),
+            (Kernel::MediumNodesBackward, grid.nodes()),
+        ] {
+            ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
+        }
+        // One thread per (parameter, chunk of nodes), then one per parameter.
+        let len = self.layout.len;
+        let partials = Kernel::MediumParamGradPartials;
+        let chunks = grid.nodes().div_ceil(NODE_CHUNK).min(u32::MAX as usize) as u32;
+        ctx.dispatch_named(partials, bind, imm, [len.div_ceil(partials.info().workgroup_size[0] as usize) as u32, chunks, 1])?;
+        let sum = Kernel::MediumParamGradSum;
+        ctx.dispatch_named(sum, bind, imm, [len.div_ceil(sum.info().workgroup_size[0] as usize) as u32, 1, 1])?;
+        Ok(())
+    }
+
+    /// Records zeroing [`GpuMedium::grads`] (a fresh gradient).
+    pub fn record_zero_grads(&self, ctx: &mut GpuContext) -> Result<(), GpuMediumError> {
+        ctx.fill(self.grads.range(), 0)?;
+        Ok(())
+    }
+
+    /// Reads dL/d params ([`MediumLayout`] order) into `out` (exactly the layout's length).
+    pub fn read_grads(&self, ctx: &GpuContext, out: &mut [f32]) -> Result<(), GpuMediumError> {
+        if out.len() != self.layout.len {
+            return Err(MediumError::LengthMismatch { what: "medium parameter gradient", len: out.len(), expected: self.layout.len }.into());
+        }
+        ctx.read(&self.grads, out)?;
+        Ok(())
+    }
+}
+
+/// Each plane must hold the view's `3 x width x height` floats.
+fn check_planes(grid: &MediumGrid, planes: [&GpuBuffer<f32>; 3]) -> Result<(), GpuError> {
+    let need = 3 * grid.width * grid.height;
+    for b in planes {
+        if b.len() < need {
+            return Err(GpuError::OutOfRange { what: b.what(), requested: need, len: b.len() });
+        }
+    }
+    Ok(())
+}
+
+/// Workgroups for one thread per item of `n`, as a 2D grid past 65535 workgroups (the kernels
+/// flatten `gid.y * groups.x * size + gid.x`).
+fn groups_1d(kernel: Kernel, n: usize) -> [u32; 3] {
+    let groups = n.div_ceil(kernel.info().workgroup_size[0] as usize);
+    if groups == 0 {
+        return [0, 1, 1];
+    }
+    let gx = groups.min(65535);
+    [gx as u32, groups.div_ceil(gx).min(u32::MAX as usize) as u32, 1]
+}

@@ -1,0 +1,464 @@
+// The neural medium on a direction grid (CPU reference: `MediumWorkspace::with_grid` and its
+// `forward` / `backward`, with `forward_pixel` / `backward_pixel`, src/map/medium.rs; the same
+// order of operations). Node (i, j) of the grid sits at pixel (i step, j step); its world
+// direction is computed on the host (`View::direction`: lens undistortion) and uploaded.
+//
+//   nodes                     one thread per node: encoding, two softplus layers of 64, the
+//                             heads (sigmoid c_med, softplus sigma_att and sigma_bs) -> node_out
+//   interpolate               one thread per pixel: bilinear from the 4 nodes (`MediumGrid::cell`)
+//                             into the rasteriser's three RGB-interleaved planes
+//   interpolate_adjoint_rows  one thread per (image row y, node column i): gather over the
+//                             pixels of the row in x order (the CPU's row pass) -> d_rows
+//   interpolate_adjoint_cols  one thread per node: gather over the rows in y order (the CPU's
+//                             column pass) -> d_nodes
+//   nodes_backward            one thread per node: recomputes the forward pass, back-propagates
+//                             d_nodes and stores the node's record (below)
+//   param_grad_partials       one thread per (parameter, chunk of chunk_nodes nodes): the sum of
+//                             activation * delta over the chunk's nodes in node order
+//   param_grad_sum            one thread per parameter: the chunks' sums in chunk order, ADDED
+//                             into grads (as the CPU backward adds)
+//
+// No atomics: every sum has a fixed order, so two runs on one device are bit-identical.
+// Step 1 is the per-pixel network: the interpolation weights are exactly 1 and 0.
+//
+// Node record (`record` floats per node): [1, x (inputs), h1 (64), h2 (64), d_o (9),
+// d_z2 (64), d_z1 (64)]. The gradient of W[i][o] is the sum over nodes of
+// act[i] * delta[o]; a bias is the same with the leading 1 as its activation.
+
+const HIDDEN: u32 = 64u;
+const CHANNELS: u32 = 9u;
+// 3 + 6 MAX_PE_FREQUENCIES.
+const MAX_INPUTS: u32 = 75u;
+
+// `GpuMedium`'s immediate words (src/map/vulkan/medium.rs, `dims_words`), in this order.
+struct MediumDims {
+    width: u32,
+    height: u32,
+    step: u32,
+    nodes_x: u32,
+    nodes_y: u32,
+    pe_frequencies: u32,
+    inputs: u32,
+    record: u32,
+    // `MediumLayout` offsets into params / grads.
+    w1: u32,
+    b1: u32,
+    w2: u32,
+    b2: u32,
+    w_heads: u32,
+    b_heads: u32,
+    len: u32,
+    chunk_nodes: u32,
+}
+
+var<immediate> dims: MediumDims;
+
+// The flat parameters, `MediumLayout` order (input-major weights: W[o][i] at w[i n_out + o]).
+@group(0) @binding(0) var<storage, read> params: array<f32>;
+// Unit world direction per node, 3 floats, node n = j nodes_x + i.
+@group(0) @binding(1) var<storage, read> dirs: array<f32>;
+// Network outputs per node, 9 floats in plane order (c_med, sigma_att, sigma_bs; R G B each).
+@group(0) @binding(2) var<storage, read_write> node_out: array<f32>;
+// The rasteriser's medium planes, 3 floats per pixel each.
+@group(0) @binding(3) var<storage, read_write> c_med: array<f32>;
+@group(0) @binding(4) var<storage, read_write> sigma_att: array<f32>;
+@group(0) @binding(5) var<storage, read_write> sigma_bs: array<f32>;
+// dL/d the planes, same layout.
+@group(0) @binding(6) var<storage, read> grad_c_med: array<f32>;
+@group(0) @binding(7) var<storage, read> grad_sigma_att: array<f32>;
+@group(0) @binding(8) var<storage, read> grad_sigma_bs: array<f32>;
+// Row pass of the adjoint: per image row, per node column, 9 floats.
+@group(0) @binding(9) var<storage, read_write> d_rows: array<f32>;
+// dL/d node outputs, 9 floats per node.
+@group(0) @binding(10) var<storage, read_write> d_nodes: array<f32>;
+@group(0) @binding(11) var<storage, read_write> records: array<f32>;
+// Per chunk of nodes, one sum per parameter: partials[chunk len + p].
+@group(0) @binding(12) var<storage, read_write> partials: array<f32>;
+@group(0) @binding(13) var<storage, read_write> grads: array<f32>;
+
+// One node's activations (`Activations` of the CPU reference).
+var<private> x: array<f32, MAX_INPUTS>;
+var<private> h1: array<f32, HIDDEN>;
+// softplus'(z1) = sigmoid(z1)
+var<private> s1: array<f32, HIDDEN>;
+var<private> h2: array<f32, HIDDEN>;
+var<private> s2: array<f32, HIDDEN>;
+// The heads' pre-activations and outputs.
+var<private> pre: array<f32, CHANNELS>;
+var<private> out: array<f32, CHANNELS>;
+var<private> d_o: array<f32, CHANNELS>;
+var<private> d_z2: array<f32, HIDDEN>;
+
+// ln(1 + v), accurate for small v (no log1p in WGSL): log(u) v / (u - 1) with u = 1 + v
+// cancels the rounding of u.
+fn ln_1p(v: f32) -> f32 {
+    let u = 1.0 + v;
+    if (u == 1.0) {
+        return v;
+    }
+    return log(u) * (v / (u - 1.0));
+}
+
+// `real::sigmoid`.
+fn sigmoid(v: f32) -> f32 {
+    if (v >= 0.0) {
+        return 1.0 / (1.0 + exp(-v));
+    }
+    let e = exp(v);
+    return e / (1.0 + e);
+}
+
+// `real::softplus`.
+fn softplus(v: f32) -> f32 {
+    if (v > 20.0) {
+        return v + exp(-v);
+    }
+    return ln_1p(exp(v));
+}
+
+// `(softplus(z), sigmoid(z))` with one exponential (`softplus_sigmoid`).
+fn softplus_sigmoid(z: f32) -> vec2<f32> {
+    if (z > 20.0) {
+        let e = exp(-z);
+        return vec2<f32>(z + e, 1.0 / (1.0 + e));
+    }
+    let e = exp(z);
+    return vec2<f32>(ln_1p(e), e / (1.0 + e));
+}
+
+// `forward_pixel`: encoding, two hidden layers (one axpy per input, as `dense_softplus`), the
+// heads. Leaves every activation in the private arrays.
+fn forward(dir: vec3<f32>) {
+    x[0] = dir.x;
+    x[1] = dir.y;
+    x[2] = dir.z;
+    var freq = 1.0;
+    for (var k = 0u; k < dims.pe_frequencies; k++) {
+        for (var a = 0u; a < 3u; a++) {
+            let arg = freq * dir[a];
+            x[3u + 6u * k + a] = sin(arg);
+            x[3u + 6u * k + 3u + a] = cos(arg);
+        }
+        freq += freq;
+    }
+    for (var k = 0u; k < HIDDEN; k++) {
+        h1[k] = params[dims.b1 + k];
+    }
+    for (var i = 0u; i < dims.inputs; i++) {
+        let xi = x[i];
+        let row = dims.w1 + i * HIDDEN;
+        for (var k = 0u; k < HIDDEN; k++) {
+            h1[k] += xi * params[row + k];
+        }
+    }
+    for (var k = 0u; k < HIDDEN; k++) {
+        let hs = softplus_sigmoid(h1[k]);
+        h1[k] = hs.x;
+        s1[k] = hs.y;
+    }
+    for (var k = 0u; k < HIDDEN; k++) {
+        h2[k] = params[dims.b2 + k];
+    }
+    for (var i = 0u; i < HIDDEN; i++) {
+        let hi = h1[i];
+        let row = dims.w2 + i * HIDDEN;
+        for (var k = 0u; k < HIDDEN; k++) {
+            h2[k] += hi * params[row + k];
+        }
+    }
+    for (var k = 0u; k < HIDDEN; k++) {
+        let hs = softplus_sigmoid(h2[k]);
+        h2[k] = hs.x;
+        s2[k] = hs.y;
+    }
+    for (var k = 0u; k < CHANNELS; k++) {
+        pre[k] = params[dims.b_heads + k];
+    }
+    for (var i = 0u; i < HIDDEN; i++) {
+        let hi = h2[i];
+        let row = dims.w_heads + i * CHANNELS;
+        for (var k = 0u; k < CHANNELS; k++) {
+            pre[k] += hi * params[row + k];
+        }
+    }
+    for (var k = 0u; k < CHANNELS; k++) {
+        if (k < 3u) {
+            out[k] = sigmoid(pre[k]);
+        } else {
+            out[k] = softplus(pre[k]);
+        }
+    }
+}
+
+// `real::dot` (eight partial sums, then the tail) of head row `row` with d_o (9 values).
+fn dot_head_row(row: u32) -> f32 {
+    var acc: array<f32, 8>;
+    for (var l = 0u; l < 8u; l++) {
+        acc[l] = 0.0 + params[row + l] * d_o[l];
+    }
+    let tail = 0.0 + params[row + 8u] * d_o[8];
+    return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail;
+}
+
+// `real::dot` of hidden row `row` of W2 with d_z2 (64 values: eight chunks of eight, no tail).
+fn dot_hidden_row(row: u32) -> f32 {
+    var acc: array<f32, 8>;
+    for (var l = 0u; l < 8u; l++) {
+        acc[l] = 0.0;
+    }
+    for (var c = 0u; c < 8u; c++) {
+        for (var l = 0u; l < 8u; l++) {
+            acc[l] += params[row + c * 8u + l] * d_z2[c * 8u + l];
+        }
+    }
+    return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + 0.0;
+}
+
+fn node_count() -> u32 {
+    return dims.nodes_x * dims.nodes_y;
+}
+
+fn node_dir(n: u32) -> vec3<f32> {
+    return vec3<f32>(dirs[3u * n], dirs[3u * n + 1u], dirs[3u * n + 2u]);
+}
+
+// The lower node of pixel coordinate p, the upper one and the upper one's weight.
+struct Cell {
+    lo: u32,
+    hi: u32,
+    frac: f32,
+}
+
+fn cell(p: u32, nodes: u32) -> Cell {
+    let i0 = p / dims.step;
+    return Cell(i0, min(i0 + 1u, nodes - 1u), f32(p % dims.step) / f32(dims.step));
+}
+
+@compute @workgroup_size(64)
+fn nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    // 2D grid for more than 65535 workgroups.
+    let n = gid.y * groups.x * 64u + gid.x;
+    if (n >= node_count()) {
+        return;
+    }
+    forward(node_dir(n));
+    for (var k = 0u; k < CHANNELS; k++) {
+        node_out[n * CHANNELS + k] = out[k];
+    }
+}
+
+@compute @workgroup_size(256)
+fn interpolate(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let p = gid.y * groups.x * 256u + gid.x;
+    if (p >= dims.width * dims.height) {
+        return;
+    }
+    let cx = cell(p % dims.width, dims.nodes_x);
+    let cy = cell(p / dims.width, dims.nodes_y);
+    let fx = cx.frac;
+    let fy = cy.frac;
+    let wa = (1.0 - fx) * (1.0 - fy);
+    let wb = fx * (1.0 - fy);
+    let wc = (1.0 - fx) * fy;
+    let wd = fx * fy;
+    let a = (cy.lo * dims.nodes_x + cx.lo) * CHANNELS;
+    let b = (cy.lo * dims.nodes_x + cx.hi) * CHANNELS;
+    let c = (cy.hi * dims.nodes_x + cx.lo) * CHANNELS;
+    let d = (cy.hi * dims.nodes_x + cx.hi) * CHANNELS;
+    for (var k = 0u; k < 3u; k++) {
+        var v = wa * node_out[a + k] + wb * node_out[b + k] + wc * node_out[c + k] + wd * node_out[d + k];
+        c_med[3u * p + k] = v;
+        let k1 = k + 3u;
+        v = wa * node_out[a + k1] + wb * node_out[b + k1] + wc * node_out[c + k1] + wd * node_out[d + k1];
+        sigma_att[3u * p + k] = v;
+        let k2 = k + 6u;
+        v = wa * node_out[a + k2] + wb * node_out[b + k2] + wc * node_out[c + k2] + wd * node_out[d + k2];
+        sigma_bs[3u * p + k] = v;
+    }
+}
+
+@compute @workgroup_size(256)
+fn interpolate_adjoint_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let t = gid.y * groups.x * 256u + gid.x;
+    if (t >= dims.height * dims.nodes_x) {
+        return;
+    }
+    let i = t % dims.nodes_x;
+    let y = t / dims.nodes_x;
+    let s = dims.step;
+    var acc: array<f32, CHANNELS>;
+    for (var k = 0u; k < CHANNELS; k++) {
+        acc[k] = 0.0;
+    }
+    // Pixels of cell i - 1 see node i as their upper node (weight frac), pixels of cell i as
+    // their lower one (weight 1 - frac); the CPU scatters them in x order, so gather in x order.
+    var lo = 0u;
+    if (i > 0u) {
+        lo = (i - 1u) * s;
+    }
+    let hi = min((i + 1u) * s, dims.width);
+    for (var px = lo; px < hi; px++) {
+        let frac = f32(px % s) / f32(s);
+        var w = 1.0 - frac;
+        if (px < i * s) {
+            w = frac;
+        }
+        let q = 3u * (y * dims.width + px);
+        for (var k = 0u; k < 3u; k++) {
+            acc[k] += w * grad_c_med[q + k];
+            acc[k + 3u] += w * grad_sigma_att[q + k];
+            acc[k + 6u] += w * grad_sigma_bs[q + k];
+        }
+    }
+    for (var k = 0u; k < CHANNELS; k++) {
+        d_rows[t * CHANNELS + k] = acc[k];
+    }
+}
+
+@compute @workgroup_size(256)
+fn interpolate_adjoint_cols(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let n = gid.y * groups.x * 256u + gid.x;
+    if (n >= node_count()) {
+        return;
+    }
+    let i = n % dims.nodes_x;
+    let j = n / dims.nodes_x;
+    let s = dims.step;
+    let centre = j * s;
+    var acc: array<f32, CHANNELS>;
+    for (var k = 0u; k < CHANNELS; k++) {
+        acc[k] = 0.0;
+    }
+    var lo = 0u;
+    if (centre >= s - 1u) {
+        lo = centre - (s - 1u);
+    }
+    let hi = min(centre + s, dims.height);
+    for (var y = lo; y < hi; y++) {
+        // `MediumGrid::weight`: 1 - |y - j step| / step.
+        let dist = f32(max(y, centre) - min(y, centre)) / f32(s);
+        let wy = max(1.0 - dist, 0.0);
+        if (wy == 0.0) {
+            continue;
+        }
+        let r = (y * dims.nodes_x + i) * CHANNELS;
+        for (var k = 0u; k < CHANNELS; k++) {
+            acc[k] += wy * d_rows[r + k];
+        }
+    }
+    for (var k = 0u; k < CHANNELS; k++) {
+        d_nodes[n * CHANNELS + k] = acc[k];
+    }
+}
+
+@compute @workgroup_size(64)
+fn nodes_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let n = gid.y * groups.x * 64u + gid.x;
+    if (n >= node_count()) {
+        return;
+    }
+    let base = n * dims.record;
+    let xo = base + 1u;
+    let h1o = xo + dims.inputs;
+    let h2o = h1o + HIDDEN;
+    let doo = h2o + HIDDEN;
+    let dz2o = doo + CHANNELS;
+    let dz1o = dz2o + HIDDEN;
+    records[base] = 1.0;
+    var nonzero = false;
+    for (var k = 0u; k < CHANNELS; k++) {
+        nonzero = nonzero || d_nodes[n * CHANNELS + k] != 0.0;
+    }
+    if (!nonzero) {
+        // The CPU skips such a node; a record of zeros adds nothing.
+        for (var r = 1u; r < dims.record; r++) {
+            records[base + r] = 0.0;
+        }
+        return;
+    }
+    forward(node_dir(n));
+    for (var i = 0u; i < dims.inputs; i++) {
+        records[xo + i] = x[i];
+    }
+    for (var i = 0u; i < HIDDEN; i++) {
+        records[h1o + i] = h1[i];
+        records[h2o + i] = h2[i];
+    }
+    // Heads: sigmoid' = s (1 - s); softplus' = sigmoid(o).
+    for (var k = 0u; k < CHANNELS; k++) {
+        var slope = 0.0;
+        if (k < 3u) {
+            slope = out[k] * (1.0 - out[k]);
+        } else {
+            slope = sigmoid(pre[k]);
+        }
+        d_o[k] = d_nodes[n * CHANNELS + k] * slope;
+        records[doo + k] = d_o[k];
+    }
+    for (var i = 0u; i < HIDDEN; i++) {
+        d_z2[i] = dot_head_row(dims.w_heads + i * CHANNELS) * s2[i];
+        records[dz2o + i] = d_z2[i];
+    }
+    for (var i = 0u; i < HIDDEN; i++) {
+        records[dz1o + i] = dot_hidden_row(dims.w2 + i * HIDDEN) * s1[i];
+    }
+}
+
+@compute @workgroup_size(64)
+fn param_grad_partials(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let p = gid.x;
+    if (p >= dims.len) {
+        return;
+    }
+    let chunk = gid.y;
+    let xo = 1u;
+    let h1o = xo + dims.inputs;
+    let h2o = h1o + HIDDEN;
+    let doo = h2o + HIDDEN;
+    let dz2o = doo + CHANNELS;
+    let dz1o = dz2o + HIDDEN;
+    // Offsets in the node record of the parameter's activation and delta.
+    var a = 0u;
+    var d = 0u;
+    if (p < dims.b1) {
+        let q = p - dims.w1;
+        a = xo + q / HIDDEN;
+        d = dz1o + q % HIDDEN;
+    } else if (p < dims.w2) {
+        d = dz1o + (p - dims.b1);
+    } else if (p < dims.b2) {
+        let q = p - dims.w2;
+        a = h1o + q / HIDDEN;
+        d = dz2o + q % HIDDEN;
+    } else if (p < dims.w_heads) {
+        d = dz2o + (p - dims.b2);
+    } else if (p < dims.b_heads) {
+        let q = p - dims.w_heads;
+        a = h2o + q / CHANNELS;
+        d = doo + q % CHANNELS;
+    } else {
+        d = doo + (p - dims.b_heads);
+    }
+    let n0 = chunk * dims.chunk_nodes;
+    let n1 = min(n0 + dims.chunk_nodes, node_count());
+    var sum = 0.0;
+    for (var n = n0; n < n1; n++) {
+        let r = n * dims.record;
+        sum += records[r + a] * records[r + d];
+    }
+    partials[chunk * dims.len + p] = sum;
+}
+
+@compute @workgroup_size(256)
+fn param_grad_sum(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let p = gid.x;
+    if (p >= dims.len) {
+        return;
+    }
+    let chunks = (node_count() + dims.chunk_nodes - 1u) / dims.chunk_nodes;
+    var sum = 0.0;
+    for (var c = 0u; c < chunks; c++) {
+        sum += partials[c * dims.len + p];
+    }
+    grads[p] = grads[p] + sum;
+}
