@@ -275,3 +275,71 @@ fn bad_input_is_an_error_not_a_panic() {
     assert!(out.iter().all(|v| v.is_finite() && *v > 0.0), "sigma_att must be finite and positive");
     ctx.arena_reset_to(arena_mark);
 }
+
+/// `medium_prior.medium_upstream` against the host's steps in `Mapper::step_on`: the loss's
+/// dL/dc_med added to the renderer's plane gradients, `MediumPrior::loss_and_grad`, then
+/// `fold_single_coefficient`; with and without the fold, with a prior on two channels.
+#[test]
+fn medium_upstream_matches_the_prior_and_the_fold() {
+    use duv::core::MediumParams;
+    use duv::map::mapper::fold_single_coefficient;
+    use duv::map::medium::{C_MED, MEDIUM_CHANNELS};
+    use duv::map::medium_estimate::MediumPrior;
+    use duv::map::vulkan::medium::{record_medium_upstream, MediumPlaneBuffers};
+    let Some(mut ctx) = gpu_common::gpu_or_skip("medium_upstream_matches_the_prior_and_the_fold") else { return };
+    let (w, h) = (203, 5);
+    let n = w * h;
+    let mut rng = Rng::new(41);
+    let planes9 = MediumPlanes9 { width: w, height: h, data: (0..n * MEDIUM_CHANNELS).map(|_| rng.range(0.01, 1.5) as f32).collect() };
+    let raster_grad9: Vec<f32> = (0..n * MEDIUM_CHANNELS).map(|_| rng.range(-1.0, 1.0) as f32).collect();
+    let loss_c_med: Vec<f32> = (0..n * 3).map(|_| rng.range(-0.5, 0.5) as f32).collect();
+    let prior = MediumPrior {
+        medium: MediumParams { beta_d: [0.4, 0.2, 0.1], beta_b: [0.35, 0.25, 0.15], b_inf: [0.1, 0.3, 0.4] },
+        channels: [true, false, true],
+        weight: 0.3,
+        rel_std: 0.1,
+        b_inf_std: 0.02,
+    };
+    let mark = ctx.arena_used_bytes();
+    let alloc = |ctx: &mut GpuContext, what| ctx.alloc::<f32>(what, 3 * n).unwrap();
+    let (c_med, att, bs, gc, ga, gb, ld) = (alloc(&mut ctx, "c_med"), alloc(&mut ctx, "att"), alloc(&mut ctx, "bs"), alloc(&mut ctx, "gc"), alloc(&mut ctx, "ga"), alloc(&mut ctx, "gb"), alloc(&mut ctx, "loss dc"));
+    let channel = |data: &[f32], first: usize| -> Vec<f32> { data.chunks_exact(MEDIUM_CHANNELS).flat_map(|px| px[first..first + 3].to_vec()).collect() };
+    for single in [false, true] {
+        // Host: the step's order of additions.
+        let mut want = raster_grad9.clone();
+        for (px, d) in want.chunks_exact_mut(MEDIUM_CHANNELS).zip(loss_c_med.chunks_exact(3)) {
+            for c in 0..3 {
+                px[C_MED + c] += d[c];
+            }
+        }
+        prior.loss_and_grad(&planes9.data, &mut want);
+        if single {
+            fold_single_coefficient(&mut want);
+        }
+        // Device.
+        for (buf, first) in [(&c_med, 0), (&att, 3), (&bs, 6)] {
+            ctx.write(buf, &channel(&planes9.data, first)).unwrap();
+        }
+        for (buf, first) in [(&gc, 0), (&ga, 3), (&gb, 6)] {
+            ctx.write(buf, &channel(&raster_grad9, first)).unwrap();
+        }
+        ctx.write(&ld, &loss_c_med).unwrap();
+        let bufs = MediumPlaneBuffers { c_med: &c_med, sigma_att: &att, sigma_bs: &bs, grad_c_med: &gc, grad_sigma_att: &ga, grad_sigma_bs: &gb, loss_d_c_med: &ld };
+        ctx.begin().unwrap();
+        record_medium_upstream(&mut ctx, &bufs, n, Some(&prior), single).unwrap();
+        ctx.submit_and_wait().unwrap();
+        for (buf, first, name) in [(&gc, 0, "c_med"), (&ga, 3, "sigma_att"), (&gb, 6, "sigma_bs")] {
+            let mut got = vec![0.0f32; 3 * n];
+            ctx.read(buf, &mut got).unwrap();
+            let want_c = channel(&want, first);
+            let scale = want_c.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let err = got.iter().zip(&want_c).map(|(a, b)| ((a - b).abs() / b.abs().max(1e-2 * scale).max(f32::MIN_POSITIVE)) as f64).fold(0.0, f64::max);
+            eprintln!("single {single}: dL/d{name}: largest |cpu| {scale:.3e}, worst scaled error {err:.2e}");
+            assert!(err <= GRAD_REL_TOL, "single {single}: dL/d{name}: scaled error {err:.2e}");
+            if single && name == "sigma_bs" {
+                assert!(got.iter().all(|&v| v == 0.0), "the fold leaves no sigma_bs gradient");
+            }
+        }
+    }
+    ctx.arena_reset_to(mark);
+}

@@ -27,7 +27,7 @@ use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, Mediu
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
 use super::schedule::pick_keyframe;
-use super::vulkan::{MapperDevice, RenderBackend, VulkanRenderError};
+use super::vulkan::{DeviceMediumBackward, DeviceMediumStep, MapperDevice, RenderBackend, VulkanRenderError};
 use crate::core::rng::Rng;
 use crate::core::alloc::prefault;
 use crate::core::{ImageRgb8, ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
@@ -66,6 +66,8 @@ impl From<VulkanRenderError> for MapperError {
             VulkanRenderError::Render(r) => MapperError::Render(r),
             VulkanRenderError::Gpu(g) => MapperError::Gpu(g.to_string()),
             VulkanRenderError::Loss(l) => MapperError::Loss(l),
+            VulkanRenderError::Medium(crate::map::vulkan::medium::GpuMediumError::Medium(m)) => MapperError::Medium(m),
+            VulkanRenderError::Medium(m) => MapperError::Gpu(m.to_string()),
         }
     }
 }
@@ -513,6 +515,11 @@ impl Mapper {
             self.raster = RenderBackend::cpu(self.raster_capacity, "a Vulkan renderer was released")?;
         }
         self.raster = RenderBackend::open(device, gpu, self.raster_capacity)?;
+        // The medium network on the device too when it is evaluated on a direction grid (per
+        // pixel, its node records would take hundreds of MB: the host evaluates it then).
+        if let Some(grid) = self.medium_ws.grid() {
+            self.raster.enable_device_medium(grid.step, self.medium.layout())?;
+        }
         let what = self.render_device();
         tracing::info!(renderer = %what, "map.device");
         Ok(what)
@@ -638,7 +645,7 @@ impl Mapper {
     pub fn render(&mut self, camera: &PinholeCamera, world_from_cam: &Se3) -> Result<&RenderOutput, MapperError> {
         self.check_camera(u64::MAX, camera)?;
         self.medium_forward(camera, world_from_cam)?;
-        self.forward_within_capacity(camera, &world_from_cam.inverse(), true, false)?;
+        self.forward_within_capacity(camera, world_from_cam, true, false, false)?;
         Ok(&self.view.out)
     }
 
@@ -872,14 +879,23 @@ impl Mapper {
         let count = self.keyframes.len();
         let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
         let (camera, pose) = (kf.kf.camera, kf.kf.world_from_cam);
-        self.medium_forward(&camera, &pose)?;
-        // On Vulkan the optimiser's map stays on the device (Adam there too).
+        // On Vulkan the optimiser's map stays on the device (Adam there too), and the medium
+        // network runs there when enabled (`use_device`).
         let device_map = self.config.optimise_gaussians && self.raster.is_vulkan();
-        self.forward_within_capacity(&camera, &pose.inverse(), false, device_map)?;
+        let device_medium = self.raster.has_device_medium();
+        if !device_medium {
+            self.medium_forward(&camera, &pose)?;
+        }
+        self.forward_within_capacity(&camera, &pose, false, device_map, device_medium)?;
         let kf = &self.keyframes[slot];
         let v = &mut self.view;
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
         self.grads.zero_params();
+        let mut medium_back = DeviceMediumBackward {
+            prior: self.medium_prior.as_ref(),
+            single_coefficient: self.config.single_medium_coefficient,
+            param_grads: &mut self.medium_grads,
+        };
         let (loss, psnr_db) = self.raster.loss_and_backward(
             &self.gaussians,
             &v.planes,
@@ -892,7 +908,27 @@ impl Mapper {
             &mut self.grads,
             &mut v.planes_grad,
             &mut v.d_medium_loss,
+            match device_medium {
+                true => Some(&mut medium_back),
+                false => None,
+            },
         )?;
+        if device_medium {
+            // The medium's backward ran on the device; `medium_grads` holds its gradient.
+            if self.config.optimise_medium {
+                self.medium_adam.step(self.medium.params_mut(), &self.medium_grads)?;
+            }
+        } else {
+            self.medium_backward_on_host(&camera, &pose)?;
+        }
+        self.step_gaussians()?;
+        self.finish_step(slot, loss, psnr_db)
+    }
+
+    /// The medium's backward on the host: the planes' gradient from the renderer and the
+    /// loss, the prior, the single-coefficient tie, the network's backward, its Adam step.
+    fn medium_backward_on_host(&mut self, camera: &PinholeCamera, pose: &Se3) -> Result<(), MapperError> {
+        let v = &mut self.view;
         nine_from_planes(&v.planes_grad, &mut v.d_planes9);
         for (d, &l) in v.d_planes9.data.iter_mut().zip(&v.d_medium_loss.data) {
             *d += l;
@@ -901,18 +937,18 @@ impl Mapper {
             prior.loss_and_grad(&v.planes9.data, &mut v.d_planes9.data);
         }
         if self.config.single_medium_coefficient {
-            for px in v.d_planes9.data.chunks_exact_mut(MEDIUM_CHANNELS) {
-                for c in 0..3 {
-                    px[SIGMA_ATT + c] += px[SIGMA_BS + c];
-                    px[SIGMA_BS + c] = 0.0;
-                }
-            }
+            fold_single_coefficient(&mut v.d_planes9.data);
         }
         if self.config.optimise_medium {
             self.medium_grads.fill(0.0);
-            self.medium_ws.backward(&self.medium, &camera, &pose, &v.d_planes9, &mut self.medium_grads)?;
+            self.medium_ws.backward(&self.medium, camera, pose, &v.d_planes9, &mut self.medium_grads)?;
             self.medium_adam.step(self.medium.params_mut(), &self.medium_grads)?;
         }
+        Ok(())
+    }
+
+    /// The Gaussians' Adam step: on the device map when it is resident, else on the host.
+    fn step_gaussians(&mut self) -> Result<(), MapperError> {
         if self.config.optimise_gaussians && self.raster.is_resident() {
             if !self.raster.adam_step(&mut self.gaussians, &mut self.grads, &mut self.adam)? {
                 // Refused on the device, nothing changed; name the value as the host step would.
@@ -927,6 +963,11 @@ impl Mapper {
                 self.adam[k].step(self.gaussians.group_mut(*g), self.grads.group(*g))?;
             }
         }
+        Ok(())
+    }
+
+    /// Counts the step and densifies/prunes when due.
+    fn finish_step(&mut self, slot: usize, loss: LossTerms, psnr_db: f64) -> Result<IterationReport, MapperError> {
         self.iteration += 1;
         let cfg = &self.config;
         let due = cfg.optimise_gaussians && cfg.densify_every > 0 && self.iteration >= cfg.densify_start && self.iteration % cfg.densify_every == 0;
@@ -949,7 +990,8 @@ impl Mapper {
     /// the largest axis are pruned (half the excess share of the map plus 2%) and the view is
     /// rendered again (up to [`OVERFLOW_RETRIES`] times); densification waits while the buffer
     /// stays over 90% full. No buffer is ever reallocated. Counted in [`Self::overflow_stats`].
-    fn forward_within_capacity(&mut self, camera: &PinholeCamera, cam_from_world: &Se3, images_on_host: bool, device_map: bool) -> Result<RenderStats, MapperError> {
+    fn forward_within_capacity(&mut self, camera: &PinholeCamera, world_from_cam: &Se3, images_on_host: bool, device_map: bool, device_medium: bool) -> Result<RenderStats, MapperError> {
+        let cam_from_world = &world_from_cam.inverse();
         let mut tries = 0;
         loop {
             if device_map {
@@ -959,7 +1001,8 @@ impl Mapper {
             let rendered = if images_on_host {
                 self.raster.forward(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out)
             } else {
-                self.raster.forward_for_loss(&self.gaussians, camera, cam_from_world, &v.planes, &self.config.render, &mut v.out)
+                let step = DeviceMediumStep { net: &self.medium, world_from_cam, single_coefficient: self.config.single_medium_coefficient };
+                self.raster.forward_for_loss(&self.gaussians, camera, cam_from_world, &v.planes, device_medium.then_some(&step), &self.config.render, &mut v.out)
             };
             match rendered {
                 Ok(stats) => {
@@ -1014,6 +1057,18 @@ impl Mapper {
         self.medium_adam.reset_moments();
         tracing::debug!(?report, "map.densify");
         Ok(report)
+    }
+}
+
+/// With one coefficient for both medium terms (`sigma_bs` tied to `sigma_att`), the
+/// gradient of `sigma_bs` belongs to `sigma_att`: adds it there and zeroes it, per pixel of
+/// 9-channel medium-plane gradients. Kernel twin: `medium_prior.medium_upstream`.
+pub fn fold_single_coefficient(d_planes9: &mut [f32]) {
+    for px in d_planes9.chunks_exact_mut(MEDIUM_CHANNELS) {
+        for c in 0..3 {
+            px[SIGMA_ATT + c] += px[SIGMA_BS + c];
+            px[SIGMA_BS + c] = 0.0;
+        }
     }
 }
 

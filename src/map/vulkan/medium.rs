@@ -34,6 +34,7 @@
 
 use crate::core::{PinholeCamera, Se3};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, GpuRange, Kernel};
+use crate::map::medium_estimate::MediumPrior;
 use crate::map::medium::{MediumError, MediumGrid, MediumLayout, MediumNet, View, HIDDEN, MAX_PE_FREQUENCIES, MEDIUM_CHANNELS};
 
 /// Nodes per partial sum of the parameter gradient (`medium.param_grad_partials`).
@@ -317,3 +318,63 @@ fn groups_1d(kernel: Kernel, n: usize) -> [u32; 3] {
     let gx = groups.min(65535);
     [gx as u32, groups.div_ceil(gx).min(u32::MAX as usize) as u32, 1]
 }
+
+/// Words of the `PriorParams` immediate block of `medium_prior.wgsl`.
+const PRIOR_WORDS: usize = 20;
+
+/// The medium planes and their gradients of one view on the device: the rasteriser's
+/// forward planes and backward gradients, and the loss's dL/dc_med.
+#[derive(Clone, Copy, Debug)]
+pub struct MediumPlaneBuffers<'a> {
+    pub c_med: &'a GpuBuffer<f32>,
+    pub sigma_att: &'a GpuBuffer<f32>,
+    pub sigma_bs: &'a GpuBuffer<f32>,
+    pub grad_c_med: &'a GpuBuffer<f32>,
+    pub grad_sigma_att: &'a GpuBuffer<f32>,
+    pub grad_sigma_bs: &'a GpuBuffer<f32>,
+    pub loss_d_c_med: &'a GpuBuffer<f32>,
+}
+
+/// Records `medium_prior.medium_upstream` over `pixels` pixels: adds the loss's dL/dc_med and
+/// the gradient of `prior` (if any) into the plane gradients and folds `sigma_bs`'s into
+/// `sigma_att` when `single_coefficient`. CPU reference: in `Mapper::step_on`, the loss's
+/// `d_medium`, [`MediumPrior::loss_and_grad`], [`crate::map::mapper::fold_single_coefficient`].
+pub fn record_medium_upstream(ctx: &mut GpuContext, bufs: &MediumPlaneBuffers, pixels: usize, prior: Option<&MediumPrior>, single_coefficient: bool) -> Result<(), GpuError> {
+    for b in [bufs.c_med, bufs.sigma_att, bufs.sigma_bs, bufs.grad_c_med, bufs.grad_sigma_att, bufs.grad_sigma_bs, bufs.loss_d_c_med] {
+        if b.len() < 3 * pixels {
+            return Err(GpuError::OutOfRange { what: b.what(), requested: 3 * pixels, len: b.len() });
+        }
+    }
+    if pixels == 0 {
+        return Ok(());
+    }
+    let mut w = [0u32; PRIOR_WORDS];
+    w[0] = pixels as u32;
+    w[2] = single_coefficient as u32;
+    if let Some(p) = prior.filter(|p| p.weight != 0.0) {
+        w[1] = (0..3).filter(|&c| p.channels[c]).fold(0, |m, c| m | 1 << c);
+        let f = |v: f64| (v as f32).to_bits();
+        w[4] = f(p.weight / pixels as f64);
+        w[5] = f(1.0 / (p.rel_std * p.rel_std));
+        w[6] = f(1.0 / (p.b_inf_std * p.b_inf_std));
+        for c in 0..3 {
+            w[8 + c] = f(p.medium.beta_d[c].ln());
+            w[12 + c] = f(p.medium.beta_b[c].ln());
+            w[16 + c] = f(p.medium.b_inf[c]);
+        }
+    }
+    let lookup = |name: &str| -> Option<GpuRange> {
+        Some(match name {
+            "c_med" => bufs.c_med.range(),
+            "sigma_att" => bufs.sigma_att.range(),
+            "sigma_bs" => bufs.sigma_bs.range(),
+            "grad_c_med" => bufs.grad_c_med.range(),
+            "grad_sigma_att" => bufs.grad_sigma_att.range(),
+            "grad_sigma_bs" => bufs.grad_sigma_bs.range(),
+            "d_c_med" => bufs.loss_d_c_med.range(),
+            _ => return None,
+        })
+    };
+    ctx.dispatch_named(Kernel::MediumPriorMediumUpstream, lookup, bytemuck::cast_slice(&w), [pixels.div_ceil(256) as u32, 1, 1])
+}
+

@@ -751,6 +751,37 @@ pub enum VulkanRenderError {
     Gpu(#[from] GpuError),
     #[error(transparent)]
     Loss(#[from] crate::map::loss::LossError),
+    #[error(transparent)]
+    Medium(#[from] medium::GpuMediumError),
+}
+
+/// The medium of a mapper step evaluated on the device: the network, the view's pose (the
+/// node directions), the single-coefficient tie.
+#[derive(Clone, Copy)]
+pub struct DeviceMediumStep<'a> {
+    pub net: &'a crate::map::medium::MediumNet,
+    pub world_from_cam: &'a Se3,
+    pub single_coefficient: bool,
+}
+
+/// The medium's backward of a mapper step on the device: the prior and the tie applied to the
+/// plane gradients (`medium_prior.medium_upstream`), then the network's backward; its
+/// parameter gradient is written into `param_grads` (overwritten).
+pub struct DeviceMediumBackward<'a> {
+    pub prior: Option<&'a crate::map::medium_estimate::MediumPrior>,
+    pub single_coefficient: bool,
+    pub param_grads: &'a mut [f32],
+}
+
+/// Where a forward render takes the medium planes from.
+#[derive(Clone, Copy)]
+pub enum MediumSource<'a> {
+    /// Planes computed on the host, uploaded.
+    Host(&'a MediumPlanes),
+    /// The medium network on the device ([`medium::GpuMedium`], its parameters and view
+    /// written), evaluated into the rasteriser's planes before the projection; with
+    /// `single_coefficient`, `sigma_bs` is a copy of `sigma_att`.
+    Device { medium: &'a medium::GpuMedium, single_coefficient: bool },
 }
 
 /// The forward render on the GPU, every buffer allocated once for a [`RasterCapacity`]:
@@ -788,7 +819,7 @@ impl GpuForwardRenderer {
         config: &RenderConfig,
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
-        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, Some(out), false)
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, MediumSource::Host(medium), config, Some(out), false)
     }
 
     /// [`Self::forward`] that leaves the rendered images on the device (in [`Self::raster`]),
@@ -802,7 +833,7 @@ impl GpuForwardRenderer {
         gaussians: &Gaussians,
         camera: &PinholeCamera,
         cam_from_world: &Se3,
-        medium: &MediumPlanes,
+        medium: MediumSource,
         config: &RenderConfig,
         params_on_device: bool,
     ) -> Result<RenderStats, VulkanRenderError> {
@@ -816,7 +847,7 @@ impl GpuForwardRenderer {
         gaussians: &Gaussians,
         camera: &PinholeCamera,
         cam_from_world: &Se3,
-        medium: &MediumPlanes,
+        medium: MediumSource,
         config: &RenderConfig,
         mut out: Option<&mut RenderOutput>,
         params_on_device: bool,
@@ -839,24 +870,42 @@ impl GpuForwardRenderer {
         if n > self.capacity.max_gaussians {
             return Err(RenderError::CapacityExceeded { what: "Gaussians", requested: n, capacity: self.capacity.max_gaussians }.into());
         }
-        check_size("medium planes", medium.width(), medium.height(), &grid)?;
-        for (_, plane) in medium.planes() {
-            check_size("medium planes", plane.width, plane.height, &grid)?;
+        if let MediumSource::Host(medium) = medium {
+            check_size("medium planes", medium.width(), medium.height(), &grid)?;
+            for (_, plane) in medium.planes() {
+                check_size("medium planes", plane.width, plane.height, &grid)?;
+            }
         }
         if let Some(out) = out.as_deref() {
             check_output(out, &grid)?;
         }
         validate_gaussians(gaussians)?;
-        for (what, plane) in medium.planes() {
-            check_rgb(what, plane, what != "c_med")?;
+        if let MediumSource::Host(medium) = medium {
+            for (what, plane) in medium.planes() {
+                check_rgb(what, plane, what != "c_med")?;
+            }
         }
 
         if !params_on_device {
             self.projection.upload(ctx, gaussians)?;
         }
         self.projection.write_setup(ctx, &setup, &grid, n)?;
-        self.raster.upload_medium(ctx, medium)?;
+        if let MediumSource::Host(medium) = medium {
+            self.raster.upload_medium(ctx, medium)?;
+        }
         ctx.begin()?;
+        if let MediumSource::Device { medium, single_coefficient } = medium {
+            match medium.grid() {
+                Some(g) if (g.width, g.height) == (camera.width, camera.height) => {}
+                _ => return Err(RenderError::NoForward { why: "the device medium's view is not this camera's (GpuMedium::write_view)" }.into()),
+            }
+            let r = &self.raster;
+            medium.record_forward(ctx, &r.c_med, &r.sigma_att, &r.sigma_bs)?;
+            if single_coefficient {
+                let px = camera.width * camera.height;
+                ctx.copy(r.sigma_att.slice_range(0, 3 * px)?, r.sigma_bs.slice_range(0, 3 * px)?)?;
+            }
+        }
         self.projection.record(ctx, n, self.capacity.max_intersections)?;
         ctx.submit_and_wait()?;
         let n_isects = if n == 0 {
@@ -912,6 +961,8 @@ pub struct GpuRenderer {
     pub loss: loss::GpuLoss,
     /// Adam over the map, for [`Self::adam_step`].
     pub adam: optimiser::GpuMapAdam,
+    /// The medium network on the device ([`Self::enable_medium`]); `None`: planes from the host.
+    pub medium: Option<medium::GpuMedium>,
     /// `Some(n)` while the device holds the optimiser's map of `n` Gaussians (parameters,
     /// gradients and densification statistics, Adam moments): see [`Self::make_resident`].
     resident: Option<usize>,
@@ -933,6 +984,7 @@ impl GpuRenderer {
             project_backward: GpuProjectBackward::new(ctx, capacity.max_gaussians)?,
             loss: loss::GpuLoss::new(ctx, capacity.width, capacity.height)?,
             adam: optimiser::GpuMapAdam::new(ctx, capacity.max_gaussians)?,
+            medium: None,
             resident: None,
             last: None,
             staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
@@ -947,13 +999,39 @@ impl GpuRenderer {
         camera: &PinholeCamera,
         cam_from_world: &Se3,
         medium: &MediumPlanes,
+        device_medium: Option<&DeviceMediumStep>,
         config: &RenderConfig,
     ) -> Result<RenderStats, VulkanRenderError> {
         self.last = None;
         let on_device = self.check_resident(gaussians.len())?;
-        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, config, on_device)?;
+        let source = match (device_medium, self.medium.as_mut()) {
+            (Some(step), Some(gm)) => {
+                gm.upload_params(ctx, step.net)?;
+                gm.write_view(ctx, camera, step.world_from_cam)?;
+                MediumSource::Device { medium: gm, single_coefficient: step.single_coefficient }
+            }
+            (Some(_), None) => return Err(RenderError::NoForward { why: "no device medium (GpuRenderer::enable_medium)" }.into()),
+            (None, _) => MediumSource::Host(medium),
+        };
+        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, source, config, on_device)?;
         self.remember(camera, config, gaussians.len(), stats.intersections);
         Ok(stats)
+    }
+
+    /// Allocates the medium network's buffers ([`medium::GpuMedium`]) for this renderer's
+    /// largest view, nodes every `step` pixels and networks of `layout`, once; a second call
+    /// with the same arguments does nothing, with others it is an error (the arena never
+    /// frees).
+    pub fn enable_medium(&mut self, ctx: &mut GpuContext, step: usize, layout: crate::map::medium::MediumLayout) -> Result<(), VulkanRenderError> {
+        if let Some(m) = &self.medium {
+            if m.step() == step && m.layout() == layout {
+                return Ok(());
+            }
+            return Err(RenderError::NoForward { why: "the device medium was sized for another grid step or network" }.into());
+        }
+        let cap = self.fwd.capacity;
+        self.medium = Some(medium::GpuMedium::new(ctx, cap.width, cap.height, step, layout)?);
+        Ok(())
     }
 
     /// Whether the device holds the map; an error when it holds another size than the host's.
@@ -1072,6 +1150,7 @@ impl GpuRenderer {
         grads: &mut GaussianGrads,
         medium_grads: &mut MediumPlanes,
         d_medium_loss: &mut crate::map::medium::MediumPlanes,
+        device_medium: Option<&mut DeviceMediumBackward>,
     ) -> Result<(crate::map::loss::LossTerms, f64), VulkanRenderError> {
         let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
         let grid = last.grid;
@@ -1120,10 +1199,35 @@ impl GpuRenderer {
             last.n_isects,
         )?;
         self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
+        let device_medium = match (device_medium, self.medium.as_ref()) {
+            (Some(step), Some(gm)) => {
+                let (r, rb) = (&fwd.raster, &self.raster_backward);
+                let planes = medium::MediumPlaneBuffers {
+                    c_med: &r.c_med,
+                    sigma_att: &r.sigma_att,
+                    sigma_bs: &r.sigma_bs,
+                    grad_c_med: &rb.grad_c_med,
+                    grad_sigma_att: &rb.grad_sigma_att,
+                    grad_sigma_bs: &rb.grad_sigma_bs,
+                    loss_d_c_med: &self.loss.d_c_med,
+                };
+                medium::record_medium_upstream(ctx, &planes, w * h, step.prior, step.single_coefficient)?;
+                gm.record_zero_grads(ctx)?;
+                gm.record_backward(ctx, &rb.grad_c_med, &rb.grad_sigma_att, &rb.grad_sigma_bs)?;
+                Some((step, gm))
+            }
+            (Some(_), None) => return Err(RenderError::NoForward { why: "no device medium (GpuRenderer::enable_medium)" }.into()),
+            (None, _) => None,
+        };
         ctx.submit_and_wait()?;
         let terms = self.loss.read_terms(ctx)?;
         if !resident {
             self.project_backward.read(ctx, grads)?;
+        }
+        if let Some((step, gm)) = device_medium {
+            // The medium's parameter gradient is all that comes back of it.
+            gm.read_grads(ctx, step.param_grads)?;
+            return Ok((terms, self.loss.last_psnr_db()));
         }
         ctx.read(&self.raster_backward.grad_c_med, &mut medium_grads.c_med.data)?;
         ctx.read(&self.raster_backward.grad_sigma_att, &mut medium_grads.sigma_att.data)?;
@@ -1375,13 +1479,28 @@ impl RenderBackend {
         camera: &PinholeCamera,
         cam_from_world: &Se3,
         medium: &MediumPlanes,
+        device_medium: Option<&DeviceMediumStep>,
         config: &RenderConfig,
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
         match self {
-            RenderBackend::Vulkan { ctx, renderer } => renderer.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, config),
+            RenderBackend::Vulkan { ctx, renderer } => renderer.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, device_medium, config),
             RenderBackend::Cpu { ws, .. } => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
         }
+    }
+
+    /// Evaluates the medium network on the device from now on ([`GpuRenderer::enable_medium`]);
+    /// `false` on the CPU reference (nothing to do).
+    pub fn enable_device_medium(&mut self, step: usize, layout: crate::map::medium::MediumLayout) -> Result<bool, VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.enable_medium(ctx, step, layout).map(|_| true),
+            RenderBackend::Cpu { .. } => Ok(false),
+        }
+    }
+
+    /// Whether the medium network runs on the device ([`Self::enable_device_medium`]).
+    pub fn has_device_medium(&self) -> bool {
+        matches!(self, RenderBackend::Vulkan { renderer, .. } if renderer.medium.is_some())
     }
 
     /// The loss of the last [`Self::forward_for_loss`] against `target` and the render's
@@ -1389,7 +1508,10 @@ impl RenderBackend {
     /// host); on the CPU `total_loss` on `out`, its gradients copied into `upstream`, then
     /// `RasterWorkspace::backward`. Either way **adds** into `grads`, **overwrites**
     /// `medium_grads` and `d_medium_loss` (the loss's own dL/dmedium, 9 channels) and returns
-    /// the loss terms and the PSNR (dB) of the render against the target image.
+    /// the loss terms and the PSNR (dB) of the render against the target image. With
+    /// `device_medium` (Vulkan with [`Self::enable_device_medium`] only) the medium's prior,
+    /// tie and network backward run on the device too and only its parameter gradient comes
+    /// back (`medium_grads` and `d_medium_loss` are then not written).
     #[allow(clippy::too_many_arguments)]
     pub fn loss_and_backward(
         &mut self,
@@ -1404,9 +1526,10 @@ impl RenderBackend {
         grads: &mut GaussianGrads,
         medium_grads: &mut MediumPlanes,
         d_medium_loss: &mut crate::map::medium::MediumPlanes,
+        device_medium: Option<&mut DeviceMediumBackward>,
     ) -> Result<(crate::map::loss::LossTerms, f64), VulkanRenderError> {
         match self {
-            RenderBackend::Vulkan { ctx, renderer } => renderer.loss_and_backward(ctx, gaussians, target, loss_config, grads, medium_grads, d_medium_loss),
+            RenderBackend::Vulkan { ctx, renderer } => renderer.loss_and_backward(ctx, gaussians, target, loss_config, grads, medium_grads, d_medium_loss, device_medium),
             RenderBackend::Cpu { ws, .. } => {
                 let rendered =
                     crate::map::loss::RenderedView { color: &out.colour, depth: &out.depth, depth_variance: &out.depth_var, alpha: &out.alpha, medium: Some(medium9) };
