@@ -4,6 +4,10 @@
 //! upstream gradients. Medians of several runs, the GPU time including uploads and
 //! read-backs, then the per-kernel GPU timestamps (forward and backward kernels).
 //!
+//! Then the whole mapper step (`Mapper::step_on`: medium network, forward, losses, backward,
+//! Adam) on the Vulkan mapper (map, Adam and medium network on the device) against the CPU
+//! mapper, same sizes and maps, one keyframe rendered from the map itself.
+//!
 //! Run: `cargo bench --bench gpu_render` (release; `DUV_VULKAN_DEVICE` picks the device);
 //! `cargo bench --bench gpu_render -- --quick`: 320x240 with 20k Gaussians only, 3 runs (a CPU
 //! Vulkan device such as lavapipe takes seconds per backward pass).
@@ -19,7 +23,10 @@ use duv::core::rng::Rng;
 use duv::gpu::{GpuContext, GpuOptions};
 use duv::map::gaussians::GaussianGrads;
 use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
-use duv::map::vulkan::GpuRenderer;
+use duv::core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
+use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv::map::medium::{MediumConfig, MediumNet};
+use duv::map::vulkan::{GpuRenderer, MapperDevice, VulkanRenderError};
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
 const RUNS: usize = 7;
@@ -46,12 +53,13 @@ fn main() {
     // Gaussian cap and room for 10 tile intersections per Gaussian (allocated, not used).
     let mark = ctx.arena_used_bytes();
     let cap300k = RasterCapacity { width: 640, height: 480, max_gaussians: 300_000, max_intersections: 3_000_000 };
-    match GpuRenderer::new(&mut ctx, cap300k) {
+    let medium_layout = MediumNet::<f32>::new(&MediumConfig::default()).unwrap().layout();
+    match GpuRenderer::new(&mut ctx, cap300k).map_err(VulkanRenderError::from).and_then(|mut r| r.enable_medium(&mut ctx, MediumConfig::default().grid_step_px, medium_layout)) {
         Ok(_) => {}
-        Err(e) => println!("forward+backward buffers for 640x480, 300k Gaussians, 3M intersections do not fit: {e}"),
+        Err(e) => println!("mapper buffers for 640x480, 300k Gaussians, 3M intersections do not fit: {e}"),
     }
     println!(
-        "forward+backward buffers for 640x480, 300k Gaussians, 3M intersections: {:.1} MiB of the {} MiB arena (Adam moments not included)",
+        "mapper buffers (render, losses, Adam moments, medium network) for 640x480, 300k Gaussians, 3M intersections: {:.1} MiB of the {} MiB arena",
         (ctx.arena_used_bytes() - mark) as f64 / (1 << 20) as f64,
         ctx.arena_capacity_bytes() >> 20
     );
@@ -128,4 +136,57 @@ fn main() {
             ctx.arena_reset_to(mark);
         }
     }
+    // The device is released for the mappers, which open their own.
+    drop(ctx);
+    for &(w, h) in sizes {
+        for &n in counts {
+            mapper_step(w, h, n, runs, board.budgets.gpu_mb);
+        }
+    }
+}
+
+/// Median ms of `Mapper::step_on` on the CPU and the Vulkan mapper for `n` random Gaussians
+/// at `w x h`, one keyframe (the CPU render of the map, no tracked depth), no densification.
+fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
+    let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
+    let mut rng = Rng::new(n as u64);
+    let gaussians = random_gaussians(&mut rng, n, n, &cam, &world_from_cam(), (1.0, 10.0), (0.7, 4.0), (-2.0, 3.0));
+    let config = MapperConfig { densify_every: 0, intersections_per_gaussian: 16, ..MapperConfig::default() };
+    let capacity = MapperCapacity { max_gaussians: n, max_keyframes: 2, width: w, height: h };
+    let mut times = Vec::new();
+    for device in [MapperDevice::Cpu, MapperDevice::Vulkan] {
+        let mut m = Mapper::new(config.clone(), capacity).unwrap();
+        let what = m.use_device(device, &GpuOptions::with_budget_mb(gpu_mb)).unwrap();
+        m.set_gaussians(&gaussians).unwrap();
+        let render = m.render(&cam, &world_from_cam()).unwrap();
+        let image = ImageRgb8 { width: w, height: h, data: render.colour.data.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect() };
+        let kf = Keyframe {
+            index: 0,
+            t_ns: Timestamp(0),
+            image,
+            world_from_cam: world_from_cam(),
+            camera: cam,
+            inv_depth: PlaneF32 { width: w, height: h, data: vec![0.0; w * h] },
+            inv_depth_variance: PlaneF32 { width: w, height: h, data: vec![f32::INFINITY; w * h] },
+        };
+        m.add_keyframe(&kf).unwrap();
+        m.step_on(0).unwrap();
+        let mut samples = Vec::new();
+        for _ in 0..runs {
+            let t = Instant::now();
+            m.step_on(0).unwrap();
+            samples.push(t.elapsed());
+        }
+        times.push((what, median_ms(&mut samples), m.gaussians().len()));
+    }
+    let (cpu, gpu) = (&times[0], &times[1]);
+    println!(
+        "mapper step {w}x{h}, {n} Gaussians: CPU mapper {:8.2} ms, Vulkan mapper {:8.2} ms (CPU/Vulkan {:.2}x; {}; {} and {} Gaussians after the steps)",
+        cpu.1,
+        gpu.1,
+        cpu.1 / gpu.1,
+        gpu.0,
+        cpu.2,
+        gpu.2
+    );
 }
