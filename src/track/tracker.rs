@@ -1524,6 +1524,8 @@ impl State {
                 p.next_edge = 0;
                 if p.next_round == self.cfg.local_rounds {
                     self.window_covariance(p.fixed);
+                    self.rounds_done(p);
+                    return Ok(false);
                 }
             }
             self.pending = Some(p);
@@ -1534,6 +1536,8 @@ impl State {
             p.next_round += 1;
             if p.next_round == self.cfg.local_rounds {
                 self.window_covariance(p.fixed);
+                self.rounds_done(p);
+                return Ok(false);
             }
             self.pending = Some(p);
             return Ok(false);
@@ -1559,11 +1563,34 @@ impl State {
                 }
             }
         }
+        self.finish_insertion();
+        Ok(false)
+    }
+
+    /// After the last flow/BA round of an insertion: ranks the loop candidates right away (a
+    /// thumbnail comparison, cheap) and ends the insertion when there is none to verify. A
+    /// loop search with nothing to verify used to take a stage of its own, and after a window
+    /// solve (a frame's only stage) a frame of its own; with keyframes every three frames
+    /// (the end of the generated survey) that pushed the rest of the next insertion into the
+    /// next keyframe's frame.
+    fn rounds_done(&mut self, mut p: Pending) {
+        if self.cfg.loop_closure {
+            self.rank_loop_candidates(p.slot);
+            p.next_candidate = Some(0);
+            if !self.loop_candidates.is_empty() {
+                self.pending = Some(p);
+                return;
+            }
+        }
+        self.finish_insertion();
+    }
+
+    /// The insertion's deferred work is done; a periodic global BA when due.
+    fn finish_insertion(&mut self) {
         self.pending = None;
         if self.cfg.global_ba_period > 0 && self.inserted_since_global >= self.cfg.global_ba_period {
             self.global_ba();
         }
-        Ok(false)
     }
 
     /// Whether the next deferred stage is a window solve (or a whole round).
