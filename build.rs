@@ -2,7 +2,8 @@
 //! the kernel table `$OUT_DIR/kernels.rs` (`duv::gpu::kernels`): one entry per compute entry
 //! point with its workgroup size, its bindings (from naga's reflection: binding number,
 //! read-only or read-write storage, type) and the size of its immediate (push-constant)
-//! block, so no binding list is written by hand.
+//! block, and whether it needs float atomics (`atomic<f32>`), so no binding list is written by
+//! hand.
 //!
 //! SPIR-V options: workgroup memory is NOT zero-initialised (naga's default polyfill made
 //! kernels 4-8x slower on lavapipe); every kernel initialises the shared memory it reads.
@@ -35,7 +36,7 @@ fn main() {
         let source = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let module = naga::front::wgsl::parse_str(&source)
             .unwrap_or_else(|e| panic!("\n{}", e.emit_to_string_with_path(&source, &path.display().to_string())));
-        let info = Validator::new(ValidationFlags::all(), Capabilities::IMMEDIATES | Capabilities::SUBGROUP)
+        let info = Validator::new(ValidationFlags::all(), Capabilities::IMMEDIATES | Capabilities::SUBGROUP | Capabilities::SHADER_FLOAT32_ATOMIC)
             .subgroup_stages(naga::valid::ShaderStages::COMPUTE)
             .subgroup_operations(naga::valid::SubgroupOperationSet::all())
             .validate(&module)
@@ -62,6 +63,7 @@ fn main() {
             let ep_info = info.get_entry_point(ep_index);
             let mut bindings = Vec::new();
             let mut immediate_bytes = 0u32;
+            let mut float_atomics = false;
             for (handle, var) in module.global_variables.iter() {
                 if ep_info[handle].is_empty() {
                     continue;
@@ -79,6 +81,7 @@ fn main() {
                             _ => "Uniform",
                         };
                         let name = var.name.clone().unwrap_or_default();
+                        float_atomics |= uses_float_atomics(&module, var.ty);
                         // Bytes of the type, or of one element of a runtime-sized array.
                         let bytes = match &module.types[var.ty].inner {
                             naga::TypeInner::Array { stride, size: naga::ArraySize::Dynamic, .. } => *stride,
@@ -100,7 +103,7 @@ fn main() {
             let [x, y, z] = ep.workgroup_size;
             write!(
                 table,
-                "    KernelInfo {{\n        file: \"{stem}\",\n        entry: \"{}\",\n        workgroup_size: [{x}, {y}, {z}],\n        immediate_bytes: {immediate_bytes},\n        bindings: &[",
+                "    KernelInfo {{\n        file: \"{stem}\",\n        entry: \"{}\",\n        workgroup_size: [{x}, {y}, {z}],\n        immediate_bytes: {immediate_bytes},\n        float_atomics: {float_atomics},\n        bindings: &[",
                 ep.name
             )
             .unwrap();
@@ -156,6 +159,16 @@ fn type_name(module: &naga::Module, ty: naga::Handle<naga::Type>) -> String {
             _ => format!("array<{}>", type_name(module, *base)),
         },
         other => format!("{other:?}"),
+    }
+}
+
+/// Whether a binding's type holds `atomic<f32>` (the kernel needs VK_EXT_shader_atomic_float).
+fn uses_float_atomics(module: &naga::Module, ty: naga::Handle<naga::Type>) -> bool {
+    match &module.types[ty].inner {
+        naga::TypeInner::Atomic(s) => s.kind == naga::ScalarKind::Float,
+        naga::TypeInner::Array { base, .. } => uses_float_atomics(module, *base),
+        naga::TypeInner::Struct { members, .. } => members.iter().any(|m| uses_float_atomics(module, m.ty)),
+        _ => false,
     }
 }
 

@@ -2,18 +2,23 @@
 // `backprop_pixel` and `reduce_isect_grads`, src/map/render/raster_bwd.rs, the same
 // per-pixel arithmetic in the same order).
 //
-// `rasterize_backward`: one workgroup per 16x16 tile, one thread per pixel (row-major in the
-// tile). The tile's sorted splats are walked back to front, `sg` (the subgroup size) at a
-// time: lane l loads splat `base + l` and the subgroup shares them by `subgroupShuffle`, as
-// the forward does. Each thread back-propagates its pixel through the splats it blended in
-// the forward pass (`start .. isect_end`), recovering the transmittance from the stored final
-// T. Per intersection, the 13 contributions (12 gradient floats and the pixel count) are
-// summed within the subgroup (`subgroupAdd`) and each subgroup's sums go to workgroup memory;
-// after each step of `sg` intersections one barrier, then the subgroups' sums are added in
-// subgroup order and one SplatGrad per sorted intersection is written. No float atomics, a
-// fixed order on a given device: repeated runs are bit-identical. Two barriers per `sg`
-// intersections (before: three per intersection, which dominated on lavapipe). Each pixel
-// writes the gradient with respect to its medium parameters.
+// `rasterize_backward` (deterministic mode): one workgroup per 16x16 tile, one thread per
+// pixel (row-major in the tile). The tile's sorted splats are walked back to front, `sg` (the
+// subgroup size) at a time: lane l loads splat `base + l` and the subgroup shares them by
+// `subgroupShuffle`, as the forward does. Each thread back-propagates its pixel through the
+// splats it blended in the forward pass (`start .. isect_end`), recovering the transmittance
+// from the stored final T (`backprop_splat`). Per intersection, the 13 contributions (12
+// gradient floats and the pixel count) are summed within the subgroup (`subgroupAdd`) and each
+// subgroup's sums go to workgroup memory; after each step of `sg` intersections one barrier,
+// then the subgroups' sums are added in subgroup order and one SplatGrad per sorted
+// intersection is written. No float atomics, a fixed order on a given device: repeated runs
+// are bit-identical. Each pixel writes the gradient with respect to its medium parameters.
+//
+// `rasterize_backward_atomic` (the default where the device has VK_EXT_shader_atomic_float):
+// the same per-pixel arithmetic and subgroup sums, then lane 0 adds its subgroup's sums to the
+// intersection's partials with float atomics (zeroed before the dispatch). No workgroup
+// memory, no barriers, no workgroup-wide reduction, which took 60% of the backward on
+// lavapipe; the order of the additions, and so the last bits, vary between runs.
 //
 // `reduce_isect_grads`: one thread per Gaussian sums its intersections' partials, found
 // through the inverse sort permutation.
@@ -100,6 +105,169 @@ fn depth_value_dz(z: f32) -> f32 {
     return 1.0;
 }
 
+// The atomic variant's per-intersection sums (zeroed before the dispatch), the same buffers
+// as `partials` and `partial_pixels`.
+@group(0) @binding(22) var<storage, read_write> partials_sum: array<atomic<f32>>;
+@group(0) @binding(23) var<storage, read_write> partial_pixels_sum: array<atomic<u32>>;
+
+// What a pixel reads once: its ray, medium, upstream gradients and forward state.
+struct PixelInputs {
+    fx: f32,
+    fy: f32,
+    ray_norm: f32,
+    m_c: vec3<f32>,
+    m_att: vec3<f32>,
+    m_bs: vec3<f32>,
+    up_c: vec3<f32>,
+    up_r: vec3<f32>,
+    // dL/d (depth, depth_var, alpha), 0
+    up_s: vec4<f32>,
+    // depth, depth_var, alpha, final_t
+    state: vec4<f32>,
+    inv_w: f32,
+    sigma_med: f32,
+}
+
+// What a pixel carries from splat to splat (back to front).
+struct PixelState {
+    t: f32,
+    behind: f32,
+    g_c_med: vec3<f32>,
+    g_att: vec3<f32>,
+    g_bs: vec3<f32>,
+}
+
+// One pixel's contribution to one intersection, packed as the subgroup sums are taken:
+// a = (mean2d, conic.xy), b = (conic.z, opacity, colour.xy), c = (colour.z, z, densify), pixels.
+struct Contribution {
+    a: vec4<f32>,
+    b: vec4<f32>,
+    c: vec4<f32>,
+    pixels: f32,
+}
+
+fn pixel_inputs(x: u32, y: u32) -> PixelInputs {
+    var p: PixelInputs;
+    p.fx = f32(x);
+    p.fy = f32(y);
+    let xn = (p.fx - params.cx) / params.fx;
+    let yn = (p.fy - params.cy) / params.fy;
+    p.ray_norm = sqrt(xn * xn + yn * yn + 1.0);
+    let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
+    p.m_c = vec3<f32>(c_med[pix * 3u], c_med[pix * 3u + 1u], c_med[pix * 3u + 2u]);
+    p.m_att = vec3<f32>(sigma_att[pix * 3u], sigma_att[pix * 3u + 1u], sigma_att[pix * 3u + 2u]);
+    p.m_bs = vec3<f32>(sigma_bs[pix * 3u], sigma_bs[pix * 3u + 1u], sigma_bs[pix * 3u + 2u]);
+    p.up_c = vec3<f32>(up_colour[pix * 3u], up_colour[pix * 3u + 1u], up_colour[pix * 3u + 2u]);
+    p.up_r = vec3<f32>(up_restored[pix * 3u], up_restored[pix * 3u + 1u], up_restored[pix * 3u + 2u]);
+    p.up_s = up_scalars[pix];
+    p.state = fwd_scalars[pix];
+    p.inv_w = 0.0;
+    if (p.state.z > 0.0) {
+        p.inv_w = 1.0 / p.state.z;
+    }
+    p.sigma_med = (p.m_att.x + p.m_att.y + p.m_att.z) / 3.0;
+    return p;
+}
+
+fn pixel_state(p: PixelInputs) -> PixelState {
+    var st: PixelState;
+    st.t = p.state.w;
+    st.behind = 0.0;
+    st.g_c_med = p.up_c;
+    st.g_att = vec3<f32>(0.0);
+    st.g_bs = vec3<f32>(0.0);
+    return st;
+}
+
+// Back-propagates a pixel through one splat it blended (or not: zero contribution), updating
+// its transmittance, the gradient of the splats behind and its medium gradients.
+fn backprop_splat(p: PixelInputs, st: ptr<function, PixelState>, s: SplatVecs) -> Contribution {
+    var out: Contribution;
+    out.a = vec4<f32>(0.0);
+    out.b = vec4<f32>(0.0);
+    out.c = vec4<f32>(0.0);
+    out.pixels = 0.0;
+    let conic = vec3<f32>(s.a.z, s.a.w, s.b.x);
+    let z = s.b.y;
+    let opacity = s.b.z;
+    let dx = p.fx - s.a.x;
+    let dy = p.fy - s.a.y;
+    let q = conic.x * dx * dx + 2.0 * conic.y * dx * dy + conic.z * dy * dy;
+    var hit = q <= s.b.w * 1.0001 + 1e-3;
+    var gauss = 0.0;
+    var raw = 0.0;
+    if (hit) {
+        gauss = exp(-0.5 * q);
+        raw = opacity * gauss;
+        hit = raw >= ALPHA_MIN;
+    }
+    if (!hit) {
+        return out;
+    }
+    let clamped = raw > ALPHA_MAX;
+    var alpha = raw;
+    if (clamped) {
+        alpha = ALPHA_MAX;
+    }
+    let one_minus = 1.0 - alpha;
+    (*st).t = (*st).t / one_minus;
+    let w = (*st).t * alpha;
+    let range_m = z * p.ray_norm;
+    out.pixels = 1.0;
+    var value = 0.0;
+    var g_range = 0.0;
+    // The three channels as vectors (no per-channel indexing, which a CPU device turns into
+    // memory accesses); the sums over channels in channel order, as the CPU reference adds
+    // them.
+    let e_att = exp(-p.m_att * range_m);
+    let e_bs = exp(-p.m_bs * range_m);
+    let col = s.c.xyz;
+    let v3 = p.up_c * (col * e_att - p.m_c * e_bs) + p.up_r * col;
+    value = ((value + v3.x) + v3.y) + v3.z;
+    let c_colour = w * (p.up_c * e_att + p.up_r);
+    let r3 = w * p.up_c * (p.m_bs * p.m_c * e_bs - p.m_att * col * e_att);
+    g_range = ((g_range + r3.x) + r3.y) + r3.z;
+    (*st).g_c_med = (*st).g_c_med - p.up_c * w * e_bs;
+    (*st).g_att = (*st).g_att - p.up_c * w * col * range_m * e_att;
+    (*st).g_bs = (*st).g_bs + p.up_c * w * p.m_c * range_m * e_bs;
+    let d = depth_value(z);
+    let dd = d - p.state.x;
+    value = value + ((p.up_s.x * dd + p.up_s.y * (dd * dd - p.state.y)) * p.inv_w + p.up_s.z);
+    let g_d = w * (p.up_s.x + 2.0 * p.up_s.y * dd) * p.inv_w;
+    let c_z = g_range * p.ray_norm + g_d * depth_value_dz(z);
+    let g_alpha = (*st).t * value - (*st).behind / one_minus;
+    (*st).behind = (*st).behind + w * value;
+    var c_mean2d = vec2<f32>(0.0);
+    var c_conic = vec3<f32>(0.0);
+    var c_opacity = 0.0;
+    var c_densify = vec2<f32>(0.0);
+    if (!clamped) {
+        c_opacity = g_alpha * gauss;
+        let g_q = -0.5 * alpha * g_alpha;
+        c_conic = vec3<f32>(g_q * dx * dx, g_q * 2.0 * dx * dy, g_q * dy * dy);
+        c_mean2d = vec2<f32>(-2.0 * g_q * (conic.x * dx + conic.y * dy), -2.0 * g_q * (conic.y * dx + conic.z * dy));
+        let scale = exp(min(p.sigma_med * range_m, MAX_DENSIFY_EXPONENT));
+        c_densify = c_mean2d * scale;
+    }
+    out.a = vec4<f32>(c_mean2d, c_conic.xy);
+    out.b = vec4<f32>(c_conic.z, c_opacity, c_colour.xy);
+    out.c = vec4<f32>(c_colour.z, c_z, c_densify);
+    return out;
+}
+
+fn write_medium_grads(x: u32, y: u32, st: PixelState) {
+    let i = y * params.width + x;
+    grad_c_med[i * 3u] = st.g_c_med.x;
+    grad_c_med[i * 3u + 1u] = st.g_c_med.y;
+    grad_c_med[i * 3u + 2u] = st.g_c_med.z;
+    grad_sigma_att[i * 3u] = st.g_att.x;
+    grad_sigma_att[i * 3u + 1u] = st.g_att.y;
+    grad_sigma_att[i * 3u + 2u] = st.g_att.z;
+    grad_sigma_bs[i * 3u] = st.g_bs.x;
+    grad_sigma_bs[i * 3u + 1u] = st.g_bs.y;
+    grad_sigma_bs[i * 3u + 2u] = st.g_bs.z;
+}
+
 @compute @workgroup_size(256)
 fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
                       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32,
@@ -108,20 +276,8 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
     let x = wg.x * TILE + t_index % TILE;
     let y = wg.y * TILE + t_index / TILE;
     let inside = x < params.width && y < params.height;
-    let fx = f32(x);
-    let fy = f32(y);
-    let xn = (fx - params.cx) / params.fx;
-    let yn = (fy - params.cy) / params.fy;
-    let ray_norm = sqrt(xn * xn + yn * yn + 1.0);
-    let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
-    let m_c = vec3<f32>(c_med[pix * 3u], c_med[pix * 3u + 1u], c_med[pix * 3u + 2u]);
-    let m_att = vec3<f32>(sigma_att[pix * 3u], sigma_att[pix * 3u + 1u], sigma_att[pix * 3u + 2u]);
-    let m_bs = vec3<f32>(sigma_bs[pix * 3u], sigma_bs[pix * 3u + 1u], sigma_bs[pix * 3u + 2u]);
-    let up_c = vec3<f32>(up_colour[pix * 3u], up_colour[pix * 3u + 1u], up_colour[pix * 3u + 2u]);
-    let up_r = vec3<f32>(up_restored[pix * 3u], up_restored[pix * 3u + 1u], up_restored[pix * 3u + 2u]);
-    let up_s = up_scalars[pix];
-    let state = fwd_scalars[pix];
-
+    let p = pixel_inputs(x, y);
+    var st = pixel_state(p);
     if (t_index == 0u) {
         wg_start = tile_offsets[tile];
         wg_stop = tile_offsets[tile + 1u];
@@ -130,18 +286,7 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
     let start = workgroupUniformLoad(&wg_start);
     let stop = workgroupUniformLoad(&wg_stop);
     // Clamped to the tile's range, as the CPU reference does.
-    let end = clamp(fwd_isect_end[pix], start, stop);
-
-    var g_c_med = up_c;
-    var g_att = vec3<f32>(0.0);
-    var g_bs = vec3<f32>(0.0);
-    var t = state.w;
-    var behind = 0.0;
-    var inv_w = 0.0;
-    if (state.z > 0.0) {
-        inv_w = 1.0 / state.z;
-    }
-    let sigma_med = (m_att.x + m_att.y + m_att.z) / 3.0;
+    let end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
 
     var batch_end = stop;
     while (batch_end > start) {
@@ -154,89 +299,32 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
         for (var jj = 0u; jj < count; jj = jj + 1u) {
             let j = count - 1u - jj;
             let k = base + j;
-            let va = subgroupShuffle(own.a, j);
-            let vb = subgroupShuffle(own.b, j);
-            let vc = subgroupShuffle(own.c, j);
+            var s: SplatVecs;
+            s.a = subgroupShuffle(own.a, j);
+            s.b = subgroupShuffle(own.b, j);
+            s.c = subgroupShuffle(own.c, j);
             // This pixel's contribution to intersection k (zero unless blended there).
-            var c_mean2d = vec2<f32>(0.0);
-            var c_conic = vec3<f32>(0.0);
-            var c_opacity = 0.0;
-            var c_colour = vec3<f32>(0.0);
-            var c_z = 0.0;
-            var c_densify = vec2<f32>(0.0);
-            var c_pixels = 0.0;
+            var c: Contribution;
             if (inside && k < end) {
-                let conic = vec3<f32>(va.z, va.w, vb.x);
-                let z = vb.y;
-                let opacity = vb.z;
-                let dx = fx - va.x;
-                let dy = fy - va.y;
-                let q = conic.x * dx * dx + 2.0 * conic.y * dx * dy + conic.z * dy * dy;
-                var hit = q <= vb.w * 1.0001 + 1e-3;
-                var gauss = 0.0;
-                var raw = 0.0;
-                if (hit) {
-                    gauss = exp(-0.5 * q);
-                    raw = opacity * gauss;
-                    hit = raw >= ALPHA_MIN;
-                }
-                if (hit) {
-                    let clamped = raw > ALPHA_MAX;
-                    var alpha = raw;
-                    if (clamped) {
-                        alpha = ALPHA_MAX;
-                    }
-                    let one_minus = 1.0 - alpha;
-                    t = t / one_minus;
-                    let w = t * alpha;
-                    let range_m = z * ray_norm;
-                    c_pixels = 1.0;
-                    var value = 0.0;
-                    var g_range = 0.0;
-                    // The three channels as vectors (no per-channel indexing, which a CPU
-                    // device turns into memory accesses); the sums over channels in channel
-                    // order, as the CPU reference adds them.
-                    let e_att = exp(-m_att * range_m);
-                    let e_bs = exp(-m_bs * range_m);
-                    let col = vc.xyz;
-                    let v3 = up_c * (col * e_att - m_c * e_bs) + up_r * col;
-                    value = ((value + v3.x) + v3.y) + v3.z;
-                    c_colour = w * (up_c * e_att + up_r);
-                    let r3 = w * up_c * (m_bs * m_c * e_bs - m_att * col * e_att);
-                    g_range = ((g_range + r3.x) + r3.y) + r3.z;
-                    g_c_med = g_c_med - up_c * w * e_bs;
-                    g_att = g_att - up_c * w * col * range_m * e_att;
-                    g_bs = g_bs + up_c * w * m_c * range_m * e_bs;
-                    let d = depth_value(z);
-                    let dd = d - state.x;
-                    value = value + ((up_s.x * dd + up_s.y * (dd * dd - state.y)) * inv_w + up_s.z);
-                    let g_d = w * (up_s.x + 2.0 * up_s.y * dd) * inv_w;
-                    c_z = g_range * ray_norm + g_d * depth_value_dz(z);
-                    let g_alpha = t * value - behind / one_minus;
-                    behind = behind + w * value;
-                    if (!clamped) {
-                        c_opacity = g_alpha * gauss;
-                        let g_q = -0.5 * alpha * g_alpha;
-                        c_conic = vec3<f32>(g_q * dx * dx, g_q * 2.0 * dx * dy, g_q * dy * dy);
-                        c_mean2d = vec2<f32>(-2.0 * g_q * (conic.x * dx + conic.y * dy),
-                                             -2.0 * g_q * (conic.y * dx + conic.z * dy));
-                        let scale = exp(min(sigma_med * range_m, MAX_DENSIFY_EXPONENT));
-                        c_densify = c_mean2d * scale;
-                    }
-                }
+                c = backprop_splat(p, &st, s);
+            } else {
+                c.a = vec4<f32>(0.0);
+                c.b = vec4<f32>(0.0);
+                c.c = vec4<f32>(0.0);
+                c.pixels = 0.0;
             }
-            // Subgroup sums of the 13 values packed in four vectors (every lane takes part),
-            // written by lane 0; zeros without an add when no pixel of this subgroup blended
-            // the splat (most of a tile's splats for most subgroups).
+            // Subgroup sums (every lane takes part), written by lane 0; zeros without an add
+            // when no pixel of this subgroup blended the splat (most of a tile's splats for
+            // most subgroups).
             var s0 = vec4<f32>(0.0);
             var s1 = vec4<f32>(0.0);
             var s2 = vec4<f32>(0.0);
             var s3 = 0.0;
-            if (subgroupAny(c_pixels > 0.0)) {
-                s0 = subgroupAdd(vec4<f32>(c_mean2d, c_conic.xy));
-                s1 = subgroupAdd(vec4<f32>(c_conic.z, c_opacity, c_colour.xy));
-                s2 = subgroupAdd(vec4<f32>(c_colour.z, c_z, c_densify));
-                s3 = subgroupAdd(c_pixels);
+            if (subgroupAny(c.pixels > 0.0)) {
+                s0 = subgroupAdd(c.a);
+                s1 = subgroupAdd(c.b);
+                s2 = subgroupAdd(c.c);
+                s3 = subgroupAdd(c.pixels);
             }
             if (lane == 0u) {
                 let o = (sg_id * sg + j) * RED_VALUES;
@@ -277,16 +365,75 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
         batch_end = base;
     }
     if (inside) {
-        let i = y * params.width + x;
-        grad_c_med[i * 3u] = g_c_med.x;
-        grad_c_med[i * 3u + 1u] = g_c_med.y;
-        grad_c_med[i * 3u + 2u] = g_c_med.z;
-        grad_sigma_att[i * 3u] = g_att.x;
-        grad_sigma_att[i * 3u + 1u] = g_att.y;
-        grad_sigma_att[i * 3u + 2u] = g_att.z;
-        grad_sigma_bs[i * 3u] = g_bs.x;
-        grad_sigma_bs[i * 3u + 1u] = g_bs.y;
-        grad_sigma_bs[i * 3u + 2u] = g_bs.z;
+        write_medium_grads(x, y, st);
+    }
+}
+
+@compute @workgroup_size(256)
+fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
+                             @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    let tile = wg.y * params.tiles_x + wg.x;
+    let x = wg.x * TILE + t_index % TILE;
+    let y = wg.y * TILE + t_index / TILE;
+    let inside = x < params.width && y < params.height;
+    let p = pixel_inputs(x, y);
+    var st = pixel_state(p);
+    // The same for every invocation of the workgroup (read by each: no barrier needed).
+    let start = tile_offsets[tile];
+    let stop = tile_offsets[tile + 1u];
+    let end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
+
+    var batch_end = stop;
+    while (batch_end > start) {
+        let count = min(sg, batch_end - start);
+        let base = batch_end - count;
+        var own: SplatVecs;
+        if (lane < count) {
+            own = load_splat_vecs(sorted_gaussian[base + lane]);
+        }
+        for (var jj = 0u; jj < count; jj = jj + 1u) {
+            let j = count - 1u - jj;
+            let k = base + j;
+            var s: SplatVecs;
+            s.a = subgroupShuffle(own.a, j);
+            s.b = subgroupShuffle(own.b, j);
+            s.c = subgroupShuffle(own.c, j);
+            var c: Contribution;
+            if (inside && k < end) {
+                c = backprop_splat(p, &st, s);
+            } else {
+                c.a = vec4<f32>(0.0);
+                c.b = vec4<f32>(0.0);
+                c.c = vec4<f32>(0.0);
+                c.pixels = 0.0;
+            }
+            if (subgroupAny(c.pixels > 0.0)) {
+                let s0 = subgroupAdd(c.a);
+                let s1 = subgroupAdd(c.b);
+                let s2 = subgroupAdd(c.c);
+                let s3 = subgroupAdd(c.pixels);
+                if (lane == 0u) {
+                    let o = k * GRAD_FLOATS;
+                    atomicAdd(&partials_sum[o], s0.x);
+                    atomicAdd(&partials_sum[o + 1u], s0.y);
+                    atomicAdd(&partials_sum[o + 2u], s0.z);
+                    atomicAdd(&partials_sum[o + 3u], s0.w);
+                    atomicAdd(&partials_sum[o + 4u], s1.x);
+                    atomicAdd(&partials_sum[o + 5u], s1.y);
+                    atomicAdd(&partials_sum[o + 6u], s1.z);
+                    atomicAdd(&partials_sum[o + 7u], s1.w);
+                    atomicAdd(&partials_sum[o + 8u], s2.x);
+                    atomicAdd(&partials_sum[o + 9u], s2.y);
+                    atomicAdd(&partials_sum[o + 10u], s2.z);
+                    atomicAdd(&partials_sum[o + 11u], s2.w);
+                    atomicAdd(&partial_pixels_sum[k], u32(s3));
+                }
+            }
+        }
+        batch_end = base;
+    }
+    if (inside) {
+        write_medium_grads(x, y, st);
     }
 }
 

@@ -382,6 +382,14 @@ fn rasterize_backward_matches_the_cpu_reference() {
         "grad_sigma_att",
         "grad_sigma_bs"
     ]);
+    assert!(!table.float_atomics);
+    // The atomic variant: the same buffers, its sums through atomic views of the partials.
+    let atomic = Kernel::RasterizeBackwardRasterizeBackwardAtomic.info();
+    assert!(atomic.float_atomics);
+    let atomic_names: Vec<&str> = atomic.bindings.iter().map(|b| b.name).collect();
+    let mut want_names: Vec<&str> = names.iter().filter(|n| !n.starts_with("partial")).copied().collect();
+    want_names.extend(["partials_sum", "partial_pixels_sum"]);
+    assert_eq!(atomic_names, want_names);
     let reduce: Vec<&str> = Kernel::RasterizeBackwardReduceIsectGrads.info().bindings.iter().map(|b| b.name).collect();
     assert_eq!(reduce, ["isect_offsets", "slot_to_sorted", "in_partials", "in_partial_pixels", "splat_grads", "splat_pixels"]);
     for (mode, seed) in [(DepthMode::InverseDepth, 23), (DepthMode::Depth, 24)] {
@@ -433,61 +441,72 @@ fn rasterize_backward_matches_the_cpu_reference() {
         raster.upload_medium(&mut ctx, &medium).unwrap();
         raster.upload_output(&mut ctx, &fwd).unwrap();
         bwd.upload_upstream(&mut ctx, &up).unwrap();
-        // Garbage in every output, so a value the kernels fail to write is caught.
-        ctx.begin().unwrap();
-        for r in [bwd.partials.range(), bwd.splat_grads.range(), bwd.grad_c_med.range(), bwd.grad_sigma_att.range(), bwd.grad_sigma_bs.range()] {
-            ctx.fill(r, 0x7fc0_0000).unwrap(); // NaN
-        }
-        ctx.fill(bwd.partial_pixels.range(), 0xdead).unwrap();
-        ctx.fill(bwd.splat_pixels.range(), 0xdead).unwrap();
-        bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
-        ctx.submit_and_wait().unwrap();
-        let mut got = vec![SplatGrad::default(); n];
-        let mut got_medium = MediumPlanes::new(w, h);
-        bwd.read(&ctx, &mut got, &mut got_medium).unwrap();
-        let mut got_partials = vec![SplatGrad::default(); cpu.total];
-        bwd.read_partials(&ctx, &mut got_partials).unwrap();
-        // No float atomics: a second run gives the same bits.
-        ctx.begin().unwrap();
-        bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
-        ctx.submit_and_wait().unwrap();
-        let mut again = vec![SplatGrad::default(); n];
-        let mut again_medium = MediumPlanes::new(w, h);
-        bwd.read(&ctx, &mut again, &mut again_medium).unwrap();
-        let bits = |v: &[SplatGrad<f32>]| v.iter().flat_map(|g| grad_values(g).map(f32::to_bits)).collect::<Vec<u32>>();
-        assert_eq!(bits(&again), bits(&got), "{mode:?}: two GPU backward passes differ");
-        assert_eq!(again_medium, got_medium, "{mode:?}: two GPU backward passes differ in the medium gradients");
-        ctx.arena_reset_to(arena_mark);
+        // Deterministic mode (reductions), then float atomics where the device has them.
+        for deterministic in [true, false] {
+            let mode_name = if ctx.set_deterministic(deterministic) { "deterministic" } else { "atomic" };
+            if !deterministic && mode_name == "deterministic" {
+                eprintln!("{mode:?}: the device has no float atomics: rasterize_backward_atomic not run");
+                continue;
+            }
+            // Garbage in every output, so a value the kernels fail to write is caught.
+            ctx.begin().unwrap();
+            for r in [bwd.partials.range(), bwd.splat_grads.range(), bwd.grad_c_med.range(), bwd.grad_sigma_att.range(), bwd.grad_sigma_bs.range()] {
+                ctx.fill(r, 0x7fc0_0000).unwrap(); // NaN
+            }
+            ctx.fill(bwd.partial_pixels.range(), 0xdead).unwrap();
+            ctx.fill(bwd.splat_pixels.range(), 0xdead).unwrap();
+            bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+            ctx.submit_and_wait().unwrap();
+            let mut got = vec![SplatGrad::default(); n];
+            let mut got_medium = MediumPlanes::new(w, h);
+            bwd.read(&ctx, &mut got, &mut got_medium).unwrap();
+            let mut got_partials = vec![SplatGrad::default(); cpu.total];
+            bwd.read_partials(&ctx, &mut got_partials).unwrap();
+            if deterministic {
+                // No float atomics: a second run gives the same bits.
+                ctx.begin().unwrap();
+                bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+                ctx.submit_and_wait().unwrap();
+                let mut again = vec![SplatGrad::default(); n];
+                let mut again_medium = MediumPlanes::new(w, h);
+                bwd.read(&ctx, &mut again, &mut again_medium).unwrap();
+                let bits = |v: &[SplatGrad<f32>]| v.iter().flat_map(|g| grad_values(g).map(f32::to_bits)).collect::<Vec<u32>>();
+                assert_eq!(bits(&again), bits(&got), "{mode:?}: two GPU backward passes differ");
+                assert_eq!(again_medium, got_medium, "{mode:?}: two GPU backward passes differ in the medium gradients");
+            }
 
-        // Pixel counts are integers: exact, per intersection and per Gaussian.
-        let counts = |v: &[SplatGrad<f32>]| v.iter().map(|g| g.pixels).collect::<Vec<u32>>();
-        assert_eq!(counts(&got_partials), counts(&want_partials), "{mode:?}: pixels per intersection");
-        assert_eq!(counts(&got), counts(&want), "{mode:?}: pixels per Gaussian");
-        let touched = want.iter().filter(|g| g.pixels > 0).count();
-        assert!(touched > n / 5, "{mode:?}: scene too sparse, {touched} of {n} Gaussians touch a pixel");
-        let mut worst = [0.0f64; GRAD_FLOATS];
-        for (f, name) in GRAD_FIELDS.iter().enumerate() {
-            let field = |v: &[SplatGrad<f32>]| v.iter().map(|g| grad_values(g)[f]).collect::<Vec<f32>>();
-            check_grads(&format!("{mode:?} intersection {name}"), &field(&got_partials), &field(&want_partials));
-            worst[f] = check_grads(&format!("{mode:?} Gaussian {name}"), &field(&got), &field(&want));
+            // Pixel counts are integers: exact, per intersection and per Gaussian.
+            let counts = |v: &[SplatGrad<f32>]| v.iter().map(|g| g.pixels).collect::<Vec<u32>>();
+            assert_eq!(counts(&got_partials), counts(&want_partials), "{mode:?} {mode_name}: pixels per intersection");
+            assert_eq!(counts(&got), counts(&want), "{mode:?} {mode_name}: pixels per Gaussian");
+            let touched = want.iter().filter(|g| g.pixels > 0).count();
+            assert!(touched > n / 5, "{mode:?}: scene too sparse, {touched} of {n} Gaussians touch a pixel");
+            let mut worst = [0.0f64; GRAD_FLOATS];
+            for (f, name) in GRAD_FIELDS.iter().enumerate() {
+                let field = |v: &[SplatGrad<f32>]| v.iter().map(|g| grad_values(g)[f]).collect::<Vec<f32>>();
+                check_grads(&format!("{mode:?} {mode_name} intersection {name}"), &field(&got_partials), &field(&want_partials));
+                worst[f] = check_grads(&format!("{mode:?} {mode_name} Gaussian {name}"), &field(&got), &field(&want));
+            }
+            let mut worst_medium = [0.0f64; 3];
+            for (k, (name, a, b)) in [
+                ("dL/dc_med", &got_medium.c_med.data, &want_medium.c_med.data),
+                ("dL/dsigma_att", &got_medium.sigma_att.data, &want_medium.sigma_att.data),
+                ("dL/dsigma_bs", &got_medium.sigma_bs.data, &want_medium.sigma_bs.data),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                worst_medium[k] = check_grads(&format!("{mode:?} {mode_name} {name}"), a, b);
+            }
+            eprintln!(
+                "{mode:?} {mode_name}: {} intersections, {touched} Gaussians touched; worst scaled error per field {:?}; medium c_med/att/bs {:?}",
+                cpu.total,
+                worst.map(|e| format!("{e:.1e}")),
+                worst_medium.map(|e| format!("{e:.1e}")),
+            );
         }
-        let mut worst_medium = [0.0f64; 3];
-        for (k, (name, a, b)) in [
-            ("dL/dc_med", &got_medium.c_med.data, &want_medium.c_med.data),
-            ("dL/dsigma_att", &got_medium.sigma_att.data, &want_medium.sigma_att.data),
-            ("dL/dsigma_bs", &got_medium.sigma_bs.data, &want_medium.sigma_bs.data),
-        ]
-        .into_iter()
-        .enumerate()
-        {
-            worst_medium[k] = check_grads(&format!("{mode:?} {name}"), a, b);
-        }
-        eprintln!(
-            "{mode:?}: {} intersections, {touched} Gaussians touched; worst scaled error per field {:?}; medium c_med/att/bs {:?}",
-            cpu.total,
-            worst.map(|e| format!("{e:.1e}")),
-            worst_medium.map(|e| format!("{e:.1e}")),
-        );
+        ctx.set_deterministic(false);
+        ctx.arena_reset_to(arena_mark);
     }
 }
 

@@ -1,7 +1,8 @@
 //! The whole mapper on the Vulkan renderer (`Mapper::use_device`) against the same mapper on
 //! the CPU reference: a whole optimisation run on a generated sequence, bit-identical repeat
-//! runs, and the tile-overflow policy on both renderers. Runs on lavapipe in CI; no Vulkan
-//! device fails these tests (the mapper would fall back to the CPU, which they check for).
+//! runs in deterministic mode, and the tile-overflow policy on both renderers. Runs on
+//! lavapipe in CI; no Vulkan device fails these tests (the mapper would fall back to the CPU,
+//! which they check for).
 
 use duv::gpu::GpuOptions;
 use duv::map::gaussians::{GaussianParam, Gaussians, ParamGroup};
@@ -29,8 +30,12 @@ fn gpu_options() -> GpuOptions {
 
 /// A mapper on `device` with the keyframes added (the Vulkan one must really be on Vulkan).
 fn mapper_on(device: MapperDevice, config: MapperConfig, kfs: &[SimKeyframe], max_gaussians: usize) -> Mapper {
+    mapper_with(device, config, kfs, max_gaussians, &gpu_options())
+}
+
+fn mapper_with(device: MapperDevice, config: MapperConfig, kfs: &[SimKeyframe], max_gaussians: usize, options: &GpuOptions) -> Mapper {
     let mut m = Mapper::new(config, MapperCapacity { max_gaussians, max_keyframes: 8, width: W, height: H }).unwrap();
-    let what = m.use_device(device, &gpu_options()).unwrap();
+    let what = m.use_device(device, options).unwrap();
     if device == MapperDevice::Vulkan {
         assert!(m.renders_on_vulkan(), "no Vulkan device: the mapper fell back to {what}");
     } else {
@@ -117,8 +122,9 @@ fn vulkan_mapper_runs_are_bit_identical() {
     let kfs = sequence(WaterPreset::Coastal);
     let config = MapperConfig { densify_every: 10, densify_start: 10, ..MapperConfig::default() };
     let mut maps = Vec::new();
+    let options = GpuOptions { deterministic: true, ..gpu_options() };
     for _ in 0..2 {
-        let mut m = mapper_on(MapperDevice::Vulkan, config.clone(), &kfs, 3000);
+        let mut m = mapper_with(MapperDevice::Vulkan, config.clone(), &kfs, 3000, &options);
         for _ in 0..25 {
             m.iterate().unwrap();
         }

@@ -142,9 +142,14 @@ fn device_choice_and_pipeline_cache_on_disk() {
         arena_bytes: 1 << 20,
         device: device.map(str::to_owned),
         pipeline_cache_dir: Some(dir.path().to_path_buf()),
+        deterministic: device.is_none(),
     };
     // By index and by a case-insensitive substring of the name.
-    let by_index = GpuContext::new(&options(Some("0"))).unwrap();
+    let mut by_index = GpuContext::new(&options(Some("0"))).unwrap();
+    // Float atomics unless asked for deterministic mode (or the device lacks them).
+    assert_eq!(by_index.deterministic(), !by_index.info().float_atomics);
+    assert!(by_index.set_deterministic(true));
+    assert_eq!(by_index.set_deterministic(false), !by_index.info().float_atomics);
     let file = by_index.info().pipeline_cache_file.clone().expect("cache file");
     assert!(file.starts_with(dir.path()));
     let file_name = file.file_name().unwrap().to_string_lossy().into_owned();
@@ -166,6 +171,7 @@ fn device_choice_and_pipeline_cache_on_disk() {
     }
     // The arena is the budget: more than it holds is refused, naming the buffer.
     let mut small = GpuContext::new(&options(None)).unwrap();
+    assert!(small.deterministic(), "GpuOptions::deterministic was set");
     match small.alloc::<u32>("too big", (1 << 20) / 4 + 1) {
         Err(GpuError::ArenaFull { what, .. }) => assert_eq!(what, "too big"),
         other => panic!("expected ArenaFull, got {other:?}"),

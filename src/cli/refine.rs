@@ -100,6 +100,10 @@ pub struct RefineArgs {
     /// GPU memory for the Vulkan mapper, MiB (every buffer is allocated from it once).
     #[arg(long, default_value_t = 2048)]
     gpu_mb: u32,
+    /// The Vulkan mapper without float atomics (reductions in a fixed order): two runs on one
+    /// device give bit-identical maps.
+    #[arg(long)]
+    deterministic: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -200,7 +204,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let cam = keyframes[0].camera;
     let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: a.max_keyframes.max(keyframes.len()), width: cam.width, height: cam.height };
     let mut mapper = if a.from_logged_map { mapper_from_logged_map(logged_map, &keyframes, capacity)? } else { Mapper::new(config, capacity)? };
-    let renderer = mapper.use_device(a.mapper, &GpuOptions::with_budget_mb(a.gpu_mb))?;
+    let renderer = mapper.use_device(a.mapper, &GpuOptions { deterministic: a.deterministic, ..GpuOptions::with_budget_mb(a.gpu_mb) })?;
     if !a.quiet {
         eprintln!("refine: rendering with {renderer}");
     }

@@ -73,7 +73,8 @@ pub struct RunArgs {
     /// Pace the source at its time stamps divided by this factor (1 = recorded timing).
     #[arg(long)]
     pub speed: Option<f64>,
-    /// Single-threaded, no drops, seeded: bit-identical output for the same input.
+    /// Single-threaded, no drops, seeded, and the Vulkan mapper without float atomics:
+    /// bit-identical output for the same input on the same device.
     #[arg(long)]
     pub deterministic: bool,
     /// Start over: an output folder with a log is refused instead of resumed.
@@ -445,7 +446,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let scratch = args.out.join("checkpoints").join("map-scratch.ckpt");
         std::fs::create_dir_all(args.out.join("checkpoints"))?;
         let mut mapping = StageMapping::new(stage, kf_dir.clone(), scratch, args.map_idle_iterations, args.map_final_iterations);
-        let renderer = mapping.use_device(args.mapper, GpuOptions::with_budget_mb(board.budgets.gpu_mb)).map_err(|e| anyhow::anyhow!("mapper (--mapper {:?}): {e}", args.mapper))?;
+        let gpu = GpuOptions { deterministic: args.deterministic, ..GpuOptions::with_budget_mb(board.budgets.gpu_mb) };
+        let renderer = mapping.use_device(args.mapper, gpu).map_err(|e| anyhow::anyhow!("mapper (--mapper {:?}): {e}", args.mapper))?;
         eprintln!("mapper renders with {renderer}");
         Box::new(mapping)
     };

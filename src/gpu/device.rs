@@ -33,6 +33,10 @@ pub struct GpuOptions {
     pub device: Option<String>,
     /// Folder of the on-disk pipeline cache; `None` disables it.
     pub pipeline_cache_dir: Option<PathBuf>,
+    /// Deterministic mode: reductions instead of float atomics, so two runs on one device
+    /// give bit-identical results (hardware-in-loop regression). Off by default, and forced
+    /// on where the device has no float atomics.
+    pub deterministic: bool,
 }
 
 impl GpuOptions {
@@ -43,7 +47,7 @@ impl GpuOptions {
             .map(PathBuf::from)
             .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
             .map(|d| d.join("duv"));
-        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache }
+        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache, deterministic: false }
     }
 }
 
@@ -61,6 +65,8 @@ pub struct DeviceInfo {
     /// Nanoseconds per timestamp tick; `None` when the queue has no timestamps.
     pub timestamp_period_ns: Option<f32>,
     pub subgroup_size: u32,
+    /// Float atomic add on storage buffers (VK_EXT_shader_atomic_float) is enabled.
+    pub float_atomics: bool,
     /// Where the pipeline cache lives, when enabled.
     pub pipeline_cache_file: Option<PathBuf>,
 }
@@ -68,7 +74,8 @@ pub struct DeviceInfo {
 impl std::fmt::Display for DeviceInfo {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let (a, b, c) = self.api_version;
-        write!(f, "{} ({}, Vulkan {a}.{b}.{c}, driver {}, subgroup {})", self.name, self.device_type, self.driver, self.subgroup_size)
+        let atomics = if self.float_atomics { "float atomics" } else { "no float atomics" };
+        write!(f, "{} ({}, Vulkan {a}.{b}.{c}, driver {}, subgroup {}, {atomics})", self.name, self.device_type, self.driver, self.subgroup_size)
     }
 }
 
@@ -117,6 +124,8 @@ pub struct GpuContext {
     pipelines: Vec<Pipeline>,
     max_groups: [u32; 3],
     info: DeviceInfo,
+    /// Reductions instead of float atomics ([`GpuOptions::deterministic`]).
+    deterministic: bool,
     recording: bool,
     recorded: usize,
     recorded_kernels: [Kernel; MAX_DISPATCHES],
@@ -161,6 +170,8 @@ struct Candidate {
     rank: u32,
     queue_family: u32,
     timestamp_bits: u32,
+    /// VK_EXT_shader_atomic_float with `shaderBufferFloat32AtomicAdd`.
+    float_atomics: bool,
 }
 
 /// The Vulkan loader, loaded once per process and never unloaded. Loading and unloading
@@ -235,6 +246,12 @@ impl GpuContext {
                 seen.last_mut().expect("pushed above").push_str(" without compute subgroup basic/vote/shuffle/arithmetic");
                 continue;
             }
+            let float_atomics = exts.iter().any(|e| e.extension_name_as_c_str() == Ok(ash::ext::shader_atomic_float::NAME)) && {
+                let mut atomic = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
+                let mut features2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut atomic);
+                unsafe { instance.get_physical_device_features2(physical, &mut features2) };
+                atomic.shader_buffer_float32_atomic_add == vk::TRUE
+            };
             let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
             // Prefer a compute-only queue family, else any with compute.
             let family = families
@@ -250,6 +267,7 @@ impl GpuContext {
                     rank: type_rank(props.device_type),
                     queue_family: qf as u32,
                     timestamp_bits: f.timestamp_valid_bits,
+                    float_atomics,
                 });
             }
         }
@@ -278,8 +296,13 @@ impl GpuContext {
         };
         let queue_priorities = [1.0f32];
         let queue_info = [vk::DeviceQueueCreateInfo::default().queue_family_index(cand.queue_family).queue_priorities(&queue_priorities)];
-        let ext_names = [ash::khr::push_descriptor::NAME.as_ptr()];
-        let device_info = vk::DeviceCreateInfo::default().queue_create_infos(&queue_info).enabled_extension_names(&ext_names);
+        let ext_names = [ash::khr::push_descriptor::NAME.as_ptr(), ash::ext::shader_atomic_float::NAME.as_ptr()];
+        let mut atomic = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default().shader_buffer_float32_atomic_add(true);
+        let mut device_info =
+            vk::DeviceCreateInfo::default().queue_create_infos(&queue_info).enabled_extension_names(&ext_names[..1 + cand.float_atomics as usize]);
+        if cand.float_atomics {
+            device_info = device_info.push_next(&mut atomic);
+        }
         let device = match unsafe { instance.create_device(cand.physical, &device_info, None) } {
             Ok(d) => d,
             Err(result) => return Err((instance, GpuError::Vulkan { call: "vkCreateDevice", result })),
@@ -328,8 +351,10 @@ impl GpuContext {
                 api_version: (0, 0, 0),
                 timestamp_period_ns: None,
                 subgroup_size: 0,
+                float_atomics: cand.float_atomics,
                 pipeline_cache_file: None,
             },
+            deterministic: !cand.float_atomics,
             recording: false,
             recorded: 0,
             recorded_kernels: [Kernel::all().next().expect("at least one kernel"); MAX_DISPATCHES],
@@ -450,8 +475,15 @@ impl GpuContext {
         };
         self.info.pipeline_cache_file = cache_file;
 
+        self.deterministic = options.deterministic || !self.info.float_atomics;
         for kernel in Kernel::all() {
-            let p = self.build_pipeline(kernel)?;
+            // A kernel with float atomics has no pipeline on a device without them (a null
+            // pipeline; dispatching it is an error).
+            let p = if kernel.info().float_atomics && !self.info.float_atomics {
+                Pipeline { set_layout: vk::DescriptorSetLayout::null(), layout: vk::PipelineLayout::null(), pipeline: vk::Pipeline::null() }
+            } else {
+                self.build_pipeline(kernel)?
+            };
             self.pipelines.push(p);
         }
         // A cache that cannot be written costs start-up time only: warn, go on.
@@ -525,6 +557,19 @@ impl GpuContext {
         let tmp = file.with_extension(format!("tmp.{}.{seq}", std::process::id()));
         std::fs::write(&tmp, &data).map_err(io)?;
         std::fs::rename(&tmp, file).map_err(io)
+    }
+
+    /// Deterministic mode: the kernels that would add with float atomics use reductions in a
+    /// fixed order instead. Always true on a device without float atomics.
+    pub fn deterministic(&self) -> bool {
+        self.deterministic
+    }
+
+    /// Switches deterministic mode (see [`GpuOptions::deterministic`]); returns the mode in
+    /// effect, which stays deterministic on a device without float atomics.
+    pub fn set_deterministic(&mut self, on: bool) -> bool {
+        self.deterministic = on || !self.info.float_atomics;
+        self.deterministic
     }
 
     pub fn info(&self) -> &DeviceInfo {
@@ -651,6 +696,9 @@ impl GpuContext {
                 .buffer_info(std::slice::from_ref(&infos[i]));
         }
         let p = &self.pipelines[kernel as usize];
+        if p.pipeline == vk::Pipeline::null() {
+            return Err(GpuError::NoFloatAtomics { kernel: name });
+        }
         let cb = self.command_buffer;
         let slot = self.recorded as u32;
         unsafe {

@@ -35,6 +35,9 @@ pub struct KernelInfo {
     pub workgroup_size: [u32; 3],
     /// Size of the `var<immediate>` (push-constant) block, 0 when none.
     pub immediate_bytes: u32,
+    /// Uses `atomic<f32>` (needs `shaderBufferFloat32AtomicAdd`, VK_EXT_shader_atomic_float);
+    /// its pipeline exists only on devices that have it.
+    pub float_atomics: bool,
     /// The bindings the entry point uses, sorted by binding number; buffers are passed to a
     /// dispatch in this order.
     pub bindings: &'static [BindingInfo],

@@ -65,6 +65,8 @@ pub enum GpuError {
     ArenaTooLarge { requested: u64, limit: u64 },
     #[error("{what} called outside begin()/submit_and_wait()")]
     NotRecording { what: &'static str },
+    #[error("kernel {kernel} needs float atomics (VK_EXT_shader_atomic_float), which this device lacks; use deterministic mode")]
+    NoFloatAtomics { kernel: &'static str },
     #[error("pipeline cache {path}: {source}")]
     PipelineCacheIo { path: String, source: std::io::Error },
 }

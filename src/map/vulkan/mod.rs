@@ -9,7 +9,7 @@
 //! | depth/tile key sort | `radix_sort.*` (via `gpu::ops`) | `radix_sort_pairs` |
 //! | tile ranges, index maps | `tile_ranges.{tile_ranges, gather_sorted, invert_permutation}` | `tile_ranges`, `gather_sorted_gaussians`, `invert_permutation` |
 //! | rasterise forward with the medium | `rasterize.rasterize` | `rasterize_forward` |
-//! | rasterise backward, per-Gaussian sums | `rasterize_backward.{rasterize_backward, reduce_isect_grads}` | `rasterize_backward`, `reduce_isect_grads` |
+//! | rasterise backward, per-Gaussian sums | `rasterize_backward.{rasterize_backward, rasterize_backward_atomic, reduce_isect_grads}` | `rasterize_backward`, `reduce_isect_grads` |
 //! | projection backward | `project_backward.project_backward` | `project_backward` |
 //! | Adam | `adam.adam_step` | `AdamGroup::step` |
 //! | losses and their gradients ([`loss`]) | `loss.*` | `total_loss` |
@@ -21,8 +21,13 @@
 //! [`GpuProjectBackward`] own their buffers, allocated once from the arena for a fixed
 //! capacity; [`GpuForwardRenderer`] runs the forward stages as `RasterWorkspace::forward`
 //! does, [`GpuRenderer`] the forward and the backward as `RasterWorkspace::{forward,
-//! backward}` do (one submission for the backward). No kernel uses float atomics (the backward writes one gradient per intersection and
-//! sums them per Gaussian), so results are bit-identical from run to run on one device.
+//! backward}` do (one submission for the backward). The backward writes one gradient per
+//! intersection and sums them per Gaussian. Within a tile, a subgroup's sums are added to the
+//! intersection's gradient with float atomics (`rasterize_backward_atomic`) by default; in
+//! deterministic mode ([`crate::gpu::GpuOptions::deterministic`], and on devices without
+//! float atomics) through workgroup memory in subgroup order (`rasterize_backward`), so
+//! results are bit-identical from run to run on one device. No other kernel adds floats with
+//! atomics.
 //! [`RenderBackend`] is what the mapper renders with: these stages, or the CPU reference
 //! ([`MapperDevice`] chooses; no Vulkan device at all falls back with one warning).
 //!
@@ -473,7 +478,8 @@ impl GpuRasterBackward {
     }
 
     /// Records `rasterize_backward` over the grid (one [`SplatGrad`] per sorted intersection
-    /// in `partials`, the medium gradients per pixel), then `reduce_isect_grads` over `n`
+    /// in `partials`, the medium gradients per pixel; `rasterize_backward_atomic` with float
+    /// atomics unless the context is deterministic), then `reduce_isect_grads` over `n`
     /// Gaussians (their intersection offsets `isect_offsets`). The forward outputs are read
     /// from `fwd`, the medium planes too. CPU reference: `rasterize_backward` +
     /// `reduce_isect_grads`.
@@ -506,29 +512,38 @@ impl GpuRasterBackward {
             DepthMode::Depth => 1,
         };
         let params = [fx.to_bits(), fy.to_bits(), cx.to_bits(), cy.to_bits(), grid.width as u32, grid.height as u32, grid.tiles_x as u32, mode];
-        let bufs = [
-            splats.range(),
-            bin.sorted_gaussian.range(),
-            bin.tile_offsets.range(),
-            fwd.c_med.range(),
-            fwd.sigma_att.range(),
-            fwd.sigma_bs.range(),
-            fwd.scalars.range(),
-            fwd.isect_end.range(),
-            self.up_colour.range(),
-            self.up_restored.range(),
-            self.up_scalars.range(),
-            self.partials.range(),
-            self.partial_pixels.range(),
-            self.grad_c_med.range(),
-            self.grad_sigma_att.range(),
-            self.grad_sigma_bs.range(),
-        ];
-        ctx.dispatch(Kernel::RasterizeBackwardRasterizeBackward, &bufs, bytemuck::bytes_of(&params), [
-            grid.tiles_x as u32,
-            grid.tiles_y as u32,
-            1,
-        ])?;
+        let kernel = if ctx.deterministic() {
+            Kernel::RasterizeBackwardRasterizeBackward
+        } else {
+            // The atomic kernel adds into zeroed partials.
+            if n_isects > 0 {
+                ctx.fill(self.partials.slice_range(0, n_isects * GRAD_FLOATS)?, 0)?;
+                ctx.fill(self.partial_pixels.slice_range(0, n_isects)?, 0)?;
+            }
+            Kernel::RasterizeBackwardRasterizeBackwardAtomic
+        };
+        let lookup = |name: &str| {
+            Some(match name {
+                "splats" => splats.range(),
+                "sorted_gaussian" => bin.sorted_gaussian.range(),
+                "tile_offsets" => bin.tile_offsets.range(),
+                "c_med" => fwd.c_med.range(),
+                "sigma_att" => fwd.sigma_att.range(),
+                "sigma_bs" => fwd.sigma_bs.range(),
+                "fwd_scalars" => fwd.scalars.range(),
+                "fwd_isect_end" => fwd.isect_end.range(),
+                "up_colour" => self.up_colour.range(),
+                "up_restored" => self.up_restored.range(),
+                "up_scalars" => self.up_scalars.range(),
+                "partials" | "partials_sum" => self.partials.range(),
+                "partial_pixels" | "partial_pixels_sum" => self.partial_pixels.range(),
+                "grad_c_med" => self.grad_c_med.range(),
+                "grad_sigma_att" => self.grad_sigma_att.range(),
+                "grad_sigma_bs" => self.grad_sigma_bs.range(),
+                _ => return None,
+            })
+        };
+        ctx.dispatch_named(kernel, lookup, bytemuck::bytes_of(&params), [grid.tiles_x as u32, grid.tiles_y as u32, 1])?;
         if n == 0 {
             return Ok(());
         }
