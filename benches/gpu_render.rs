@@ -2,7 +2,8 @@
 //! CPU reference (`RasterWorkspace::forward` + `backward`) in the same run: 320x240 and
 //! 640x480 with 20k and 100k random Gaussians (the scenes of `benches/render.rs`) and random
 //! upstream gradients. Medians of several runs, the GPU time including uploads and
-//! read-backs, then the per-kernel GPU timestamps (forward and backward kernels).
+//! read-backs, then the per-kernel GPU timestamps (forward and backward kernels), and the
+//! backward again in deterministic mode (no float atomics) where the device has them.
 //!
 //! Then the whole mapper step (`Mapper::step_on`: medium network, forward, losses, backward,
 //! Adam) on the Vulkan mapper (map, Adam and medium network on the device) against the CPU
@@ -10,7 +11,8 @@
 //!
 //! Run: `cargo bench --bench gpu_render` (release; `DUV_VULKAN_DEVICE` picks the device);
 //! `cargo bench --bench gpu_render -- --quick`: 320x240 with 20k Gaussians only, 3 runs (a CPU
-//! Vulkan device such as lavapipe takes seconds per backward pass).
+//! Vulkan device such as lavapipe takes seconds per backward pass); `-- --gaussians N` runs
+//! that count only.
 
 #[path = "../tests/common/render_scene.rs"]
 mod render_scene;
@@ -66,7 +68,15 @@ fn main() {
     ctx.arena_reset_to(mark);
     let config = RenderConfig::default();
     let sizes: &[(usize, usize)] = if quick { &[(320, 240)] } else { &[(320, 240), (640, 480)] };
-    let counts: &[usize] = if quick { &[20_000] } else { &[20_000, 100_000] };
+    // `--gaussians N`: that count only (with `--quick`: at 320x240).
+    let args: Vec<String> = std::env::args().collect();
+    let only: Option<usize> = args.iter().position(|a| a == "--gaussians").and_then(|i| args.get(i + 1)).map(|v| v.parse().expect("--gaussians N"));
+    let only = only.map(|n| [n]);
+    let counts: &[usize] = match &only {
+        Some(n) => n,
+        None if quick => &[20_000],
+        None => &[20_000, 100_000],
+    };
     for &(w, h) in sizes {
         let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
         let cam_from_world = world_from_cam().inverse();
@@ -132,6 +142,20 @@ fn main() {
             for (k, d, ms) in ctx.profile().rows() {
                 println!("    {:<48} {:8.3} ms per iteration ({} dispatches)", k.name(), ms / runs as f64, d / runs as u64);
             }
+            // The backward in deterministic mode (no float atomics), same inputs.
+            if !ctx.deterministic() {
+                ctx.set_deterministic(true);
+                let mut det_b = Vec::new();
+                for _ in 0..runs {
+                    gpu_grads.reset(n).unwrap();
+                    let t = Instant::now();
+                    gpu.backward(&mut ctx, &gaussians, &medium, &gpu_out, &up, &mut gpu_grads, &mut gpu_medium_grads).unwrap();
+                    det_b.push(t.elapsed());
+                }
+                ctx.set_deterministic(false);
+                let db = median_ms(&mut det_b);
+                println!("    backward in deterministic mode (fixed-order reduction instead of float atomics): {db:.2} ms ({:.2}x the atomic backward)", db / gb);
+            }
             println!("    GPU buffers of this renderer: {used_mib:.1} MiB of the {} MiB arena", ctx.arena_capacity_bytes() >> 20);
             ctx.arena_reset_to(mark);
         }
@@ -171,11 +195,23 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
         };
         m.add_keyframe(&kf).unwrap();
         m.step_on(0).unwrap();
+        let before = m.gpu().map(|g| g.profile().clone());
         let mut samples = Vec::new();
         for _ in 0..runs {
             let t = Instant::now();
             m.step_on(0).unwrap();
             samples.push(t.elapsed());
+        }
+        // Per-kernel GPU time of the Vulkan mapper's steps (timestamp queries).
+        if let (Some(before), Some(gpu)) = (before, m.gpu()) {
+            println!("Vulkan mapper step {w}x{h}, {n} Gaussians, per kernel:");
+            for (k, d, ms) in gpu.profile().rows() {
+                let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);
+                let ms = ms - ns0 * 1e-6;
+                if d > d0 {
+                    println!("    {:<48} {:8.3} ms per step ({} dispatches)", k.name(), ms / runs as f64, (d - d0) / runs as u64);
+                }
+            }
         }
         times.push((what, median_ms(&mut samples), m.gaussians().len()));
     }

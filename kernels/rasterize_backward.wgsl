@@ -11,14 +11,16 @@
 // gradient floats and the pixel count) are summed within the subgroup (`subgroupAdd`) and each
 // subgroup's sums go to workgroup memory; after each step of `sg` intersections one barrier,
 // then the subgroups' sums are added in subgroup order and one SplatGrad per sorted
-// intersection is written. No float atomics, a fixed order on a given device: repeated runs
-// are bit-identical. Each pixel writes the gradient with respect to its medium parameters.
+// intersection is written (zero behind the last splat a pixel of the tile blended, where the
+// walk starts). No float atomics, a fixed order on a given device: repeated runs are
+// bit-identical. Each pixel writes the gradient with respect to its medium parameters.
 //
 // `rasterize_backward_atomic` (the default where the device has VK_EXT_shader_atomic_float):
 // the same per-pixel arithmetic and subgroup sums, then lane 0 adds its subgroup's sums to the
 // intersection's partials with float atomics (zeroed before the dispatch). No workgroup
 // memory, no barriers, no workgroup-wide reduction, which took 60% of the backward on
-// lavapipe; the order of the additions, and so the last bits, vary between runs.
+// lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
+// tile's last. The order of the additions, and so the last bits, may vary between runs.
 //
 // `reduce_isect_grads`: one thread per Gaussian sums its intersections' partials, found
 // through the inverse sort permutation.
@@ -81,6 +83,9 @@ struct SplatVecs {
 var<workgroup> red: array<f32, 3328>;
 var<workgroup> wg_start: u32;
 var<workgroup> wg_stop: u32;
+// The largest `end` of the tile's pixels (where the walk starts), gathered then broadcast.
+var<workgroup> wg_end_max: atomic<u32>;
+var<workgroup> wg_top: u32;
 
 fn load_splat_vecs(g: u32) -> SplatVecs {
     let o = g * SPLAT_FLOATS;
@@ -281,14 +286,38 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
     if (t_index == 0u) {
         wg_start = tile_offsets[tile];
         wg_stop = tile_offsets[tile + 1u];
+        atomicStore(&wg_end_max, 0u);
     }
     // Uniform across the workgroup, so the loop's barriers are in uniform control flow.
     let start = workgroupUniformLoad(&wg_start);
     let stop = workgroupUniformLoad(&wg_stop);
     // Clamped to the tile's range, as the CPU reference does.
-    let end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
+    var end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
+    if (!inside) {
+        end = start;
+    }
+    // The walk starts at the last splat a pixel of the tile blended (where blending stopped
+    // early, most of the tile's list); the intersections behind it get zero gradients.
+    let sub_end = subgroupMax(end);
+    if (lane == 0u) {
+        atomicMax(&wg_end_max, sub_end);
+    }
+    workgroupBarrier();
+    if (t_index == 0u) {
+        wg_top = max(atomicLoad(&wg_end_max), start);
+    }
+    let top = workgroupUniformLoad(&wg_top);
+    for (var i = t_index; i < (stop - top) * RED_VALUES; i = i + 256u) {
+        let k = top + i / RED_VALUES;
+        let v = i % RED_VALUES;
+        if (v < GRAD_FLOATS) {
+            partials[k * GRAD_FLOATS + v] = 0.0;
+        } else {
+            partial_pixels[k] = 0u;
+        }
+    }
 
-    var batch_end = stop;
+    var batch_end = top;
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
@@ -381,9 +410,13 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
     // The same for every invocation of the workgroup (read by each: no barrier needed).
     let start = tile_offsets[tile];
     let stop = tile_offsets[tile + 1u];
-    let end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
-
-    var batch_end = stop;
+    var end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
+    if (!inside) {
+        end = start;
+    }
+    // Without barriers each subgroup walks only the splats one of its pixels blended: from the
+    // largest `end` of its lanes (where blending stopped early, most of the tile's list).
+    var batch_end = subgroupMax(end);
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
