@@ -260,6 +260,42 @@ fn backprop_splat(p: PixelInputs, st: ptr<function, PixelState>, s: SplatVecs) -
     return out;
 }
 
+// The end of the pixel's blended range, clamped to the tile's range as the CPU reference does
+// (`start`, nothing, for a thread outside the image).
+fn pixel_end(x: u32, y: u32, inside: bool, start: u32, stop: u32) -> u32 {
+    if (!inside) {
+        return start;
+    }
+    return clamp(fwd_isect_end[y * params.width + x], start, stop);
+}
+
+// Lane l's splat of the batch `base .. base + count`.
+fn load_batch(base: u32, count: u32, lane: u32) -> SplatVecs {
+    var own: SplatVecs;
+    if (lane < count) {
+        own = load_splat_vecs(sorted_gaussian[base + lane]);
+    }
+    return own;
+}
+
+// The pixel's contribution to the batch's splat j, shared by lane j (zero unless the pixel
+// blended it: `blended`).
+fn splat_contribution(p: PixelInputs, st: ptr<function, PixelState>, own: SplatVecs, j: u32, blended: bool) -> Contribution {
+    var s: SplatVecs;
+    s.a = subgroupShuffle(own.a, j);
+    s.b = subgroupShuffle(own.b, j);
+    s.c = subgroupShuffle(own.c, j);
+    if (blended) {
+        return backprop_splat(p, st, s);
+    }
+    var c: Contribution;
+    c.a = vec4<f32>(0.0);
+    c.b = vec4<f32>(0.0);
+    c.c = vec4<f32>(0.0);
+    c.pixels = 0.0;
+    return c;
+}
+
 fn write_medium_grads(x: u32, y: u32, st: PixelState) {
     let i = y * params.width + x;
     grad_c_med[i * 3u] = st.g_c_med.x;
@@ -291,11 +327,7 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
     // Uniform across the workgroup, so the loop's barriers are in uniform control flow.
     let start = workgroupUniformLoad(&wg_start);
     let stop = workgroupUniformLoad(&wg_stop);
-    // Clamped to the tile's range, as the CPU reference does.
-    var end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
-    if (!inside) {
-        end = start;
-    }
+    let end = pixel_end(x, y, inside, start, stop);
     // The walk starts at the last splat a pixel of the tile blended (where blending stopped
     // early, most of the tile's list); the intersections behind it get zero gradients.
     let sub_end = subgroupMax(end);
@@ -321,27 +353,12 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
-        var own: SplatVecs;
-        if (lane < count) {
-            own = load_splat_vecs(sorted_gaussian[base + lane]);
-        }
+        let own = load_batch(base, count, lane);
         for (var jj = 0u; jj < count; jj = jj + 1u) {
             let j = count - 1u - jj;
             let k = base + j;
-            var s: SplatVecs;
-            s.a = subgroupShuffle(own.a, j);
-            s.b = subgroupShuffle(own.b, j);
-            s.c = subgroupShuffle(own.c, j);
             // This pixel's contribution to intersection k (zero unless blended there).
-            var c: Contribution;
-            if (inside && k < end) {
-                c = backprop_splat(p, &st, s);
-            } else {
-                c.a = vec4<f32>(0.0);
-                c.b = vec4<f32>(0.0);
-                c.c = vec4<f32>(0.0);
-                c.pixels = 0.0;
-            }
+            let c = splat_contribution(p, &st, own, j, k < end);
             // Subgroup sums (every lane takes part), written by lane 0; zeros without an add
             // when no pixel of this subgroup blended the splat (most of a tile's splats for
             // most subgroups).
@@ -410,36 +427,18 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
     // The same for every invocation of the workgroup (read by each: no barrier needed).
     let start = tile_offsets[tile];
     let stop = tile_offsets[tile + 1u];
-    var end = clamp(fwd_isect_end[min(y, params.height - 1u) * params.width + min(x, params.width - 1u)], start, stop);
-    if (!inside) {
-        end = start;
-    }
+    let end = pixel_end(x, y, inside, start, stop);
     // Without barriers each subgroup walks only the splats one of its pixels blended: from the
     // largest `end` of its lanes (where blending stopped early, most of the tile's list).
     var batch_end = subgroupMax(end);
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
-        var own: SplatVecs;
-        if (lane < count) {
-            own = load_splat_vecs(sorted_gaussian[base + lane]);
-        }
+        let own = load_batch(base, count, lane);
         for (var jj = 0u; jj < count; jj = jj + 1u) {
             let j = count - 1u - jj;
             let k = base + j;
-            var s: SplatVecs;
-            s.a = subgroupShuffle(own.a, j);
-            s.b = subgroupShuffle(own.b, j);
-            s.c = subgroupShuffle(own.c, j);
-            var c: Contribution;
-            if (inside && k < end) {
-                c = backprop_splat(p, &st, s);
-            } else {
-                c.a = vec4<f32>(0.0);
-                c.b = vec4<f32>(0.0);
-                c.c = vec4<f32>(0.0);
-                c.pixels = 0.0;
-            }
+            let c = splat_contribution(p, &st, own, j, k < end);
             if (subgroupAny(c.pixels > 0.0)) {
                 let s0 = subgroupAdd(c.a);
                 let s1 = subgroupAdd(c.b);
