@@ -65,16 +65,7 @@ const GRAD_FIELDS: [&str; GRAD_FLOATS] =
 /// Checks `got` against `want` (one field) with [`GRAD_REL_TOL`] and the floor of
 /// [`GRAD_FLOOR_FRACTION`]; returns the worst `|gpu - cpu| / max(|cpu|, floor)`.
 fn check_grads(what: &str, got: &[f32], want: &[f32]) -> f64 {
-    assert_eq!(got.len(), want.len(), "{what}: lengths");
-    let largest = want.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
-    assert!(largest > 0.0, "{what}: the reference gradient is zero everywhere, nothing is tested");
-    let floor = GRAD_FLOOR_FRACTION * largest;
-    let (i, err) = got
-        .iter()
-        .zip(want)
-        .map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(floor))
-        .enumerate()
-        .fold((0, 0.0), |m, (i, e)| if e > m.1 || e.is_nan() { (i, e) } else { m });
+    let (i, err, floor) = gpu_common::worst_scaled_error(what, got, want, GRAD_FLOOR_FRACTION);
     assert!(err <= GRAD_REL_TOL, "{what}[{i}]: GPU {} vs CPU {} (scaled error {err:.3e}, floor {floor:.3e})", got[i], want[i]);
     err
 }

@@ -75,16 +75,8 @@ fn check_grads(layout: &MediumLayout, got: &[f32], want: &[f32]) -> f64 {
     let mut worst = 0.0f64;
     for (what, a, b) in tensors {
         let (got, want) = (&got[a..b], &want[a..b]);
-        let largest = want.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
-        assert!(largest > 0.0, "{what}: the reference gradient is zero everywhere, nothing is tested");
-        let floor = GRAD_FLOOR_FRACTION * largest;
-        let (i, err) = got
-            .iter()
-            .zip(want)
-            .map(|(g, w)| (g - w).abs() as f64 / (w.abs() as f64).max(floor))
-            .enumerate()
-            .fold((0, 0.0), |m, (i, e)| if e > m.1 || e.is_nan() { (i, e) } else { m });
-        eprintln!("  grad {what}: max scaled error {err:.2e} (largest |cpu| {largest:.3e})");
+        let (i, err, floor) = gpu_common::worst_scaled_error(what, got, want, GRAD_FLOOR_FRACTION);
+        eprintln!("  grad {what}: max scaled error {err:.2e} (floor {floor:.3e})");
         assert!(err <= GRAD_REL_TOL, "{what}[{i}]: GPU {} vs CPU {} (scaled error {err:.3e}, floor {floor:.3e})", got[i], want[i]);
         worst = worst.max(err);
     }

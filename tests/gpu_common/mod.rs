@@ -30,3 +30,20 @@ pub fn gpu_or_skip(test: &str) -> Option<GpuContext> {
         Err(e) => panic!("[{test}] opening the Vulkan device failed: {e}"),
     }
 }
+
+/// The worst scaled error of `got` against `want`: `(index, |got - want| / max(|want|,
+/// floor), floor)` with `floor = floor_fraction * max |want|` (a NaN counts as the worst).
+/// Panics when `want` is zero everywhere (nothing would be tested).
+pub fn worst_scaled_error(what: &str, got: &[f32], want: &[f32], floor_fraction: f64) -> (usize, f64, f64) {
+    assert_eq!(got.len(), want.len(), "{what}: lengths");
+    let largest = want.iter().map(|v| v.abs() as f64).fold(0.0, f64::max);
+    assert!(largest > 0.0, "{what}: the reference gradient is zero everywhere, nothing is tested");
+    let floor = floor_fraction * largest;
+    let (i, err) = got
+        .iter()
+        .zip(want)
+        .map(|(g, w)| (g - w).abs() as f64 / (w.abs() as f64).max(floor))
+        .enumerate()
+        .fold((0, 0.0), |m, (i, e)| if e > m.1 || e.is_nan() { (i, e) } else { m });
+    (i, err, floor)
+}
