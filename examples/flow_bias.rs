@@ -2,7 +2,7 @@
 //! unseeded or seeded by the true flow times a gain (a scale error of the BA estimate).
 //!
 //! ```text
-//! cargo run --release --example flow_bias -- clear|coastal|turbid [GAP_FRAMES] [SEED_GAIN]
+//! cargo run --release --example flow_bias -- clear|coastal|turbid [GAP_FRAMES] [SEED_GAIN] [SCENE_SEED]
 //! ```
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::track::flow::{FlowConfig, FlowEstimator};
@@ -13,13 +13,15 @@ fn main() {
     let water = match a.get(1).map(|s| s.as_str()) { Some("turbid") => WaterPreset::Turbid, Some("clear") => WaterPreset::Clear, _ => WaterPreset::Coastal };
     let gap: usize = a.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
     let seed_gain: f32 = a.get(3).and_then(|s| s.parse().ok()).unwrap_or(-1.0);
+    let scene_seed: u64 = a.get(4).and_then(|s| s.parse().ok()).unwrap_or(1);
     let mut cfg = SimConfig::preset(water, TrajectoryKind::Survey);
     cfg.frames = 120;
+    cfg.seed = scene_seed;
     let r = SimRenderer::new(&cfg).unwrap();
     let cam = *r.camera();
     let mut est = FlowEstimator::new(FlowConfig::default(), cam.width, cam.height).unwrap();
     let mut res = est.new_result();
-    for i in [20usize, 60, 100] {
+    for i in [5usize, 20, 40, 60, 100] {
         let (fa, fb) = (r.render(i), r.render(i + gap));
         let ga = fa.rgb.to_gray_f32();
         let gb = fb.rgb.to_gray_f32();
@@ -46,6 +48,7 @@ fn main() {
         let c = 8usize;
         let (mut num, mut den, mut wsum, mut err) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         let mut rows = vec![(0.0f64, 0.0f64); ph];
+        let mut rows_w = vec![(0.0f64, 0.0f64, 0.0f64); ph];
         for (y, row) in rows.iter_mut().enumerate() {
             for x in 0..pw {
                 let (u, v) = (x * c + c / 2, y * c + c / 2);
@@ -64,8 +67,12 @@ fn main() {
                 wsum += w;
                 err += w * ((ex - gx).powi(2) + (ey - gy).powi(2)).sqrt();
                 row.0 += w * (ex * gx + ey * gy);
+                rows_w[y].0 += w; rows_w[y].1 += (gx * gx + gy * gy).sqrt() * 8.0 / pw as f64; rows_w[y].2 += ((ex - gx).powi(2) + (ey - gy).powi(2)).sqrt() * 8.0 * w;
                 row.1 += w * (gx * gx + gy * gy);
             }
+        }
+        if std::env::var("ROWS").is_ok() {
+            for y in 0..ph { let (n, d) = rows[y]; let (w, g, e) = rows_w[y]; println!("  row {y:2}: gain {:.3} mean w {:.3} gt flow {:.2} px, w-err {:.2} px", n / d.max(1e-9), w / pw as f64, g, e / w.max(1e-9)); }
         }
         let rowr: Vec<String> = rows.iter().step_by(5).map(|(n, d)| format!("{:.3}", n / d.max(1e-9))).collect();
         println!("{water:?} frame {i}+{gap}: flow gain (est.gt/gt.gt) {:.4}, mean weighted err {:.3} px, mean weight {:.3}; gain per row band {}", num / den, err / wsum, wsum / (pw * ph) as f64, rowr.join(" "));

@@ -28,9 +28,10 @@
 //!   refined induced flow to its predecessor is under `prune_flow_px` (after the first round)
 //!   is dropped again. By default (`defer_rounds` and `defer_insertion`) the keyframe's own
 //!   frame only inserts it; the rounds (one edge pair or one window solve with Eq. 4 per
-//!   stage), then the loop search (one candidate per stage) or the periodic global BA, run
-//!   `stages_per_frame` stages at the start of each following frame (a window solve is a
-//!   frame's only stage), so no frame pays for a whole insertion. A new keyframe first finishes what is left of the previous one and
+//!   stage, with the loop search, one candidate per stage, between the last round's edge
+//!   pairs and its solve), then the periodic global BA, run `stages_per_frame` stages at the
+//!   start of each following frame (a window solve is a frame's only stage), so no frame
+//!   pays for a whole insertion. A new keyframe first finishes what is left of the previous one and
 //!   starts from the frame's pose re-anchored to the solved reference.
 //! - *Measurements*: pooled flow targets within `border_margin_px` of the image border get no
 //!   weight: the cell's pixels that left the view bias its pooled mean, and with forward

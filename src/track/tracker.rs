@@ -307,7 +307,8 @@ struct Pending {
     /// estimate in this round; `new_edges.len()`: the round's BA is next.
     next_edge: usize,
     fine: bool,
-    /// Loop search: `None` before its candidates are ranked, then the next one to verify.
+    /// Loop search: `None` before its candidates are ranked, then the next one to verify
+    /// (past the last: searched). Fine stages rank and verify before the last round's solve.
     next_candidate: Option<usize>,
     /// A keyframe collected before initialisation: one round, `init_iterations` over every
     /// keyframe, no covariance and no loop search.
@@ -1518,6 +1519,24 @@ impl State {
         if p.fine && p.next_round < self.cfg.local_rounds {
             if p.next_edge < self.new_edges.len() {
                 p.next_edge += self.estimate_new_edge_at(p.next_edge)?;
+                let last_round = p.next_round + 1 == self.cfg.local_rounds;
+                if self.cfg.loop_closure && last_round && p.next_edge >= self.new_edges.len() && p.next_candidate.is_none() {
+                    // The loop search goes before the last solve, into the stage the last
+                    // edge pair leaves free (the solve takes a frame of its own). After the
+                    // solve it took a fourth frame, and with keyframes every three or four
+                    // frames it ran inside the next keyframe's frame (about 100 ms at
+                    // 640x480 against 60 ms without loop closure). Ranking is a thumbnail
+                    // comparison and verification is seeded by the keyframe's motion-only
+                    // pose: neither needs the solve.
+                    self.rank_loop_candidates(p.slot);
+                    p.next_candidate = Some(0);
+                }
+            } else if let Some(k) = p.next_candidate.filter(|&k| k < self.loop_candidates.len()) {
+                let closed = self.try_loop_candidate(p.slot, k)?;
+                // After a closure the window solve still runs (the global BA moved it).
+                p.next_candidate = Some(if closed { self.loop_candidates.len() } else { k + 1 });
+                self.pending = Some(p);
+                return Ok(closed);
             } else {
                 self.round_solve(p.fixed);
                 p.next_round += 1;
@@ -1567,14 +1586,15 @@ impl State {
         Ok(false)
     }
 
-    /// After the last flow/BA round of an insertion: ranks the loop candidates right away (a
+    /// After the last flow/BA round of an insertion: ends it when the fine stages searched
+    /// for loops before the solve; otherwise ranks the loop candidates right away (a
     /// thumbnail comparison, cheap) and ends the insertion when there is none to verify. A
     /// loop search with nothing to verify used to take a stage of its own, and after a window
     /// solve (a frame's only stage) a frame of its own; with keyframes every three frames
     /// (the end of the generated survey) that pushed the rest of the next insertion into the
     /// next keyframe's frame.
     fn rounds_done(&mut self, mut p: Pending) {
-        if self.cfg.loop_closure {
+        if self.cfg.loop_closure && p.next_candidate.is_none() {
             self.rank_loop_candidates(p.slot);
             p.next_candidate = Some(0);
             if !self.loop_candidates.is_empty() {
@@ -1596,7 +1616,9 @@ impl State {
     /// Whether the next deferred stage is a window solve (or a whole round).
     fn next_stage_is_solve(&self) -> bool {
         match self.pending {
-            Some(p) if p.collecting || (p.fine && p.next_round < self.cfg.local_rounds) => p.next_edge >= self.new_edges.len(),
+            Some(p) if p.collecting || (p.fine && p.next_round < self.cfg.local_rounds) => {
+                p.next_edge >= self.new_edges.len() && !p.next_candidate.is_some_and(|k| k < self.loop_candidates.len())
+            }
             Some(p) => p.next_round < self.cfg.local_rounds,
             None => false,
         }
