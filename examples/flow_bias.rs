@@ -4,6 +4,7 @@
 //! ```text
 //! cargo run --release --example flow_bias -- clear|coastal|turbid [GAP_FRAMES] [SEED_GAIN] [SCENE_SEED]
 //! ```
+//! A negative SEED_GAIN runs unseeded; `ROWS=1` prints the gain, weight and error of every row.
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::track::flow::{FlowConfig, FlowEstimator};
 use nalgebra::Vector3;
