@@ -49,7 +49,8 @@ fn main() {
         let c = 8usize;
         let (mut num, mut den, mut wsum, mut err) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
         let mut rows = vec![(0.0f64, 0.0f64); ph];
-        let mut rows_w = vec![(0.0f64, 0.0f64, 0.0f64); ph];
+        // Per row: summed weight, summed true flow magnitude and weighted error (input px).
+        let mut row_stats = vec![(0.0f64, 0.0f64, 0.0f64); ph];
         for (y, row) in rows.iter_mut().enumerate() {
             for x in 0..pw {
                 let (u, v) = (x * c + c / 2, y * c + c / 2);
@@ -68,12 +69,18 @@ fn main() {
                 wsum += w;
                 err += w * ((ex - gx).powi(2) + (ey - gy).powi(2)).sqrt();
                 row.0 += w * (ex * gx + ey * gy);
-                rows_w[y].0 += w; rows_w[y].1 += (gx * gx + gy * gy).sqrt() * 8.0 / pw as f64; rows_w[y].2 += ((ex - gx).powi(2) + (ey - gy).powi(2)).sqrt() * 8.0 * w;
+                let stats = &mut row_stats[y];
+                stats.0 += w;
+                stats.1 += (gx * gx + gy * gy).sqrt() * c as f64;
+                stats.2 += w * ((ex - gx).powi(2) + (ey - gy).powi(2)).sqrt() * c as f64;
                 row.1 += w * (gx * gx + gy * gy);
             }
         }
         if std::env::var("ROWS").is_ok() {
-            for y in 0..ph { let (n, d) = rows[y]; let (w, g, e) = rows_w[y]; println!("  row {y:2}: gain {:.3} mean w {:.3} gt flow {:.2} px, w-err {:.2} px", n / d.max(1e-9), w / pw as f64, g, e / w.max(1e-9)); }
+            for (y, (&(n, d), &(w, g, e))) in rows.iter().zip(&row_stats).enumerate() {
+                let (gain, mean_w, mean_flow, w_err) = (n / d.max(1e-9), w / pw as f64, g / pw as f64, e / w.max(1e-9));
+                println!("  row {y:2}: gain {gain:.3}, mean weight {mean_w:.3}, true flow {mean_flow:.2} px, weighted error {w_err:.2} px");
+            }
         }
         let rowr: Vec<String> = rows.iter().step_by(5).map(|(n, d)| format!("{:.3}", n / d.max(1e-9))).collect();
         println!("{water:?} frame {i}+{gap}: flow gain (est.gt/gt.gt) {:.4}, mean weighted err {:.3} px, mean weight {:.3}; gain per row band {}", num / den, err / wsum, wsum / (pw * ph) as f64, rowr.join(" "));
