@@ -1531,7 +1531,7 @@ impl State {
                     self.rank_loop_candidates(p.slot);
                     p.next_candidate = Some(0);
                 }
-            } else if let Some(k) = p.next_candidate.filter(|&k| k < self.loop_candidates.len()) {
+            } else if let Some(k) = self.unverified_candidate(&p) {
                 let closed = self.try_loop_candidate(p.slot, k)?;
                 // After a closure the window solve still runs (the global BA moved it).
                 p.next_candidate = Some(if closed { self.loop_candidates.len() } else { k + 1 });
@@ -1613,11 +1613,17 @@ impl State {
         }
     }
 
+    /// The loop candidate of `p` to verify next, if its search has ranked candidates and not
+    /// verified them all.
+    fn unverified_candidate(&self, p: &Pending) -> Option<usize> {
+        p.next_candidate.filter(|&k| k < self.loop_candidates.len())
+    }
+
     /// Whether the next deferred stage is a window solve (or a whole round).
     fn next_stage_is_solve(&self) -> bool {
         match self.pending {
             Some(p) if p.collecting || (p.fine && p.next_round < self.cfg.local_rounds) => {
-                p.next_edge >= self.new_edges.len() && !p.next_candidate.is_some_and(|k| k < self.loop_candidates.len())
+                p.next_edge >= self.new_edges.len() && self.unverified_candidate(&p).is_none()
             }
             Some(p) => p.next_round < self.cfg.local_rounds,
             None => false,
