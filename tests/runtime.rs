@@ -53,13 +53,14 @@ fn ground_truth(frames: usize) -> Vec<Vector3<f64>> {
     SimRenderer::new(&cfg).unwrap().poses().iter().map(|p| p.world_from_cam.translation.vector).collect()
 }
 
-/// Every `/slam/pose` in the log folder, by frame seq.
-fn logged_poses(log_dir: &Path) -> BTreeMap<u64, Se3> {
+/// Every `/slam/pose` in the log folder, by frame seq, with the index of the log segment that
+/// wrote it last (a resumed run logs the frames it tracks again).
+fn logged_poses_with_segment(log_dir: &Path) -> BTreeMap<u64, (Se3, usize)> {
     let mut poses = BTreeMap::new();
-    for (_, p) in list_segments(log_dir).unwrap() {
-        read_segment(&p, ReadLimits::default(), |m| {
+    for (i, (_, p)) in list_segments(log_dir).unwrap().iter().enumerate() {
+        read_segment(p, ReadLimits::default(), |m| {
             if m.channel.topic == Topic::Pose.name() {
-                poses.insert(m.sequence as u64, decode_pose(m.data).unwrap());
+                poses.insert(m.sequence as u64, (decode_pose(m.data).unwrap(), i));
             }
         })
         .unwrap();
@@ -67,38 +68,30 @@ fn logged_poses(log_dir: &Path) -> BTreeMap<u64, Se3> {
     poses
 }
 
-/// Per log segment (in order), the frame seqs whose newest logged pose it holds.
-fn pose_writers(log_dir: &Path) -> Vec<Vec<u64>> {
-    let mut writer: BTreeMap<u64, usize> = BTreeMap::new();
-    let segments = list_segments(log_dir).unwrap();
-    for (i, (_, p)) in segments.iter().enumerate() {
-        read_segment(p, ReadLimits::default(), |m| {
-            if m.channel.topic == Topic::Pose.name() {
-                writer.insert(m.sequence as u64, i);
-            }
-        })
-        .unwrap();
-    }
-    let mut by_segment = vec![Vec::new(); segments.len()];
-    for (seq, i) in writer {
-        by_segment[i].push(seq);
-    }
-    by_segment
+/// Every `/slam/pose` in the log folder, by frame seq.
+fn logged_poses(log_dir: &Path) -> BTreeMap<u64, Se3> {
+    logged_poses_with_segment(log_dir).into_iter().map(|(seq, (pose, _))| (seq, pose)).collect()
 }
 
-/// Per-frame position error (m) of `est` after one Sim(3) alignment of all of it to `gt`.
+/// Per-frame position error (m) of `est` (seq -> pose) after one Sim(3) alignment to `gt`.
 fn aligned_errors(est: &BTreeMap<u64, Se3>, gt: &[Vector3<f64>]) -> BTreeMap<u64, f64> {
     let (src, dst): (Vec<_>, Vec<_>) = est.iter().filter(|(s, _)| (**s as usize) < gt.len()).map(|(s, p)| (p.translation.vector, gt[*s as usize])).unzip();
     let a = duv::eval::umeyama(&src, &dst, true).unwrap();
     est.iter().filter(|(s, _)| (**s as usize) < gt.len()).map(|(s, p)| (*s, (a.transform_point(&p.translation.vector.into()).coords - gt[*s as usize]).norm())).collect()
 }
 
+/// RMS of `errors` over `seqs` (all of them when `None`).
+fn rms(errors: &BTreeMap<u64, f64>, seqs: Option<&[u64]>) -> f64 {
+    let picked: Vec<f64> = match seqs {
+        Some(seqs) => seqs.iter().filter_map(|s| errors.get(s).copied()).collect(),
+        None => errors.values().copied().collect(),
+    };
+    (picked.iter().map(|x| x * x).sum::<f64>() / picked.len().max(1) as f64).sqrt()
+}
+
 /// ATE RMSE (m) after Sim(3) alignment of `est` (seq -> pose) to `gt`.
 fn ate(est: &BTreeMap<u64, Se3>, gt: &[Vector3<f64>]) -> f64 {
-    let (src, dst): (Vec<_>, Vec<_>) = est.iter().filter(|(s, _)| (**s as usize) < gt.len()).map(|(s, p)| (p.translation.vector, gt[*s as usize])).unzip();
-    let a = duv::eval::umeyama(&src, &dst, true).unwrap();
-    let se: f64 = src.iter().zip(&dst).map(|(s, d)| (a.transform_point(&(*s).into()).coords - d).norm_squared()).sum();
-    (se / src.len() as f64).sqrt()
+    rms(&aligned_errors(est, gt), None)
 }
 
 fn read_trajectory(p: &Path) -> BTreeMap<u64, Se3> {
@@ -361,7 +354,8 @@ fn crash_harness_kill_9_and_resume() {
     for (_, p) in list_segments(&log_dir).unwrap() {
         assert!(is_finished(&p).unwrap(), "{} unfinished", p.display());
     }
-    let combined = logged_poses(&log_dir);
+    let combined_with_segment = logged_poses_with_segment(&log_dir);
+    let combined: BTreeMap<u64, Se3> = combined_with_segment.iter().map(|(seq, (pose, _))| (*seq, *pose)).collect();
     assert_eq!(combined.keys().next_back().copied(), Some(FRAMES as u64 - 1));
     let summary = inspect_log(&log_dir, ReadLimits::default()).unwrap();
     let recovered = summary.segments.iter().filter(|s| s.recovered.is_some()).count();
@@ -372,20 +366,22 @@ fn crash_harness_kill_9_and_resume() {
     let clean = dir.path().join("clean");
     run_ok(&mut sim_run(&clean, FRAMES));
     let gt = ground_truth(FRAMES);
-    let ate_clean = ate(&logged_poses(&clean.join("log")), &gt);
-    let ate_combined = ate(&combined, &gt);
-    // Where the combined trajectory departs from the uninterrupted one: per log segment, the
-    // frames whose pose it wrote and their RMS error in both runs (one alignment each).
     let (err_combined, err_clean) = (aligned_errors(&combined, &gt), aligned_errors(&logged_poses(&clean.join("log")), &gt));
-    let rms = |e: &BTreeMap<u64, f64>, seqs: &[u64]| (seqs.iter().filter_map(|s| e.get(s)).map(|x| x * x).sum::<f64>() / seqs.len().max(1) as f64).sqrt();
-    for (i, seqs) in pose_writers(&log_dir).iter().enumerate().filter(|(_, s)| !s.is_empty()) {
+    let (ate_combined, ate_clean) = (rms(&err_combined, None), rms(&err_clean, None));
+    // Where the combined trajectory departs from the uninterrupted one: per log segment, the
+    // frames whose pose it wrote last and their RMS error in both runs (one alignment each).
+    let mut by_segment: BTreeMap<usize, Vec<u64>> = BTreeMap::new();
+    for (seq, (_, segment)) in &combined_with_segment {
+        by_segment.entry(*segment).or_default().push(*seq);
+    }
+    for (i, seqs) in &by_segment {
         eprintln!(
             "segment {i}: frames {}-{} ({}), RMS error combined {:.4} m, uninterrupted {:.4} m",
             seqs[0],
             seqs[seqs.len() - 1],
             seqs.len(),
-            rms(&err_combined, seqs),
-            rms(&err_clean, seqs)
+            rms(&err_combined, Some(seqs)),
+            rms(&err_clean, Some(seqs))
         );
     }
     losses_s.sort_by(f64::total_cmp);
