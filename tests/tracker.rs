@@ -68,6 +68,8 @@ fn loop_closure_detects_the_loop_and_lowers_ate() {
     let loop_edges: Vec<_> = with.tracker.edges().filter(|e| e.2).collect();
     assert!(!loop_edges.is_empty(), "no loop edge");
     assert!(with.outputs.iter().any(|o| o.loop_closed));
+    // Candidates went through the coarse screen first; the loop passed it.
+    assert!(with.tracker.times().loop_screens >= 1, "{:?}", with.tracker.times());
     // The loop joins the start of the run to its end.
     let kf_seq = |id: u64| with.tracker.keyframes().find(|k| k.id == id).unwrap().seq;
     assert!(loop_edges.iter().any(|&(a, b, _)| kf_seq(a).abs_diff(kf_seq(b)) > 50), "{loop_edges:?}");

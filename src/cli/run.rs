@@ -603,12 +603,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         percentile_ms(&latencies_sorted, 1.0)
     );
     println!(
-        "per frame: flow {:.2} ms, BA {:.2} ms, covariance {:.2} ms, loop closure {:.2} ms ({} flow estimates)",
+        "per frame: flow {:.2} ms, BA {:.2} ms, covariance {:.2} ms, loop closure {:.2} ms ({} flow estimates, {} loop screens)",
         times.flow.as_secs_f64() * 1e3 / n,
         times.ba.as_secs_f64() * 1e3 / n,
         times.covariance.as_secs_f64() * 1e3 / n,
         times.loop_closure.as_secs_f64() * 1e3 / n,
-        times.flow_estimates
+        times.flow_estimates,
+        times.loop_screens
     );
     println!(
         "keyframes: {} inserted, {} pruned, {} evicted, {} live; loops closed {}; global BAs {}; lost frames {}; relocalisations {}",

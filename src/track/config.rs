@@ -153,6 +153,17 @@ pub struct TrackerConfig {
     pub loop_max_flow_px: f32,
     /// Smallest confident fraction of the flow between a loop candidate and the new keyframe.
     pub loop_min_confident_fraction: f32,
+    /// Loop candidates are screened before the full flow check: both flow passes run down to
+    /// one level above the finest only (about a fifth of the check's cost) and a candidate
+    /// goes on to the full check only when at least `loop_screen_min_fraction` of the
+    /// output-grid cells have a mean weight (photometric x forward-backward) over
+    /// `loop_screen_weight`. 0 turns the screen off. Measured on generated survey, loop and
+    /// turbid sequences (3 seeds, 320x240 and 640x480): every candidate that passed the full
+    /// check screened at 0.27 or more, 90 % of those that failed it under 0.11.
+    pub loop_screen_min_fraction: f32,
+    /// Cell weight of the loop screen's confident fraction (lower than `confident_weight`:
+    /// the screen's coarser flow weighs less).
+    pub loop_screen_weight: f32,
     /// Keyframes inserted between two accepted loop closures at least.
     pub loop_min_interval: usize,
     /// Gauss-Newton iterations of the Sim(3) pose graph.
@@ -223,6 +234,8 @@ impl Default for TrackerConfig {
             loop_min_ncc: 0.5,
             loop_max_flow_px: 6.0,
             loop_min_confident_fraction: 0.35,
+            loop_screen_min_fraction: 0.1,
+            loop_screen_weight: 0.05,
             loop_min_interval: 5,
             pose_graph_iterations: 20,
             loop_global_ba: true,
@@ -318,6 +331,8 @@ impl TrackerConfig {
             ("reloc_min_ncc", self.reloc_min_ncc, 1.0),
             ("loop_min_ncc", self.loop_min_ncc, 1.0),
             ("loop_min_confident_fraction", self.loop_min_confident_fraction, 1.0),
+            ("loop_screen_min_fraction", self.loop_screen_min_fraction, 1.0),
+            ("loop_screen_weight", self.loop_screen_weight, 1.0),
         ];
         for (field, v, hi) in unit {
             if !(v.is_finite() && v >= 0.0 && v <= hi) {

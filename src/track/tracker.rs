@@ -123,6 +123,9 @@ pub struct StageTimes {
     pub keyframes: u64,
     pub loops: u64,
     pub flow_estimates: u64,
+    /// Loop candidates screened at a coarse level (`FlowEstimator::screen`, not counted in
+    /// `flow_estimates`).
+    pub loop_screens: u64,
 }
 
 /// Counters of what happened.
@@ -287,6 +290,9 @@ struct State {
     velocity: Se3,
     last_seq: u64,
     inserted_since_loop: usize,
+    /// Level of the loop candidates' screen (one above the finest; `None`: no screen, when it
+    /// is turned off or the estimator has no such level).
+    loop_screen_level: Option<usize>,
     inserted_since_global: usize,
     times: StageTimes,
     counters: TrackerCounters,
@@ -640,6 +646,11 @@ impl State {
         let gba_edges = if cfg.loop_closure || cfg.global_ba_period > 0 { max_edges } else { 1 };
         let gba_kfs = if cfg.loop_closure || cfg.global_ba_period > 0 { cap.max_keyframes } else { 1 };
         let gba = BaWorkspace::new(BaCapacity { max_keyframes: gba_kfs, max_pixels_per_keyframe: n_pix, max_edges: gba_edges });
+        let screen = flow.finest_level() + 1;
+        let loop_screen_level = (cfg.loop_screen_min_fraction > 0.0
+            && screen <= flow.coarsest_level_seeded()
+            && factor % (1 << screen) == 0)
+            .then_some(screen);
         Ok(State {
             camera: *camera,
             low,
@@ -671,6 +682,7 @@ impl State {
             velocity: Se3::identity(),
             last_seq: 0,
             inserted_since_loop: 0,
+            loop_screen_level,
             inserted_since_global: 0,
             times: StageTimes::default(),
             counters: TrackerCounters::default(),
@@ -1764,7 +1776,17 @@ impl State {
             induced_flow(&self.low, &kc.world_from_cam, &kc.inv_depth, &ks.world_from_cam, Some(&mut self.seed));
         }
         let t0 = Instant::now();
-        self.flow.estimate(&self.kfs.slots[c].frame, &self.kfs.slots[s].frame, Some(&self.seed), &mut self.res)?;
+        let (kc, ks) = (&self.kfs.slots[c].frame, &self.kfs.slots[s].frame);
+        if let Some(level) = self.loop_screen_level {
+            let screen = self.flow.screen(kc, ks, Some(&self.seed), level, self.cfg.loop_screen_weight)?;
+            self.times.flow += t0.elapsed();
+            self.times.loop_screens += 1;
+            if screen.confident_fraction < self.cfg.loop_screen_min_fraction {
+                return Ok(false);
+            }
+        }
+        let t0 = Instant::now();
+        self.flow.estimate(kc, ks, Some(&self.seed), &mut self.res)?;
         self.times.flow += t0.elapsed();
         self.times.flow_estimates += 1;
         let conf = write_measurement(&self.res, &self.cfg, &mut self.obs_target, &mut self.obs_weight);

@@ -1,7 +1,7 @@
 //! Per-pixel confidence (texture x photometric x forward-backward x in-view), pooling to the
 //! BA's grid, and the per-edge summary.
 
-use super::{bilinear_at, bilinear_cell, bilinear_n, FlowConfig, FlowResult, FlowStats, PreparedFrame, PreparedLevel};
+use super::{bilinear_at, bilinear_cell, bilinear_n, FlowConfig, FlowResult, FlowScreen, FlowStats, PreparedFrame, PreparedLevel};
 use rayon::prelude::*;
 
 /// Finest-level weights, forward-backward error and residual of `out.flow` (and
@@ -71,6 +71,75 @@ pub(crate) fn weights<const C: usize>(
                 rres[x] = res;
             }
         });
+}
+
+/// The summary of [`FlowEstimator::screen`](super::FlowEstimator::screen): forward flow
+/// `fwd` and backward flow `bwd` at `level`, weighted per pixel as [`weights`] does without
+/// the texture term (one weight for both axes, from the larger forward-backward error of the
+/// two), averaged over each output-grid cell.
+pub(crate) fn screen<const C: usize>(
+    cfg: &FlowConfig,
+    level: usize,
+    src: &PreparedLevel,
+    dst: &PreparedLevel,
+    fwd: (&[f32], &[f32]),
+    bwd: (&[f32], &[f32]),
+    confident_weight: f32,
+) -> FlowScreen {
+    let (w, h) = (src.w, src.h);
+    let cell = (1usize << level) as f32;
+    let b = cfg.output_factor >> level;
+    let (pw, ph) = (w / b, h / b);
+    let fb_sigma = cfg.fb_sigma_px / cell;
+    let fb_max = cfg.fb_max_px / cell;
+    let inv_res2 = 1.0 / (cfg.residual_sigma * cfg.residual_sigma);
+    let inv_fb2 = 1.0 / (fb_sigma * fb_sigma);
+    let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
+    let count = (b * b) as f32;
+    // Per pooled row: (confident cells, sum of weights, sum of weight x magnitude).
+    let (n_conf, sw, swm) = (0..ph)
+        .into_par_iter()
+        .map(|py| {
+            let (mut n_conf, mut sw, mut swm) = (0usize, 0.0f64, 0.0f64);
+            for px in 0..pw {
+                let mut cell_w = 0.0f32;
+                for y in py * b..(py + 1) * b {
+                    for x in px * b..(px + 1) * b {
+                        let i = y * w + x;
+                        let (u, v) = (fwd.0[i], fwd.1[i]);
+                        let (tx, ty) = (x as f32 + u, y as f32 + v);
+                        if !(tx >= 0.0 && tx <= xmax && ty >= 0.0 && ty <= ymax) {
+                            continue;
+                        }
+                        let (cx, cy, ax, ay) = bilinear_cell(w, h, tx, ty);
+                        let fd = bilinear_n::<C>(&dst.feat, w, cx, cy, ax, ay);
+                        let mut rr = 0.0f32;
+                        for (f, t) in fd.iter().zip(&src.feat[i * C..(i + 1) * C]) {
+                            rr += (f - t) * (f - t);
+                        }
+                        let res2 = rr / C as f32;
+                        let ex = u + bilinear_at(bwd.0, w, cx, cy, ax, ay);
+                        let ey = v + bilinear_at(bwd.1, w, cx, cy, ax, ay);
+                        let e = ex.abs().max(ey.abs());
+                        if e > fb_max {
+                            continue;
+                        }
+                        let wgt = 1.0 / (1.0 + res2 * inv_res2) / (1.0 + e * e * inv_fb2);
+                        cell_w += wgt;
+                        sw += wgt as f64;
+                        swm += (wgt * u.hypot(v) * cell) as f64;
+                    }
+                }
+                n_conf += (cell_w / count > confident_weight) as usize;
+            }
+            (n_conf, sw, swm)
+        })
+        .reduce(|| (0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
+    FlowScreen {
+        level,
+        confident_fraction: n_conf as f32 / (pw * ph).max(1) as f32,
+        mean_flow_input_px: if sw > 1e-12 { (swm / sw) as f32 } else { 0.0 },
+    }
 }
 
 /// Pools the finest flow and weights to `output_factor` cells: per axis, the weight-averaged

@@ -401,6 +401,17 @@ pub struct FlowResult {
     pub stats: FlowStats,
 }
 
+/// What [`FlowEstimator::screen`] measured of an edge at a coarse level.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FlowScreen {
+    pub level: usize,
+    /// Fraction of output-grid cells whose mean weight (photometric x forward-backward, the
+    /// estimate's terms but texture) exceeds the `confident_weight` asked for.
+    pub confident_fraction: f32,
+    /// Weighted mean flow magnitude in input pixels.
+    pub mean_flow_input_px: f32,
+}
+
 /// Everything `prepare` builds from one image: pyramid, features, gradients, patch tables and
 /// texture weights. Built once per keyframe and reused for all its edges.
 #[derive(Clone, Debug)]
@@ -891,6 +902,48 @@ impl FlowEstimator {
         Ok(())
     }
 
+    /// A cheap look at an edge before paying for [`estimate`](Self::estimate): both passes run
+    /// from the start level down to `level` only (coarser than the finest level: no
+    /// variational refinement, a quarter of the finest level's pixels or fewer), then
+    /// [`FlowScreen`] summarises the flow there with the estimate's photometric and
+    /// forward-backward weights, averaged over the output grid's cells. The loop search rejects most
+    /// candidates with it. Never allocates.
+    pub fn screen(
+        &mut self,
+        src: &PreparedFrame,
+        dst: &PreparedFrame,
+        seed: Option<&FlowField>,
+        level: usize,
+        confident_weight: f32,
+    ) -> Result<FlowScreen, FlowError> {
+        let start = if seed.is_some() { self.start_seeded } else { self.start_unseeded };
+        if level < self.layout.finest_level || level > start || self.cfg.output_factor % (1 << level) != 0 {
+            return Err(FlowError::Config {
+                field: "screen level",
+                problem: "must lie between the finest and the start level, with 2^level dividing output_factor",
+            });
+        }
+        let (w, h) = (self.layout.width, self.layout.height);
+        let _span = tracing::debug_span!("track.flow.screen", width = w, height = h, level).entered();
+        for (frame, what) in [(src, "src"), (dst, "dst")] {
+            if frame.layout != self.layout {
+                return Err(FlowError::ForeignFrame { what });
+            }
+        }
+        if let Some(s) = seed {
+            check_seed(s, w, h)?;
+        }
+        self.run_passes_to(src, dst, seed, true, level);
+        let (fwd, bwd) = (&self.fwd[level], &self.bwd[level]);
+        let c = self.cfg.feature.channels();
+        let (s, d) = (&src.levels[level], &dst.levels[level]);
+        let (flow, back) = ((&fwd.dx[..], &fwd.dy[..]), (&bwd.dx[..], &bwd.dy[..]));
+        Ok(match c {
+            1 => confidence::screen::<1>(&self.cfg, level, s, d, flow, back, confident_weight),
+            _ => confidence::screen::<4>(&self.cfg, level, s, d, flow, back, confident_weight),
+        })
+    }
+
     fn check_inputs(&self, src: &PreparedFrame, dst: &PreparedFrame, seed: Option<&FlowField>, out: &FlowResult) -> Result<(), FlowError> {
         let (w, h) = (self.layout.width, self.layout.height);
         for (frame, what) in [(src, "src"), (dst, "dst")] {
@@ -917,6 +970,11 @@ impl FlowEstimator {
     /// The forward pass (and the backward one with `backward`) into `fwd` / `bwd`; returns the
     /// start level.
     fn run_passes(&mut self, src: &PreparedFrame, dst: &PreparedFrame, seed: Option<&FlowField>, backward: bool) -> usize {
+        self.run_passes_to(src, dst, seed, backward, self.layout.finest_level)
+    }
+
+    /// [`run_passes`](Self::run_passes) stopping at level `stop` (>= the finest level).
+    fn run_passes_to(&mut self, src: &PreparedFrame, dst: &PreparedFrame, seed: Option<&FlowField>, backward: bool, stop: usize) -> usize {
         let start = if seed.is_some() { self.start_seeded } else { self.start_unseeded };
         let (fwd_seed, bwd_seed) = match seed {
             Some(s) => (SeedView::Forward(s), SeedView::Backward(s)),
@@ -932,8 +990,8 @@ impl FlowEstimator {
                    pf: &mut [[f32; 2]],
                    rs: &mut RefineScratch| {
             match cfg.feature.channels() {
-                1 => run_direction::<1>(cfg, geoms, a, b, s, finest, start, flows, pf, rs),
-                _ => run_direction::<4>(cfg, geoms, a, b, s, finest, start, flows, pf, rs),
+                1 => run_direction::<1>(cfg, geoms, a, b, s, finest, stop, start, flows, pf, rs),
+                _ => run_direction::<4>(cfg, geoms, a, b, s, finest, stop, start, flows, pf, rs),
             }
         };
         run(src, dst, fwd_seed, fwd, patch_flow, refine);
@@ -1081,12 +1139,13 @@ fn run_direction<const C: usize>(
     dst: &PreparedFrame,
     seed: SeedView<'_>,
     finest: usize,
+    stop: usize,
     start: usize,
     flows: &mut [LevelFlow],
     patch_flow: &mut [[f32; 2]],
     refine: &mut RefineScratch,
 ) {
-    for level in (finest..=start).rev() {
+    for level in (stop..=start).rev() {
         let geom = &geoms[level];
         let (lower, upper) = flows.split_at_mut(level + 1);
         let flow = &mut lower[level];

@@ -578,3 +578,33 @@ fn a_forward_only_estimate_matches_the_forward_pass_and_drops_only_the_check() {
     est.estimate(&a, &b, None, &mut again).unwrap();
     assert_eq!(again.weight_x.data, both.weight_x.data);
 }
+
+#[test]
+fn a_coarse_screen_tells_an_overlapping_view_from_an_unrelated_one() {
+    let warp = similarity(2.0, 1.02, 2.5, -1.5);
+    let (src, dst) = pair(&warp, 5);
+    let (other, _) = pair(&warp, 9);
+    let (mut est, full) = run(FlowConfig::default(), &src, &dst, None);
+    let (a, b, c) = (est.prepare(&src).unwrap(), est.prepare(&dst).unwrap(), est.prepare(&other).unwrap());
+    let level = est.finest_level() + 1;
+    let same = est.screen(&a, &b, None, level, 0.05).unwrap();
+    let unrelated = est.screen(&a, &c, None, level, 0.05).unwrap();
+    eprintln!("screen: overlapping {same:?}, unrelated {unrelated:?}, full estimate {:?}", full.stats);
+    assert_eq!(same.level, level);
+    assert!(same.confident_fraction > 0.8, "{same:?}");
+    // Unrelated textured views still match here and there by chance (12 % of the cells here).
+    assert!(unrelated.confident_fraction < 0.25 * same.confident_fraction, "{unrelated:?}");
+    // The screen's flow is the estimate's at a coarser level: the same mean magnitude.
+    let rel = (same.mean_flow_input_px - full.stats.mean_flow_input_px).abs() / full.stats.mean_flow_input_px;
+    assert!(rel < 0.1, "screen {} px, estimate {} px", same.mean_flow_input_px, full.stats.mean_flow_input_px);
+    // A stricter cell weight counts fewer cells.
+    let strict = est.screen(&a, &b, None, level, 0.5).unwrap();
+    assert!(strict.confident_fraction < same.confident_fraction, "{strict:?} vs {same:?}");
+    // Levels outside finest ..= start, or whose cells do not divide the output grid's, are refused.
+    for bad in [est.finest_level() - 1, est.coarsest_level() + 1, 4] {
+        assert!(matches!(est.screen(&a, &b, None, bad, 0.05), Err(FlowError::Config { field: "screen level", .. })), "level {bad}");
+    }
+    let mut small = FlowEstimator::new(FlowConfig::default(), src.width / 2, src.height / 2).unwrap();
+    let foreign = small.prepare(&PlaneF32::new(src.width / 2, src.height / 2)).unwrap();
+    assert!(matches!(est.screen(&a, &foreign, None, level, 0.05), Err(FlowError::ForeignFrame { what: "dst" })));
+}
