@@ -191,7 +191,7 @@ impl Default for MapperConfig {
             init_max_rel_std: 0.5,
             init_covered_alpha: 0.9,
             init_opacity: 0.8,
-            init_scale_factor: 0.7,
+            init_scale_factor: 0.5,
             init_compensate_medium: true,
             window: 4,
             window_probability: 0.7,
