@@ -48,12 +48,7 @@ pub(crate) fn weights<const C: usize>(
                     continue;
                 }
                 let (cx, cy, ax, ay) = bilinear_cell(w, h, tx, ty);
-                let fd = bilinear_n::<C>(&dst.feat, w, cx, cy, ax, ay);
-                let mut rr = 0.0f32;
-                for (f, t) in fd.iter().zip(&src.feat[i * C..(i + 1) * C]) {
-                    rr += (f - t) * (f - t);
-                }
-                let res = (rr / C as f32).sqrt();
+                let res = residual2::<C>(src, dst, i, (cx, cy, ax, ay)).sqrt();
                 // Per axis: under the aperture problem the ambiguous axis may disagree while
                 // the determined one is right.
                 let (ex, ey) = if fb_on {
@@ -71,6 +66,19 @@ pub(crate) fn weights<const C: usize>(
                 rres[x] = res;
             }
         });
+}
+
+/// Mean squared feature difference between source pixel `i` and the destination at a
+/// bilinear cell from [`bilinear_cell`] (the photometric residual, squared).
+#[inline(always)]
+fn residual2<const C: usize>(src: &PreparedLevel, dst: &PreparedLevel, i: usize, at: (usize, usize, f32, f32)) -> f32 {
+    let (cx, cy, ax, ay) = at;
+    let fd = bilinear_n::<C>(&dst.feat, src.w, cx, cy, ax, ay);
+    let mut rr = 0.0f32;
+    for (f, t) in fd.iter().zip(&src.feat[i * C..(i + 1) * C]) {
+        rr += (f - t) * (f - t);
+    }
+    rr / C as f32
 }
 
 /// The summary of [`FlowEstimator::screen`](super::FlowEstimator::screen): forward flow
@@ -112,12 +120,7 @@ pub(crate) fn screen<const C: usize>(
                             continue;
                         }
                         let (cx, cy, ax, ay) = bilinear_cell(w, h, tx, ty);
-                        let fd = bilinear_n::<C>(&dst.feat, w, cx, cy, ax, ay);
-                        let mut rr = 0.0f32;
-                        for (f, t) in fd.iter().zip(&src.feat[i * C..(i + 1) * C]) {
-                            rr += (f - t) * (f - t);
-                        }
-                        let res2 = rr / C as f32;
+                        let res2 = residual2::<C>(src, dst, i, (cx, cy, ax, ay));
                         let ex = u + bilinear_at(bwd.0, w, cx, cy, ax, ay);
                         let ey = v + bilinear_at(bwd.1, w, cx, cy, ax, ay);
                         let e = ex.abs().max(ey.abs());

@@ -903,8 +903,8 @@ impl FlowEstimator {
     }
 
     /// A cheap look at an edge before paying for [`estimate`](Self::estimate): both passes run
-    /// from the start level down to `level` only (coarser than the finest level: no
-    /// variational refinement, a quarter of the finest level's pixels or fewer), then
+    /// from the start level down to `level` only (the loop search asks for one above the
+    /// finest: no variational refinement, a quarter of the finest level's pixels), then
     /// [`FlowScreen`] summarises the flow there with the estimate's photometric and
     /// forward-backward weights, averaged over the output grid's cells. The loop search rejects most
     /// candidates with it. Never allocates.
