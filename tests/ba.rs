@@ -1,7 +1,8 @@
 //! Bundle adjustment (`duv::track::ba`): analytic Jacobians against central differences, the
 //! Schur solve and the covariance (Eq. 3-4) against dense solves of the full system built
-//! explicitly, convergence on a synthetic scene with and without outliers, motion-only BA,
-//! and the error variants of bad input.
+//! explicitly, the variance of unit weight against the known flow noise, convergence on a
+//! synthetic scene with and without outliers, motion-only BA, and the error variants of bad
+//! input.
 
 #[path = "common/ba_scene.rs"]
 mod ba_scene;
@@ -382,6 +383,57 @@ fn converges_on_synthetic_scene() {
         );
         assert!(e.position_m < POSITION_TOL_M && e.rotation_deg < ROTATION_TOL_DEG && e.depth_rms_rel < DEPTH_RMS_REL_TOL);
     }
+}
+
+/// Solves the 5-keyframe scene with flow noise `noise_px` and every weight multiplied by
+/// `weight_gain` (1: exact inverse variances), no outliers and no Huber down-weighting;
+/// returns the unit variance and keyframe 4's inverse-depth variances.
+fn unit_variance_run(noise_px: f64, weight_gain: f32) -> (f64, Vec<f64>) {
+    let scene = Scene::new(5, 40, 30, 4);
+    let mut rng = Rng::new(33);
+    let mut ws = BaWorkspace::new(BaCapacity { max_keyframes: 5, max_pixels_per_keyframe: 1200, max_edges: 20 });
+    ws.begin(&scene.camera).unwrap();
+    for k in 0..5 {
+        let pose = if k < 2 { scene.world_from_cam[k] } else { perturb(&scene.world_from_cam[k], 0.01, 0.5f64.to_radians(), &mut rng) };
+        ws.add_keyframe(&pose, &scene.perturbed_inv_depth(k, 0.05, &mut rng)).unwrap();
+    }
+    for &(i, j) in &scene.edges {
+        let (t, mut w) = scene.measurements(i, j, noise_px, 0.0, &mut rng);
+        w.data.iter_mut().for_each(|x| *x *= weight_gain);
+        ws.add_edge(i, j, &t, &w).unwrap();
+    }
+    let config = BaConfig { fixed_poses: 2, huber_threshold: 1e6, depth_prior_weight: 0.0, max_iterations: 30, ..BaConfig::default() };
+    ws.solve(&config).unwrap();
+    assert!(ws.unit_variance().is_none(), "no unit variance before a covariance");
+    ws.compute_covariance(&config).unwrap();
+    let unit = ws.unit_variance().expect("the window is redundant");
+    (unit, ws.inv_depth_variance(4).unwrap().to_vec())
+}
+
+#[test]
+fn unit_variance_measures_the_flow_noise() {
+    // Weights that are exact inverse variances: the variance of unit weight is near 1 (the
+    // residuals' chi-square over their redundancy).
+    let (unit, var) = unit_variance_run(0.05, 1.0);
+    println!("unit variance with exact weights: {unit:.4}");
+    assert!((0.85..1.15).contains(&unit), "unit variance {unit}");
+    // Weights that are relative confidences (all 1/400 of the truth): the unit variance is
+    // 1/400 of before, and the covariance scaled by it is the calibrated one again.
+    let (unit_rel, var_rel) = unit_variance_run(0.05, 1.0 / 400.0);
+    println!("unit variance with weights 1/400 of the truth: {unit_rel:.3e}");
+    assert!((unit_rel * 400.0 / unit - 1.0).abs() < 0.01, "unit variance {unit_rel} against {unit}/400");
+    let mut worst: f64 = 0.0;
+    for (&a, &b) in var.iter().zip(&var_rel) {
+        if a.is_finite() && a > 0.0 {
+            worst = worst.max((b * unit_rel - a * unit).abs() / (a * unit));
+        }
+    }
+    println!("scaled variances, relative difference: {worst:.2e}");
+    assert!(worst < 0.01, "scaled variances differ by {worst}");
+    // Twice the noise the weights assume: four times the unit variance.
+    let (unit_2, _) = unit_variance_run(0.1, 4.0);
+    println!("noise 0.1 px, weights for 0.05 px: unit variance {unit_2:.4}");
+    assert!((unit_2 / (4.0 * unit) - 1.0).abs() < 0.15, "noise 0.1 px with weights for 0.05 px: unit variance {unit_2} against 4 x {unit}");
 }
 
 #[test]

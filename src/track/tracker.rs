@@ -1227,10 +1227,15 @@ impl State {
         let cfg = self.ba_config(1, fixed);
         let r = self.ba.compute_covariance(&cfg);
         if r.is_ok() {
+            let unit = match (self.cfg.variance_from_residuals, self.ba.unit_variance()) {
+                (true, Some(u)) if u.is_finite() && u > 0.0 => u as f32,
+                _ => 1.0,
+            };
             for (k, &s) in self.window.iter().enumerate() {
                 let kf = &mut self.kfs.slots[s];
                 if self.ba.write_inv_depth_variance(k, &mut kf.variance).is_ok() {
                     for v in kf.variance.data.iter_mut() {
+                        *v *= unit;
                         if !v.is_finite() {
                             *v = f32::MAX;
                         }

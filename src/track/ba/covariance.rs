@@ -6,6 +6,10 @@
 //! (`6 n_free x n_depth`), `(H^-1)_dd = C^-1 + C^-1 E^T S^-1 E C^-1`, whose diagonal entry for
 //! pixel `p` is `1/c_p + (1/c_p)^2 e_p^T S^-1 e_p` with `e_p` the *column* `p` of `E` (not a
 //! row of `E^T S^-1 E` taken the other way round).
+//!
+//! These are in the units the flow weights give: with weights that are relative confidences
+//! rather than inverse pixel variances, multiply them by the a posteriori variance of unit
+//! weight ([`BaWorkspace::unit_variance`]), which the same call computes from the residuals.
 
 use faer::dyn_stack::MemStack;
 use faer::linalg::cholesky::llt;
@@ -80,6 +84,8 @@ impl BaWorkspace {
                 }
             }
         }
+        let unknowns = dim + self.sys.observed_depths;
+        self.cov.unit_variance = (self.sys.residuals > unknowns).then(|| self.sys.weighted_sq_residual / (self.sys.residuals - unknowns) as f64);
         self.cov.valid = true;
         Ok(())
     }

@@ -161,6 +161,7 @@ pub(crate) fn linearize(win: &Window, st: &Structure, config: &BaConfig, sys: &m
     sys.h_pd[..st.n_slots * n_pix * 6].fill(0.0);
     sys.h_dd[..n_depth].fill(0.0);
     sys.b_d[..n_depth].fill(0.0);
+    let (mut chi2, mut residuals, mut observed) = (0.0, 0usize, 0usize);
     let mut cost = 0.0;
     for (e, edge) in win.edges[..win.n_edges].iter().enumerate() {
         let (i, j) = (edge.from, edge.to);
@@ -183,11 +184,14 @@ pub(crate) fn linearize(win: &Window, st: &Structure, config: &BaConfig, sys: &m
             let s = (wx * rx * rx + wy * ry * ry).sqrt();
             cost += huber_cost(s, k);
             let rw = huber_weight(s, k);
+            chi2 += rw * s * s;
+            residuals += (wx > 0.0) as usize + (wy > 0.0) as usize;
             let (wx, wy) = (rw * wx, rw * wy);
             let (ji, jj, jd) = (&rp.d_uv_d_pose_i, &rp.d_uv_d_pose_j, &rp.d_uv_d_inv_depth);
             // Rows of W J and W r.
             let (wrx, wry) = (wx * rx, wy * ry);
             let di = n_pix * i + p;
+            observed += (sys.h_dd[di] == 0.0) as usize;
             sys.h_dd[di] += wx * jd.x * jd.x + wy * jd.y * jd.y;
             sys.b_d[di] += jd.x * wrx + jd.y * wry;
             if free_i.is_some() {
@@ -235,6 +239,9 @@ pub(crate) fn linearize(win: &Window, st: &Structure, config: &BaConfig, sys: &m
         debug_assert!(free_i.is_none() || slot_ii != NO_SLOT);
         debug_assert!(free_j.is_none() || slot_ij != NO_SLOT);
     }
+    sys.weighted_sq_residual = chi2;
+    sys.residuals = residuals;
+    sys.observed_depths = observed;
     let w_prior = config.depth_prior_weight;
     if w_prior > 0.0 {
         for q in 0..n_depth {

@@ -114,6 +114,13 @@ pub(crate) struct System {
     pub h_pd: Vec<f64>,
     pub h_dd: Vec<f64>,
     pub b_d: Vec<f64>,
+    /// `sum rho'(s) (w_x r_x^2 + w_y r_y^2)` over the flow residuals (Huber-weighted, prior
+    /// excluded): the numerator of the variance of unit weight.
+    pub weighted_sq_residual: f64,
+    /// Residual components with a non-zero weight.
+    pub residuals: usize,
+    /// Inverse depths with at least one flow observation.
+    pub observed_depths: usize,
 }
 
 /// The reduced (Schur) system, the step, and faer's scratch memory.
@@ -142,6 +149,8 @@ pub(crate) struct Covariance {
     /// `S^-1`, `6 n_free` square, column-major, symmetric.
     pub pose: Vec<f64>,
     pub inv_depth_var: Vec<f64>,
+    /// Variance of unit weight at the estimate (`None`: no more residuals than unknowns).
+    pub unit_variance: Option<f64>,
 }
 
 /// Fixed-memory dense bundle adjustment over a keyframe window. See the [module
@@ -231,6 +240,9 @@ impl BaWorkspace {
                 h_pd: vec![0.0; max_slots * np * 6],
                 h_dd: vec![0.0; nk * np],
                 b_d: vec![0.0; nk * np],
+                weighted_sq_residual: 0.0,
+                residuals: 0,
+                observed_depths: 0,
             },
             red: Reduced {
                 s: vec![0.0; dim * dim],
@@ -241,7 +253,7 @@ impl BaWorkspace {
                 scratch: MemBuffer::new(scratch),
             },
             trial: Trial { world_from_cam: vec![Se3::identity(); nk], inv_depth: vec![0.0; nk * np] },
-            cov: Covariance { valid: false, pose: vec![0.0; dim * dim], inv_depth_var: vec![0.0; nk * np] },
+            cov: Covariance { valid: false, pose: vec![0.0; dim * dim], inv_depth_var: vec![0.0; nk * np], unit_variance: None },
             linearized: None,
             step_valid: false,
         }
@@ -414,6 +426,17 @@ impl BaWorkspace {
     pub fn inv_depth_variance(&self, k: usize) -> Option<&[f64]> {
         let n = self.win.n_pixels;
         (self.cov.valid && k < self.win.n_keyframes).then(|| &self.cov.inv_depth_var[k * n..(k + 1) * n])
+    }
+
+    /// The a posteriori variance of unit weight from the last
+    /// [`compute_covariance`](Self::compute_covariance): the Huber-weighted squared whitened
+    /// flow residuals over their redundancy, `sum rho'(s) (w_x r_x^2 + w_y r_y^2) / (m - n)`
+    /// (`m` residual components with weight, `n` free pose coordinates plus observed inverse
+    /// depths). With weights that are exact inverse variances it is near 1; with weights that
+    /// are relative confidences (the flow's) the covariance times it is in measured units.
+    /// `None` when no covariance is current or the window has no redundancy.
+    pub fn unit_variance(&self) -> Option<f64> {
+        if self.cov.valid { self.cov.unit_variance } else { None }
     }
 
     /// Copies keyframe `k`'s inverse depth variance into `out` (which must have the camera's size).
