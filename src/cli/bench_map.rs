@@ -1,5 +1,10 @@
-//! `duv bench map`: the mapping figures of issue 4 on generated sequences with ground-truth
-//! poses and depth (the generator's keyframes, `duv::sim::keyframes`).
+//! `duv bench map`: the mapping figures of issue 4 on generated sequences, with ground-truth
+//! poses and depth (the generator's keyframes, `duv::sim::keyframes`) or, with `--poses
+//! tracked`, with the tracker's: the sequence is tracked first and its final keyframes (poses
+//! after the last BA, inverse depth and variance upsampled as `duv run` writes them) are
+//! mapped, moved into the ground-truth frame by the Sim(3) of the trajectory's ATE alignment so
+//! that the medium is scored in metres (a similarity changes neither the renders nor the
+//! depth losses' Mahalanobis terms).
 //!
 //! Per water (default clear and turbid) and per variant: keyframe PSNR/SSIM of the render
 //! against the input, PSNR of the restored image against the water-free view, the recovered
@@ -24,7 +29,22 @@ use duv::map::vulkan::MapperDevice;
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
+use duv::sim::keyframes::SimKeyframe;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv::config::board::Board;
+use duv::core::{Frame, FrameImage, Keyframe, PlaneF32};
+use duv::eval::{evaluate_trajectory, TrajectoryOptions};
+use duv::track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
+use rayon::prelude::*;
+
+/// Where the mapped keyframes' poses and depth come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum PoseSource {
+    /// The generator's: every --every-th frame, exact pose and depth.
+    Gt,
+    /// The tracker's final keyframes over the generated frames, aligned to the ground truth by Sim(3).
+    Tracked,
+}
 
 #[derive(clap::Args)]
 pub struct BenchMapArgs {
@@ -73,6 +93,136 @@ pub struct BenchMapArgs {
     /// Only these variants (comma-separated); all by default.
     #[arg(long, value_delimiter = ',')]
     only: Vec<String>,
+    /// Keyframe poses and depth: the generator's (`gt`) or the tracker's (`tracked`: the
+    /// frames are tracked first; --every is then unused, the tracker picks its keyframes).
+    #[arg(long, value_enum, default_value_t = PoseSource::Gt)]
+    poses: PoseSource,
+    /// Board profile of the tracker's capacities (with --poses tracked).
+    #[arg(long, default_value = "boards/sim.toml")]
+    board: PathBuf,
+    /// Tracker parameters (TOML, `TrackerConfig` fields) for --poses tracked; defaults otherwise.
+    #[arg(long, value_name = "FILE")]
+    tracker_config: Option<PathBuf>,
+}
+
+/// How the tracker did on a sequence whose keyframes were mapped (--poses tracked).
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+struct TrackedSummary {
+    /// Keyframes the tracker kept to the end with depth maps (the ones mapped).
+    keyframes: usize,
+    /// ATE RMSE after Sim(3) alignment, metres and % of path length.
+    ate_rmse_m: f64,
+    ate_percent_of_path: f64,
+    /// Scale of the alignment (metres per tracker unit).
+    scale: f64,
+    /// Share of the keyframe pixels with true depth that have a tracked depth and variance.
+    depth_coverage: f64,
+    /// Medians over those pixels of the relative inverse-depth error `|d - d_true| / d_true`
+    /// and of the relative standard deviation the tracker gave `sqrt(var) / d`.
+    median_rel_error: f64,
+    median_rel_std: f64,
+    /// Share of those pixels whose relative standard deviation is within the mapper's
+    /// seeding limit (`MapperConfig::init_max_rel_std`).
+    seedable: f64,
+}
+
+impl TrackedSummary {
+    fn describe(&self) -> String {
+        format!(
+            "{} keyframes with depth, ATE {:.3} m ({:.3}% of path), Sim(3) scale {:.4}; depth on {:.1}% of the pixels, median relative error {:.3}, median relative std {:.3}, {:.1}% within the seeding limit",
+            self.keyframes,
+            self.ate_rmse_m,
+            self.ate_percent_of_path,
+            self.scale,
+            100.0 * self.depth_coverage,
+            self.median_rel_error,
+            self.median_rel_std,
+            100.0 * self.seedable
+        )
+    }
+}
+
+/// Tracks every frame of `renderer` and returns the final keyframes that still have depth
+/// maps, in the ground-truth frame: poses through the ATE's Sim(3) `gt_from_est`, inverse
+/// depth divided by its scale and variance by its square.
+fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCapacity, seed_max_rel_std: f64) -> anyhow::Result<(Vec<SimKeyframe>, TrackedSummary)> {
+    let frames: Vec<Frame> = (0..renderer.len())
+        .into_par_iter()
+        .map(|i| {
+            let f = renderer.render(i);
+            Frame { t_ns: f.t_ns, seq: i as u64, image: FrameImage::Rgb8(f.rgb) }
+        })
+        .collect();
+    let mut tracker = Tracker::new(renderer.camera(), cfg, cap)?;
+    let mut recorder = TrajectoryRecorder::new();
+    tracker.run_in_pool(|t| -> anyhow::Result<()> {
+        for f in &frames {
+            let out = t.track(f)?;
+            recorder.record(&out);
+        }
+        Ok(())
+    })?;
+    let fin = recorder.finish(&tracker);
+    let gt = &renderer.poses()[..frames.len()];
+    let ev = evaluate_trajectory(gt, &fin.frames, &TrajectoryOptions::default(), "ground truth", "tracked").context("aligning the tracked trajectory")?;
+    let align = ev.gt_from_est;
+    let scale = ev.report.alignment.scale;
+    let cam = *renderer.camera();
+    let mut out = Vec::new();
+    let (mut with_truth, mut rel_errors, mut rel_stds) = (0usize, Vec::new(), Vec::new());
+    for k in fin.keyframes.iter().filter(|k| k.live) {
+        if !tracker.keyframes().any(|v| v.id == k.id && v.variance.is_some()) {
+            continue;
+        }
+        let mut inv_depth = PlaneF32::new(cam.width, cam.height);
+        let mut inv_depth_variance = PlaneF32::new(cam.width, cam.height);
+        tracker.upsample_keyframe(k.id, &mut inv_depth, &mut inv_depth_variance)?;
+        let inv_scale = (1.0 / scale) as f32;
+        for d in inv_depth.data.iter_mut() {
+            *d *= inv_scale;
+        }
+        for v in inv_depth_variance.data.iter_mut() {
+            if *v < f32::MAX {
+                *v *= inv_scale * inv_scale;
+            }
+        }
+        let f = renderer.render(k.seq as usize);
+        for ((&z, &d), &v) in f.depth_m.data.iter().zip(&inv_depth.data).zip(&inv_depth_variance.data) {
+            if z > 0.0 && z.is_finite() {
+                with_truth += 1;
+                if d > 0.0 && d.is_finite() && v < f32::MAX {
+                    rel_errors.push((d as f64 * z as f64 - 1.0).abs());
+                    rel_stds.push((v as f64).sqrt() / d as f64);
+                }
+            }
+        }
+        out.push(SimKeyframe {
+            keyframe: Keyframe {
+                index: k.seq,
+                t_ns: k.t_ns,
+                image: f.rgb,
+                world_from_cam: duv::core::pose::sim3_apply_to_pose(&align, &k.world_from_cam),
+                camera: cam,
+                inv_depth,
+                inv_depth_variance,
+            },
+            clear: f.clear,
+        });
+    }
+    let ate = &ev.report.ate;
+    let depth_coverage = rel_errors.len() as f64 / with_truth.max(1) as f64;
+    let seedable = rel_stds.iter().filter(|&&s| s <= seed_max_rel_std).count() as f64 / rel_stds.len().max(1) as f64;
+    let summary = TrackedSummary {
+        keyframes: out.len(),
+        ate_rmse_m: ate.stats_m.rmse,
+        ate_percent_of_path: ev.report.ate_rmse_percent_of_path.unwrap_or(f64::NAN),
+        scale,
+        depth_coverage,
+        median_rel_error: super::bench_track::median(rel_errors),
+        median_rel_std: super::bench_track::median(rel_stds),
+        seedable,
+    };
+    Ok((out, summary))
 }
 
 #[derive(serde::Serialize)]
@@ -92,6 +242,10 @@ struct RunResult {
     gaussians_over_time: Vec<(u64, usize)>,
     /// What rendered (`Mapper::render_device`).
     renderer: String,
+    /// `gt` or `tracked` (`--poses`).
+    poses: &'static str,
+    /// The tracker's run (with --poses tracked).
+    tracked: Option<TrackedSummary>,
 }
 
 const VARIANTS: [&str; 5] = ["full", "no_medium", "one_coefficient", "no_mahalanobis", "no_kl"];
@@ -135,6 +289,16 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
     if !waters.contains(&a.ablation_water) {
         waters.push(a.ablation_water);
     }
+    let tracker = match a.poses {
+        PoseSource::Gt => None,
+        PoseSource::Tracked => {
+            let cfg = match &a.tracker_config {
+                Some(p) => toml::from_str::<TrackerConfig>(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+                None => TrackerConfig::default(),
+            };
+            Some((cfg, TrackerCapacity::from_board(&Board::load(&a.board)?)))
+        }
+    };
     let mut results = Vec::new();
     for &water in &waters {
         let mut cfg = SimConfig::preset(water, TrajectoryKind::Survey);
@@ -144,8 +308,15 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         cfg.vignetting = a.vignetting;
         let renderer = SimRenderer::new(&cfg).context("building the generated sequence")?;
         let truth = *renderer.medium();
-        let kfs = sim_keyframes(&renderer, a.every, usize::MAX);
-        anyhow::ensure!(!kfs.is_empty(), "no keyframes");
+        let (kfs, tracked) = match &tracker {
+            None => (sim_keyframes(&renderer, a.every, usize::MAX), None),
+            Some((tcfg, cap)) => {
+                let (k, t) = tracked_keyframes(&renderer, tcfg, *cap, base.init_max_rel_std).with_context(|| format!("tracking the {} survey", water_name(water)))?;
+                println!("{:8} tracked: {}", water_name(water), t.describe());
+                (k, Some(t))
+            }
+        };
+        anyhow::ensure!(!kfs.is_empty(), "no keyframes (with --poses tracked: the tracker kept none with depth; more --frames?)");
         let variants: Vec<&str> = VARIANTS
             .iter()
             .copied()
@@ -205,6 +376,11 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 ms_per_iteration,
                 gaussians_over_time: over_time,
                 renderer,
+                poses: match a.poses {
+                    PoseSource::Gt => "gt",
+                    PoseSource::Tracked => "tracked",
+                },
+                tracked,
             };
             println!(
                 "{:8} {:16} PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB  max medium rel.err {:.3}  {:.1} ms/it  {} Gaussians",
@@ -229,11 +405,14 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
 fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> {
     write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(results)?.as_bytes())?;
     let mut md = format!(
-        "# duv bench map\n\n{}x{}, {} frames, every {}th a keyframe (ground-truth poses and depth), {} iterations, cap {} Gaussians, seeded every {} px.\n\n",
+        "# duv bench map\n\n{}x{}, {} frames, {}, {} iterations, cap {} Gaussians, seeded every {} px.\n\n",
         a.width,
         a.height,
         a.frames,
-        a.every,
+        match a.poses {
+            PoseSource::Gt => format!("every {}th a keyframe (ground-truth poses and depth)", a.every),
+            PoseSource::Tracked => "the tracker's keyframes, poses and depth (aligned to the ground truth by Sim(3))".into(),
+        },
         a.iterations,
         a.max_gaussians,
         a.init_stride_px.map_or("config's".into(), |s| s.to_string())
@@ -255,6 +434,11 @@ fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> 
             r.ms_per_iteration,
             r.gaussians_over_time.last().map_or(0, |g| g.1)
         );
+    }
+    let mut tracked: Vec<(&str, TrackedSummary)> = results.iter().filter_map(|r| r.tracked.map(|t| (r.water.as_str(), t))).collect();
+    tracked.dedup_by_key(|t| t.0);
+    for (water, t) in tracked {
+        let _ = writeln!(md, "\nTracked {water}: {}.", t.describe());
     }
     let mut renderers: Vec<&str> = results.iter().map(|r| r.renderer.as_str()).collect();
     renderers.dedup();
