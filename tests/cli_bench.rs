@@ -9,18 +9,19 @@ fn duv() -> Command {
     c
 }
 
+/// Runs `duv ARGS --out OUT`; asserts it succeeded and returns its stdout.
+fn run_ok(args: &[&str], out: &std::path::Path) -> String {
+    let res = duv().args(args).arg("--out").arg(out).output().unwrap();
+    let stdout = String::from_utf8_lossy(&res.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
+    stdout
+}
+
 #[test]
 fn bench_track_on_a_tiny_survey_writes_json_and_table() {
     let dir = tempfile::tempdir().unwrap();
-    let res = duv()
-        .args(["bench", "track", "--sequences", "survey", "--sizes", "160x120", "--frames", "64", "--runs", "1", "--loop-closure", "both"])
-        .arg("--out")
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&res.stdout);
-    let stderr = String::from_utf8_lossy(&res.stderr);
-    assert!(res.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
+    let stdout = run_ok(&["bench", "track", "--sequences", "survey", "--sizes", "160x120", "--frames", "64", "--runs", "1", "--loop-closure", "both"], dir.path());
     assert!(stdout.contains("| survey | 160x120 | 64 | on |") && stdout.contains("| survey | 160x120 | 64 | off |"), "{stdout}");
     let md = std::fs::read_to_string(dir.path().join("bench_track.md")).unwrap();
     assert_eq!(md, stdout);
@@ -56,16 +57,8 @@ fn bench_track_rejects_an_unknown_sequence() {
 #[test]
 fn bench_map_with_tracked_poses_maps_the_trackers_keyframes() {
     let dir = tempfile::tempdir().unwrap();
-    let res = duv()
-        .args(["bench", "map", "--poses", "tracked", "--frames", "64", "--width", "160", "--height", "120", "--iterations", "30"])
-        .args(["--waters", "clear", "--ablation-water", "clear", "--only", "full", "--mapper", "cpu"])
-        .arg("--out")
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&res.stdout);
-    let stderr = String::from_utf8_lossy(&res.stderr);
-    assert!(res.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
+    let args = ["bench", "map", "--poses", "tracked", "--frames", "64", "--width", "160", "--height", "120", "--iterations", "30"];
+    run_ok(&[&args[..], &["--waters", "clear", "--ablation-water", "clear", "--only", "full", "--mapper", "cpu"]].concat(), dir.path());
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
     let run = &json[0];
     assert_eq!(run["poses"], "tracked", "{run}");

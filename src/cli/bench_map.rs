@@ -32,10 +32,9 @@ use duv::sim::keyframes::sim_keyframes;
 use duv::sim::keyframes::SimKeyframe;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::config::board::Board;
-use duv::core::{Frame, FrameImage, Keyframe, PlaneF32};
+use duv::core::{Keyframe, PlaneF32};
 use duv::eval::{evaluate_trajectory, TrajectoryOptions};
 use duv::track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
-use rayon::prelude::*;
 
 /// Where the mapped keyframes' poses and depth come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -146,13 +145,7 @@ impl TrackedSummary {
 /// maps, in the ground-truth frame: poses through the ATE's Sim(3) `gt_from_est`, inverse
 /// depth divided by its scale and variance by its square.
 fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCapacity, seed_max_rel_std: f64) -> anyhow::Result<(Vec<SimKeyframe>, TrackedSummary)> {
-    let frames: Vec<Frame> = (0..renderer.len())
-        .into_par_iter()
-        .map(|i| {
-            let f = renderer.render(i);
-            Frame { t_ns: f.t_ns, seq: i as u64, image: FrameImage::Rgb8(f.rgb) }
-        })
-        .collect();
+    let frames = super::bench_track::render_frames(renderer);
     let mut tracker = Tracker::new(renderer.camera(), cfg, cap)?;
     let mut recorder = TrajectoryRecorder::new();
     tracker.run_in_pool(|t| -> anyhow::Result<()> {

@@ -239,14 +239,19 @@ fn generate(name: &str, width: usize, height: usize, frames: Option<usize>, seed
         cfg.frames = n;
     }
     let renderer = SimRenderer::new(&cfg).with_context(|| format!("sequence {name} {width}x{height}"))?;
-    let frames: Vec<Frame> = (0..renderer.len())
+    let frames = render_frames(&renderer);
+    Ok(Sequence { renderer, frames, depth: HashMap::new() })
+}
+
+/// Every frame of a generated sequence as the tracker takes it, rendered in parallel.
+pub(super) fn render_frames(renderer: &SimRenderer) -> Vec<Frame> {
+    (0..renderer.len())
         .into_par_iter()
         .map(|i| {
             let f = renderer.render(i);
             Frame { t_ns: f.t_ns, seq: i as u64, image: FrameImage::Rgb8(f.rgb) }
         })
-        .collect();
-    Ok(Sequence { renderer, frames, depth: HashMap::new() })
+        .collect()
 }
 
 /// Tracks the sequence once and scores it.
