@@ -3,8 +3,8 @@
 //! tracked`, with the tracker's: the sequence is tracked first and its final keyframes (poses
 //! after the last BA, inverse depth and variance upsampled as `duv run` writes them) are
 //! mapped, moved into the ground-truth frame by the Sim(3) of the trajectory's ATE alignment so
-//! that the medium is scored in metres (a similarity changes neither the renders nor the
-//! depth losses' Mahalanobis terms).
+//! that the medium is scored in metres and the mapper's metric limits (split and prune sizes)
+//! mean metres, as they do for the generator's keyframes.
 //!
 //! Per water (default clear and turbid) and per variant: keyframe PSNR/SSIM of the render
 //! against the input, PSNR of the restored image against the water-free view, the recovered
