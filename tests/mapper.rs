@@ -73,24 +73,30 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("map.ckpt");
     m.save_checkpoint(&path).unwrap();
-    // Binary (version 3), in one buffer of the exact size: the file is those bytes.
+    // Binary (version 4), in one buffer of the exact size: the file is those bytes.
     let bytes = m.checkpoint_bytes().unwrap();
     assert_eq!(bytes.capacity(), bytes.len(), "checkpoint buffer sized exactly");
     assert_eq!(std::fs::read(&path).unwrap(), bytes);
-    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 3);
-    // A version 2 file (the same without the medium estimate's state: 16 bytes here, no
-    // prior yet with 3 keyframes) is still read.
-    let mut v2 = bytes[..bytes.len() - 8 - 16].to_vec();
-    v2[8..12].copy_from_slice(&2u32.to_le_bytes());
-    let n = (v2.len() - 20) as u64;
-    v2[12..20].copy_from_slice(&n.to_le_bytes());
-    let sum = duv::map::checkpoint::fnv1a64(&v2[20..]);
-    v2.extend_from_slice(&sum.to_le_bytes());
-    let old = Mapper::from_checkpoint_bytes(&v2, "version 2", duv::map::checkpoint::RestoreOptions::default()).unwrap();
-    assert_eq!(old.gaussians(), m.gaussians());
+    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 4);
+    // Older files are still read: version 3 is this without the footprints (a count and one
+    // f32 per Gaussian), version 2 also without the medium estimate's state (16 bytes here,
+    // no prior yet with 3 keyframes).
+    let older = |version: u32, cut: usize| {
+        let mut b = bytes[..bytes.len() - 8 - cut].to_vec();
+        b[8..12].copy_from_slice(&version.to_le_bytes());
+        let n = (b.len() - 20) as u64;
+        b[12..20].copy_from_slice(&n.to_le_bytes());
+        let sum = duv::map::checkpoint::fnv1a64(&b[20..]);
+        b.extend_from_slice(&sum.to_le_bytes());
+        Mapper::from_checkpoint_bytes(&b, "older version", duv::map::checkpoint::RestoreOptions::default()).unwrap()
+    };
+    let footprints = 8 + 4 * m.gaussians().len();
+    assert_eq!(older(3, footprints).gaussians(), m.gaussians());
+    assert_eq!(older(2, footprints + 16).gaussians(), m.gaussians());
     let mut r = Mapper::load_checkpoint(&path).unwrap();
     assert_eq!(r.iteration(), m.iteration());
     assert_eq!(r.gaussians(), m.gaussians());
+    assert_eq!(r.checkpoint_bytes().unwrap(), bytes, "the whole state, footprints included, comes back");
     for slot in 0..m.keyframe_count() {
         let a = m.render_keyframe(slot).unwrap().clone();
         let b = r.render_keyframe(slot).unwrap();
@@ -186,6 +192,38 @@ fn hard_cap_holds_under_aggressive_densification() {
     }
     assert_eq!(m.gaussians().len(), cap, "the map fills up");
     assert!(replaced > 0, "a full map replaces its least useful Gaussians");
+}
+
+/// A full map still seeds the surface a new keyframe adds: it evicts the least useful
+/// Gaussians for it (up to `init_replace_fraction` of the cap); with 0 it seeds only into
+/// free room.
+#[test]
+fn a_full_map_makes_room_for_a_new_keyframes_surface() {
+    let (_r, kfs) = tiny_sequence(WaterPreset::Coastal, 16);
+    let cap = 800;
+    let run = |fraction: f64| {
+        let config = MapperConfig { init_replace_fraction: fraction, estimate_medium_at_keyframes: 0, ..MapperConfig::default() };
+        let mut m = Mapper::new(config, capacity(cap)).unwrap();
+        let first = m.add_keyframe(kfs[0].keyframe.clone()).unwrap();
+        for _ in 0..5 {
+            m.iterate().unwrap();
+        }
+        let added: Vec<usize> = kfs[1..].iter().map(|k| m.add_keyframe(k.keyframe.clone()).unwrap()).collect();
+        assert!(m.gaussians().len() <= cap);
+        for g in duv::map::gaussians::ParamGroup::ALL {
+            assert_eq!(m.adam_group(g).len(), m.gaussians().len(), "Adam group {} aligned", g.name());
+        }
+        (first, added, m.gaussians().len())
+    };
+    let (first, none, len_none) = run(0.0);
+    let (_, some, len_some) = run(0.25);
+    eprintln!("first {first}, seeded without eviction {none:?} (len {len_none}), with {some:?} (len {len_some})");
+    assert!(first > 700, "the first keyframe nearly fills the map: {first}");
+    let (sum_none, sum_some): (usize, usize) = (none.iter().sum(), some.iter().sum());
+    assert!(sum_none <= cap - first, "without eviction only the free room is seeded: {none:?}");
+    assert!(sum_some >= sum_none + 150, "eviction seeds the new keyframes' surface: {some:?} against {none:?}");
+    assert!(some.iter().all(|&a| a <= cap / 4 + (cap - first)), "at most a quarter of the cap is replaced per keyframe: {some:?}");
+    assert_eq!(len_some, cap);
 }
 
 #[test]

@@ -11,7 +11,10 @@
 //! bytes 20..20+n payload
 //! last 8 bytes   FNV-1a 64 checksum of the payload, u64 little endian
 //! ```
-//! Version 3 (written) is version 2 followed by the medium estimate's state (the keyframe count
+//! Version 4 (written) is version 3 followed by the Gaussians' footprints
+//! ([`super::gaussians::GaussianGrads::fold_footprint`]: what the seeding of a full map
+//! evicts by) as a u64 count and f32 values; older versions restore them as 0.
+//! Version 3 (still read) is version 2 followed by the medium estimate's state (the keyframe count
 //! of the next estimate and the prior that holds the medium near the accepted one: a u64 count,
 //! 0 or 17, then channels as 0/1 and the prior's numbers as f64 bits). Version 2 (still read): a binary payload, little endian, in the order of the `Payload` struct
 //! below: the config as TOML text, then numbers as u64 / f64 and arrays as a u64 count followed
@@ -44,8 +47,10 @@ use crate::io::{write_atomic, IoError};
 
 /// File magic.
 pub const CHECKPOINT_MAGIC: &[u8; 8] = b"DUVMAPCK";
-/// Format version this build writes (it reads this, version 2 and version 1).
-pub const CHECKPOINT_VERSION: u32 = 3;
+/// Format version this build writes (it reads this and versions 3, 2 and 1).
+pub const CHECKPOINT_VERSION: u32 = 4;
+/// The binary format without the Gaussians' footprints.
+const CHECKPOINT_VERSION_NO_FOOTPRINT: u32 = 3;
 /// The binary format without the medium estimate's state.
 const CHECKPOINT_VERSION_NO_MEDIUM_STATE: u32 = 2;
 /// The JSON format of the first builds.
@@ -116,6 +121,9 @@ struct Payload {
     /// Version 3 on; absent in older checkpoints.
     #[serde(default)]
     medium_state: Option<MediumStateRecord>,
+    /// Version 4 on (f32 bits, one per Gaussian); empty in older checkpoints.
+    #[serde(default)]
+    footprint: Vec<u32>,
 }
 
 /// Number of u64 in a stored [`MediumPrior`]: 3 channel flags, 9 coefficients, weight and two stds.
@@ -223,7 +231,7 @@ fn put_adam(w: &mut Vec<u8>, g: &super::adam::AdamGroup) {
     put_f32s(w, v);
 }
 
-/// Reads a version 2 or 3 payload; every count is checked against the bytes left before anything
+/// Reads a version 2, 3 or 4 payload; every count is checked against the bytes left before anything
 /// is allocated, so a damaged file cannot ask for more memory than it holds.
 fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
     let mut r = LeReader::new(body);
@@ -279,10 +287,11 @@ fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
     } else {
         None
     };
+    let footprint = if version > CHECKPOINT_VERSION_NO_FOOTPRINT { words(&mut r)? } else { Vec::new() };
     if r.remaining() != 0 {
         return Err(format!("{} bytes after the last keyframe", r.remaining()));
     }
-    Ok(Payload { config_toml, capacity, iteration, rng_state, gaussians, densify_grad_norm, pixels_touched, views, adam, medium_pe_frequencies, medium_params, medium_adam, keyframes, medium_state })
+    Ok(Payload { config_toml, capacity, iteration, rng_state, gaussians, densify_grad_norm, pixels_touched, views, adam, medium_pe_frequencies, medium_params, medium_adam, keyframes, medium_state, footprint })
 }
 
 impl Mapper {
@@ -314,7 +323,7 @@ impl Mapper {
         let adam: usize = self.adam.iter().map(|a| 24 + 8 * a.moments().0.len()).sum::<usize>() + 24 + 8 * self.medium_adam.moments().0.len();
         let n = self.grads.densify_grad_norm().len();
         let medium_state = MediumStateRecord::of(self);
-        let payload_len = 8 + config_toml.len() + 32 + 8 + 32 + groups + 3 * 8 + 12 * n + adam + 8 + 8 + 4 * self.medium.params().len() + 8 + kf_bytes + 16 + 8 * medium_state.prior.len();
+        let payload_len = 8 + config_toml.len() + 32 + 8 + 32 + groups + 3 * 8 + 12 * n + adam + 8 + 8 + 4 * self.medium.params().len() + 8 + kf_bytes + 16 + 8 * medium_state.prior.len() + 8 + 4 * n;
         let mut out = Vec::with_capacity(20 + payload_len + 8);
         out.extend_from_slice(CHECKPOINT_MAGIC);
         out.extend_from_slice(&CHECKPOINT_VERSION.to_le_bytes());
@@ -368,6 +377,7 @@ impl Mapper {
         for &v in &medium_state.prior {
             put_u64(w, v);
         }
+        put_f32s(w, self.grads.footprint());
         debug_assert_eq!(out.len(), 20 + payload_len, "checkpoint size computed wrongly");
         let n = out.len() - 20;
         out[12..20].copy_from_slice(&(n as u64).to_le_bytes());
@@ -391,7 +401,7 @@ impl Mapper {
             return Err(CheckpointError::BadMagic { path: p });
         }
         let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap_or([0; 4]));
-        if ![CHECKPOINT_VERSION, CHECKPOINT_VERSION_NO_MEDIUM_STATE, CHECKPOINT_VERSION_JSON].contains(&version) {
+        if ![CHECKPOINT_VERSION, CHECKPOINT_VERSION_NO_FOOTPRINT, CHECKPOINT_VERSION_NO_MEDIUM_STATE, CHECKPOINT_VERSION_JSON].contains(&version) {
             return Err(CheckpointError::UnsupportedVersion { path: p, found: version, expected: CHECKPOINT_VERSION });
         }
         let n = u64::from_le_bytes(bytes[12..20].try_into().unwrap_or([0; 8])) as usize;
@@ -448,6 +458,12 @@ impl Mapper {
         m.grads
             .set_densify_stats(&floats(&payload.densify_grad_norm), &payload.pixels_touched, &payload.views)
             .map_err(MapperError::from)?;
+        if !payload.footprint.is_empty() && payload.footprint.len() != len {
+            return Err(bad(format!("{} footprints for {len} Gaussians", payload.footprint.len())));
+        }
+        for i in 0..len {
+            m.grads.set_footprint(i, payload.footprint.get(i).map_or(0.0, |&b| f32::from_bits(b)));
+        }
         m.medium = MediumNet::from_checkpoint(&MediumCheckpoint {
             schema_version: MEDIUM_CHECKPOINT_VERSION,
             pe_frequencies: payload.medium_pe_frequencies,

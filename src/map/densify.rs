@@ -86,20 +86,56 @@ pub fn prune_largest(
     count: usize,
     s: &mut DensifyScratch,
 ) -> Result<usize, AdamError> {
+    grads.fold_footprint();
+    let log_scale = gaussians.group(ParamGroup::LogScale);
+    for (i, key) in s.avg_grad[..gaussians.len()].iter_mut().enumerate() {
+        *key = log_scale[i * 3..i * 3 + 3].iter().fold(f32::MIN, |a, &b| a.max(b));
+    }
+    remove_highest_keys(gaussians, grads, adam, count, s)
+}
+
+/// The seeding policy of a full map (a new keyframe shows surface no Gaussian covers yet):
+/// removes the `count` least useful Gaussians, lowest `opacity x (footprint + 1)` with the
+/// footprint ([`GaussianGrads::fold_footprint`]) the most pixels per view a Gaussian covered
+/// in any keyframe so far, so the surface that only old keyframes see is kept, with their Adam
+/// moments, and resets the gradients for the new length; returns how many went. Allocates
+/// nothing.
+pub fn evict_least_useful(
+    gaussians: &mut Gaussians,
+    grads: &mut GaussianGrads,
+    adam: &mut [AdamGroup],
+    count: usize,
+    s: &mut DensifyScratch,
+) -> Result<usize, AdamError> {
+    grads.fold_footprint();
+    let opacity = gaussians.group(ParamGroup::OpacityLogit);
+    let footprint = grads.footprint();
+    for (i, key) in s.avg_grad[..gaussians.len()].iter_mut().enumerate() {
+        *key = -(sigmoid(opacity[i]) * (footprint.get(i).copied().unwrap_or(0.0) + 1.0));
+    }
+    remove_highest_keys(gaussians, grads, adam, count, s)
+}
+
+/// Removes the `count` Gaussians with the highest key in `s.avg_grad` (ties by index, so the
+/// choice is deterministic) with their Adam moments and footprints, and resets the gradients.
+fn remove_highest_keys(
+    gaussians: &mut Gaussians,
+    grads: &mut GaussianGrads,
+    adam: &mut [AdamGroup],
+    count: usize,
+    s: &mut DensifyScratch,
+) -> Result<usize, AdamError> {
     let n = gaussians.len();
     let count = count.min(n);
     if count == 0 {
         return Ok(0);
     }
-    let log_scale = gaussians.group(ParamGroup::LogScale);
     s.order.clear();
     for i in 0..n {
-        s.avg_grad[i] = log_scale[i * 3..i * 3 + 3].iter().fold(f32::MIN, |a, &b| a.max(b));
         s.order.push(i as u32);
         s.keep[i] = true;
     }
     let key = &s.avg_grad;
-    // Largest first; ties by index, so the choice is deterministic.
     s.order.select_nth_unstable_by(count - 1, |&a, &b| key[b as usize].total_cmp(&key[a as usize]).then(a.cmp(&b)));
     for &i in &s.order[..count] {
         s.keep[i as usize] = false;
@@ -109,6 +145,7 @@ pub fn prune_largest(
         kept = adam[k].retain(gaussians.group_mut(*g), &s.keep[..n])?;
     }
     gaussians.truncate(kept);
+    grads.retain_footprint(&s.keep[..n]);
     grads.reset(kept).map_err(|_| AdamError::CapacityExceeded { requested: kept, capacity: grads.capacity() })?;
     Ok(n - kept)
 }
@@ -128,6 +165,7 @@ pub fn densify_and_prune(
     debug_assert_eq!(grads.len(), n);
     debug_assert_eq!(adam.len(), ParamGroup::ALL.len());
     let mut report = DensifyReport::default();
+    grads.fold_footprint();
     {
         let (dgn, touched, views) = (grads.densify_grad_norm(), grads.pixels_touched(), grads.views());
         let opacity = gaussians.group(ParamGroup::OpacityLogit);
@@ -149,6 +187,7 @@ pub fn densify_and_prune(
         kept = adam[k].retain(gaussians.group_mut(*g), &s.keep[..n])?;
     }
     gaussians.truncate(kept);
+    grads.retain_footprint(&s.keep[..n]);
     retain_strided(&mut s.candidate[..n], 1, &s.keep[..n]);
     retain_strided(&mut s.usefulness[..n], 1, &s.keep[..n]);
     retain_strided(&mut s.avg_grad[..n], 1, &s.keep[..n]);
@@ -200,7 +239,9 @@ pub fn densify_and_prune(
                 child.log_scale[k] -= shrink;
             }
         }
+        let parent_footprint = grads.footprint_at(i);
         if gaussians.len() < capacity {
+            grads.set_footprint(gaussians.len(), parent_footprint);
             gaussians.push(&child).map_err(|_| AdamError::CapacityExceeded { requested: capacity + 1, capacity })?;
             for group in adam.iter_mut() {
                 group.grow(1)?;
@@ -215,6 +256,7 @@ pub fn densify_and_prune(
             s.keep[v] = true;
             next_victim += 1;
             gaussians.set(v, &child);
+            grads.set_footprint(v, parent_footprint);
             for group in adam.iter_mut() {
                 group.reset_items(v, 1)?;
             }
@@ -233,4 +275,59 @@ pub fn densify_and_prune(
     grads.reset(gaussians.len()).map_err(|_| AdamError::CapacityExceeded { requested: gaussians.len(), capacity: grads.capacity() })?;
     report.len = gaussians.len();
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::adam::AdamGroupConfig;
+    use crate::map::gaussians::GaussianParam;
+
+    /// Six Gaussians, opacity logits and footprints chosen so the order of usefulness is known;
+    /// Gaussian 1 was large in an earlier window but is not seen in the current one.
+    #[test]
+    fn eviction_removes_the_least_useful_and_keeps_what_old_views_saw() {
+        let n = 6;
+        let mut g = Gaussians::with_capacity(8);
+        let mut grads = GaussianGrads::with_capacity(8);
+        // (opacity logit, footprint of earlier windows, pixels touched / views now)
+        let spec = [(0.0f32, 0.0f32, (4u32, 1u32)), (0.0, 300.0, (0, 0)), (-3.0, 0.0, (0, 0)), (2.0, 0.0, (50, 2)), (-1.0, 0.0, (0, 0)), (0.0, 0.0, (2, 1))];
+        for (i, &(logit, _, _)) in spec.iter().enumerate() {
+            let p = GaussianParam { mean: [i as f32, 0.0, 5.0], log_scale: [-3.0; 3], rotation: [1.0, 0.0, 0.0, 0.0], opacity_logit: logit, f_dc: [0.1; 3], f_rest: [0.0; 9] };
+            g.push(&p).unwrap();
+        }
+        grads.reset(n).unwrap();
+        for (i, &(_, fp, _)) in spec.iter().enumerate() {
+            grads.set_footprint(i, fp);
+        }
+        let touched: Vec<u32> = spec.iter().map(|s| s.2 .0).collect();
+        let views: Vec<u32> = spec.iter().map(|s| s.2 .1).collect();
+        grads.set_densify_stats(&vec![0.0; n], &touched, &views).unwrap();
+        let mut adam: Vec<AdamGroup> = ParamGroup::ALL.iter().map(|&pg| AdamGroup::new(AdamGroupConfig::default(), pg.width(), n, 8).unwrap()).collect();
+        // Mark each Gaussian's first moment with its index, to check they move together.
+        for (k, &pg) in ParamGroup::ALL.iter().enumerate() {
+            let m: Vec<f32> = (0..n).flat_map(|i| std::iter::repeat(i as f32).take(pg.width())).collect();
+            let v = vec![0.0; n * pg.width()];
+            adam[k].set_state(1, &m, &v).unwrap();
+        }
+        let mut s = DensifyScratch::with_capacity(8);
+        // Usefulness sigmoid(logit) * (footprint + 1): 0: 0.5*5 = 2.5, 1: 0.5*301, 2: 0.047*1,
+        // 3: 0.88*26, 4: 0.27*1, 5: 0.5*3 = 1.5. The three least useful: 2, 4, 5.
+        let removed = evict_least_useful(&mut g, &mut grads, &mut adam, 3, &mut s).unwrap();
+        assert_eq!(removed, 3);
+        assert_eq!(g.len(), 3);
+        let xs: Vec<f32> = (0..3).map(|i| g.get(i).mean[0]).collect();
+        assert_eq!(xs, vec![0.0, 1.0, 3.0], "Gaussians 0, 1 and 3 stay, in order");
+        assert_eq!(grads.len(), 3);
+        assert_eq!(grads.footprint(), &[4.0, 300.0, 25.0], "footprints folded from the window and moved with the map");
+        for (k, &pg) in ParamGroup::ALL.iter().enumerate() {
+            let (m, _) = adam[k].moments();
+            let firsts: Vec<f32> = (0..3).map(|i| m[i * pg.width()]).collect();
+            assert_eq!(firsts, vec![0.0, 1.0, 3.0], "moments of {} move with their Gaussians", pg.name());
+        }
+        assert_eq!(grads.pixels_touched(), &[0, 0, 0], "the window's statistics are reset");
+        // Asking for more than the map holds removes everything, nothing more.
+        assert_eq!(evict_least_useful(&mut g, &mut grads, &mut adam, 10, &mut s).unwrap(), 3);
+        assert!(g.is_empty());
+    }
 }

@@ -289,6 +289,11 @@ pub struct GaussianGrads {
     pixels_touched: Vec<u32>,
     /// Per Gaussian: backward passes (views) in which it contributed to at least one pixel.
     views: Vec<u32>,
+    /// Per Gaussian, kept across statistics resets and moved with the map by its callers
+    /// (densification, eviction, seeding): the largest mean pixels per view it contributed to
+    /// over every statistics window so far ([`GaussianGrads::fold_footprint`]). A Gaussian
+    /// that only old, rarely revisited keyframes see keeps the footprint it had when seen.
+    footprint: Vec<f32>,
 }
 
 impl GaussianGrads {
@@ -300,6 +305,7 @@ impl GaussianGrads {
             densify_grad_norm: vec![0.0; capacity],
             pixels_touched: vec![0; capacity],
             views: vec![0; capacity],
+            footprint: vec![0.0; capacity],
         }
     }
 
@@ -313,7 +319,41 @@ impl GaussianGrads {
         self.capacity
     }
 
-    /// Sets the length (to match the map) and zeroes every gradient and statistic.
+    /// Folds the statistics of the current window into the footprints: each Gaussian seen in
+    /// at least one view keeps the larger of its footprint and its mean pixels per view.
+    pub fn fold_footprint(&mut self) {
+        for i in 0..self.len {
+            if self.views[i] > 0 {
+                let mean = self.pixels_touched[i] as f32 / self.views[i] as f32;
+                self.footprint[i] = self.footprint[i].max(mean);
+            }
+        }
+    }
+
+    /// Footprints of the current length ([`GaussianGrads::fold_footprint`]).
+    pub fn footprint(&self) -> &[f32] {
+        &self.footprint[..self.len]
+    }
+
+    /// Footprint of slot `i` (any slot below the capacity).
+    pub fn footprint_at(&self, i: usize) -> f32 {
+        self.footprint[i]
+    }
+
+    /// Sets the footprint of slot `i` (any slot below the capacity, also past the current
+    /// length: a Gaussian appended before the next [`GaussianGrads::reset`]).
+    pub fn set_footprint(&mut self, i: usize, pixels: f32) {
+        self.footprint[i] = pixels;
+    }
+
+    /// Moves the footprints of the first `keep.len()` slots as a compaction by `keep` moves
+    /// the map ([`super::adam::AdamGroup::retain`]); the statistics are not moved (reset them).
+    pub fn retain_footprint(&mut self, keep: &[bool]) {
+        super::adam::retain_strided(&mut self.footprint[..keep.len()], 1, keep);
+    }
+
+    /// Sets the length (to match the map) and zeroes every gradient and statistic; the
+    /// footprints stay (slots appended since the last compaction keep what their caller set).
     pub fn reset(&mut self, len: usize) -> Result<(), RenderError> {
         if len > self.capacity {
             return Err(RenderError::GaussianCapacity { capacity: self.capacity });
@@ -384,6 +424,7 @@ impl GaussianGrads {
                     self.densify_grad_norm[out] = self.densify_grad_norm[i];
                     self.pixels_touched[out] = self.pixels_touched[i];
                     self.views[out] = self.views[i];
+                    self.footprint[out] = self.footprint[i];
                 }
                 out += 1;
             }

@@ -20,7 +20,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
-use super::densify::{densify_and_prune, prune_largest, DensifyParams, DensifyReport, DensifyScratch};
+use super::densify::{densify_and_prune, evict_least_useful, prune_largest, DensifyParams, DensifyReport, DensifyScratch};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
 use super::loss::{LossConfig, LossError, LossTerms, LossWorkspace, TargetView};
 use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, MediumEstimateConfig, MediumEstimateError};
@@ -127,6 +127,11 @@ pub struct MapperConfig {
     pub init_max_rel_std: f64,
     /// Pixels where the current map already renders at least this alpha seed no Gaussian.
     pub init_covered_alpha: f64,
+    /// When a new keyframe has more pixels to seed than the map has room for, up to this share
+    /// of the Gaussian cap is freed first by evicting the least useful Gaussians
+    /// ([`super::densify::evict_least_useful`]), so the surface it adds is not left to
+    /// densification alone, in [0, 1]; 0 seeds only into free room.
+    pub init_replace_fraction: f64,
     /// Opacity of a new Gaussian, in (0, 1).
     pub init_opacity: f64,
     /// Scale of a new Gaussian as a multiple of its grid cell footprint `z stride / fx`.
@@ -190,6 +195,7 @@ impl Default for MapperConfig {
             init_stride_px: 2,
             init_max_rel_std: 0.5,
             init_covered_alpha: 0.9,
+            init_replace_fraction: 0.1,
             init_opacity: 0.8,
             init_scale_factor: 0.5,
             init_compensate_medium: true,
@@ -249,6 +255,7 @@ impl MapperConfig {
             ("window_probability", self.window_probability, 0.0, 1.0),
             ("max_replace_fraction", self.max_replace_fraction, 0.0, 1.0),
             ("init_covered_alpha", self.init_covered_alpha, 0.0, 1.0),
+            ("init_replace_fraction", self.init_replace_fraction, 0.0, 1.0),
             ("prune_min_opacity", self.prune_min_opacity, 0.0, 1.0),
         ] {
             if !(v.is_finite() && v >= lo && v <= hi) {
@@ -638,6 +645,9 @@ impl Mapper {
             self.adam[k] = AdamGroup::new(cfg, g.width(), self.gaussians.len(), self.capacity.max_gaussians)?;
         }
         self.grads.reset(self.gaussians.len())?;
+        for i in 0..self.gaussians.len() {
+            self.grads.set_footprint(i, 0.0);
+        }
         Ok(())
     }
 
@@ -693,21 +703,44 @@ impl Mapper {
         let (w, h) = (cam.width, cam.height);
         let stride = cfg.init_stride_px;
         let opacity_logit = (cfg.init_opacity / (1.0 - cfg.init_opacity)).ln() as f32;
+        let alpha = &self.view.out.alpha.data;
+        let seedable = |i: usize| {
+            let d = kf.inv_depth.data[i];
+            let var = kf.inv_depth_variance.data[i];
+            d > 0.0
+                && d.is_finite()
+                && var.is_finite()
+                && var >= 0.0
+                && (var as f64).sqrt() <= cfg.init_max_rel_std * d as f64
+                && (alpha[i] as f64) < cfg.init_covered_alpha
+        };
+        let wanted = (stride / 2..h).step_by(stride).map(|y| (stride / 2..w).step_by(stride).filter(|&x| seedable(y * w + x)).count()).sum::<usize>();
+        let room = self.gaussians.capacity() - self.gaussians.len();
+        let mut evicted = 0;
+        if wanted > room {
+            let budget = (cfg.init_replace_fraction * self.gaussians.capacity() as f64) as usize;
+            evicted = evict_least_useful(&mut self.gaussians, &mut self.grads, &mut self.adam, (wanted - room).min(budget), &mut self.densify_scratch)?;
+        }
+        let cfg = &self.config;
+        let alpha = &self.view.out.alpha.data;
+        let seedable = |i: usize| {
+            let d = kf.inv_depth.data[i];
+            let var = kf.inv_depth_variance.data[i];
+            d > 0.0
+                && d.is_finite()
+                && var.is_finite()
+                && var >= 0.0
+                && (var as f64).sqrt() <= cfg.init_max_rel_std * d as f64
+                && (alpha[i] as f64) < cfg.init_covered_alpha
+        };
         let before = self.gaussians.len();
         'rows: for y in (stride / 2..h).step_by(stride) {
             for x in (stride / 2..w).step_by(stride) {
                 let i = y * w + x;
+                if !seedable(i) {
+                    continue;
+                }
                 let d = kf.inv_depth.data[i];
-                let var = kf.inv_depth_variance.data[i];
-                if !(d > 0.0 && d.is_finite() && var.is_finite() && var >= 0.0) {
-                    continue;
-                }
-                if (var as f64).sqrt() > cfg.init_max_rel_std * d as f64 {
-                    continue;
-                }
-                if self.view.out.alpha.data[i] as f64 >= cfg.init_covered_alpha {
-                    continue;
-                }
                 if self.gaussians.len() == self.gaussians.capacity() {
                     break 'rows;
                 }
@@ -736,10 +769,13 @@ impl Mapper {
                     f_dc,
                     f_rest: [0.0; 9],
                 };
+                // Until a view measures it, a seed counts as covering its own grid cell.
+                self.grads.set_footprint(self.gaussians.len(), (stride * stride) as f32);
                 self.gaussians.push(&p)?;
             }
         }
         let added = self.gaussians.len() - before;
+        self.grads.fold_footprint();
         for group in self.adam.iter_mut() {
             group.grow(added)?;
         }
@@ -767,7 +803,7 @@ impl Mapper {
             self.medium_estimate_at = if all || estimate_at == self.capacity.max_keyframes { 0 } else { estimate_at * 2 };
         }
 
-        tracing::debug!(added, total = self.gaussians.len(), "map.add_keyframe");
+        tracing::debug!(added, evicted, total = self.gaussians.len(), "map.add_keyframe");
         Ok(added)
     }
 
