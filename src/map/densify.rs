@@ -12,6 +12,13 @@
 //!    new one **replaces** the least useful Gaussian (lowest `opacity x pixels touched`, never a
 //!    parent densified in the same step, nor a slot already replaced), at most `max_replace_fraction` of the map per call. No buffer grows.
 //!
+//! Seeding a new keyframe into a full map ([`evict_least_useful`], called by
+//! `Mapper::add_keyframe` up to `init_replace_fraction` of the cap) evicts by the same measure
+//! with the footprint in place of the current window's pixel count: the window only holds the
+//! views optimised since the last reset, mostly the newest keyframes, and by it the surface
+//! that only old keyframes see would go first (measured: the first two of 13 keyframes fell
+//! from 34-35 dB to 17-20 dB).
+//!
 //! Every compaction moves the Adam moments with the parameters ([`AdamGroup::retain`]); an
 //! appended Gaussian starts with zero moments ([`AdamGroup::grow`]), a replaced slot has its
 //! moments zeroed ([`AdamGroup::reset_items`]). The gradients and statistics are reset for the

@@ -704,40 +704,21 @@ impl Mapper {
         let stride = cfg.init_stride_px;
         let opacity_logit = (cfg.init_opacity / (1.0 - cfg.init_opacity)).ln() as f32;
         let alpha = &self.view.out.alpha.data;
-        let seedable = |i: usize| {
-            let d = kf.inv_depth.data[i];
-            let var = kf.inv_depth_variance.data[i];
-            d > 0.0
-                && d.is_finite()
-                && var.is_finite()
-                && var >= 0.0
-                && (var as f64).sqrt() <= cfg.init_max_rel_std * d as f64
-                && (alpha[i] as f64) < cfg.init_covered_alpha
-        };
-        let wanted = (stride / 2..h).step_by(stride).map(|y| (stride / 2..w).step_by(stride).filter(|&x| seedable(y * w + x)).count()).sum::<usize>();
+        let wanted = (stride / 2..h).step_by(stride).map(|y| (stride / 2..w).step_by(stride).filter(|&x| seeds_gaussian(kf, alpha, cfg, y * w + x)).count()).sum::<usize>();
         let room = self.gaussians.capacity() - self.gaussians.len();
         let mut evicted = 0;
         if wanted > room {
             let budget = (cfg.init_replace_fraction * self.gaussians.capacity() as f64) as usize;
             evicted = evict_least_useful(&mut self.gaussians, &mut self.grads, &mut self.adam, (wanted - room).min(budget), &mut self.densify_scratch)?;
         }
-        let cfg = &self.config;
-        let alpha = &self.view.out.alpha.data;
-        let seedable = |i: usize| {
-            let d = kf.inv_depth.data[i];
-            let var = kf.inv_depth_variance.data[i];
-            d > 0.0
-                && d.is_finite()
-                && var.is_finite()
-                && var >= 0.0
-                && (var as f64).sqrt() <= cfg.init_max_rel_std * d as f64
-                && (alpha[i] as f64) < cfg.init_covered_alpha
-        };
+        // Coverage stays the render's from before the eviction (not rendered again: the evicted
+        // Gaussians are the least useful of the map, so the alpha changes little).
+        let (cfg, alpha) = (&self.config, &self.view.out.alpha.data);
         let before = self.gaussians.len();
         'rows: for y in (stride / 2..h).step_by(stride) {
             for x in (stride / 2..w).step_by(stride) {
                 let i = y * w + x;
-                if !seedable(i) {
+                if !seeds_gaussian(kf, alpha, cfg, i) {
                     continue;
                 }
                 let d = kf.inv_depth.data[i];
@@ -1094,6 +1075,20 @@ impl Mapper {
         tracing::debug!(?report, "map.densify");
         Ok(report)
     }
+}
+
+/// Whether keyframe pixel `i` seeds a Gaussian: valid depth whose relative standard
+/// deviation is within `init_max_rel_std`, where the map renders less than
+/// `init_covered_alpha` (`alpha`, the map's alpha from the keyframe's pose).
+fn seeds_gaussian(kf: &Keyframe, alpha: &[f32], cfg: &MapperConfig, i: usize) -> bool {
+    let d = kf.inv_depth.data[i];
+    let var = kf.inv_depth_variance.data[i];
+    d > 0.0
+        && d.is_finite()
+        && var.is_finite()
+        && var >= 0.0
+        && (var as f64).sqrt() <= cfg.init_max_rel_std * d as f64
+        && (alpha[i] as f64) < cfg.init_covered_alpha
 }
 
 /// With one coefficient for both medium terms (`sigma_bs` tied to `sigma_att`), the
