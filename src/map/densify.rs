@@ -12,7 +12,7 @@
 //!    new one **replaces** the least useful Gaussian (lowest `opacity x pixels touched`, never a
 //!    parent densified in the same step, nor a slot already replaced), at most `max_replace_fraction` of the map per call. No buffer grows.
 //!
-//! Seeding a new keyframe into a full map ([`evict_least_useful`], called by
+//! Seeding a new keyframe into a full map ([`Removal::LeastUseful`], called by
 //! `Mapper::add_keyframe` up to `init_replace_fraction` of the cap) evicts by the same measure
 //! with the footprint in place of the current window's pixel count: the window only holds the
 //! views optimised since the last reset, mostly the newest keyframes, and by it the surface
@@ -82,56 +82,47 @@ impl DensifyScratch {
     }
 }
 
-/// The tile-overflow policy (a render needed more tile intersections than its buffers hold):
-/// removes the `count` Gaussians with the largest axis, which cover the most tiles, with their
-/// Adam moments, and resets the gradients for the new length; returns how many went. Allocates
-/// nothing (the order lives in the scratch).
-pub fn prune_largest(
+/// Which Gaussians [`remove_gaussians`] takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Removal {
+    /// The tile-overflow policy (a render needed more tile intersections than its buffers
+    /// hold): the largest axis first, the Gaussians that cover the most tiles.
+    Largest,
+    /// The seeding policy of a full map (a new keyframe shows surface no Gaussian covers yet):
+    /// lowest `opacity x (footprint + 1)` first, with the footprint
+    /// ([`GaussianGrads::fold_footprint`]) the most pixels per view a Gaussian covered in any
+    /// keyframe so far, so the surface that only old keyframes see is kept.
+    LeastUseful,
+}
+
+/// Removes `count` Gaussians chosen by `by`, with their Adam moments and footprints, and
+/// resets the gradients for the new length; returns how many went. Allocates nothing (the
+/// order lives in the scratch).
+pub fn remove_gaussians(
     gaussians: &mut Gaussians,
     grads: &mut GaussianGrads,
     adam: &mut [AdamGroup],
     count: usize,
+    by: Removal,
     s: &mut DensifyScratch,
 ) -> Result<usize, AdamError> {
     grads.fold_footprint();
-    let log_scale = gaussians.group(ParamGroup::LogScale);
-    for (i, key) in s.avg_grad[..gaussians.len()].iter_mut().enumerate() {
-        *key = log_scale[i * 3..i * 3 + 3].iter().fold(f32::MIN, |a, &b| a.max(b));
+    // The key, highest removed first, in the scratch's gradient slot.
+    let keys = &mut s.avg_grad[..gaussians.len()];
+    match by {
+        Removal::Largest => {
+            let log_scale = gaussians.group(ParamGroup::LogScale);
+            for (i, key) in keys.iter_mut().enumerate() {
+                *key = log_scale[i * 3..i * 3 + 3].iter().fold(f32::MIN, |a, &b| a.max(b));
+            }
+        }
+        Removal::LeastUseful => {
+            let (opacity, footprint) = (gaussians.group(ParamGroup::OpacityLogit), grads.footprint());
+            for (i, key) in keys.iter_mut().enumerate() {
+                *key = -(sigmoid(opacity[i]) * (footprint[i] + 1.0));
+            }
+        }
     }
-    remove_highest_keys(gaussians, grads, adam, count, s)
-}
-
-/// The seeding policy of a full map (a new keyframe shows surface no Gaussian covers yet):
-/// removes the `count` least useful Gaussians, lowest `opacity x (footprint + 1)` with the
-/// footprint ([`GaussianGrads::fold_footprint`]) the most pixels per view a Gaussian covered
-/// in any keyframe so far, so the surface that only old keyframes see is kept, with their Adam
-/// moments, and resets the gradients for the new length; returns how many went. Allocates
-/// nothing.
-pub fn evict_least_useful(
-    gaussians: &mut Gaussians,
-    grads: &mut GaussianGrads,
-    adam: &mut [AdamGroup],
-    count: usize,
-    s: &mut DensifyScratch,
-) -> Result<usize, AdamError> {
-    grads.fold_footprint();
-    let opacity = gaussians.group(ParamGroup::OpacityLogit);
-    let footprint = grads.footprint();
-    for (i, key) in s.avg_grad[..gaussians.len()].iter_mut().enumerate() {
-        *key = -(sigmoid(opacity[i]) * (footprint.get(i).copied().unwrap_or(0.0) + 1.0));
-    }
-    remove_highest_keys(gaussians, grads, adam, count, s)
-}
-
-/// Removes the `count` Gaussians with the highest key in `s.avg_grad` (ties by index, so the
-/// choice is deterministic) with their Adam moments and footprints, and resets the gradients.
-fn remove_highest_keys(
-    gaussians: &mut Gaussians,
-    grads: &mut GaussianGrads,
-    adam: &mut [AdamGroup],
-    count: usize,
-    s: &mut DensifyScratch,
-) -> Result<usize, AdamError> {
     let n = gaussians.len();
     let count = count.min(n);
     if count == 0 {
@@ -143,6 +134,7 @@ fn remove_highest_keys(
         s.keep[i] = true;
     }
     let key = &s.avg_grad;
+    // Ties by index, so the choice is deterministic.
     s.order.select_nth_unstable_by(count - 1, |&a, &b| key[b as usize].total_cmp(&key[a as usize]).then(a.cmp(&b)));
     for &i in &s.order[..count] {
         s.keep[i as usize] = false;
@@ -320,7 +312,7 @@ mod tests {
         let mut s = DensifyScratch::with_capacity(8);
         // Usefulness sigmoid(logit) * (footprint + 1): 0: 0.5*5 = 2.5, 1: 0.5*301, 2: 0.047*1,
         // 3: 0.88*26, 4: 0.27*1, 5: 0.5*3 = 1.5. The three least useful: 2, 4, 5.
-        let removed = evict_least_useful(&mut g, &mut grads, &mut adam, 3, &mut s).unwrap();
+        let removed = remove_gaussians(&mut g, &mut grads, &mut adam, 3, Removal::LeastUseful, &mut s).unwrap();
         assert_eq!(removed, 3);
         assert_eq!(g.len(), 3);
         let xs: Vec<f32> = (0..3).map(|i| g.get(i).mean[0]).collect();
@@ -334,7 +326,7 @@ mod tests {
         }
         assert_eq!(grads.pixels_touched(), &[0, 0, 0], "the window's statistics are reset");
         // Asking for more than the map holds removes everything, nothing more.
-        assert_eq!(evict_least_useful(&mut g, &mut grads, &mut adam, 10, &mut s).unwrap(), 3);
+        assert_eq!(remove_gaussians(&mut g, &mut grads, &mut adam, 10, Removal::LeastUseful, &mut s).unwrap(), 3);
         assert!(g.is_empty());
     }
 }

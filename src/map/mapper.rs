@@ -20,7 +20,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
-use super::densify::{densify_and_prune, evict_least_useful, prune_largest, DensifyParams, DensifyReport, DensifyScratch};
+use super::densify::{densify_and_prune, remove_gaussians, DensifyParams, DensifyReport, DensifyScratch, Removal};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
 use super::loss::{LossConfig, LossError, LossTerms, LossWorkspace, TargetView};
 use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, MediumEstimateConfig, MediumEstimateError};
@@ -129,7 +129,7 @@ pub struct MapperConfig {
     pub init_covered_alpha: f64,
     /// When a new keyframe has more pixels to seed than the map has room for, up to this share
     /// of the Gaussian cap is freed first by evicting the least useful Gaussians
-    /// ([`super::densify::evict_least_useful`]), so the surface it adds is not left to
+    /// ([`super::densify::Removal::LeastUseful`]), so the surface it adds is not left to
     /// densification alone, in [0, 1]; 0 seeds only into free room.
     pub init_replace_fraction: f64,
     /// Opacity of a new Gaussian, in (0, 1).
@@ -709,7 +709,7 @@ impl Mapper {
         let mut evicted = 0;
         if wanted > room {
             let budget = (cfg.init_replace_fraction * self.gaussians.capacity() as f64) as usize;
-            evicted = evict_least_useful(&mut self.gaussians, &mut self.grads, &mut self.adam, (wanted - room).min(budget), &mut self.densify_scratch)?;
+            evicted = remove_gaussians(&mut self.gaussians, &mut self.grads, &mut self.adam, (wanted - room).min(budget), Removal::LeastUseful, &mut self.densify_scratch)?;
         }
         // Coverage stays the render's from before the eviction (not rendered again: the evicted
         // Gaussians are the least useful of the map, so the alpha changes little).
@@ -1034,7 +1034,7 @@ impl Mapper {
                     self.release_device_map()?;
                     let share = (0.5 * (1.0 - capacity as f64 / needed.max(1) as f64) + 0.02).clamp(0.01, 1.0);
                     let count = ((n as f64 * share).ceil() as usize).clamp(1, n);
-                    let pruned = prune_largest(&mut self.gaussians, &mut self.grads, &mut self.adam, count, &mut self.densify_scratch)?;
+                    let pruned = remove_gaussians(&mut self.gaussians, &mut self.grads, &mut self.adam, count, Removal::Largest, &mut self.densify_scratch)?;
                     self.intersections_tight = true;
                     let o = &mut self.overflow;
                     o.events += 1;
