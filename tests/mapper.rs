@@ -427,3 +427,115 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
     restored.step_on(1).unwrap();
     assert_eq!(m.medium().params(), restored.medium().params());
 }
+
+#[test]
+fn a_keyframe_leaving_the_window_seeds_what_the_map_still_misses() {
+    // Six keyframes; the first has confident depth on its left half, less certain depth
+    // (relative std 1.0) on the right half above its bottom quarter, and depth no limit
+    // accepts (relative std 5.0) in the bottom quarter. The other five have their true depth
+    // with relative std 10 (they seed nothing), so the first keyframe's right half stays
+    // uncovered until it leaves the window of 4, at the fifth keyframe.
+    let (_r, kfs) = tiny_sequence(WaterPreset::Coastal, 24);
+    assert_eq!(kfs.len(), 6);
+    let (w, h) = (kfs[0].keyframe.camera.width, kfs[0].keyframe.camera.height);
+    // `right_half_nearer`: the first keyframe's right-half inverse depth times this.
+    // `looking_back`: the other keyframes face away from the first one's surface (turned half
+    // round about its vertical axis), else they keep their poses on the survey.
+    let run = |late_limit: f64, right_half_nearer: f32, looking_back: bool| {
+        let mut first = kfs[0].keyframe.clone();
+        for y in 0..h {
+            for x in 0..w {
+                let i = y * w + x;
+                if x >= w / 2 {
+                    first.inv_depth.data[i] *= right_half_nearer;
+                }
+                let d = first.inv_depth.data[i];
+                let rel_std = if y >= 3 * h / 4 { 5.0 } else if x >= w / 2 { 1.0 } else { 0.1 };
+                first.inv_depth_variance.data[i] = (rel_std * d) * (rel_std * d);
+            }
+        }
+        let config = MapperConfig { late_init_max_rel_std: late_limit, estimate_medium_at_keyframes: 0, ..MapperConfig::default() };
+        let mut m = Mapper::new(config, capacity(2000)).unwrap();
+        let mut added = vec![m.add_keyframe(&first).unwrap()];
+        for k in &kfs[1..] {
+            let mut k = k.keyframe.clone();
+            for (v, &d) in k.inv_depth_variance.data.iter_mut().zip(&k.inv_depth.data) {
+                *v = (10.0 * d) * (10.0 * d);
+            }
+            if looking_back {
+                k.world_from_cam = first.world_from_cam * nalgebra::Isometry3::rotation(nalgebra::Vector3::new(0.0, std::f64::consts::PI, 0.0));
+            }
+            added.push(m.add_keyframe(&k).unwrap());
+        }
+        (added, m, first)
+    };
+    // Stride 2: 32 x 24 grid points, 16 columns per half, 18 rows above the bottom quarter.
+    let (added, m, first) = run(4.0, 1.0, true);
+    assert_eq!(added, vec![16 * 18, 0, 0, 0, 16 * 18, 0], "late seeding of the right half at the fifth keyframe, once");
+    let cam_from_world = first.world_from_cam.inverse();
+    for i in 16 * 18..m.gaussians().len() {
+        let g = m.gaussians().get(i);
+        let p = cam_from_world * nalgebra::Point3::new(g.mean[0] as f64, g.mean[1] as f64, g.mean[2] as f64);
+        let (u, v) = (first.camera.fx * p.x / p.z + first.camera.cx, first.camera.fy * p.y / p.z + first.camera.cy);
+        assert!(u > (w / 2) as f64 && v < (3 * h / 4) as f64, "late seed {i} at ({u:.1}, {v:.1}) lies in the right half above the bottom quarter");
+    }
+    assert_eq!(run(0.0, 1.0, true).0, vec![16 * 18, 0, 0, 0, 0, 0], "0 disables the late seeding");
+    assert_eq!(run(0.8, 1.0, true).0, vec![16 * 18, 0, 0, 0, 0, 0], "a late limit under the right half's 1.0 seeds nothing there");
+    // On the survey the next keyframes see much of that surface. Seeds at the depth they
+    // measured are taken; seeds 1.5 times nearer would hide it and are refused.
+    let consistent = run(4.0, 1.0, false).0[4];
+    let nearer = run(4.0, 1.5, false).0[4];
+    eprintln!("late seeds on the survey: {consistent} at the true depth, {nearer} 1.5 times nearer");
+    assert!(consistent >= 16 * 18 * 9 / 10, "seeds consistent with the other views are taken: {consistent}");
+    assert!(nearer < consistent / 2, "seeds in front of what the other views measured are refused: {nearer} of {consistent}");
+}
+
+#[test]
+fn a_new_keyframe_carves_the_gaussians_floating_in_front_of_what_it_measured() {
+    // The first keyframe seeds its surface; a second keyframe at the same pose measures the
+    // surface `scale` times farther (inverse depth divided by it). With the carving factor
+    // 1.5, Gaussians seen more than 1.5 times nearer than the measured surface go.
+    let (_r, kfs) = tiny_sequence(WaterPreset::Coastal, 8);
+    let run = |factor: f64, scale: f32| {
+        let config = MapperConfig { carve_in_front_factor: factor, estimate_medium_at_keyframes: 0, late_init_max_rel_std: 0.0, ..MapperConfig::default() };
+        let mut m = Mapper::new(config, capacity(4000)).unwrap();
+        let first = m.add_keyframe(&kfs[0].keyframe).unwrap();
+        let mut second = kfs[0].keyframe.clone();
+        second.index += 1;
+        for d in second.inv_depth.data.iter_mut() {
+            *d /= scale;
+        }
+        for (v, &d) in second.inv_depth_variance.data.iter_mut().zip(&second.inv_depth.data) {
+            *v = (0.1 * d) * (0.1 * d);
+        }
+        let added = m.add_keyframe(&second).unwrap();
+        for g in duv::map::gaussians::ParamGroup::ALL {
+            assert_eq!(m.adam_group(g).len(), m.gaussians().len(), "Adam group {} aligned", g.name());
+        }
+        let carved = first + added - m.gaussians().len();
+        (first, carved)
+    };
+    let (first, carved) = run(1.5, 2.0);
+    assert_eq!(first, 32 * 24, "the first keyframe seeds its whole grid");
+    assert_eq!(carved, first, "the surface measured twice as far carves every Gaussian in front of it");
+    assert_eq!(run(2.5, 2.0).1, 0, "twice as far is within a factor of 2.5");
+    assert_eq!(run(0.0, 2.0).1, 0, "0 disables the carving");
+    assert_eq!(run(1.5, 0.5).1, 0, "Gaussians behind the measured surface stay");
+    assert_eq!(run(1.5, 1.0).1, 0, "Gaussians on the measured surface stay");
+}
+
+#[test]
+fn seeding_and_carving_settings_out_of_range_are_refused_by_name() {
+    use duv::map::mapper::MapperError;
+    for (config, field) in [
+        (MapperConfig { carve_in_front_factor: 0.9, ..MapperConfig::default() }, "carve_in_front_factor"),
+        (MapperConfig { carve_in_front_factor: f64::NAN, ..MapperConfig::default() }, "carve_in_front_factor"),
+        (MapperConfig { late_init_max_rel_std: -1.0, ..MapperConfig::default() }, "late_init_max_rel_std"),
+        (MapperConfig { init_replace_fraction: 1.5, ..MapperConfig::default() }, "init_replace_fraction"),
+    ] {
+        match Mapper::new(config, capacity(100)) {
+            Err(MapperError::InvalidConfig { field: f, .. }) => assert_eq!(f, field),
+            other => panic!("{field}: expected InvalidConfig, got {:?}", other.map(|_| ())),
+        }
+    }
+}

@@ -139,12 +139,41 @@ pub fn remove_gaussians(
     for &i in &s.order[..count] {
         s.keep[i as usize] = false;
     }
+    drop_unkept(gaussians, grads, adam, &s.keep[..n])
+}
+
+/// Removes the Gaussians whose mean `remove` picks, with their Adam moments and footprints,
+/// and resets the gradients for the new length; returns how many went. Allocates nothing.
+pub fn remove_where(
+    gaussians: &mut Gaussians,
+    grads: &mut GaussianGrads,
+    adam: &mut [AdamGroup],
+    s: &mut DensifyScratch,
+    mut remove: impl FnMut([f32; 3]) -> bool,
+) -> Result<usize, AdamError> {
+    grads.fold_footprint();
+    let n = gaussians.len();
+    let mean = gaussians.group(ParamGroup::Mean);
+    let mut any = false;
+    for (i, keep) in s.keep[..n].iter_mut().enumerate() {
+        *keep = !remove([mean[i * 3], mean[i * 3 + 1], mean[i * 3 + 2]]);
+        any |= !*keep;
+    }
+    if !any {
+        return Ok(0);
+    }
+    drop_unkept(gaussians, grads, adam, &s.keep[..n])
+}
+
+/// Compacts the map, its Adam moments and footprints to the Gaussians `keep` marks.
+fn drop_unkept(gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup], keep: &[bool]) -> Result<usize, AdamError> {
+    let n = gaussians.len();
     let mut kept = n;
     for (k, g) in ParamGroup::ALL.iter().enumerate() {
-        kept = adam[k].retain(gaussians.group_mut(*g), &s.keep[..n])?;
+        kept = adam[k].retain(gaussians.group_mut(*g), keep)?;
     }
     gaussians.truncate(kept);
-    grads.retain_footprint(&s.keep[..n]);
+    grads.retain_footprint(keep);
     grads.reset(kept).map_err(|_| AdamError::CapacityExceeded { requested: kept, capacity: grads.capacity() })?;
     Ok(n - kept)
 }

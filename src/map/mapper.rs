@@ -1,11 +1,14 @@
 //! The mapper (paper §3.2-3.3): owns the Gaussian map, the medium network, their Adam states
 //! and every workspace, takes keyframes from the tracker and optimises the map against them.
 //!
-//! * [`Mapper::add_keyframe`] stores the keyframe and back-projects new Gaussians from its
-//!   inverse depth where the tracker is confident (relative standard deviation at most
-//!   [`MapperConfig::init_max_rel_std`]) and the current map does not already cover the pixel
-//!   (rendered alpha below [`MapperConfig::init_covered_alpha`]), on a grid of
-//!   [`MapperConfig::init_stride_px`] pixels, never past the capacity.
+//! * [`Mapper::add_keyframe`] removes the Gaussians the keyframe's confident depth sees
+//!   through ([`MapperConfig::carve_in_front_factor`]), stores the keyframe and back-projects
+//!   new Gaussians from its inverse depth where the tracker is confident (relative standard
+//!   deviation at most [`MapperConfig::init_max_rel_std`]) and the current map does not already
+//!   cover the pixel (rendered alpha below [`MapperConfig::init_covered_alpha`]), on a grid of
+//!   [`MapperConfig::init_stride_px`] pixels, never past the capacity. The keyframe that leaves
+//!   the window at that moment seeds what is still uncovered from its less certain depth (up to
+//!   [`MapperConfig::late_init_max_rel_std`]) where that hides no stored keyframe's surface.
 //! * [`Mapper::iterate`] runs one optimisation step on one keyframe picked by
 //!   [`schedule::pick_keyframe`](super::schedule::pick_keyframe): medium forward, render
 //!   forward, [`total_loss`], render backward, medium backward, one Adam step per group; every
@@ -20,7 +23,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
-use super::densify::{densify_and_prune, remove_gaussians, DensifyParams, DensifyReport, DensifyScratch, Removal};
+use super::densify::{densify_and_prune, remove_gaussians, remove_where, DensifyParams, DensifyReport, DensifyScratch, Removal};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
 use super::loss::{LossConfig, LossError, LossTerms, LossWorkspace, TargetView};
 use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, MediumEstimateConfig, MediumEstimateError};
@@ -125,6 +128,16 @@ pub struct MapperConfig {
     /// Only pixels whose inverse-depth standard deviation is at most this fraction of the
     /// inverse depth seed Gaussians (0.5: the tracker's median keyframe pixel is near 0.3).
     pub init_max_rel_std: f64,
+    /// When a keyframe leaves the window (`window` newer ones have arrived), its pixels that
+    /// `init_max_rel_std` refused and the map still does not cover seed Gaussians if their
+    /// relative standard deviation is within this looser limit: surface no newer keyframe
+    /// seeded, where this keyframe's uncertain depth is the best there is (on a survey, the
+    /// image border the vehicle moves away from). 0 disables the late seeding.
+    pub late_init_max_rel_std: f64,
+    /// A new keyframe removes the Gaussians whose centre it sees this many times nearer (in
+    /// inverse depth) than the surface it measured there with depth `init_max_rel_std` accepts:
+    /// water it saw through, where a Gaussian can only be a floater (> 1; 0 disables).
+    pub carve_in_front_factor: f64,
     /// Pixels where the current map already renders at least this alpha seed no Gaussian.
     pub init_covered_alpha: f64,
     /// When a new keyframe has more pixels to seed than the map has room for, up to this share
@@ -194,6 +207,8 @@ impl Default for MapperConfig {
             seed: 1,
             init_stride_px: 2,
             init_max_rel_std: 0.5,
+            late_init_max_rel_std: 16.0,
+            carve_in_front_factor: 1.5,
             init_covered_alpha: 0.9,
             init_replace_fraction: 0.1,
             init_opacity: 0.8,
@@ -240,6 +255,12 @@ impl MapperConfig {
             if !(v.is_finite() && v > 0.0) {
                 return bad(field, v, "must be finite and > 0");
             }
+        }
+        if !(self.carve_in_front_factor == 0.0 || (self.carve_in_front_factor.is_finite() && self.carve_in_front_factor > 1.0)) {
+            return bad("carve_in_front_factor", self.carve_in_front_factor, "must be 0 (off) or finite and > 1");
+        }
+        if !(self.late_init_max_rel_std.is_finite() && self.late_init_max_rel_std >= 0.0) {
+            return bad("late_init_max_rel_std", self.late_init_max_rel_std, "must be finite and >= 0");
         }
         if self.init_stride_px == 0 {
             return bad("init_stride_px", 0.0, "must be >= 1");
@@ -696,6 +717,72 @@ impl Mapper {
             return Err(MapperError::BadKeyframe { index: kf.index, why: "pose is not finite" });
         }
         self.release_device_map()?;
+        let carved = self.carve_in_front(kf)?;
+        let (mut added, evicted) = self.seed_from(kf, SeedPass::Confident)?;
+        let (w, h) = (kf.camera.width, kf.camera.height);
+        let slot = if self.keyframes.len() == self.capacity.max_keyframes {
+            let older = self.keyframes.len().saturating_sub(self.config.window);
+            let slot = if older > 0 { self.rng.below(older as u64) as usize } else { 0 };
+            self.keyframes.remove(slot)
+        } else {
+            self.spare_keyframes.pop().unwrap_or_else(|| MapKeyframe::blank(w, h))
+        };
+        self.store_keyframe(slot, kf);
+        let estimate_at = self.medium_estimate_at.min(self.capacity.max_keyframes);
+        if estimate_at > 0 && self.config.optimise_medium && self.keyframes.len() == estimate_at {
+            let all = match self.estimate_medium() {
+                Ok(e) => {
+                    tracing::info!(beta_d = ?e.medium.beta_d, beta_b = ?e.medium.beta_b, b_inf = ?e.medium.b_inf, accepted = ?e.accepted, samples = e.samples, pairs = ?e.attenuation_pairs, "map.medium_estimate");
+                    e.accepted.iter().all(|&a| a)
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "map.medium_estimate: the medium stays as it is");
+                    false
+                }
+            };
+            self.medium_estimate_at = if all || estimate_at == self.capacity.max_keyframes { 0 } else { estimate_at * 2 };
+        }
+        // The keyframe that just left the window: what the map still does not cover there, no
+        // newer keyframe has seeded, so its less certain depth is the best there is.
+        let mut late = 0;
+        let late_limit = self.config.late_init_max_rel_std;
+        if late_limit > 0.0 && self.keyframes.len() > self.config.window {
+            let i = self.keyframes.len() - 1 - self.config.window;
+            let left = self.keyframes.remove(i);
+            let seeded = self.seed_from(&left.kf, SeedPass::Late);
+            self.keyframes.insert(i, left);
+            late = seeded?.0;
+            added += late;
+        }
+        tracing::debug!(added, late, evicted, carved, total = self.gaussians.len(), "map.add_keyframe");
+        Ok(added)
+    }
+
+    /// Removes the Gaussians `kf` sees through ([`MapperConfig::carve_in_front_factor`]);
+    /// returns how many went.
+    fn carve_in_front(&mut self, kf: &Keyframe) -> Result<usize, MapperError> {
+        let factor = self.config.carve_in_front_factor;
+        if factor <= 0.0 || self.gaussians.is_empty() {
+            return Ok(0);
+        }
+        let max_rel_std = self.config.init_max_rel_std;
+        let carved = remove_where(&mut self.gaussians, &mut self.grads, &mut self.adam, &mut self.densify_scratch, |m| {
+            let Some((i, p_inv_depth)) = pixel_of(kf, &nalgebra::Point3::new(m[0] as f64, m[1] as f64, m[2] as f64)) else {
+                return false;
+            };
+            let (d, var) = (kf.inv_depth.data[i] as f64, kf.inv_depth_variance.data[i] as f64);
+            d > 0.0 && d.is_finite() && var.is_finite() && var >= 0.0 && var.sqrt() <= max_rel_std * d && p_inv_depth > factor * d
+        })?;
+        Ok(carved)
+    }
+
+    /// Seeds Gaussians from `kf`'s inverse depth on the `init_stride_px` grid at the pixels
+    /// `pass` takes ([`seed_point`]; the map's coverage is rendered from `kf`'s pose first);
+    /// when more pixels qualify than the map has room for, first evicts up to
+    /// `init_replace_fraction` of the cap. With [`SeedPass::Late`], `kf` must not be among the
+    /// stored keyframes (those are the views whose measured surface its seeds must not hide).
+    /// Returns (added, evicted).
+    fn seed_from(&mut self, kf: &Keyframe, pass: SeedPass) -> Result<(usize, usize), MapperError> {
         // Current coverage and medium at this pose.
         self.render(&kf.camera, &kf.world_from_cam)?;
         let cfg = &self.config;
@@ -704,7 +791,8 @@ impl Mapper {
         let stride = cfg.init_stride_px;
         let opacity_logit = (cfg.init_opacity / (1.0 - cfg.init_opacity)).ln() as f32;
         let alpha = &self.view.out.alpha.data;
-        let wanted = (stride / 2..h).step_by(stride).map(|y| (stride / 2..w).step_by(stride).filter(|&x| seeds_gaussian(kf, alpha, cfg, y * w + x)).count()).sum::<usize>();
+        let others = &self.keyframes;
+        let wanted = (stride / 2..h).step_by(stride).map(|y| (stride / 2..w).step_by(stride).filter(|&x| seed_point(kf, alpha, cfg, pass, others, x, y).is_some()).count()).sum::<usize>();
         let room = self.gaussians.capacity() - self.gaussians.len();
         let mut evicted = 0;
         if wanted > room {
@@ -713,21 +801,18 @@ impl Mapper {
         }
         // Coverage stays the render's from before the eviction (not rendered again: the evicted
         // Gaussians are the least useful of the map, so the alpha changes little).
-        let (cfg, alpha) = (&self.config, &self.view.out.alpha.data);
+        let (cfg, alpha, others) = (&self.config, &self.view.out.alpha.data, &self.keyframes);
         let before = self.gaussians.len();
         'rows: for y in (stride / 2..h).step_by(stride) {
             for x in (stride / 2..w).step_by(stride) {
                 let i = y * w + x;
-                if !seeds_gaussian(kf, alpha, cfg, i) {
+                let Some((p_in_cam, p_in_world)) = seed_point(kf, alpha, cfg, pass, others, x, y) else {
                     continue;
-                }
-                let d = kf.inv_depth.data[i];
+                };
                 if self.gaussians.len() == self.gaussians.capacity() {
                     break 'rows;
                 }
-                let z = 1.0 / d as f64;
-                let p_in_cam = nalgebra::Point3::new((x as f64 - cam.cx) / cam.fx * z, (y as f64 - cam.cy) / cam.fy * z, z);
-                let p_in_world = kf.world_from_cam * p_in_cam;
+                let z = p_in_cam.z;
                 let range = p_in_cam.coords.norm() as f32;
                 let log_scale = ((z * stride as f64 / cam.fx) * cfg.init_scale_factor).ln() as f32;
                 let mut f_dc = [0.0f32; 3];
@@ -761,31 +846,7 @@ impl Mapper {
             group.grow(added)?;
         }
         self.grads.reset(self.gaussians.len())?;
-        let slot = if self.keyframes.len() == self.capacity.max_keyframes {
-            let older = self.keyframes.len().saturating_sub(self.config.window);
-            let slot = if older > 0 { self.rng.below(older as u64) as usize } else { 0 };
-            self.keyframes.remove(slot)
-        } else {
-            self.spare_keyframes.pop().unwrap_or_else(|| MapKeyframe::blank(w, h))
-        };
-        self.store_keyframe(slot, kf);
-        let estimate_at = self.medium_estimate_at.min(self.capacity.max_keyframes);
-        if estimate_at > 0 && self.config.optimise_medium && self.keyframes.len() == estimate_at {
-            let all = match self.estimate_medium() {
-                Ok(e) => {
-                    tracing::info!(beta_d = ?e.medium.beta_d, beta_b = ?e.medium.beta_b, b_inf = ?e.medium.b_inf, accepted = ?e.accepted, samples = e.samples, pairs = ?e.attenuation_pairs, "map.medium_estimate");
-                    e.accepted.iter().all(|&a| a)
-                }
-                Err(e) => {
-                    tracing::warn!(error = %e, "map.medium_estimate: the medium stays as it is");
-                    false
-                }
-            };
-            self.medium_estimate_at = if all || estimate_at == self.capacity.max_keyframes { 0 } else { estimate_at * 2 };
-        }
-
-        tracing::debug!(added, evicted, total = self.gaussians.len(), "map.add_keyframe");
-        Ok(added)
+        Ok((added, evicted))
     }
 
     /// The newest closed-form medium estimate, if one was made; its `accepted` channels set the medium.
@@ -1077,18 +1138,76 @@ impl Mapper {
     }
 }
 
-/// Whether keyframe pixel `i` seeds a Gaussian: valid depth whose relative standard
-/// deviation is within `init_max_rel_std`, where the map renders less than
-/// `init_covered_alpha` (`alpha`, the map's alpha from the keyframe's pose).
-fn seeds_gaussian(kf: &Keyframe, alpha: &[f32], cfg: &MapperConfig, i: usize) -> bool {
+/// Which keyframe pixels a seeding pass takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum SeedPass {
+    /// A new keyframe: depth within `init_max_rel_std`.
+    Confident,
+    /// A keyframe leaving the window: depth that `init_max_rel_std` refused but
+    /// `late_init_max_rel_std` accepts, back-projected to a point that floats in front of no
+    /// stored keyframe's measured surface (so that depth, less certain, cannot hide what
+    /// another view saw).
+    Late,
+}
+
+/// A late seed more than this fraction nearer (in inverse depth) than the surface another
+/// keyframe measured along the same ray would float in that keyframe's view.
+const LATE_SEED_IN_FRONT: f64 = 0.1;
+
+/// Whether `p_in_world` lies in keyframe `o`'s view in front of the surface `o` measured
+/// there (inverse depth over `1 + LATE_SEED_IN_FRONT` times `o`'s); pixels where `o` has no
+/// depth say nothing.
+fn in_front_of_surface(o: &MapKeyframe, p_in_world: &nalgebra::Point3<f64>) -> bool {
+    let Some((i, p_inv_depth)) = pixel_of(&o.kf, p_in_world) else {
+        return false;
+    };
+    let measured = o.kf.inv_depth.data[i] as f64;
+    measured > 0.0 && measured.is_finite() && p_inv_depth > measured * (1.0 + LATE_SEED_IN_FRONT)
+}
+
+/// The pixel (index, nearest) of keyframe `kf`'s image that `p_in_world` projects to, and
+/// the point's inverse depth in that camera; `None` behind the camera or outside the image.
+fn pixel_of(kf: &Keyframe, p_in_world: &nalgebra::Point3<f64>) -> Option<(usize, f64)> {
+    let c = &kf.camera;
+    let p = kf.world_from_cam.inverse_transform_point(p_in_world);
+    if p.z <= 0.0 {
+        return None;
+    }
+    let (u, v) = ((c.fx * p.x / p.z + c.cx).round(), (c.fy * p.y / p.z + c.cy).round());
+    if !(u >= 0.0 && v >= 0.0 && u < c.width as f64 && v < c.height as f64) {
+        return None;
+    }
+    Some((v as usize * c.width + u as usize, 1.0 / p.z))
+}
+
+/// The point keyframe pixel (`x`, `y`) seeds, in the camera and world frames, or `None`: it
+/// needs valid inverse depth whose relative standard deviation is in the band `pass` takes,
+/// a map rendering less than `init_covered_alpha` there (`alpha`, the map's alpha from the
+/// keyframe's pose) and, for [`SeedPass::Late`], a point in front of no surface that a
+/// keyframe of `others` measured ([`in_front_of_surface`]).
+fn seed_point(kf: &Keyframe, alpha: &[f32], cfg: &MapperConfig, pass: SeedPass, others: &[MapKeyframe], x: usize, y: usize) -> Option<(nalgebra::Point3<f64>, nalgebra::Point3<f64>)> {
+    let cam = &kf.camera;
+    let i = y * cam.width + x;
     let d = kf.inv_depth.data[i];
     let var = kf.inv_depth_variance.data[i];
-    d > 0.0
-        && d.is_finite()
-        && var.is_finite()
-        && var >= 0.0
-        && (var as f64).sqrt() <= cfg.init_max_rel_std * d as f64
-        && (alpha[i] as f64) < cfg.init_covered_alpha
+    if !(d > 0.0 && d.is_finite() && var.is_finite() && var >= 0.0 && (alpha[i] as f64) < cfg.init_covered_alpha) {
+        return None;
+    }
+    let rel_std = (var as f64).sqrt() / d as f64;
+    let in_band = match pass {
+        SeedPass::Confident => rel_std <= cfg.init_max_rel_std,
+        SeedPass::Late => rel_std > cfg.init_max_rel_std && rel_std <= cfg.late_init_max_rel_std,
+    };
+    if !in_band {
+        return None;
+    }
+    let z = 1.0 / d as f64;
+    let p_in_cam = nalgebra::Point3::new((x as f64 - cam.cx) / cam.fx * z, (y as f64 - cam.cy) / cam.fy * z, z);
+    let p_in_world = kf.world_from_cam * p_in_cam;
+    if pass == SeedPass::Late && others.iter().any(|o| in_front_of_surface(o, &p_in_world)) {
+        return None;
+    }
+    Some((p_in_cam, p_in_world))
 }
 
 /// With one coefficient for both medium terms (`sigma_bs` tied to `sigma_att`), the
