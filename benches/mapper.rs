@@ -32,7 +32,8 @@ fn main() {
         let inv_depth = PlaneF32::filled(w, h, [0.3]);
         let inv_depth_variance = PlaneF32::filled(w, h, [1e-4]);
         let kf = Keyframe { index: 0, t_ns: Timestamp(0), image, world_from_cam: pose, camera: cam, inv_depth, inv_depth_variance };
-        let mut config = MapperConfig { densify_every: 0, init_covered_alpha: 0.0, intersections_per_gaussian: 64, ..MapperConfig::default() };
+        // No carving: the keyframe's flat depth would remove the random map's nearer part.
+        let mut config = MapperConfig { densify_every: 0, init_covered_alpha: 0.0, carve_in_front_factor: 0.0, intersections_per_gaussian: 64, ..MapperConfig::default() };
         config.medium.grid_step_px = step;
         let mut m = Mapper::new(config, MapperCapacity { max_gaussians: n, max_keyframes: 1, width: w, height: h }).expect("mapper");
         m.set_gaussians(&g).expect("map");
