@@ -130,9 +130,10 @@ pub struct MapperConfig {
     pub init_max_rel_std: f64,
     /// When a keyframe leaves the window (`window` newer ones have arrived), its pixels that
     /// `init_max_rel_std` refused and the map still does not cover seed Gaussians if their
-    /// relative standard deviation is within this looser limit: surface no newer keyframe
-    /// seeded, where this keyframe's uncertain depth is the best there is (on a survey, the
-    /// image border the vehicle moves away from). 0 disables the late seeding.
+    /// relative standard deviation is within this looser limit and the point lies in front of
+    /// no stored keyframe's measured surface: surface no newer keyframe seeded, where this
+    /// keyframe's uncertain depth is the best there is (on a survey, the image border the
+    /// vehicle moves away from). 0 disables the late seeding.
     pub late_init_max_rel_std: f64,
     /// A new keyframe removes the Gaussians whose centre it sees this many times nearer (in
     /// inverse depth) than the surface it measured there with depth `init_max_rel_std` accepts:
