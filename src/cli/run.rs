@@ -475,6 +475,15 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                 );
                 retrack = again;
             }
+            resume::Relocalisation::Restarted { from_seq, retrack: again } => {
+                eprintln!(
+                    "resumed after frame {} ({} poses recorded): stopped during its initialisation (no keyframe in the log); tracking the {} logged frames from frame {from_seq}, where the tracker started, again",
+                    r.last_seq,
+                    r.poses_recorded,
+                    again.len()
+                );
+                retrack = again;
+            }
             resume::Relocalisation::Aligned { world_from_tracker, why } => {
                 eprintln!(
                     "resumed after frame {} ({} poses recorded): {why}; re-initialised on {} logged frames and aligned by Sim(3), scale {:.4} (the scale of this fallback drifts)",

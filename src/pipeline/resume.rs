@@ -14,8 +14,13 @@
 //! ([`Relocalisation::Seeded`]`::retrack`): that rebuilds the window and hands the keyframes
 //! made there to mapping and the log.
 //!
-//! A log with neither (a run stopped before its first window record) seeds it with the logged
-//! frames that were the newest keyframes instead, at their recorded poses (refined by the
+//! A log with neither comes from a run stopped during its initialisation (before its first
+//! window record). When it still holds every frame from the tracker's first one (recorded at
+//! the identity), a new tracker starts there again and tracks them all
+//! ([`Relocalisation::Restarted`]): a tracker is deterministic, so it rebuilds the
+//! initialisation the stopped run was building, in the recorded frame and scale, and goes on
+//! from its last frame. Otherwise it is seeded with the logged frames that were the newest
+//! keyframes instead, at their recorded poses (refined by the
 //! keyframe's BA round), their depth triangulated from those poses ([`SeedFrame`]); the frames
 //! after them are tracked again as above.
 //!
@@ -80,6 +85,10 @@ pub struct ResumeState {
     /// (up to `seed_keyframes`, at least 3), else the newest with measured recorded poses
     /// `SEED_FRAME_SPACING` apart (at least 3); oldest first, to seed the tracker.
     pub seed_frames: Vec<(Frame, Se3)>,
+    /// The run stopped during its initialisation (no window or keyframe logged) and the log
+    /// holds every frame from the tracker's first (recorded at the identity): `retrack` is all
+    /// of them, tracked again by a new tracker from the start.
+    pub restart: bool,
     /// Logged frames after the newest of `keyframes` (or `seed_frames`) up to `last_seq`,
     /// oldest first.
     pub retrack: Vec<Frame>,
@@ -259,6 +268,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
             window_seq: None,
             next_keyframe_id,
             seed_frames: Vec::new(),
+            restart: false,
             retrack: Vec::new(),
             poses,
             camera,
@@ -281,15 +291,22 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
             }
         }
     }
+    // Stopped during its initialisation (no window, no keyframe logged) with every frame
+    // from the tracker's start still in the log: the initialisation is tracked again from
+    // that first frame, as it was.
+    let restart_from = match poses.first_key_value() {
+        Some((&first, (pose, _))) if keyframes.is_empty() && poses.len() < POSES_KEPT && is_tracker_start(pose) && (first..=last_seq).all(|s| frames.contains_key(&s)) => Some(first),
+        _ => None,
+    };
     let mut seed_seqs: Vec<u64> = Vec::new();
-    if keyframes.is_empty() {
+    if keyframes.is_empty() && restart_from.is_none() {
         // The frames that were the newest keyframes, as the stopped tracker's window held them.
         seed_seqs.extend(frames.keys().rev().filter(|s| **s <= last_seq && keyframe_frames.contains(s) && poses.contains_key(s)).take(options.seed_keyframes));
         if seed_seqs.len() < 3 {
             seed_seqs.clear();
         }
     }
-    if keyframes.is_empty() && seed_seqs.is_empty() {
+    if keyframes.is_empty() && seed_seqs.is_empty() && restart_from.is_none() {
         for &s in frames.keys().rev().filter(|s| **s <= last_seq && measured.contains(s) && poses.contains_key(s)) {
             if seed_seqs.last().is_none_or(|l| l - s >= SEED_FRAME_SPACING) {
                 seed_seqs.push(s);
@@ -303,13 +320,15 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
         }
     }
     seed_seqs.reverse();
+    // Frames to track again come after this one (all of them from `restart_from`).
     let after = keyframes.last().map(|(s, _)| *s).or(seed_seqs.last().copied());
+    let retrack_from = after.map(|a| a + 1).or(restart_from);
     let mut seed_frames = Vec::new();
     let mut recent = Vec::new();
     let mut retrack = Vec::new();
     let first_recent = frames.keys().rev().filter(|s| poses.contains_key(s)).nth(options.relocalisation_frames.saturating_sub(1)).copied().unwrap_or(0);
     for (seq, (data, t)) in frames {
-        let wanted_retrack = after.is_some_and(|a| seq > a && seq <= last_seq);
+        let wanted_retrack = retrack_from.is_some_and(|a| seq >= a && seq <= last_seq);
         let pose = poses.get(&seq).copied();
         let wanted_recent = seq >= first_recent && pose.is_some();
         let wanted_seed = seed_seqs.contains(&seq);
@@ -332,7 +351,14 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
         }
     }
     let checkpoint = CheckpointStore::new(out_dir.join("checkpoints"), 3).load_newest();
-    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, retrack, poses, camera, checkpoint }))
+    let restart = restart_from.is_some() && retrack.len() as u64 == last_seq + 1 - restart_from.unwrap_or(0);
+    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, restart, retrack, poses, camera, checkpoint }))
+}
+
+/// Whether `pose` is where a tracker starts (its first keyframe, the identity), so that a new
+/// tracker given the same first frame starts in the recorded frame.
+fn is_tracker_start(pose: &Se3) -> bool {
+    pose.translation.vector.norm() < 1e-9 && pose.rotation.angle() < 1e-9
 }
 
 /// The keyframes of a logged tracker window as whole [`Keyframe`]s for [`Tracker::seed`]: each
@@ -407,6 +433,11 @@ pub enum Relocalisation {
     /// `keyframes` logged keyframes, or `frames` logged frames at their recorded poses (depth
     /// triangulated) when the log holds no keyframe.
     Seeded { keyframes: usize, frames: usize, newest_keyframe_seq: u64, retrack: Vec<Frame> },
+    /// Stopped during its initialisation: the new tracker starts again at `from_seq`, the
+    /// tracker's first frame (recorded at the identity), and the pipeline tracks `retrack`
+    /// (every logged frame from there) before the source, so the initialisation is rebuilt as
+    /// it was, in the recorded frame.
+    Restarted { from_seq: u64, retrack: Vec<Frame> },
     /// Fallback: re-initialised on the last logged frames; `world_from_tracker` carries the new
     /// tracker's frame onto the recorded one. `why`: why the keyframes were not used.
     Aligned { world_from_tracker: Sim3, why: String },
@@ -428,6 +459,10 @@ fn resume_point(poses: &BTreeMap<u64, (Se3, bool)>, seq: u64) -> Option<ResumePo
 /// Relocalises a new, empty `tracker` in the frame `state` recorded: seeded with the logged
 /// keyframes when the log holds any, else by the fallback (see the module docs).
 pub fn relocalise(tracker: &mut Tracker, state: &mut ResumeState) -> Result<Relocalisation, PipelineError> {
+    if state.restart && tracker.num_keyframes() == 0 {
+        let from_seq = state.retrack.first().map_or(0, |f| f.seq);
+        return Ok(Relocalisation::Restarted { from_seq, retrack: std::mem::take(&mut state.retrack) });
+    }
     let why = if state.keyframes.is_empty() && state.seed_frames.is_empty() {
         "no whole keyframe in the log and fewer than 3 frames with measured poses or initialisation keyframes".to_string()
     } else {
