@@ -188,6 +188,11 @@ pub struct TrackerConfig {
     /// in depth-grid pixels (see `border_variance` in `track/upsample.rs`: flow near the
     /// border is biased, which Eq. 4 cannot see). 0 disables it.
     pub border_variance_px: f32,
+    /// Texture term of the full-resolution variance: each depth-grid cell's variance is
+    /// multiplied by the keyframe's geometric-mean grey-level variance over the cell's own
+    /// (see `texture_variance` in `track/upsample.rs`: a flat cell's depth is interpolated,
+    /// not measured, which the pooled flow weights of Eq. 4 cannot see).
+    pub texture_variance: bool,
     /// Scale Eq. 4 by the window BA's a posteriori variance of unit weight
     /// ([`BaWorkspace::unit_variance`](super::ba::BaWorkspace::unit_variance)): the flow
     /// weights are relative confidences, not inverse pixel variances, so the Hessian alone
@@ -253,6 +258,7 @@ impl Default for TrackerConfig {
             upsample_sigma_intensity: 0.08,
             upsample_spread_gain: 1.0,
             border_variance_px: 4.0,
+            texture_variance: true,
             variance_from_residuals: true,
         }
     }

@@ -95,9 +95,104 @@ pub(crate) fn border_variance(variance: &mut PlaneF32, cell: usize, border_cells
     });
 }
 
+/// Standard deviation of the 8-bit quantisation of an intensity in [0, 1]: `1 / (255 sqrt 12)`.
+const QUANTISATION_STD: f32 = 1.0 / (255.0 * 3.464_101_6);
+
+/// Grey-level variance (intensity in [0, 1]) of the guide pixels in depth-grid cell
+/// `(cx, cy)` of a `grid_w` x `grid_h` grid, plus the 8-bit quantisation variance; the last
+/// row and column of cells take the image rows and columns the grid does not cover.
+fn cell_texture(guide: &[u8], w: usize, h: usize, cell: usize, grid: (usize, usize), cx: usize, cy: usize) -> f32 {
+    let (x0, y0) = (cx * cell, cy * cell);
+    let x1 = if cx + 1 == grid.0 { w } else { x0 + cell };
+    let y1 = if cy + 1 == grid.1 { h } else { y0 + cell };
+    let (mut s, mut s2) = (0u64, 0u64);
+    for y in y0..y1 {
+        for &g in &guide[y * w + x0..y * w + x1] {
+            s += g as u64;
+            s2 += (g as u64) * (g as u64);
+        }
+    }
+    let n = ((x1 - x0) * (y1 - y0)).max(1) as f64;
+    let mean = s as f64 / n;
+    let var = (s2 as f64 / n - mean * mean).max(0.0) / (255.0 * 255.0);
+    var as f32 + QUANTISATION_STD * QUANTISATION_STD
+}
+
+/// Texture term of a full-resolution inverse-depth variance: each depth-grid cell's variance is
+/// multiplied by `g / t`, `t` the grey-level variance of the guide image inside the cell (plus
+/// the 8-bit quantisation variance) and `g` the geometric mean of `t` over the keyframe, so the
+/// keyframe's log-mean variance stays as it was. Eq. 4 is the information the pooled flow
+/// weights carry per cell, and they are blind to how much of the cell is texture: a flat cell's
+/// depth is interpolated from its neighbours, not measured, and its error is larger than the
+/// Hessian says (hazy, far seabed in turbid water most of all). Saturated values (`f32::MAX`,
+/// no information) stay saturated. `grid` is the depth grid's `(width, height)`.
+pub(crate) fn texture_variance(variance: &mut PlaneF32, guide: &[u8], cell: usize, grid: (usize, usize)) {
+    let (w, h) = (variance.width, variance.height);
+    let (gw, gh) = grid;
+    if gw == 0 || gh == 0 || cell == 0 || guide.len() != w * h || gw * cell > w || gh * cell > h {
+        return;
+    }
+    let log_sum: f64 = (0..gh).into_par_iter().map(|cy| (0..gw).map(|cx| (cell_texture(guide, w, h, cell, grid, cx, cy) as f64).ln()).sum::<f64>()).sum();
+    let g = (log_sum / (gw * gh) as f64).exp() as f32;
+    // Bands of `cell` rows; the rows past the grid's last row of cells belong to it.
+    variance.data.par_chunks_mut(w * cell).enumerate().for_each(|(band, rows)| {
+        let cy = band.min(gh - 1);
+        for cx in 0..gw {
+            let f = g / cell_texture(guide, w, h, cell, grid, cx, cy);
+            let x1 = if cx + 1 == gw { w } else { (cx + 1) * cell };
+            for row in rows.chunks_mut(w) {
+                for v in &mut row[cx * cell..x1] {
+                    if *v < f32::MAX {
+                        *v = (*v * f).min(f32::MAX);
+                    }
+                }
+            }
+        }
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn texture_variance_raises_flat_cells_lowers_textured_ones_and_keeps_the_log_mean() {
+        // 4x3 cells of 8 px: the left half of the cells textured (a checker of 0/200), the
+        // right half flat grey.
+        let (w, h, cell) = (32, 24, 8);
+        let guide: Vec<u8> = (0..w * h).map(|i| if (i % w) < w / 2 { if (i % w + i / w) % 2 == 0 { 0 } else { 200 } } else { 90 }).collect();
+        let mut v = PlaneF32::new(w, h);
+        v.data.fill(1e-4);
+        let mut saturated = v.clone();
+        saturated.data[w - 1] = f32::MAX;
+        texture_variance(&mut v, &guide, cell, (4, 3));
+        texture_variance(&mut saturated, &guide, cell, (4, 3));
+        assert_eq!(saturated.data[w - 1], f32::MAX);
+        let q = QUANTISATION_STD * QUANTISATION_STD;
+        let textured = (100.0f32 / 255.0).powi(2) + q;
+        let g = (textured * q).sqrt();
+        let (at_textured, at_flat) = (v.data[5 * w + 3], v.data[5 * w + 20]);
+        assert!((at_textured / (1e-4 * g / textured) - 1.0).abs() < 1e-4, "{at_textured}");
+        assert!((at_flat / (1e-4 * g / q) - 1.0).abs() < 1e-4, "{at_flat}");
+        // Constant inside each cell; the log-mean over the keyframe is the one before.
+        assert!(v.data[..w / 2].iter().chain(&v.data[23 * w..23 * w + w / 2]).all(|x| *x == at_textured));
+        let log_mean = v.data.iter().map(|x| (*x as f64).ln()).sum::<f64>() / (w * h) as f64;
+        assert!((log_mean - (1e-4f64).ln()).abs() < 1e-3, "{log_mean}");
+        // Rows and columns past the grid (34x27 for a 4x3 grid of 8 px) belong to its last cells.
+        let (w2, h2) = (34, 27);
+        let guide2: Vec<u8> = (0..w2 * h2).map(|i| ((i % w2) * 7 + (i / w2) * 13 % 50) as u8).collect();
+        let mut v2 = PlaneF32::new(w2, h2);
+        v2.data.fill(1e-4);
+        texture_variance(&mut v2, &guide2, cell, (4, 3));
+        assert_eq!(v2.data[10 * w2 + 33], v2.data[10 * w2 + 24]);
+        assert_eq!(v2.data[26 * w2 + 5], v2.data[16 * w2 + 5]);
+        assert_ne!(v2.data[10 * w2 + 24], v2.data[10 * w2 + 23]);
+        // A uniform image leaves the variance as it was.
+        let mut u = PlaneF32::new(w, h);
+        u.data.fill(3e-3);
+        texture_variance(&mut u, &vec![77; w * h], cell, (4, 3));
+        assert!(u.data.iter().all(|x| (*x / 3e-3 - 1.0).abs() < 1e-5));
+    }
 
     #[test]
     fn border_variance_grows_towards_the_border_and_leaves_the_centre() {
