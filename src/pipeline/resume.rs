@@ -19,7 +19,8 @@
 //! the identity), a new tracker starts there again and tracks them all
 //! ([`Relocalisation::Restarted`]): a tracker is deterministic, so it rebuilds the
 //! initialisation the stopped run was building, in the recorded frame and scale, and goes on
-//! from its last frame. Otherwise it is seeded with the logged frames that were the newest
+//! from its last frame (exactly with raw-logged frames; JPEG-logged frames come back decoded,
+//! so closely). Otherwise it is seeded with the logged frames that were the newest
 //! keyframes instead, at their recorded poses (refined by the
 //! keyframe's BA round), their depth triangulated from those poses ([`SeedFrame`]); the frames
 //! after them are tracked again as above.
