@@ -352,7 +352,8 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
         }
     }
     let checkpoint = CheckpointStore::new(out_dir.join("checkpoints"), 3).load_newest();
-    let restart = restart_from.is_some() && retrack.len() as u64 == last_seq + 1 - restart_from.unwrap_or(0);
+    // A logged frame that does not decode is skipped like a dropped frame.
+    let restart = restart_from.is_some();
     Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, restart, retrack, poses, camera, checkpoint }))
 }
 
