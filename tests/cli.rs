@@ -39,3 +39,33 @@ fn board_check_passes_on_repo_boards_and_fails_on_a_broken_one() {
     let stderr = String::from_utf8(out.stderr).unwrap();
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+#[test]
+fn refine_with_pose_refinement_writes_the_poses_and_says_what_it_did() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("posed");
+    let r = duv()
+        .args(["refine", "--sim", "coastal", "--width", "64", "--height", "48", "--frames", "16", "--every", "4", "--iterations", "20", "--quiet"])
+        .args(["--refine-poses", "--refine-poses-every", "5", "--perturb-poses-m", "0.02", "--perturb-poses-deg", "0.3", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&r.stdout);
+    assert!(r.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&r.stderr));
+    // Rounds at iterations 5, 10 and 15 (none in the last 5), 3 keyframes each (the first is the anchor).
+    assert!(stdout.contains("poses     3 refinement round(s): "), "{stdout}");
+    let poses = std::fs::read_to_string(out.join("poses.txt")).unwrap();
+    assert_eq!(poses.lines().filter(|l| !l.starts_with('#')).count(), 4, "{poses}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["pose_refinement"]["rounds"], 3);
+    let before = metrics["pose_error_before"][0].as_f64().unwrap();
+    assert!((before - 0.015).abs() < 1e-9, "3 of 4 keyframes moved 2 cm: mean {before}");
+    assert_eq!(metrics["keyframes"][0]["pose_shift_m"], 0.0, "the anchor stays");
+
+    // Perturbing needs the true poses; the error names the flag and nothing is written.
+    let r = duv().args(["refine", "--keyframes", "nowhere", "--perturb-poses-m", "0.1", "--out"]).arg(dir.path().join("x")).output().unwrap();
+    assert!(!r.status.success());
+    let stderr = String::from_utf8_lossy(&r.stderr);
+    assert!(stderr.contains("--perturb-poses-m and --perturb-poses-deg need --sim") && !stderr.contains("panicked"), "{stderr}");
+    assert!(!dir.path().join("x").exists());
+}

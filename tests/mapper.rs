@@ -539,3 +539,69 @@ fn seeding_and_carving_settings_out_of_range_are_refused_by_name() {
         }
     }
 }
+
+/// Keyframe poses moved off the truth (every one but the first by 3 cm and 0.5 degrees,
+/// reproducible directions), mapped for 240 iterations with or without a photometric pose
+/// refinement of every keyframe but the first each 30 iterations: mean pose error (m, deg)
+/// against the truth and mean keyframe PSNR at the end.
+fn map_with_perturbed_poses(refine: bool) -> ((f64, f64), (f64, f64), f64) {
+    use duv::map::pose_refine::PoseRefineConfig;
+    let mut cfg = SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Survey);
+    cfg.width = 160;
+    cfg.height = 120;
+    cfg.frames = 32;
+    cfg.vignetting = 0.0;
+    let r = SimRenderer::new(&cfg).expect("sim");
+    let kfs = sim_keyframes(&r, 4, 8);
+    let truth: Vec<duv::core::Se3> = kfs.iter().map(|k| k.keyframe.world_from_cam).collect();
+    let mut m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 20000, max_keyframes: 8, width: 160, height: 120 }).unwrap();
+    let mut input = Vec::new();
+    for (i, k) in kfs.iter().enumerate() {
+        let mut kf = k.keyframe.clone();
+        if i > 0 {
+            let a = i as f64 * 2.1;
+            let t = nalgebra::Vector3::new(a.cos(), a.sin(), 0.3 * (3.0 * a).cos()).normalize() * 0.03;
+            let axis = nalgebra::Vector3::new((1.7 * a).sin(), (1.3 * a).cos(), 0.5).normalize();
+            kf.world_from_cam = duv::core::Se3::from_parts(nalgebra::Translation3::from(kf.world_from_cam.translation.vector + t), nalgebra::UnitQuaternion::from_scaled_axis(axis * 0.5f64.to_radians()) * kf.world_from_cam.rotation);
+        }
+        input.push(kf.world_from_cam);
+        m.add_keyframe(kf).unwrap();
+    }
+    let error = |m: &Mapper| {
+        let (mut et, mut er) = (0.0, 0.0);
+        for (s, t) in truth.iter().enumerate() {
+            let p = m.keyframe(s).unwrap().world_from_cam;
+            et += (p.translation.vector - t.translation.vector).norm();
+            er += duv::core::pose::rotation_angle(&t.inv_mul(&p).rotation).to_degrees();
+        }
+        (et / truth.len() as f64, er / truth.len() as f64)
+    };
+    let before = error(&m);
+    let pose_cfg = PoseRefineConfig::default();
+    for it in 1..=240 {
+        m.iterate().unwrap();
+        if refine && it % 30 == 0 && it < 240 {
+            for (slot, input_pose) in input.iter().enumerate().skip(1) {
+                let c = m.refine_keyframe_pose(slot, input_pose, &pose_cfg).unwrap();
+                assert!(c.cost_after.is_finite() && c.pixels > 500, "{c:?}");
+            }
+        }
+    }
+    let mut psnr = 0.0;
+    for s in 0..m.keyframe_count() {
+        let img = m.keyframe(s).unwrap().image.to_rgb_f32();
+        psnr += duv::map::mapper::psnr_db(&m.render_keyframe(s).unwrap().colour, &img);
+    }
+    (before, error(&m), psnr / m.keyframe_count() as f64)
+}
+
+#[test]
+fn photometric_pose_refinement_brings_perturbed_keyframes_back_and_sharpens_the_map() {
+    let (before, plain, psnr_plain) = map_with_perturbed_poses(false);
+    let (_, refined, psnr_refined) = map_with_perturbed_poses(true);
+    eprintln!("pose error before {before:?}, mapped {plain:?} ({psnr_plain:.2} dB), refined {refined:?} ({psnr_refined:.2} dB)");
+    // Measured: 0.0263 m / 0.437 deg before; refined 0.0112 m / 0.220 deg, 35.09 -> 37.85 dB.
+    assert_eq!(plain, before, "without refinement the poses stay");
+    assert!(refined.0 < 0.6 * before.0 && refined.1 < 0.6 * before.1, "{before:?} -> {refined:?}");
+    assert!(psnr_refined > psnr_plain + 1.0, "PSNR {psnr_plain:.2} -> {psnr_refined:.2}");
+}

@@ -7,6 +7,7 @@
 //!
 //! Writes into `--out`: `map.ply` (3DGS PLY), `map.ckpt` (full mapper checkpoint),
 //! `medium.json` (the medium along the first keyframe's optical axis, the generator's keys),
+//! `poses.txt` (the keyframes' final poses, TUM; changed only by `--refine-poses`),
 //! `renders/NNNNNN.png` (input | render | restored | depth | uncertainty) and `metrics.json`,
 //! and prints the metrics table.
 
@@ -24,6 +25,7 @@ use duv::map::vulkan::MapperDevice;
 use duv::map::checkpoint::{RestoreOptions, CHECKPOINT_MAGIC};
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::ply::write_ply;
+use duv::map::pose_refine::PoseRefineConfig;
 use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
 use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
@@ -104,9 +106,51 @@ pub struct RefineArgs {
     /// device give bit-identical maps.
     #[arg(long)]
     deterministic: bool,
+    /// Refine the keyframe poses photometrically against the map (`map::pose_refine`: each
+    /// keyframe's image aligned to the map rendered from its pose) every
+    /// --refine-poses-every iterations, the first keyframe held as the anchor.
+    #[arg(long)]
+    refine_poses: bool,
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..))]
+    refine_poses_every: u64,
+    /// Pose refinement settings (TOML, `PoseRefineConfig` fields); defaults otherwise.
+    #[arg(long, value_name = "FILE", requires = "refine_poses")]
+    pose_config: Option<PathBuf>,
+    /// With --sim: move every keyframe but the first off its true pose by this many metres
+    /// (direction drawn per keyframe, reproducible), to measure what --refine-poses recovers.
+    #[arg(long, value_name = "M", requires = "sim")]
+    perturb_poses_m: Option<f64>,
+    /// With --sim: and turn it by this many degrees (axis drawn per keyframe).
+    #[arg(long, value_name = "DEG", requires = "sim")]
+    perturb_poses_deg: Option<f64>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+}
+
+/// A reproducible unit vector per keyframe index and purpose (splitmix64).
+fn unit_vector(index: u64, salt: u64) -> nalgebra::Vector3<f64> {
+    let mut x = index.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ salt;
+    let mut next = || {
+        x = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = x;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    loop {
+        let v = nalgebra::Vector3::new(next(), next(), next());
+        let n = v.norm();
+        if n > 0.1 && n <= 1.0 {
+            return v / n;
+        }
+    }
+}
+
+/// Position (m) and rotation (deg) difference of two poses.
+fn pose_difference(a: &duv::core::Se3, b: &duv::core::Se3) -> (f64, f64) {
+    let d = a.inv_mul(b);
+    ((a.translation.vector - b.translation.vector).norm(), duv::core::pose::rotation_angle(&d.rotation).to_degrees())
 }
 
 #[derive(serde::Serialize)]
@@ -115,6 +159,12 @@ struct KeyframeMetrics {
     psnr_db: f64,
     ssim: f64,
     restored_psnr_db: Option<f64>,
+    /// How far the final pose is from the input one (m, deg).
+    pose_shift_m: f64,
+    pose_shift_deg: f64,
+    /// With --sim: the final pose against the true one (m, deg).
+    pose_error_m: Option<f64>,
+    pose_error_deg: Option<f64>,
 }
 
 #[derive(serde::Serialize)]
@@ -135,6 +185,19 @@ struct Metrics {
     renderer: String,
     ms_per_iteration: f64,
     iterations: u64,
+    /// With --refine-poses: rounds run, corrections accepted, keyframes the map did not cover.
+    pose_refinement: Option<PoseRefinementSummary>,
+    /// With --sim: mean keyframe pose error against the truth before and after (m, deg).
+    pose_error_before: Option<(f64, f64)>,
+    pose_error_after: Option<(f64, f64)>,
+}
+
+#[derive(serde::Serialize, Default)]
+struct PoseRefinementSummary {
+    rounds: u64,
+    accepted: usize,
+    refused: usize,
+    failed: usize,
 }
 
 /// The keyframes of a log, with what was left out said on stderr, and its newest map checkpoint.
@@ -166,8 +229,10 @@ fn mapper_from_logged_map(map: Option<LoggedMap>, keyframes: &[Keyframe], capaci
 }
 
 pub fn run(a: RefineArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(a.sim.is_some() || (a.perturb_poses_m.is_none() && a.perturb_poses_deg.is_none()), "--perturb-poses-m and --perturb-poses-deg need --sim (they are measured against the true poses)");
+    anyhow::ensure!(a.refine_poses || a.pose_config.is_none(), "--pose-config needs --refine-poses");
     let mut logged_map = None;
-    let (keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
+    let (mut keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
         let mut cfg = SimConfig::preset(water, a.trajectory);
         cfg.frames = a.frames;
         cfg.width = a.width;
@@ -196,6 +261,22 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         (k, vec![None; n], truth)
     };
     anyhow::ensure!(!keyframes.is_empty(), "no keyframes");
+    let (perturb_m, perturb_deg) = (a.perturb_poses_m.unwrap_or(0.0), a.perturb_poses_deg.unwrap_or(0.0));
+    anyhow::ensure!(perturb_m.is_finite() && perturb_m >= 0.0 && perturb_deg.is_finite() && perturb_deg >= 0.0, "--perturb-poses-m and --perturb-poses-deg must be finite and >= 0");
+    let true_poses: Option<Vec<duv::core::Se3>> = a.sim.map(|_| keyframes.iter().map(|k| k.world_from_cam).collect());
+    for kf in keyframes.iter_mut().skip(1) {
+        if perturb_m > 0.0 || perturb_deg > 0.0 {
+            let t = unit_vector(kf.index, 1) * perturb_m;
+            let r = nalgebra::UnitQuaternion::from_scaled_axis(unit_vector(kf.index, 2) * perturb_deg.to_radians());
+            kf.world_from_cam = duv::core::Se3::from_parts(nalgebra::Translation3::from(kf.world_from_cam.translation.vector + t), r * kf.world_from_cam.rotation);
+        }
+    }
+    let input_poses: Vec<(u64, duv::core::Se3)> = keyframes.iter().map(|k| (k.index, k.world_from_cam)).collect();
+    let pose_config: PoseRefineConfig = match &a.pose_config {
+        Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+        None => PoseRefineConfig::default(),
+    };
+    pose_config.validate().context("--pose-config")?;
     let mut config: MapperConfig = match &a.config {
         Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
         None => MapperConfig::default(),
@@ -225,6 +306,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         bar.set_style(style);
     }
     let mut over_time = vec![(0, mapper.gaussians().len())];
+    let mut pose_summary: Option<PoseRefinementSummary> = None;
     let (mut loss_avg, mut psnr_avg) = (0.0, 0.0);
     let start = std::time::Instant::now();
     for it in 1..=a.iterations {
@@ -237,6 +319,24 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         if it % (a.iterations / 20).max(1) == 0 {
             over_time.push((it, r.gaussians));
         }
+        // Not in the last round's iterations: the map follows the corrected poses first.
+        if a.refine_poses && it % a.refine_poses_every == 0 && it + a.refine_poses_every <= a.iterations {
+            let s = pose_summary.get_or_insert_with(PoseRefinementSummary::default);
+            s.rounds += 1;
+            let anchor = (0..mapper.keyframe_count()).filter_map(|k| mapper.keyframe(k).map(|kf| (kf.index, k))).min().map(|(_, k)| k);
+            for slot in (0..mapper.keyframe_count()).filter(|&k| Some(k) != anchor) {
+                let Some(index) = mapper.keyframe(slot).map(|k| k.index) else { continue };
+                let Some(&(_, input_pose)) = input_poses.iter().find(|(i, _)| *i == index) else { continue };
+                match mapper.refine_keyframe_pose(slot, &input_pose, &pose_config) {
+                    Ok(c) if c.accepted => s.accepted += 1,
+                    Ok(_) => s.refused += 1,
+                    Err(e) => {
+                        tracing::debug!(slot, error = %e, "refine: pose not refined");
+                        s.failed += 1;
+                    }
+                }
+            }
+        }
         bar.inc(1);
     }
     bar.finish();
@@ -248,6 +348,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     write_atomic(&a.out.join("medium.json"), serde_json::to_string_pretty(&medium)?.as_bytes())?;
 
     let mut per_kf = Vec::new();
+    let mut final_poses = Vec::new();
     for slot in 0..mapper.keyframe_count() {
         let kf = mapper.keyframe(slot).context("keyframe")?.clone();
         let clear_img = keyframes.iter().position(|k| k.index == kf.index).and_then(|i| clear[i].clone());
@@ -261,9 +362,18 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         };
         let panel = render_panel(&kf.image, out);
         write_rgb8(&a.out.join("renders").join(format!("{:06}.png", kf.index)), &panel)?;
-        per_kf.push(KeyframeMetrics { index: kf.index, psnr_db: p, ssim: s, restored_psnr_db: restored_psnr });
+        let input_pose = input_poses.iter().find(|(i, _)| *i == kf.index).map_or(kf.world_from_cam, |p| p.1);
+        let (pose_shift_m, pose_shift_deg) = pose_difference(&input_pose, &kf.world_from_cam);
+        let truth_pose = true_poses.as_ref().and_then(|t| keyframes.iter().position(|k| k.index == kf.index).map(|i| t[i]));
+        let err = truth_pose.map(|t| pose_difference(&t, &kf.world_from_cam));
+        final_poses.push(duv::core::StampedPose { t_ns: kf.t_ns, world_from_cam: kf.world_from_cam });
+        per_kf.push(KeyframeMetrics { index: kf.index, psnr_db: p, ssim: s, restored_psnr_db: restored_psnr, pose_shift_m, pose_shift_deg, pose_error_m: err.map(|e| e.0), pose_error_deg: err.map(|e| e.1) });
     }
+    duv::io::tum::write_trajectory(&a.out.join("poses.txt"), &final_poses)?;
     let n = per_kf.len() as f64;
+    let mean_error = |e: Vec<(f64, f64)>| (!e.is_empty()).then(|| (e.iter().map(|v| v.0).sum::<f64>() / e.len() as f64, e.iter().map(|v| v.1).sum::<f64>() / e.len() as f64));
+    let pose_error_before = true_poses.as_ref().and_then(|t| mean_error(t.iter().zip(&input_poses).map(|(t, p)| pose_difference(t, &p.1)).collect()));
+    let pose_error_after = mean_error(per_kf.iter().filter_map(|k| k.pose_error_m.zip(k.pose_error_deg)).collect());
     let restored: Vec<f64> = per_kf.iter().filter_map(|k| k.restored_psnr_db).collect();
     let rel = truth.map(|t| medium.rel_error(&t));
     let metrics = Metrics {
@@ -279,6 +389,9 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         ms_per_iteration,
         iterations: a.iterations,
         renderer,
+        pose_refinement: pose_summary,
+        pose_error_before,
+        pose_error_after,
     };
     write_atomic(&a.out.join("metrics.json"), serde_json::to_string_pretty(&metrics)?.as_bytes())?;
 
@@ -308,6 +421,12 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     if let (Some(t), Some(e)) = (truth, rel) {
         println!("truth     beta_D {} beta_B {} B_inf {}", f(t.beta_d), f(t.beta_b), f(t.b_inf));
         println!("rel.err   beta_D {} beta_B {} B_inf {}", f(e[0]), f(e[1]), f(e[2]));
+    }
+    if let Some(p) = &metrics.pose_refinement {
+        println!("poses     {} refinement round(s): {} corrections accepted, {} refused, {} keyframes not covered enough", p.rounds, p.accepted, p.refused, p.failed);
+    }
+    if let (Some(b), Some(f)) = (metrics.pose_error_before, metrics.pose_error_after) {
+        println!("pose err  mean {:.4} m {:.3} deg before, {:.4} m {:.3} deg after", b.0, b.1, f.0, f.1);
     }
     println!("{} Gaussians, {:.1} ms per iteration, outputs in {}", mapper.gaussians().len(), ms_per_iteration, a.out.display());
     Ok(())

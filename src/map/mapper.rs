@@ -61,6 +61,8 @@ pub enum MapperError {
     NoSuchKeyframe { slot: usize, count: usize },
     #[error("{0}")]
     MediumEstimate(#[from] MediumEstimateError),
+    #[error("{0}")]
+    PoseRefine(#[from] super::pose_refine::PoseRefineError),
 }
 
 impl From<VulkanRenderError> for MapperError {
@@ -650,6 +652,26 @@ impl Mapper {
             }
             None => Ok(false),
         }
+    }
+
+    /// Photometric refinement of keyframe `slot`'s pose against the map rendered from it
+    /// ([`super::pose_refine`]); the pose is replaced when the correction is accepted. A
+    /// keyframe the map does not cover well enough is an error (`PoseRefine`), its pose kept.
+    /// `input_pose` is the pose the refinement's prior holds it near (the tracker's).
+    pub fn refine_keyframe_pose(&mut self, slot: usize, input_pose: &Se3, cfg: &super::pose_refine::PoseRefineConfig) -> Result<super::pose_refine::PoseCorrection, MapperError> {
+        let _span = tracing::debug_span!("map.refine_pose", slot).entered();
+        let (index, pose) = match self.keyframes.get(slot) {
+            Some(k) => (k.kf.index, k.kf.world_from_cam),
+            None => return Err(MapperError::NoSuchKeyframe { slot, count: self.keyframes.len() }),
+        };
+        self.render_keyframe(slot)?;
+        let k = &self.keyframes[slot].kf;
+        let out = &self.view.out;
+        let c = super::pose_refine::align_to_render(&pose.inv_mul(input_pose), &k.image, &out.colour, &out.depth, &out.depth_var, &out.alpha, &k.camera, cfg)?;
+        if c.accepted {
+            self.set_keyframe_pose(index, c.apply(&pose))?;
+        }
+        Ok(c)
     }
 
     /// Replaces the map (e.g. a fixed test scene); Adam moments restart at zero.

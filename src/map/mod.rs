@@ -21,6 +21,7 @@ pub mod mapper;
 pub mod medium;
 pub mod medium_estimate;
 pub mod ply;
+pub mod pose_refine;
 pub mod real;
 pub mod render;
 pub mod schedule;
