@@ -27,6 +27,7 @@ use duv::io::write_atomic;
 use duv::gpu::GpuOptions;
 use duv::map::vulkan::MapperDevice;
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv::map::pose_refine::PoseRefineConfig;
 use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
 use duv::sim::keyframes::SimKeyframe;
@@ -99,6 +100,12 @@ pub struct BenchMapArgs {
     /// Board profile of the tracker's capacities (with --poses tracked).
     #[arg(long, default_value = "boards/sim.toml")]
     board: PathBuf,
+    /// Refine the keyframe poses photometrically against the map (as `duv refine
+    /// --refine-poses`) every this many iterations once every keyframe is in, the first keyframe
+    /// held; 0 = never. The report gives the keyframes' mean pose error against the truth (pose
+    /// relative to the first keyframe) before and after.
+    #[arg(long, default_value_t = 0)]
+    refine_poses_every: u64,
     /// Tracker parameters (TOML, `TrackerConfig` fields) for --poses tracked; defaults otherwise.
     #[arg(long, value_name = "FILE")]
     tracker_config: Option<PathBuf>,
@@ -239,6 +246,10 @@ struct RunResult {
     poses: &'static str,
     /// The tracker's run (with --poses tracked).
     tracked: Option<TrackedSummary>,
+    /// Mean keyframe pose error against the truth (m, deg), each keyframe's pose relative to
+    /// the first's, as mapped and at the end (they differ with --refine-poses-every).
+    pose_error_in: (f64, f64),
+    pose_error_out: (f64, f64),
 }
 
 const VARIANTS: [&str; 5] = ["full", "no_medium", "one_coefficient", "no_mahalanobis", "no_kl"];
@@ -301,6 +312,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         cfg.vignetting = a.vignetting;
         let renderer = SimRenderer::new(&cfg).context("building the generated sequence")?;
         let truth = *renderer.medium();
+        let renderer_poses = renderer.poses().to_vec();
         let (kfs, tracked) = match &tracker {
             None => (sim_keyframes(&renderer, a.every, usize::MAX), None),
             Some((tcfg, cap)) => {
@@ -335,12 +347,37 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             }
             let rest = a.iterations.saturating_sub(mapper.iteration());
             let every = (rest / 10).max(1);
+            let pose_cfg = PoseRefineConfig::default();
             for i in 1..=rest {
                 mapper.iterate()?;
                 if i % every == 0 {
                     over_time.push((mapper.iteration(), mapper.gaussians().len()));
                 }
+                if a.refine_poses_every > 0 && i % a.refine_poses_every == 0 && i + a.refine_poses_every <= rest {
+                    for (slot, s) in kfs.iter().enumerate().skip(1) {
+                        if let Err(e) = mapper.refine_keyframe_pose(slot, &s.keyframe.world_from_cam, &pose_cfg) {
+                            tracing::debug!(slot, error = %e, "bench map: pose not refined");
+                        }
+                    }
+                }
             }
+            // Relative to the first keyframe (the held one): the Sim(3) of the tracked
+            // trajectory aligns positions, and on a straight survey leaves the roll about the
+            // path open.
+            let pose_error = |pose: &dyn Fn(usize) -> duv::core::Se3| {
+                let (mut et, mut er) = (0.0, 0.0);
+                let (t0, p0) = (renderer_poses[kfs[0].keyframe.index as usize].world_from_cam, pose(0));
+                for (slot, s) in kfs.iter().enumerate().skip(1) {
+                    let t = t0.inv_mul(&renderer_poses[s.keyframe.index as usize].world_from_cam);
+                    let p = p0.inv_mul(&pose(slot));
+                    et += (p.translation.vector - t.translation.vector).norm();
+                    er += duv::core::pose::rotation_angle(&t.inv_mul(&p).rotation).to_degrees();
+                }
+                let n = (kfs.len() - 1).max(1) as f64;
+                (et / n, er / n)
+            };
+            let pose_error_in = pose_error(&|slot| kfs[slot].keyframe.world_from_cam);
+            let pose_error_out = pose_error(&|slot| mapper.keyframe(slot).map_or(kfs[slot].keyframe.world_from_cam, |k| k.world_from_cam));
             let ms_per_iteration = start.elapsed().as_secs_f64() * 1e3 / mapper.iteration().max(1) as f64;
             let dir = a.out.join(format!("{}-{variant}", water_name(water)));
             std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -374,7 +411,12 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                     PoseSource::Tracked => "tracked",
                 },
                 tracked,
+                pose_error_in,
+                pose_error_out,
             };
+            if a.refine_poses_every > 0 {
+                println!("{:8} {:16} keyframe pose error {:.4} m {:.3} deg as mapped, {:.4} m {:.3} deg refined", r.water, r.variant, pose_error_in.0, pose_error_in.1, pose_error_out.0, pose_error_out.1);
+            }
             println!(
                 "{:8} {:16} PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB  max medium rel.err {:.3}  {:.1} ms/it  {} Gaussians",
                 r.water,
