@@ -111,6 +111,7 @@ pub struct RefineArgs {
     /// --refine-poses-every iterations, the first keyframe held as the anchor.
     #[arg(long)]
     refine_poses: bool,
+    /// Iterations between two pose refinement rounds (with --refine-poses); none in the last ones.
     #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..))]
     refine_poses_every: u64,
     /// Pose refinement settings (TOML, `PoseRefineConfig` fields); defaults otherwise.
