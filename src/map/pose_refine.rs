@@ -237,27 +237,26 @@ fn huber_cost(r: f64, k: f64) -> f64 {
     }
 }
 
+/// Residual, Jacobian and sampled image value (as [`residual_and_jacobian`]) of every usable
+/// render pixel of a level that lands in the image under `t`.
+fn residuals<'a>(level: &'a Level, t: &'a Se3) -> impl Iterator<Item = (f64, Vector6<f64>, f64)> + 'a {
+    let w = level.width();
+    level.inv_depth.iter().enumerate().filter(|(_, &d)| d > 0.0).filter_map(move |(i, &d)| residual_and_jacobian(level, i % w, i / w, d, t))
+}
+
 /// Gain and offset `(a, b)` of the image against the render under `t`:
 /// `(1 + a) I(pi(T X)) + b ~ R(x)` in least squares. A render a grey level brighter or darker
 /// than the image (the medium's colours not quite right) would otherwise pull the pose along
 /// the image's mean gradient.
 fn fit_brightness(level: &Level, t: &Se3) -> (f64, f64) {
     let (mut n, mut si, mut sii, mut sr, mut sir) = (0.0, 0.0, 0.0, 0.0, 0.0);
-    for y in 0..level.height() {
-        for x in 0..level.width() {
-            let d = level.inv_depth[y * level.width() + x];
-            if d <= 0.0 {
-                continue;
-            }
-            if let Some((r, _, i)) = residual_and_jacobian(level, x, y, d, t) {
-                let rd = i - r; // the render value
-                n += 1.0;
-                si += i;
-                sii += i * i;
-                sr += rd;
-                sir += i * rd;
-            }
-        }
+    for (r, _, i) in residuals(level, t) {
+        let rd = i - r; // the render value
+        n += 1.0;
+        si += i;
+        sii += i * i;
+        sr += rd;
+        sir += i * rd;
     }
     let det = n * sii - si * si;
     if n < 2.0 || det.abs() < 1e-12 {
@@ -270,17 +269,9 @@ fn fit_brightness(level: &Level, t: &Se3) -> (f64, f64) {
 /// Robust cost per usable pixel of a level under `t` and brightness `(a, b)` (and the count).
 fn level_cost(level: &Level, t: &Se3, (a, b): (f64, f64), k: f64) -> (f64, usize) {
     let (mut sum, mut n) = (0.0, 0);
-    for y in 0..level.height() {
-        for x in 0..level.width() {
-            let d = level.inv_depth[y * level.width() + x];
-            if d <= 0.0 {
-                continue;
-            }
-            if let Some((r, _, i)) = residual_and_jacobian(level, x, y, d, t) {
-                sum += huber_cost(r + a * i + b, k);
-                n += 1;
-            }
-        }
+    for (r, _, i) in residuals(level, t) {
+        sum += huber_cost(r + a * i + b, k);
+        n += 1;
     }
     (if n > 0 { sum / n as f64 } else { f64::INFINITY }, n)
 }
@@ -357,21 +348,13 @@ pub fn align_to_render(
             let mut hm = SMatrix::<f64, 8, 8>::zeros();
             let mut b = SVector::<f64, 8>::zeros();
             let (ga, gb) = gain_offset;
-            for y in 0..level.height() {
-                for x in 0..level.width() {
-                    let d = level.inv_depth[y * level.width() + x];
-                    if d <= 0.0 {
-                        continue;
-                    }
-                    if let Some((r, j, i)) = residual_and_jacobian(level, x, y, d, &t) {
-                        let r = r + ga * i + gb;
-                        let js = j * (1.0 + ga);
-                        let jf = SVector::<f64, 8>::from_iterator(js.iter().copied().chain([i, 1.0]));
-                        let wgt = huber_weight(r, k) * inv_var;
-                        hm += wgt * jf * jf.transpose();
-                        b += wgt * r * jf;
-                    }
-                }
+            for (r, j, i) in residuals(level, &t) {
+                let r = r + ga * i + gb;
+                let js = j * (1.0 + ga);
+                let jf = SVector::<f64, 8>::from_iterator(js.iter().copied().chain([i, 1.0]));
+                let wgt = huber_weight(r, k) * inv_var;
+                hm += wgt * jf * jf.transpose();
+                b += wgt * r * jf;
             }
             // The prior on the deviation from the input pose, `log(T) + log(current_from_input)`
             // to first order.
