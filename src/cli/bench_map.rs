@@ -130,12 +130,17 @@ struct TrackedSummary {
     /// Share of those pixels whose relative standard deviation is within the mapper's
     /// seeding limit (`MapperConfig::init_max_rel_std`).
     seedable: f64,
+    /// Share of those seedable pixels whose relative error is above 5 % (mostly bands along
+    /// occlusion boundaries, where the upsampling meets two surfaces).
+    seedable_over_5pct: f64,
+    /// 90th percentile of the relative error over all pixels with a tracked depth.
+    p90_rel_error: f64,
 }
 
 impl TrackedSummary {
     fn describe(&self) -> String {
         format!(
-            "{} keyframes with depth, ATE {:.3} m ({:.3}% of path), Sim(3) scale {:.4}; depth on {:.1}% of the pixels, median relative error {:.3}, median relative std {:.3}, {:.1}% within the seeding limit",
+            "{} keyframes with depth, ATE {:.3} m ({:.3}% of path), Sim(3) scale {:.4}; depth on {:.1}% of the pixels, median relative error {:.3}, median relative std {:.3}, {:.1}% within the seeding limit ({:.1}% of those more than 5% off), 90th percentile relative error {:.3}",
             self.keyframes,
             self.ate_rmse_m,
             self.ate_percent_of_path,
@@ -143,7 +148,9 @@ impl TrackedSummary {
             100.0 * self.depth_coverage,
             self.median_rel_error,
             self.median_rel_std,
-            100.0 * self.seedable
+            100.0 * self.seedable,
+            100.0 * self.seedable_over_5pct,
+            self.p90_rel_error
         )
     }
 }
@@ -211,7 +218,15 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
     }
     let ate = &ev.report.ate;
     let depth_coverage = rel_errors.len() as f64 / with_truth.max(1) as f64;
-    let seedable = rel_stds.iter().filter(|&&s| s <= seed_max_rel_std).count() as f64 / rel_stds.len().max(1) as f64;
+    let seedable_count = rel_stds.iter().filter(|&&s| s <= seed_max_rel_std).count();
+    let seedable = seedable_count as f64 / rel_stds.len().max(1) as f64;
+    let seedable_over = rel_stds.iter().zip(&rel_errors).filter(|(&s, &e)| s <= seed_max_rel_std && e > 0.05).count();
+    let seedable_over_5pct = seedable_over as f64 / seedable_count.max(1) as f64;
+    let p90_rel_error = {
+        let mut e = rel_errors.clone();
+        e.sort_by(f64::total_cmp);
+        e.get(e.len() * 9 / 10).copied().unwrap_or(f64::NAN)
+    };
     let summary = TrackedSummary {
         keyframes: out.len(),
         ate_rmse_m: ate.stats_m.rmse,
@@ -221,6 +236,8 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
         median_rel_error: super::bench_track::median(rel_errors),
         median_rel_std: super::bench_track::median(rel_stds),
         seedable,
+        seedable_over_5pct,
+        p90_rel_error,
     };
     Ok((out, summary))
 }

@@ -67,7 +67,11 @@
 //!   frame and scale.
 //!
 //! Full-resolution depth and variance come from joint bilateral upsampling guided by the
-//! keyframe image ([`Tracker::upsample_keyframe`]). The variance adds the weighted spread of
+//! keyframe image ([`Tracker::upsample_keyframe`]). Optionally (`upsample_surface_gap`, off
+//! by default), where a pixel's depth-grid neighbours straddle an occlusion boundary (a step
+//! between their sorted inverse depths larger than that fraction of their weighted median),
+//! the depth averages only the surface the weighted median is on rather than blending a depth
+//! between the two. The variance adds the weighted spread of
 //! the depths it mixed (`upsample_spread_gain`) and a border term, `1 + (border_variance_px /
 //! d)^2` with `d` the distance to the image border in depth-grid pixels: Eq. 4 is the noise
 //! the flow weights carry, and the flow near the border is also biased, which the Hessian

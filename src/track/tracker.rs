@@ -6,7 +6,7 @@ use super::config::{ConfigError, TrackerCapacity, TrackerConfig};
 use super::flow::{FlowError, FlowEstimator, FlowField, FlowResult, PreparedFrame};
 use super::graph::{sim3_relative, sim3_split, EdgeStore, PoseConstraint, PoseGraph};
 use super::keyframes::{block_means, image_health, ncc, thumbnail, Keyframe, KeyframeStore, THUMB_N};
-use super::upsample::{border_variance, joint_bilateral, texture_variance};
+use super::upsample::{border_variance, joint_bilateral, texture_variance, UpsampleParams};
 use crate::core::frame::LUMA_WEIGHTS;
 use crate::core::pose::{se3_exp, se3_log};
 use crate::core::{Frame, FrameImage, Image, PinholeCamera, PlaneF32, Se3, Timestamp};
@@ -453,15 +453,21 @@ impl Tracker {
         }
         let kf = &st.kfs.slots[slot];
         let cfg = &st.cfg;
+        let params = UpsampleParams {
+            sigma_px: cfg.upsample_sigma_px,
+            sigma_intensity: cfg.upsample_sigma_intensity,
+            spread_gain: cfg.upsample_spread_gain,
+            surface_gap: cfg.upsample_surface_gap,
+        };
         self.pool.install(|| {
             if kf.has_variance {
-                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, &params, &kf.inv_depth, inv_depth, Some((&kf.variance, variance)));
                 if cfg.texture_variance {
                     texture_variance(variance, &kf.guide, st.factor, (kf.guide_low.width, kf.guide_low.height));
                 }
                 border_variance(variance, st.factor, cfg.border_variance_px);
             } else {
-                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, cfg.upsample_sigma_px, cfg.upsample_sigma_intensity, cfg.upsample_spread_gain, &kf.inv_depth, inv_depth, None);
+                joint_bilateral(&kf.guide, &kf.guide_low, st.factor, &params, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
             }
         });

@@ -4,43 +4,161 @@
 //! on the difference between its intensity and the block mean of the neighbour's cell. Depth
 //! edges that coincide with image edges stay sharp; the learned upsampler of DROID-SLAM is
 //! not available here.
+//!
+//! Where the neighbours straddle an occlusion boundary, their weighted mean is a depth between
+//! the two surfaces that belongs to neither (a "flying pixel"). With a surface gap set, the
+//! neighbours' inverse depths are sorted and only the run of values around their weighted
+//! median with no step larger than the gap is averaged: the pixel takes the depth of the
+//! surface most of the weight is on. Neighbours that lie on one smooth surface have no such
+//! step, and the result is the plain weighted mean.
 
 use crate::core::PlaneF32;
 use rayon::prelude::*;
 
+/// Weights of the joint bilateral upsampling (from `TrackerConfig`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct UpsampleParams {
+    /// Spatial sigma, depth-grid pixels.
+    pub sigma_px: f32,
+    /// Range sigma, intensity in [0, 1].
+    pub sigma_intensity: f32,
+    /// Weight of the neighbours' spread added to the upsampled variance.
+    pub spread_gain: f32,
+    /// Largest step between sorted neighbour values, relative to their weighted median, that
+    /// still counts as one surface; 0 averages every neighbour.
+    pub surface_gap: f32,
+}
+
+/// Neighbours one output pixel mixes (4x4 depth-grid pixels).
+const NEIGHBOURS: usize = 16;
+
+/// The 4x4 depth-grid neighbours that a run of output pixels shares (every output pixel of a
+/// cell row and column mixes the same ones), sorted by value once for all of them.
+struct Neighbourhood {
+    /// First and last neighbour column; `usize::MAX` before the first load.
+    columns: (usize, usize),
+    count: usize,
+    /// Values in the order the weights are enumerated (rows of columns).
+    values: [f32; NEIGHBOURS],
+    /// Enumeration indices sorted by value.
+    order: [u8; NEIGHBOURS],
+    /// Whether some step between sorted values exceeds `gap` times the smallest value, the
+    /// least the per-pixel threshold (`gap` times the weighted median) can be; without one,
+    /// every pixel of the run takes the plain weighted mean.
+    has_step: bool,
+}
+
+impl Neighbourhood {
+    const EMPTY: Neighbourhood = Neighbourhood { columns: (usize::MAX, usize::MAX), count: 0, values: [0.0; NEIGHBOURS], order: [0; NEIGHBOURS], has_step: false };
+
+    fn load(&mut self, low: &PlaneF32, (x0, x1): (usize, usize), (y0, y1): (usize, usize), gap: f32) {
+        self.columns = (x0, x1);
+        self.count = 0;
+        for qy in y0..=y1 {
+            for qx in x0..=x1 {
+                self.values[self.count] = low.data[qy * low.width + qx];
+                self.count += 1;
+            }
+        }
+        let (lo, hi) = self.values[..self.count].iter().fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        // Every step is at most the range.
+        self.has_step = gap > 0.0 && self.count > 1 && hi - lo > gap * lo.abs();
+        if !self.has_step {
+            return;
+        }
+        // Insertion sort of at most 16 indices by value.
+        for i in 0..self.count {
+            self.order[i] = i as u8;
+            let mut j = i;
+            while j > 0 && self.values[self.order[j - 1] as usize] > self.values[self.order[j] as usize] {
+                self.order.swap(j - 1, j);
+                j -= 1;
+            }
+        }
+        let sorted = |k: usize| self.values[self.order[k] as usize];
+        self.has_step = (1..self.count).any(|k| sorted(k) - sorted(k - 1) > gap * lo.abs());
+    }
+
+    /// Value of one output pixel with neighbour weights `weights` (enumeration order, total
+    /// `wsum`, weighted mean `mean`): the weighted mean when no step between the sorted values
+    /// exceeds `gap` times their weighted median, otherwise the weighted mean of the run of
+    /// values around the weighted median that has no such step.
+    fn surface_value(&self, weights: &[f32; NEIGHBOURS], wsum: f32, mean: f32, gap: f32) -> f32 {
+        if !self.has_step || wsum <= 0.0 {
+            return mean;
+        }
+        let n = self.count;
+        let value = |k: usize| self.values[self.order[k] as usize];
+        let weight = |k: usize| weights[self.order[k] as usize];
+        let mut acc = 0.0;
+        let mut mid = n - 1;
+        for k in 0..n {
+            acc += weight(k);
+            if acc >= 0.5 * wsum {
+                mid = k;
+                break;
+            }
+        }
+        let step = gap * value(mid).abs();
+        let mut first = mid;
+        while first > 0 && value(first) - value(first - 1) <= step {
+            first -= 1;
+        }
+        let mut last = mid;
+        while last + 1 < n && value(last + 1) - value(last) <= step {
+            last += 1;
+        }
+        if first == 0 && last + 1 == n {
+            return mean;
+        }
+        let (ws, vs) = (first..=last).fold((0.0f32, 0.0f32), |(ws, vs), k| (ws + weight(k), vs + weight(k) * value(k)));
+        if ws > 0.0 {
+            vs / ws
+        } else {
+            mean
+        }
+    }
+}
+
 /// Upsamples `low` (one plane, and optionally a second with the same weights) at `cell` input
 /// pixels per low pixel into `out` / `out2` (full size), with `guide` (full-resolution 8-bit
-/// grey) and `guide_low` (block means at the low grid, [0, 1]). When the second plane is the
-/// first's variance, `spread_gain` times the weighted spread of the first plane's neighbours
-/// is added to it (interpolation uncertainty). Allocation-free.
-#[allow(clippy::too_many_arguments)]
+/// grey) and `guide_low` (block means at the low grid, [0, 1]). The first plane keeps to one
+/// surface where its neighbours straddle a depth step (`surface_gap`). When the second plane is
+/// the first's variance, it is the weighted mean over every neighbour plus `spread_gain` times
+/// the weighted spread of the first plane's neighbours (interpolation uncertainty: at a depth
+/// step, the uncertainty of which surface the pixel is on). Allocation-free.
 pub(crate) fn joint_bilateral(
     guide: &[u8],
     guide_low: &PlaneF32,
     cell: usize,
-    sigma_px: f32,
-    sigma_intensity: f32,
-    spread_gain: f32,
+    params: &UpsampleParams,
     low: &PlaneF32,
     out: &mut PlaneF32,
     second: Option<(&PlaneF32, &mut PlaneF32)>,
 ) {
     let (lw, lh) = (guide_low.width, guide_low.height);
     let w = out.width;
-    let inv_s = -0.5 / (sigma_px * sigma_px);
-    let inv_r = -0.5 / (sigma_intensity * sigma_intensity);
+    let inv_s = -0.5 / (params.sigma_px * params.sigma_px);
+    let inv_r = -0.5 / (params.sigma_intensity * params.sigma_intensity);
+    let (spread_gain, surface_gap) = (params.spread_gain, params.surface_gap);
     let c = cell as f32;
     let off = 0.5 * (c - 1.0);
     let row = |y: usize, row1: &mut [f32], mut row2: Option<&mut [f32]>, low2: Option<&PlaneF32>| {
         let ly = (y as f32 - off) / c;
         let y0 = (ly.floor() as isize - 1).clamp(0, lh as isize - 1) as usize;
         let y1 = (ly.floor() as isize + 2).clamp(0, lh as isize - 1) as usize;
+        let mut hood = Neighbourhood::EMPTY;
         for x in 0..w {
             let lx = (x as f32 - off) / c;
             let x0 = (lx.floor() as isize - 1).clamp(0, lw as isize - 1) as usize;
             let x1 = (lx.floor() as isize + 2).clamp(0, lw as isize - 1) as usize;
             let g = guide[y * w + x] as f32 / 255.0;
+            if hood.columns != (x0, x1) {
+                hood.load(low, (x0, x1), (y0, y1), surface_gap);
+            }
             let (mut wsum, mut a1, mut s1, mut a2) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
+            let mut weights = [0.0f32; NEIGHBOURS];
+            let mut count = 0;
             for qy in y0..=y1 {
                 for qx in x0..=x1 {
                     let (dx, dy) = (qx as f32 - lx, qy as f32 - ly);
@@ -51,6 +169,8 @@ pub(crate) fn joint_bilateral(
                     wsum += wgt;
                     a1 += wgt * v;
                     s1 += wgt * v * v;
+                    weights[count] = wgt;
+                    count += 1;
                     if let Some(l2) = low2 {
                         a2 += wgt * l2.data[q];
                     }
@@ -58,7 +178,7 @@ pub(crate) fn joint_bilateral(
             }
             let inv = if wsum > 0.0 { 1.0 / wsum } else { 0.0 };
             let mean = a1 * inv;
-            row1[x] = mean;
+            row1[x] = hood.surface_value(&weights, wsum, mean, surface_gap);
             if let Some(r2) = row2.as_deref_mut() {
                 // The second plane is the variance of the first: add the interpolation's own
                 // uncertainty, the weighted spread of the neighbours it mixed.
@@ -192,6 +312,61 @@ mod tests {
         u.data.fill(3e-3);
         texture_variance(&mut u, &vec![77; w * h], cell, (4, 3));
         assert!(u.data.iter().all(|x| (*x / 3e-3 - 1.0).abs() < 1e-5));
+    }
+
+    /// A depth grid of `lw` x `lh` cells of `cell` px with inverse depth `f(cx, cy)` and
+    /// variance 1e-4, a uniform guide (no intensity cue), upsampled with `gap`.
+    fn upsample_uniform_guide(lw: usize, lh: usize, cell: usize, f: impl Fn(usize, usize) -> f32, gap: f32) -> (PlaneF32, PlaneF32) {
+        let (w, h) = (lw * cell, lh * cell);
+        let mut low = PlaneF32::new(lw, lh);
+        for cy in 0..lh {
+            for cx in 0..lw {
+                low.data[cy * lw + cx] = f(cx, cy);
+            }
+        }
+        let mut low_var = PlaneF32::new(lw, lh);
+        low_var.data.fill(1e-4);
+        let mut guide_low = PlaneF32::new(lw, lh);
+        guide_low.data.fill(0.5);
+        let guide = vec![128u8; w * h];
+        let params = UpsampleParams { sigma_px: 0.8, sigma_intensity: 0.08, spread_gain: 1.0, surface_gap: gap };
+        let (mut out, mut var) = (PlaneF32::new(w, h), PlaneF32::new(w, h));
+        joint_bilateral(&guide, &guide_low, cell, &params, &low, &mut out, Some((&low_var, &mut var)));
+        (out, var)
+    }
+
+    #[test]
+    fn surface_gap_keeps_each_pixel_on_one_side_of_a_depth_step() {
+        // Near seabed (inverse depth 0.5) left of cell column 6, a far one (0.25) from it on.
+        let step = |cx: usize, _: usize| if cx < 6 { 0.5 } else { 0.25 };
+        let (mixed, mixed_var) = upsample_uniform_guide(12, 8, 8, step, 0.0);
+        let (kept, kept_var) = upsample_uniform_guide(12, 8, 8, step, 0.1);
+        let w = 96;
+        // Plain averaging blends the two surfaces over about a cell on either side of the step.
+        let row = 4 * 8 * w;
+        let blended = (0..w).filter(|&x| (0.26..0.49).contains(&mixed.data[row + x])).count();
+        assert!(blended >= 8, "{blended} blended pixels");
+        // With the gap every pixel takes one surface's depth, the nearer side of the step.
+        for (i, &d) in kept.data.iter().enumerate() {
+            let x = i % w;
+            let expect = if (x as f32 + 0.5) < 48.0 { 0.5 } else { 0.25 };
+            assert!((d - expect).abs() < 1e-6, "pixel {x}: {d}, expected {expect}");
+        }
+        // The variance still carries the spread of both surfaces: the step stays uncertain.
+        assert_eq!(mixed_var.data, kept_var.data);
+        assert!(kept_var.data[row + 47] > 1e-3, "{}", kept_var.data[row + 47]);
+    }
+
+    #[test]
+    fn surface_gap_leaves_a_smooth_slope_as_plain_averaging_does() {
+        // A seabed sloping away by 3 % of inverse depth per cell: no step is a gap of 0.1.
+        let slope = |cx: usize, cy: usize| 0.5 * (1.0 - 0.03 * cy as f32) * (1.0 - 0.01 * cx as f32);
+        let (plain, _) = upsample_uniform_guide(12, 8, 8, slope, 0.0);
+        let (kept, _) = upsample_uniform_guide(12, 8, 8, slope, 0.1);
+        assert_eq!(plain.data, kept.data);
+        // A gap below the slope's steps splits it into runs, and the result moves.
+        let (split, _) = upsample_uniform_guide(12, 8, 8, slope, 0.001);
+        assert!(plain.data.iter().zip(&split.data).any(|(a, b)| (a - b).abs() > 1e-3));
     }
 
     #[test]
