@@ -6,6 +6,7 @@ use super::config::{ConfigError, TrackerCapacity, TrackerConfig};
 use super::flow::{FlowError, FlowEstimator, FlowField, FlowResult, PreparedFrame};
 use super::graph::{sim3_relative, sim3_split, EdgeStore, PoseConstraint, PoseGraph};
 use super::keyframes::{block_means, image_health, ncc, thumbnail, Keyframe, KeyframeStore, THUMB_N};
+use super::snapshot::WindowSnapshot;
 use super::upsample::{border_variance, joint_bilateral, texture_variance, UpsampleParams};
 use crate::core::frame::LUMA_WEIGHTS;
 use crate::core::pose::{se3_exp, se3_log};
@@ -140,6 +141,8 @@ pub struct TrackerCounters {
     pub lost_frames: u64,
     /// Solves that failed (the state was left as it was).
     pub ba_failures: u64,
+    /// The initial BA kept its level start (`init_level_start`) over the collected estimate.
+    pub init_level_start: bool,
 }
 
 /// A read-only view of a keyframe.
@@ -300,6 +303,8 @@ struct State {
     pending_eviction: Option<EvictedKeyframe>,
     /// Deferred stages of the last keyframe insertion.
     pending: Option<Pending>,
+    /// The initial BA's first solution while the second start is tried.
+    init_snapshot: WindowSnapshot,
 }
 
 /// What remains of a keyframe insertion: flow/BA rounds, then loop closure / global BA.
@@ -650,6 +655,8 @@ impl State {
         // Edges: every keyframe's links back, plus room for loop edges.
         let max_edges = cap.max_keyframes * links + 4 * cap.max_keyframes.max(8);
         let window_edges = cap.ba_window * links + 8;
+        // The initialisation links each of its keyframes to up to `edges_per_keyframe` before it.
+        let init_edges = cfg.init_keyframes * links;
         let n_pix = lw * lh;
         let ba = BaWorkspace::new(BaCapacity { max_keyframes: cap.ba_window, max_pixels_per_keyframe: n_pix, max_edges: window_edges });
         let gba_edges = if cfg.loop_closure || cfg.global_ba_period > 0 { max_edges } else { 1 };
@@ -698,6 +705,7 @@ impl State {
             evicted_slot: None,
             pending_eviction: None,
             pending: None,
+            init_snapshot: WindowSnapshot::new(cap.ba_window, init_edges, lw, lh),
             flow,
             factor,
             cfg,
@@ -1214,20 +1222,23 @@ impl State {
         Ok(write_measurement(&self.res, &self.cfg, &mut edge.target, &mut edge.weight))
     }
 
-    /// Loads the window, solves, writes back. A failed solve leaves the state as it was.
-    fn solve_window(&mut self, iterations: usize, fixed: usize) -> bool {
+    /// Loads the window, solves, writes back; returns the final cost. A failed solve leaves
+    /// the state as it was.
+    fn solve_window(&mut self, iterations: usize, fixed: usize) -> Option<f64> {
         let t0 = Instant::now();
         let cfg = self.ba_config(iterations, fixed);
         let r = load_window(&mut self.ba, &self.low, &mut self.kfs, &self.edges, &self.window, false)
             .and_then(|_| self.ba.solve(&cfg))
-            .and_then(|_| write_back(&self.ba, &mut self.kfs, &self.window));
+            .and_then(|report| write_back(&self.ba, &mut self.kfs, &self.window).map(|_| report.final_cost));
         self.times.ba += t0.elapsed();
-        if let Err(e) = r {
-            tracing::debug!(error = %e, "track: window BA failed");
-            self.counters.ba_failures += 1;
-            return false;
+        match r {
+            Ok(cost) => Some(cost),
+            Err(e) => {
+                tracing::debug!(error = %e, "track: window BA failed");
+                self.counters.ba_failures += 1;
+                None
+            }
         }
-        true
     }
 
     /// Depth variance (Eq. 4) of every window keyframe at the loaded window's estimate.
@@ -1284,9 +1295,24 @@ impl State {
         }
         self.window.clear();
         self.window.extend_from_slice(&self.kfs.order);
-        for _ in 0..self.cfg.init_rounds {
-            self.estimate_new_edges()?;
-            self.solve_window(self.cfg.init_iterations, 1);
+        let collected = self.initial_rounds()?;
+        if self.cfg.init_level_start && self.init_snapshot.save(&self.kfs, &self.edges, &self.window, &self.new_edges) {
+            self.level_start();
+            let level = self.initial_rounds()?;
+            let keep_level = match (collected, level) {
+                (Some(c), Some(l)) => l < c,
+                (None, Some(_)) => true,
+                _ => false,
+            };
+            tracing::debug!(collected, level, keep_level, "track: initial BA from the collected and the level start");
+            if !keep_level {
+                self.init_snapshot.restore(&mut self.kfs, &mut self.edges, &self.window, &self.new_edges);
+                // The covariance below is taken on the loaded window.
+                if let Err(e) = load_window(&mut self.ba, &self.low, &mut self.kfs, &self.edges, &self.window, false) {
+                    tracing::debug!(error = %e, "track: reloading the initial window failed");
+                }
+            }
+            self.counters.init_level_start = keep_level;
         }
         self.window_covariance(1);
         self.phase = Phase::Running;
@@ -1302,6 +1328,40 @@ impl State {
         self.inserted_since_loop = 0;
         self.inserted_since_global = 0;
         Ok(())
+    }
+
+    /// `init_rounds` flow/BA rounds over the window (first pose fixed); the final cost per
+    /// unit of flow weight of the new edges (`None` if the last solve failed).
+    fn initial_rounds(&mut self) -> Result<Option<f64>, TrackError> {
+        let mut cost = None;
+        for _ in 0..self.cfg.init_rounds {
+            self.estimate_new_edges()?;
+            cost = self.solve_window(self.cfg.init_iterations, 1);
+        }
+        let weight: f64 = self.new_edges.iter().map(|&e| self.edges.edges[e].weight.data.iter().map(|&w| w as f64).sum::<f64>()).sum();
+        Ok(cost.filter(|_| weight > 0.0).map(|c| c / weight))
+    }
+
+    /// The second start of the initial BA (`init_level_start`): every window keyframe at the
+    /// first one's attitude, positions kept, every inverse depth the window's median.
+    fn level_start(&mut self) {
+        let Some(&first) = self.window.first() else { return };
+        let attitude = self.kfs.slots[first].world_from_cam.rotation;
+        self.scratch.clear();
+        for &s in &self.window {
+            self.scratch.extend(self.kfs.slots[s].inv_depth.data.iter().copied().filter(|d| d.is_finite() && *d >= MIN_INV_DEPTH));
+        }
+        let median = if self.scratch.is_empty() {
+            self.cfg.initial_inv_depth
+        } else {
+            let m = self.scratch.len() / 2;
+            *self.scratch.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1
+        };
+        for &s in &self.window {
+            let kf = &mut self.kfs.slots[s];
+            kf.world_from_cam = Se3::from_parts(kf.world_from_cam.translation, attitude);
+            kf.inv_depth.data.fill(median);
+        }
     }
 
     fn anchor_to(&self, slot: usize, pose: &Se3) -> FrameAnchor {
