@@ -43,10 +43,11 @@
 //!   gets a motion-only pose, splatted depth, links, and a BA over everything collected so
 //!   far (staged like an insertion: one edge per stage, then the solve); then, on the frame
 //!   that adds the last one, `init_rounds` flow/BA rounds of `init_iterations` iterations over
-//!   all (not staged: about 1.3 s at 640x480, once). With `init_level_start` (the default)
-//!   the same rounds then run again from a second start, every keyframe at the first one's
-//!   attitude with constant inverse depth, and the start whose solve ends at the lower cost
-//!   per unit of flow weight is kept (the other one's poses, depths and measurements are
+//!   all (not staged: about 1.3 s at 640x480, once). With `init_level_start` (the default),
+//!   when that solve ends above `init_level_start_rms_px` of RMS residual, the same rounds
+//!   run again from a second start, every keyframe at the first one's attitude with constant
+//!   inverse depth, and the start whose solve ends at the lower cost per unit of flow weight
+//!   is kept (the other one's poses, depths and measurements are
 //!   restored from a [`snapshot`]): incremental growth from constant depth over a near-planar
 //!   seabed can settle in the other two-view solution, a camera pitching steadily over a
 //!   seabed bent to match, which later keyframes continue.

@@ -1296,7 +1296,9 @@ impl State {
         self.window.clear();
         self.window.extend_from_slice(&self.kfs.order);
         let collected = self.initial_rounds()?;
-        if self.cfg.init_level_start && self.init_snapshot.save(&self.kfs, &self.edges, &self.window, &self.new_edges) {
+        let rms = self.cfg.init_level_start_rms_px as f64;
+        let try_level = self.cfg.init_level_start && collected.is_none_or(|c| c > 0.5 * rms * rms);
+        if try_level && self.init_snapshot.save(&self.kfs, &self.edges, &self.window, &self.new_edges) {
             self.level_start();
             let level = self.initial_rounds()?;
             let keep_level = match (collected, level) {
