@@ -51,11 +51,15 @@ fn solve_allocates_nothing_after_warm_up() {
     let mut ws = BaWorkspace::new(BaCapacity { max_keyframes: 6, max_pixels_per_keyframe: 400, max_edges: 10 });
     let config = BaConfig { max_iterations: 5, huber_threshold: 2.0, ..BaConfig::default() };
     let gt_depth = inputs.scene.inv_depth_plane(0);
+    // A depth variance too (the tracker passes the keyframe's): the deflated weights must not allocate either.
+    let depth_variance = PlaneF32::filled(gt_depth.width, gt_depth.height, [1e-4]);
     let motion_obs = [MotionOnlyObservation {
         world_from_keyframe: inputs.scene.world_from_cam[0],
         inv_depth: &gt_depth,
         target_xy: &inputs.meas[0].0,
         weight_xy: &inputs.meas[0].1,
+        inv_depth_variance: Some(&depth_variance),
+        variance_of_unit_weight: 1.0,
     }];
     let mut out = PlaneF32::new(20, 15);
 

@@ -127,6 +127,14 @@ pub struct TrackerConfig {
     pub initial_inv_depth: f32,
     /// Gauss-Newton iterations of the motion-only BA of a frame.
     pub motion_iterations: usize,
+    /// The motion-only BA of a frame weighs each keyframe pixel by its depth's uncertainty
+    /// too: the keyframe's inverse-depth variance (Eq. 4), propagated through the projection,
+    /// is added to the flow's (see `MotionOnlyObservation::inv_depth_variance`). Pixels whose
+    /// depth the window BA never measured (the prior alone holds them, relative standard
+    /// deviations of 2-5 against 0.01-0.03 measured) then stop pulling the pose. Without it
+    /// the 640x480 coastal survey with generator seed 3 traded translation for pitch from
+    /// frame 113 on (4.3 % ATE; 0.07 % with it).
+    pub motion_depth_variance: bool,
     /// Flow targets closer than this to the image border get no weight (the pooled flow of a
     /// cell partly out of view is biased).
     pub border_margin_px: f32,
@@ -257,6 +265,7 @@ impl Default for TrackerConfig {
             edge_min_overlap: 0.4,
             initial_inv_depth: 0.5,
             motion_iterations: 6,
+            motion_depth_variance: true,
             border_margin_px: 1.0,
             border_taper_px: 0.0,
             weight_scale: 1.0,

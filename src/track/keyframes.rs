@@ -28,6 +28,11 @@ pub(crate) struct Keyframe {
     /// Inverse depth variance at the depth grid, (1/m)^2 (valid when `has_variance`).
     pub variance: PlaneF32,
     pub has_variance: bool,
+    /// The a posteriori variance of unit weight `variance` was multiplied by (1 when it was
+    /// not): `variance / variance_unit` is in the units of the flow weights (motion-only BA).
+    /// NaN for a keyframe seeded from a log (the unit is not recorded): its variance then stays
+    /// out of the motion-only BA until a window BA recomputes it.
+    pub variance_unit: f32,
     pub frame: PreparedFrame,
     /// Full-resolution 8-bit grey image (upsampling guide).
     pub guide: Vec<u8>,
@@ -48,6 +53,7 @@ impl Keyframe {
             inv_depth: PlaneF32::new(low_w, low_h),
             variance: PlaneF32::new(low_w, low_h),
             has_variance: false,
+            variance_unit: 1.0,
             frame: flow.new_frame(),
             guide: vec![0; width * height],
             guide_low: PlaneF32::new(low_w, low_h),
@@ -108,6 +114,7 @@ impl KeyframeStore {
         self.next_id += 1;
         self.slots[s].scale_correction = 1.0;
         self.slots[s].has_variance = false;
+        self.slots[s].variance_unit = 1.0;
         self.order.push(s);
         Some(s)
     }

@@ -14,7 +14,10 @@
 //!   by the flow the constant-velocity prediction induces (reprojecting the keyframe's depth
 //!   grid; with the forward-backward check unless `frame_forward_backward` is off), and a
 //!   motion-only BA against the keyframe: every frame gets a
-//!   pose.
+//!   pose. With `motion_depth_variance` (the default) each keyframe pixel's flow weights are
+//!   deflated by its depth's Eq. 4 variance, propagated through the projection at the
+//!   predicted pose, so depth that no edge measured (the prior alone holds it) does not pull
+//!   the pose.
 //! - *Keyframes*: when the mean flow from the reference keyframe exceeds
 //!   `keyframe_flow_px` (depth-grid pixels, as DROID measures it). The new keyframe's depth
 //!   starts as the previous keyframe's splatted into it; it is linked (two directed edges

@@ -826,7 +826,15 @@ impl State {
     fn motion_only(&mut self, slot: usize, pose: &mut Se3) -> Result<(), BaError> {
         let t0 = Instant::now();
         let kf = &self.kfs.slots[slot];
-        let obs = [MotionOnlyObservation { world_from_keyframe: kf.world_from_cam, inv_depth: &kf.inv_depth, target_xy: &self.obs_target, weight_xy: &self.obs_weight }];
+        let variance = (self.cfg.motion_depth_variance && kf.has_variance && kf.variance_unit.is_finite()).then_some(&kf.variance);
+        let obs = [MotionOnlyObservation {
+            world_from_keyframe: kf.world_from_cam,
+            inv_depth: &kf.inv_depth,
+            target_xy: &self.obs_target,
+            weight_xy: &self.obs_weight,
+            inv_depth_variance: variance,
+            variance_of_unit_weight: kf.variance_unit,
+        }];
         let cfg = BaConfig { max_iterations: self.cfg.motion_iterations, ..self.cfg.ba };
         let r = solve_motion_only(&self.low, &obs, pose, &cfg);
         self.times.ba += t0.elapsed();
@@ -995,6 +1003,8 @@ impl State {
             }
             plane_block_means(&k.inv_depth_variance, self.factor, &mut kf.variance, f32::MAX);
             kf.has_variance = true;
+            // The recorded variance is metric; the unit weight it was scaled by is not logged.
+            kf.variance_unit = f32::NAN;
         }
         self.kfs.reserve_ids_below(seed.next_keyframe_id);
         for sf in seed.frames {
@@ -1261,6 +1271,7 @@ impl State {
                         }
                     }
                     kf.has_variance = true;
+                    kf.variance_unit = unit;
                 }
             }
         } else {

@@ -52,6 +52,14 @@ pub(crate) fn predict(intr: &Intrinsics, ray: [f64; 2], inv_depth: f64, rot: &Ma
     Some([intr.fx * p.x * iz + intr.cx, intr.fy * p.y * iz + intr.cy])
 }
 
+/// Image motion of the ray's projection per unit of its inverse depth, `d uv / d d`.
+#[inline]
+pub(crate) fn d_uv_d_inv_depth(intr: &Intrinsics, ray: [f64; 2], inv_depth: f64, rot: &Matrix3<f64>, t: &Vector3<f64>) -> Option<Vector2<f64>> {
+    let (_, p) = transform(ray, inv_depth, rot, t)?;
+    let iz = 1.0 / p.z;
+    Some(Vector2::new(intr.fx * iz * (t.x - p.x * iz * t.z), intr.fy * iz * (t.y - p.y * iz * t.z)))
+}
+
 /// Projection and Jacobians of a normalised ray of keyframe `i`.
 ///
 /// With `P = R q + t d` (homogeneous, `W = d`): a right perturbation of pose `i` moves the

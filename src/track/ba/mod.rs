@@ -142,6 +142,12 @@ pub enum BaError {
     InvalidConfig { field: &'static str, value: f64, why: &'static str },
     #[error("motion-only BA: no usable measurement")]
     NoMeasurements,
+    #[error("keyframe {keyframe}: inverse depth variance map is {width}x{height}, camera is {expected_width}x{expected_height}")]
+    VarianceSizeMismatch { keyframe: usize, width: usize, height: usize, expected_width: usize, expected_height: usize },
+    #[error("keyframe {keyframe}, pixel {pixel}: inverse depth variance {value} is NaN or negative")]
+    BadVariance { keyframe: usize, pixel: usize, value: f32 },
+    #[error("keyframe {keyframe}: variance of unit weight {value} must be finite and positive")]
+    BadVarianceOfUnitWeight { keyframe: usize, value: f32 },
 }
 
 /// Fixed sizes of a [`BaWorkspace`], chosen once from the board (BA window, depth resolution).

@@ -3,9 +3,9 @@
 //! damping and perturbation convention as the window solve; only the frame's 6 dofs move.
 //! Fixed-size (stack) linear algebra: allocation-free.
 
-use nalgebra::{Matrix6, Vector6};
+use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 
-use super::linearize::{huber_cost, huber_weight, predict, relative, reproject_ray};
+use super::linearize::{d_uv_d_inv_depth, huber_cost, huber_weight, predict, relative, reproject_ray};
 use super::solve::{damping_after_accept, damping_after_reject, Termination};
 use super::{BaConfig, BaError, Intrinsics};
 use crate::core::pose::se3_exp;
@@ -23,6 +23,17 @@ pub struct MotionOnlyObservation<'a> {
     pub target_xy: &'a Image<f32, 2>,
     /// Confidences `(w_x, w_y) >= 0` of the targets (diagonal inverse covariance).
     pub weight_xy: &'a Image<f32, 2>,
+    /// Variance of the keyframe's inverse depth, (1/m)^2, at the camera's resolution (`None`:
+    /// the depth is taken as exact). The fixed depth's error enters every residual: each
+    /// pixel's weights become `w / (1 + w j^2 var / s0)`, `j` the pixel's image motion per
+    /// unit of inverse depth at the initial pose and `s0` = `variance_of_unit_weight`, so a
+    /// pixel whose depth no keyframe measurement supports stops pulling the pose. An infinite
+    /// or `f32::MAX` variance (unknown depth) gives the pixel no weight.
+    pub inv_depth_variance: Option<&'a PlaneF32>,
+    /// The variance a weight of 1 stands for, in the units of `inv_depth_variance` and
+    /// squared pixels (the window BA's a posteriori variance of unit weight when the variance
+    /// was scaled by it; 1 when the weights are inverse pixel variances).
+    pub variance_of_unit_weight: f32,
 }
 
 /// Summary of a motion-only solve.
@@ -54,7 +65,10 @@ pub fn solve_motion_only(camera: &PinholeCamera, observations: &[MotionOnlyObser
         return Err(BaError::NonFiniteFramePose);
     }
     let mut pose = *world_from_frame;
-    let (mut h, mut b, mut cost) = normal_equations(&intr, observations, &pose, config);
+    // Depth uncertainty is propagated at the initial pose, so the weights stay fixed while the
+    // pose moves (weights that follow the pose would reward moves that inflate them).
+    let initial = *world_from_frame;
+    let (mut h, mut b, mut cost) = normal_equations(&intr, observations, &initial, &pose, config);
     if h.diagonal().iter().all(|v| *v == 0.0) {
         return Err(BaError::NoMeasurements);
     }
@@ -82,13 +96,13 @@ pub fn solve_motion_only(camera: &PinholeCamera, observations: &[MotionOnlyObser
         }
         let mut trial = pose * se3_exp(&step);
         trial.rotation.renormalize();
-        let trial_cost = cost_at(&intr, observations, &trial, config);
+        let trial_cost = cost_at(&intr, observations, &initial, &trial, config);
         if trial_cost.is_finite() && trial_cost < cost {
             let decrease = (cost - trial_cost) / cost.max(f64::MIN_POSITIVE);
             pose = trial;
             report.accepted += 1;
             lambda = damping_after_accept(lambda, config);
-            (h, b, cost) = normal_equations(&intr, observations, &pose, config);
+            (h, b, cost) = normal_equations(&intr, observations, &initial, &pose, config);
             if decrease < config.cost_tolerance {
                 report.termination = Termination::Converged;
                 break;
@@ -121,6 +135,17 @@ fn validate(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>]) -> Re
         if d.width != w || d.height != hgt || d.data.len() != w * hgt {
             return Err(BaError::DepthSizeMismatch { keyframe: e, width: d.width, height: d.height, expected_width: w, expected_height: hgt });
         }
+        if let Some(v) = o.inv_depth_variance {
+            if v.width != w || v.height != hgt || v.data.len() != w * hgt {
+                return Err(BaError::VarianceSizeMismatch { keyframe: e, width: v.width, height: v.height, expected_width: w, expected_height: hgt });
+            }
+            if let Some(pixel) = v.data.iter().position(|x| x.is_nan() || *x < 0.0) {
+                return Err(BaError::BadVariance { keyframe: e, pixel, value: v.data[pixel] });
+            }
+            if !(o.variance_of_unit_weight.is_finite() && o.variance_of_unit_weight > 0.0) {
+                return Err(BaError::BadVarianceOfUnitWeight { keyframe: e, value: o.variance_of_unit_weight });
+            }
+        }
         if let Some(pixel) = d.data.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
             return Err(BaError::BadInverseDepth { keyframe: e, pixel, value: d.data[pixel] });
         }
@@ -141,14 +166,35 @@ fn validate(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>]) -> Re
     Ok(())
 }
 
-/// `H = sum J^T W J`, `b = sum J^T W r` for the frame pose (`J = d uv / d xi_frame`), and the cost.
-fn normal_equations(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>], world_from_frame: &Se3, config: &BaConfig) -> (Matrix6<f64>, Vector6<f64>, f64) {
+/// The weights of pixel `p` of `o`, deflated by its depth variance (see
+/// [`MotionOnlyObservation::inv_depth_variance`]) with the depth Jacobian at the initial
+/// relative pose `(rot0, t0)`.
+#[inline]
+fn pixel_weights(intr: &Intrinsics, o: &MotionOnlyObservation<'_>, p: usize, rot0: &Matrix3<f64>, t0: &Vector3<f64>) -> (f64, f64) {
+    let (wx, wy) = (o.weight_xy.data[2 * p] as f64, o.weight_xy.data[2 * p + 1] as f64);
+    let Some(variance) = o.inv_depth_variance else { return (wx, wy) };
+    if wx == 0.0 && wy == 0.0 {
+        return (0.0, 0.0);
+    }
+    let var = variance.data[p];
+    if !(var.is_finite() && var < f32::MAX) {
+        return (0.0, 0.0);
+    }
+    let Some(j) = d_uv_d_inv_depth(intr, intr.ray(p), o.inv_depth.data[p] as f64, rot0, t0) else { return (wx, wy) };
+    let v = var as f64 / o.variance_of_unit_weight as f64;
+    (wx / (1.0 + wx * j.x * j.x * v), wy / (1.0 + wy * j.y * j.y * v))
+}
+
+/// `H = sum J^T W J`, `b = sum J^T W r` for the frame pose (`J = d uv / d xi_frame`), and the
+/// cost; weights deflated by the depth variance at the `initial` frame pose.
+fn normal_equations(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>], initial: &Se3, world_from_frame: &Se3, config: &BaConfig) -> (Matrix6<f64>, Vector6<f64>, f64) {
     let (mut h, mut b, mut cost) = (Matrix6::zeros(), Vector6::zeros(), 0.0);
     let k = config.huber_threshold;
     for o in observations {
         let (rot, t) = relative(&o.world_from_keyframe, world_from_frame);
+        let (rot0, t0) = relative(&o.world_from_keyframe, initial);
         for p in 0..intr.width * intr.height {
-            let (wx, wy) = (o.weight_xy.data[2 * p] as f64, o.weight_xy.data[2 * p + 1] as f64);
+            let (wx, wy) = pixel_weights(intr, o, p, &rot0, &t0);
             if wx == 0.0 && wy == 0.0 {
                 continue;
             }
@@ -167,13 +213,14 @@ fn normal_equations(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>
     (h, b, cost)
 }
 
-fn cost_at(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>], world_from_frame: &Se3, config: &BaConfig) -> f64 {
+fn cost_at(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>], initial: &Se3, world_from_frame: &Se3, config: &BaConfig) -> f64 {
     let k = config.huber_threshold;
     let mut cost = 0.0;
     for o in observations {
         let (rot, t) = relative(&o.world_from_keyframe, world_from_frame);
+        let (rot0, t0) = relative(&o.world_from_keyframe, initial);
         for p in 0..intr.width * intr.height {
-            let (wx, wy) = (o.weight_xy.data[2 * p] as f64, o.weight_xy.data[2 * p + 1] as f64);
+            let (wx, wy) = pixel_weights(intr, o, p, &rot0, &t0);
             if wx == 0.0 && wy == 0.0 {
                 continue;
             }
@@ -184,3 +231,4 @@ fn cost_at(intr: &Intrinsics, observations: &[MotionOnlyObservation<'_>], world_
     }
     cost
 }
+
