@@ -123,8 +123,13 @@ fn vulkan_mapper_runs_are_bit_identical() {
     let config = MapperConfig { densify_every: 10, densify_start: 10, ..MapperConfig::default() };
     let mut maps = Vec::new();
     let options = GpuOptions { deterministic: true, ..gpu_options() };
-    for _ in 0..2 {
-        let mut m = mapper_with(MapperDevice::Vulkan, config.clone(), &kfs, 3000, &options);
+    // The third run reaches the arena through a staging buffer (a discrete GPU's path, forced
+    // here with 64 KiB chunks): only the host transfers differ, so the map must not.
+    let staged = GpuOptions { host_staging: Some(64 << 10), ..options.clone() };
+    for options in [&options, &options, &staged] {
+        let mut m = mapper_with(MapperDevice::Vulkan, config.clone(), &kfs, 3000, options);
+        let transfers = m.gpu().map(|g| g.info().host_transfers);
+        assert_eq!(transfers, Some(if options.host_staging.is_some() { "staged" } else { "mapped" }));
         for _ in 0..25 {
             m.iterate().unwrap();
         }
@@ -135,6 +140,8 @@ fn vulkan_mapper_runs_are_bit_identical() {
     assert_eq!(maps[0].2, maps[1].2, "Gaussian counts differ");
     assert!(maps[0].0 == maps[1].0, "two Vulkan runs gave different maps");
     assert!(maps[0].1 == maps[1].1, "two Vulkan runs gave different medium weights");
+    assert_eq!(maps[0].2, maps[2].2, "Gaussian counts differ with staged transfers");
+    assert!(maps[0].0 == maps[2].0 && maps[0].1 == maps[2].1, "staged host transfers changed the map");
 }
 
 /// Large Gaussians right in front of the camera, with an intersection buffer of one per

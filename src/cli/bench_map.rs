@@ -69,6 +69,11 @@ pub struct BenchMapArgs {
     /// Optimisation iterations per run.
     #[arg(long, default_value_t = 600)]
     iterations: u64,
+    /// Wall-clock budget of each run's optimisation, seconds, instead of --iterations: the
+    /// PSNR a mapper reaches in a fixed time (half the budget shared while keyframes arrive,
+    /// the rest after; the report gives the iterations done).
+    #[arg(long)]
+    seconds: Option<f64>,
     /// Gaussian cap of the map.
     #[arg(long, default_value_t = 50_000)]
     max_gaussians: usize,
@@ -351,18 +356,38 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: kfs.len(), width: cam.width, height: cam.height };
             let mut mapper = Mapper::new(config, capacity)?;
             let renderer = mapper.use_device(a.mapper, &GpuOptions::with_budget_mb(a.gpu_mb))?;
+            println!("{:8} {:16} renders with {renderer}", water_name(water), variant);
             // Keyframes arrive one by one with iterations in between, as in `duv run`.
             let per_kf = a.iterations / (2 * kfs.len() as u64).max(1);
             let mut over_time = vec![(0u64, 0usize)];
             let start = Instant::now();
-            for s in &kfs {
+            for (k, s) in kfs.iter().enumerate() {
                 mapper.add_keyframe(s.keyframe.clone())?;
-                for _ in 0..per_kf {
-                    mapper.iterate()?;
+                match a.seconds {
+                    // Keyframe k's share ends at (k+1)/(2n) of the budget.
+                    Some(budget_s) => {
+                        let until_s = budget_s * (k + 1) as f64 / (2 * kfs.len()) as f64;
+                        while start.elapsed().as_secs_f64() < until_s {
+                            mapper.iterate()?;
+                        }
+                    }
+                    None => {
+                        for _ in 0..per_kf {
+                            mapper.iterate()?;
+                        }
+                    }
                 }
                 over_time.push((mapper.iteration(), mapper.gaussians().len()));
             }
-            let rest = a.iterations.saturating_sub(mapper.iteration());
+            if let Some(budget_s) = a.seconds {
+                while start.elapsed().as_secs_f64() < budget_s {
+                    mapper.iterate()?;
+                }
+            }
+            let rest = match a.seconds {
+                Some(_) => 0,
+                None => a.iterations.saturating_sub(mapper.iteration()),
+            };
             let every = (rest / 10).max(1);
             let pose_cfg = PoseRefineConfig::default();
             for i in 1..=rest {
@@ -435,16 +460,30 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 println!("{:8} {:16} keyframe pose error {:.4} m {:.3} deg as mapped, {:.4} m {:.3} deg refined", r.water, r.variant, pose_error_in.0, pose_error_in.1, pose_error_out.0, pose_error_out.1);
             }
             println!(
-                "{:8} {:16} PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB  max medium rel.err {:.3}  {:.1} ms/it  {} Gaussians",
+                "{:8} {:16} PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB  max medium rel.err {:.3}  {} its  {:.1} ms/it  {} Gaussians",
                 r.water,
                 r.variant,
                 r.mean_psnr_db,
                 r.mean_ssim,
                 r.mean_restored_psnr_db,
                 r.medium.worst_rel_error(&r.medium_truth),
+                r.iterations,
                 r.ms_per_iteration,
                 mapper.gaussians().len()
             );
+            if let Some(g) = mapper.gpu() {
+                println!(
+                    "{:8} {:16} GPU arena peak {:.1} MiB of {} MiB; per-kernel GPU ms per iteration:",
+                    r.water,
+                    r.variant,
+                    g.arena_peak_bytes() as f64 / (1 << 20) as f64,
+                    g.arena_capacity_bytes() >> 20
+                );
+                let its = r.iterations.max(1);
+                for (k, d, ms) in g.profile().rows() {
+                    println!("    {:<48} {:8.3} ms ({} dispatches)", k.name(), ms / its as f64, d / its);
+                }
+            }
             results.push(r);
             // Keep the report current while the next run works.
             write_reports(&a, &results)?;
@@ -457,7 +496,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
 fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> {
     write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(results)?.as_bytes())?;
     let mut md = format!(
-        "# duv bench map\n\n{}x{}, {} frames, {}, {} iterations, cap {} Gaussians, seeded every {} px.\n\n",
+        "# duv bench map\n\n{}x{}, {} frames, {}, {}, cap {} Gaussians, seeded every {} px.\n\n",
         a.width,
         a.height,
         a.frames,
@@ -465,7 +504,10 @@ fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> 
             PoseSource::Gt => format!("every {}th a keyframe (ground-truth poses and depth)", a.every),
             PoseSource::Tracked => "the tracker's keyframes, poses and depth (aligned to the ground truth by Sim(3))".into(),
         },
-        a.iterations,
+        match a.seconds {
+            Some(s) => format!("{s} s of optimisation per run"),
+            None => format!("{} iterations", a.iterations),
+        },
         a.max_gaussians,
         a.init_stride_px.map_or("config's".into(), |s| s.to_string())
     );

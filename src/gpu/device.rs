@@ -37,7 +37,18 @@ pub struct GpuOptions {
     /// give bit-identical results (hardware-in-loop regression). Off by default, and forced
     /// on where the device has no float atomics.
     pub deterministic: bool,
+    /// Host transfers through a staging buffer of this many bytes even where the arena is
+    /// host-visible and cached. `None` (the default) decides by memory type: the arena is
+    /// mapped where device-local memory is also host-cached (lavapipe, unified-memory boards),
+    /// and staged through [`STAGING_BYTES`] of host-cached memory on a discrete GPU, whose
+    /// host-visible device memory is uncached (reading a map back through it cost 5 MB/s-class
+    /// bandwidth on an H100).
+    pub host_staging: Option<u64>,
 }
+
+/// Staging buffer of a discrete GPU's host transfers (host memory, outside the GPU budget);
+/// larger transfers go in chunks of this size.
+pub const STAGING_BYTES: u64 = 64 << 20;
 
 impl GpuOptions {
     /// An arena of `gpu_mb` MiB, the device from [`DEVICE_ENV`], the pipeline cache in
@@ -47,7 +58,7 @@ impl GpuOptions {
             .map(PathBuf::from)
             .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
             .map(|d| d.join("duv"));
-        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache, deterministic: false }
+        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache, deterministic: false, host_staging: None }
     }
 }
 
@@ -69,13 +80,20 @@ pub struct DeviceInfo {
     pub float_atomics: bool,
     /// Where the pipeline cache lives, when enabled.
     pub pipeline_cache_file: Option<PathBuf>,
+    /// How the host reaches the arena: `mapped` (the arena's memory is host-visible and
+    /// cached) or `staged` (device-local arena, copies through a host-cached staging buffer).
+    pub host_transfers: &'static str,
 }
 
 impl std::fmt::Display for DeviceInfo {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let (a, b, c) = self.api_version;
         let atomics = if self.float_atomics { "float atomics" } else { "no float atomics" };
-        write!(f, "{} ({}, Vulkan {a}.{b}.{c}, driver {}, subgroup {}, {atomics})", self.name, self.device_type, self.driver, self.subgroup_size)
+        write!(
+            f,
+            "{} ({}, Vulkan {a}.{b}.{c}, driver {}, subgroup {}, {atomics}, {} host transfers)",
+            self.name, self.device_type, self.driver, self.subgroup_size, self.host_transfers
+        )
     }
 }
 
@@ -118,7 +136,14 @@ pub struct GpuContext {
     query_pool: Option<vk::QueryPool>,
     memory: vk::DeviceMemory,
     buffer: vk::Buffer,
+    /// The arena's mapping, null when transfers are staged.
     mapped: *mut u8,
+    /// Staged transfers: a host-visible, coherent (cached where the device has it) buffer of
+    /// `staging_bytes`, mapped at `staging_mapped`; null handles when the arena is mapped.
+    staging_memory: vk::DeviceMemory,
+    staging_buffer: vk::Buffer,
+    staging_mapped: *mut u8,
+    staging_bytes: u64,
     arena: Arena,
     pipeline_cache: vk::PipelineCache,
     pipelines: Vec<Pipeline>,
@@ -337,6 +362,10 @@ impl GpuContext {
             memory: vk::DeviceMemory::null(),
             buffer: vk::Buffer::null(),
             mapped: std::ptr::null_mut(),
+            staging_memory: vk::DeviceMemory::null(),
+            staging_buffer: vk::Buffer::null(),
+            staging_mapped: std::ptr::null_mut(),
+            staging_bytes: 0,
             arena: Arena::new(arena_bytes, 256),
             pipeline_cache: vk::PipelineCache::null(),
             pipelines: Vec::with_capacity(KERNEL_COUNT),
@@ -353,6 +382,7 @@ impl GpuContext {
                 subgroup_size: 0,
                 float_atomics: cand.float_atomics,
                 pipeline_cache_file: None,
+                host_transfers: "mapped",
             },
             deterministic: !cand.float_atomics,
             recording: false,
@@ -442,23 +472,65 @@ impl GpuContext {
         .map_err(vk_err("vkCreateBuffer (arena)"))?;
         let req = unsafe { device.get_buffer_memory_requirements(self.buffer) };
         let mem_props = unsafe { instance.get_physical_device_memory_properties(cand.physical) };
-        let host = vk::MemoryPropertyFlags::HOST_VISIBLE | vk::MemoryPropertyFlags::HOST_COHERENT;
-        let find = |flags: vk::MemoryPropertyFlags| {
+        let find = |bits: u32, size: u64, flags: vk::MemoryPropertyFlags| {
             (0..mem_props.memory_type_count).find(|&i| {
-                req.memory_type_bits & (1 << i) != 0 && mem_props.memory_types[i as usize].property_flags.contains(flags) && {
+                bits & (1 << i) != 0 && mem_props.memory_types[i as usize].property_flags.contains(flags) && {
                     let heap = mem_props.memory_types[i as usize].heap_index as usize;
-                    mem_props.memory_heaps[heap].size >= req.size
+                    mem_props.memory_heaps[heap].size >= size
                 }
             })
         };
-        let type_index = find(host | vk::MemoryPropertyFlags::DEVICE_LOCAL).or_else(|| find(host)).ok_or(GpuError::NoMemoryType)?;
+        type F = vk::MemoryPropertyFlags;
+        let host = F::HOST_VISIBLE | F::HOST_COHERENT;
+        // Mapped where device memory is also host-cached (reads and writes at memory speed);
+        // else a device-local arena with staged copies; else (no device-local type big enough)
+        // whatever host-visible memory there is, mapped.
+        let mapped_type = find(req.memory_type_bits, req.size, host | F::HOST_CACHED | F::DEVICE_LOCAL).filter(|_| options.host_staging.is_none());
+        let (type_index, staged) = match mapped_type {
+            Some(t) => (t, false),
+            None => match find(req.memory_type_bits, req.size, F::DEVICE_LOCAL) {
+                Some(t) => (t, true),
+                None => {
+                    let t = find(req.memory_type_bits, req.size, host).ok_or(GpuError::NoMemoryType)?;
+                    (t, options.host_staging.is_some())
+                }
+            },
+        };
         self.memory = unsafe {
             device.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(req.size).memory_type_index(type_index), None)
         }
         .map_err(vk_err("vkAllocateMemory (arena)"))?;
         unsafe { device.bind_buffer_memory(self.buffer, self.memory, 0) }.map_err(vk_err("vkBindBufferMemory (arena)"))?;
-        self.mapped = unsafe { device.map_memory(self.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
-            .map_err(vk_err("vkMapMemory (arena)"))? as *mut u8;
+        if staged {
+            let bytes = options.host_staging.unwrap_or(STAGING_BYTES).min(capacity.max(256)).max(256);
+            self.staging_buffer = unsafe {
+                device.create_buffer(
+                    &vk::BufferCreateInfo::default()
+                        .size(bytes)
+                        .usage(vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST)
+                        .sharing_mode(vk::SharingMode::EXCLUSIVE),
+                    None,
+                )
+            }
+            .map_err(vk_err("vkCreateBuffer (staging)"))?;
+            let sreq = unsafe { device.get_buffer_memory_requirements(self.staging_buffer) };
+            let stype = find(sreq.memory_type_bits, sreq.size, host | F::HOST_CACHED)
+                .or_else(|| find(sreq.memory_type_bits, sreq.size, host))
+                .ok_or(GpuError::NoMemoryType)?;
+            self.staging_memory = unsafe {
+                device.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(sreq.size).memory_type_index(stype), None)
+            }
+            .map_err(vk_err("vkAllocateMemory (staging)"))?;
+            unsafe { device.bind_buffer_memory(self.staging_buffer, self.staging_memory, 0) }.map_err(vk_err("vkBindBufferMemory (staging)"))?;
+            self.staging_mapped = unsafe { device.map_memory(self.staging_memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
+                .map_err(vk_err("vkMapMemory (staging)"))? as *mut u8;
+            self.staging_bytes = bytes;
+            self.info.host_transfers = "staged";
+        } else {
+            self.mapped = unsafe { device.map_memory(self.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
+                .map_err(vk_err("vkMapMemory (arena)"))? as *mut u8;
+            self.info.host_transfers = "mapped";
+        }
 
         // Pipeline cache keyed by vendor, device, driver version and the cache UUID.
         let uuid: String = props.pipeline_cache_uuid.iter().map(|b| format!("{b:02x}")).collect();
@@ -610,6 +682,11 @@ impl GpuContext {
             return Err(GpuError::OutOfRange { what: buf.what, requested: data.len(), len: buf.len });
         }
         let bytes: &[u8] = bytemuck::cast_slice(data);
+        if self.mapped.is_null() {
+            return self.staged_transfer(buf.offset, bytes.len(), |staging, at, n| unsafe {
+                std::ptr::copy_nonoverlapping(bytes.as_ptr().add(at), staging, n)
+            }, |_, _, _| {}, true);
+        }
         unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.mapped.add(buf.offset as usize), bytes.len()) };
         Ok(())
     }
@@ -621,7 +698,61 @@ impl GpuContext {
             return Err(GpuError::OutOfRange { what: buf.what, requested: out.len(), len: buf.len });
         }
         let bytes: &mut [u8] = bytemuck::cast_slice_mut(out);
+        if self.mapped.is_null() {
+            let (len, dst) = (bytes.len(), bytes.as_mut_ptr());
+            return self.staged_transfer(buf.offset, len, |_, _, _| {}, |staging, at, n| unsafe {
+                std::ptr::copy_nonoverlapping(staging, dst.add(at), n)
+            }, false);
+        }
         unsafe { std::ptr::copy_nonoverlapping(self.mapped.add(buf.offset as usize), bytes.as_mut_ptr(), bytes.len()) };
+        Ok(())
+    }
+
+    /// A staged host transfer of `len` bytes at arena offset `offset`, in chunks of the
+    /// staging buffer: `upload` (to the arena) fills the staging buffer with `before(staging,
+    /// at, n)` and copies it in; otherwise the arena is copied out and `after(staging, at, n)`
+    /// reads it. One submission per chunk on the idle queue, waited for.
+    fn staged_transfer(
+        &self,
+        offset: u64,
+        len: usize,
+        before: impl Fn(*mut u8, usize, usize),
+        after: impl Fn(*const u8, usize, usize),
+        upload: bool,
+    ) -> Result<(), GpuError> {
+        let d = &self.device;
+        let cb = self.command_buffer;
+        let what = if upload { "write (staged)" } else { "read (staged)" };
+        let terr = |call: &'static str| move |result| GpuError::Kernel { kernel: what, call, result };
+        let chunk = self.staging_bytes as usize;
+        let mut at = 0;
+        while at < len {
+            let n = chunk.min(len - at);
+            before(self.staging_mapped, at, n);
+            let (src, dst, src_off, dst_off) = match upload {
+                true => (self.staging_buffer, self.buffer, 0, offset + at as u64),
+                false => (self.buffer, self.staging_buffer, offset + at as u64, 0),
+            };
+            unsafe {
+                d.reset_command_buffer(cb, vk::CommandBufferResetFlags::empty()).map_err(terr("vkResetCommandBuffer"))?;
+                d.begin_command_buffer(cb, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))
+                    .map_err(terr("vkBeginCommandBuffer"))?;
+                // Earlier kernels' writes before the copy, the copy before later kernels and
+                // before the host reads the staging buffer.
+                self.barrier();
+                d.cmd_copy_buffer(cb, src, dst, &[vk::BufferCopy { src_offset: src_off, dst_offset: dst_off, size: n as u64 }]);
+                self.barrier();
+                let to_host = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
+                d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
+                d.end_command_buffer(cb).map_err(terr("vkEndCommandBuffer"))?;
+                let cbs = [cb];
+                d.queue_submit(self.queue, &[vk::SubmitInfo::default().command_buffers(&cbs)], self.fence).map_err(terr("vkQueueSubmit"))?;
+                d.wait_for_fences(&[self.fence], true, u64::MAX).map_err(terr("vkWaitForFences"))?;
+                d.reset_fences(&[self.fence]).map_err(terr("vkResetFences"))?;
+            }
+            after(self.staging_mapped, at, n);
+            at += n;
+        }
         Ok(())
     }
 
@@ -810,6 +941,11 @@ impl GpuContext {
             if !self.mapped.is_null() {
                 d.unmap_memory(self.memory);
             }
+            if !self.staging_mapped.is_null() {
+                d.unmap_memory(self.staging_memory);
+            }
+            d.destroy_buffer(self.staging_buffer, None);
+            d.free_memory(self.staging_memory, None);
             d.destroy_buffer(self.buffer, None);
             d.free_memory(self.memory, None);
             if let Some(q) = self.query_pool.take() {
