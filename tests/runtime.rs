@@ -236,7 +236,7 @@ struct Heard {
 
 /// The crash harness: kill -9 at 20 points, resume each time. Every chunk synced
 /// before a kill is readable, at most 1 s of data is lost per kill, and the combined
-/// trajectory continues in the recorded frame: its ATE is within 2.5x an uninterrupted run's
+/// trajectory continues in the recorded frame: its ATE is within 2x an uninterrupted run's
 /// (a resume in a new frame or scale costs metres on this 15 m survey).
 /// Each start seeds its tracker with the newest logged tracker window (`/slam/window`, twice a
 /// second of frame time) and tracks the logged frames after it again. The kill points are
@@ -249,14 +249,18 @@ struct Heard {
 /// seeds 1-3: 0.1379, 0.1399, 0.1382 m). On failure the per-segment errors printed show
 /// where the runs part.
 ///
-/// The bound was 1.5x until three CI runs on slower machines measured 1.64x (0.2293 m), 1.54x
-/// (before the initialisation restart) and 2.12x (0.3007 m against 0.1418 m); here, with a
-/// build loading both cores, 1.85x (0.2628 m). Which logged window a start is seeded with
-/// depends on how far the log writer got before the kill, so the kill points are not the only
-/// thing that varies. One resume at a time (SIGKILL after 100-140 frames, the rest tracked
-/// to the end) leaves the poses within 0.4-2.1 cm of an uninterrupted run's; 15-20 resumes in
-/// 30 s of frames, each one's small change carried into the next, added up to 0.3-0.44 m at
-/// worst, still in the recorded frame.
+/// Three CI runs on slower machines failed the earlier bound of 1.5x: 1.64x (0.2293 m),
+/// 1.54x (before the initialisation restart) and 2.12x (0.3007 m against 0.1418 m); here,
+/// with a build loading both cores, 1.85x (0.2628 m). Which logged window a start is seeded
+/// with depends on how far the log writer got before the kill, and a window logged right
+/// after a keyframe insertion can hold a newest keyframe whose deferred depth rounds had not
+/// run yet (the likeliest reading of what the fix below changed): the
+/// seeded tracker tracked against that depth and its frames drifted up to 0.7 cm per frame
+/// from the uninterrupted run's until the next keyframe, 0.44 m at worst after 15 resumes.
+/// Seeding now re-solves the window's depth with every pose held as recorded
+/// (`Tracker::seed`): with two busy loops on both cores 0.1440 m (1.02x, at most 2.9 cm from
+/// the uninterrupted run's poses); kill seed 1: 0.1435 m (1.01x, 2.9 cm); kill seed 2, two busy
+/// loops: 0.1437 m (1.01x).
 #[test]
 fn crash_harness_kill_9_and_resume() {
     const FRAMES: usize = 300;
@@ -406,7 +410,7 @@ fn crash_harness_kill_9_and_resume() {
         combined.len()
     );
     assert!(max_loss <= 1.0, "lost {max_loss:.3} s of data at one kill (losses {losses_s:?})");
-    assert!(ate_combined <= 2.5 * ate_clean, "ATE combined {ate_combined} > 2.5 x uninterrupted {ate_clean}");
+    assert!(ate_combined <= 2.0 * ate_clean, "ATE combined {ate_combined} > 2 x uninterrupted {ate_clean}");
 }
 
 /// A power cut during the tracker's initialisation (no window or keyframe logged yet): the

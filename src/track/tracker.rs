@@ -378,8 +378,9 @@ impl Tracker {
     /// Seeds a new tracker with keyframes an earlier run recorded (resume after a power cut):
     /// they take their recorded ids, poses, images and inverse depth (averaged down to the
     /// depth grid) with their variance, are linked as an insertion links them (flow measured
-    /// now; no BA, so their poses stay as recorded), and the tracker starts tracking against
-    /// the newest. Their poses are the gauge of the window BA while they are in the window
+    /// now), their depth is re-solved over the window with every pose held as recorded (the
+    /// newest may have been logged before its deferred rounds ran), and the tracker starts
+    /// tracking against the newest. Their poses are the gauge of the window BA while they are in the window
     /// (its oldest poses are held fixed), so the tracker continues in the recorded frame and
     /// scale. Everything is checked before anything changes: an error leaves the tracker
     /// empty and usable.
@@ -1046,9 +1047,12 @@ impl State {
             }
         }
         self.estimate_new_edges()?;
-        if !seed.frames.is_empty() {
-            // Depth of the seed frames from their recorded poses: flow/BA rounds over the
-            // newest seeds with every pose fixed (depth only).
+        {
+            // Depth from the recorded poses: flow/BA rounds over the newest seeds with every
+            // pose fixed (depth only). Seed frames have none yet; seeded keyframes have their
+            // logged depth, but the newest may have been logged before the rounds an insertion
+            // spreads over the next frames had run (frames tracked against it then drifted by
+            // up to 0.7 cm per frame in the crash harness until the next keyframe).
             self.window.clear();
             self.window.extend_from_slice(&self.kfs.order[n.saturating_sub(self.cap.ba_window)..]);
             let fixed = self.window.len();
