@@ -139,6 +139,7 @@ fn main() {
                 gf + gb,
                 (cf + cb) / (gf + gb)
             );
+            println!("    host side per forward+backward: {}", ctx.host_stats().describe_per(runs as u64));
             for (k, d, ms) in ctx.profile().rows() {
                 println!("    {:<48} {:8.3} ms per iteration ({} dispatches)", k.name(), ms / runs as f64, d / runs as u64);
             }
@@ -196,6 +197,7 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
         m.add_keyframe(&kf).unwrap();
         m.step_on(0).unwrap();
         let before = m.gpu().map(|g| g.profile().clone());
+        let host_before = m.gpu().map(|g| g.host_stats());
         let mut samples = Vec::new();
         for _ in 0..runs {
             let t = Instant::now();
@@ -203,7 +205,8 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
             samples.push(t.elapsed());
         }
         // Per-kernel GPU time of the Vulkan mapper's steps (timestamp queries).
-        if let (Some(before), Some(gpu)) = (before, m.gpu()) {
+        if let (Some(before), Some(host_before), Some(gpu)) = (before, host_before, m.gpu()) {
+            println!("Vulkan mapper step {w}x{h}, {n} Gaussians, host side per step: {}", gpu.host_stats().since(&host_before).describe_per(runs as u64));
             println!("Vulkan mapper step {w}x{h}, {n} Gaussians, per kernel:");
             for (k, d, ms) in gpu.profile().rows() {
                 let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);

@@ -480,6 +480,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                     g.arena_capacity_bytes() >> 20
                 );
                 let its = r.iterations.max(1);
+                println!("    host side per iteration: {}", g.host_stats().describe_per(its));
                 for (k, d, ms) in g.profile().rows() {
                     println!("    {:<48} {:8.3} ms ({} dispatches)", k.name(), ms / its as f64, d / its);
                 }

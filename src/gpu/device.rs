@@ -8,6 +8,7 @@
 //! parameters go in the kernel's immediate (push-constant) block.
 
 use std::path::PathBuf;
+use std::time::Instant;
 use std::sync::{Mutex, MutexGuard, OnceLock};
 
 use ash::vk;
@@ -97,6 +98,55 @@ impl std::fmt::Display for DeviceInfo {
     }
 }
 
+/// Host-side cost of driving the device, summed since start or [`GpuContext::reset_profile`]:
+/// what the kernel timestamps do not show (submission latency, transfers, host copies).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct HostStats {
+    /// Kernel submissions ([`GpuContext::submit_and_wait`]) and the wall time from submit to
+    /// the fence (GPU time included).
+    pub submits: u64,
+    pub submit_wait_ns: u64,
+    /// Host reads and writes of the arena (a staged one is one submission per chunk), bytes
+    /// and wall time.
+    pub reads: u64,
+    pub read_bytes: u64,
+    pub read_ns: u64,
+    pub writes: u64,
+    pub write_bytes: u64,
+    pub write_ns: u64,
+}
+
+impl HostStats {
+    /// The counts since `earlier` (an earlier [`GpuContext::host_stats`]).
+    pub fn since(&self, earlier: &HostStats) -> HostStats {
+        HostStats {
+            submits: self.submits - earlier.submits,
+            submit_wait_ns: self.submit_wait_ns - earlier.submit_wait_ns,
+            reads: self.reads - earlier.reads,
+            read_bytes: self.read_bytes - earlier.read_bytes,
+            read_ns: self.read_ns - earlier.read_ns,
+            writes: self.writes - earlier.writes,
+            write_bytes: self.write_bytes - earlier.write_bytes,
+            write_ns: self.write_ns - earlier.write_ns,
+        }
+    }
+    /// One line per `per` steps: submissions, reads, writes, their bytes and milliseconds.
+    pub fn describe_per(&self, per: u64) -> String {
+        let p = per.max(1) as f64;
+        format!(
+            "{:.1} submissions ({:.3} ms submit to fence), {:.1} reads ({:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
+            self.submits as f64 / p,
+            self.submit_wait_ns as f64 * 1e-6 / p,
+            self.reads as f64 / p,
+            self.read_bytes as f64 * 1e-6 / p,
+            self.read_ns as f64 * 1e-6 / p,
+            self.writes as f64 / p,
+            self.write_bytes as f64 * 1e-6 / p,
+            self.write_ns as f64 * 1e-6 / p
+        )
+    }
+}
+
 /// Time per kernel from the timestamp queries, summed over submissions.
 #[derive(Clone, Debug)]
 pub struct KernelProfile {
@@ -156,6 +206,8 @@ pub struct GpuContext {
     recorded_kernels: [Kernel; MAX_DISPATCHES],
     timestamps: Box<[u64; 2 * MAX_DISPATCHES]>,
     profile: KernelProfile,
+    /// Host-side counters; a `Cell` because reads take `&self`.
+    host: std::cell::Cell<HostStats>,
     last_kernel: Option<Kernel>,
 }
 
@@ -390,6 +442,7 @@ impl GpuContext {
             recorded_kernels: [Kernel::all().next().expect("at least one kernel"); MAX_DISPATCHES],
             timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
             profile: KernelProfile::default(),
+            host: std::cell::Cell::new(HostStats::default()),
             last_kernel: None,
         }
     }
@@ -682,12 +735,19 @@ impl GpuContext {
             return Err(GpuError::OutOfRange { what: buf.what, requested: data.len(), len: buf.len });
         }
         let bytes: &[u8] = bytemuck::cast_slice(data);
+        let t0 = Instant::now();
         if self.mapped.is_null() {
-            return self.staged_transfer(buf.offset, bytes.len(), |staging, at, n| unsafe {
+            self.staged_transfer(buf.offset, bytes.len(), |staging, at, n| unsafe {
                 std::ptr::copy_nonoverlapping(bytes.as_ptr().add(at), staging, n)
-            }, |_, _, _| {}, true);
+            }, |_, _, _| {}, true)?;
+        } else {
+            unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.mapped.add(buf.offset as usize), bytes.len()) };
         }
-        unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.mapped.add(buf.offset as usize), bytes.len()) };
+        let mut h = self.host.get();
+        h.writes += 1;
+        h.write_bytes += bytes.len() as u64;
+        h.write_ns += t0.elapsed().as_nanos() as u64;
+        self.host.set(h);
         Ok(())
     }
 
@@ -698,13 +758,21 @@ impl GpuContext {
             return Err(GpuError::OutOfRange { what: buf.what, requested: out.len(), len: buf.len });
         }
         let bytes: &mut [u8] = bytemuck::cast_slice_mut(out);
+        let t0 = Instant::now();
+        let len = bytes.len();
         if self.mapped.is_null() {
-            let (len, dst) = (bytes.len(), bytes.as_mut_ptr());
-            return self.staged_transfer(buf.offset, len, |_, _, _| {}, |staging, at, n| unsafe {
+            let dst = bytes.as_mut_ptr();
+            self.staged_transfer(buf.offset, len, |_, _, _| {}, |staging, at, n| unsafe {
                 std::ptr::copy_nonoverlapping(staging, dst.add(at), n)
-            }, false);
+            }, false)?;
+        } else {
+            unsafe { std::ptr::copy_nonoverlapping(self.mapped.add(buf.offset as usize), bytes.as_mut_ptr(), len) };
         }
-        unsafe { std::ptr::copy_nonoverlapping(self.mapped.add(buf.offset as usize), bytes.as_mut_ptr(), bytes.len()) };
+        let mut h = self.host.get();
+        h.reads += 1;
+        h.read_bytes += len as u64;
+        h.read_ns += t0.elapsed().as_nanos() as u64;
+        self.host.set(h);
         Ok(())
     }
 
@@ -899,8 +967,13 @@ impl GpuContext {
             d.end_command_buffer(self.command_buffer).map_err(vk_err("vkEndCommandBuffer"))?;
             let cbs = [self.command_buffer];
             let submit = [vk::SubmitInfo::default().command_buffers(&cbs)];
+            let t0 = Instant::now();
             d.queue_submit(self.queue, &submit, self.fence).map_err(kerr("vkQueueSubmit"))?;
             d.wait_for_fences(&[self.fence], true, u64::MAX).map_err(kerr("vkWaitForFences (last kernel recorded)"))?;
+            let mut h = self.host.get();
+            h.submits += 1;
+            h.submit_wait_ns += t0.elapsed().as_nanos() as u64;
+            self.host.set(h);
             d.reset_fences(&[self.fence]).map_err(vk_err("vkResetFences"))?;
         }
         if let (Some(q), Some(period)) = (self.query_pool, self.info.timestamp_period_ns) {
@@ -926,6 +999,11 @@ impl GpuContext {
     }
     pub fn reset_profile(&mut self) {
         self.profile = KernelProfile::default();
+        self.host.set(HostStats::default());
+    }
+    /// Host-side counters so far ([`HostStats`]).
+    pub fn host_stats(&self) -> HostStats {
+        self.host.get()
     }
 
     fn destroy_device_objects(&mut self) {

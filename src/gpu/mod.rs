@@ -24,7 +24,7 @@ pub mod kernels;
 pub mod ops;
 
 pub use arena::{GpuBuffer, GpuRange};
-pub use device::{DeviceInfo, GpuContext, GpuOptions, KernelProfile, DEVICE_ENV, MAX_DISPATCHES, STAGING_BYTES};
+pub use device::{DeviceInfo, GpuContext, GpuOptions, HostStats, KernelProfile, DEVICE_ENV, MAX_DISPATCHES, STAGING_BYTES};
 pub use kernels::{BindingKind, Kernel, KernelInfo, KERNELS};
 
 use ash::vk;
