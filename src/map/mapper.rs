@@ -994,7 +994,11 @@ impl Mapper {
         let kf = &self.keyframes[slot];
         let v = &mut self.view;
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
-        self.grads.zero_params();
+        // A resident device map has its gradients zeroed on the device (the host's are not
+        // read back unless a step is refused).
+        if !(device_map && self.raster.is_resident()) {
+            self.grads.zero_params();
+        }
         let mut medium_back = DeviceMediumBackward {
             prior: self.medium_prior.as_ref(),
             single_coefficient: self.config.single_medium_coefficient,

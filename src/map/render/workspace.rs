@@ -334,10 +334,13 @@ pub(crate) fn validate_gaussians(gaussians: &Gaussians) -> Result<(), RenderErro
     if let Some((index, group)) = gaussians.find_non_finite() {
         return Err(RenderError::NonFiniteGaussian { index, field: group.name() });
     }
-    let zero = gaussians
-        .group(crate::map::gaussians::ParamGroup::Rotation)
-        .par_chunks(4)
-        .position_first(|q| q.iter().map(|v| v * v).sum::<f32>() == 0.0);
+    let rotation = gaussians.group(crate::map::gaussians::ParamGroup::Rotation);
+    // Blocks first (vectorised, no early exit inside one); the index only when one is zero.
+    let any_zero = rotation.par_chunks(4 << 14).any(|c| c.chunks_exact(4).fold(false, |z, q| z | (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3] == 0.0)));
+    let zero = match any_zero {
+        true => rotation.par_chunks(4).position_first(|q| q.iter().map(|v| v * v).sum::<f32>() == 0.0),
+        false => None,
+    };
     if let Some(index) = zero {
         return Err(RenderError::ZeroRotation { index });
     }

@@ -157,13 +157,9 @@ impl GpuProjection {
             return Err(GpuError::OutOfRange { what: "Gaussian parameters", requested: n, len: self.capacity });
         }
         ctx.read(&self.params, &mut self.staging[..n * PARAMS_PER_GAUSSIAN])?;
-        for g in ParamGroup::ALL {
-            let (w, off) = (g.width(), g.offset());
-            for (i, dst) in gaussians.group_mut(g).chunks_exact_mut(w).enumerate() {
-                dst.copy_from_slice(&self.staging[i * PARAMS_PER_GAUSSIAN + off..i * PARAMS_PER_GAUSSIAN + off + w]);
-            }
-        }
-        Ok(())
+        gaussians
+            .copy_from_aos(&self.staging[..n * PARAMS_PER_GAUSSIAN])
+            .map_err(|_| GpuError::OutOfRange { what: "Gaussian parameters", requested: n, len: self.capacity })
     }
 
     /// Records `project_forward` over `n` Gaussians (setup written by
