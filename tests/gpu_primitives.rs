@@ -92,6 +92,34 @@ fn splat_like_keys(rng: &mut Rng, n: usize, tiles: u64) -> Vec<u64> {
         .collect()
 }
 
+/// Sorts `keys`/`values` on the device in place of their buffers (already written) and reads
+/// them back; panics, naming `what`, at the first element that differs from a plain stable
+/// sort of the pairs. Returns the sorted keys and values as read.
+fn sort_on_device_like_a_stable_sort(
+    ctx: &mut GpuContext,
+    bufs: (&duv::gpu::GpuBuffer<u64>, &duv::gpu::GpuBuffer<u32>, &SortScratch),
+    keys: &[u64],
+    values: &[u32],
+    key_bits: u32,
+    what: &str,
+) -> (Vec<u64>, Vec<u32>) {
+    let (keys_buf, values_buf, scratch) = bufs;
+    let n = keys.len();
+    ctx.begin().unwrap();
+    record_radix_sort(ctx, keys_buf, values_buf, n, key_bits, scratch).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let (mut got_k, mut got_v) = (vec![0u64; n], vec![0u32; n]);
+    ctx.read(keys_buf, &mut got_k).unwrap();
+    ctx.read(values_buf, &mut got_v).unwrap();
+    let mut want: Vec<(u64, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
+    want.sort_by_key(|p| p.0);
+    let got: Vec<(u64, u32)> = got_k.iter().copied().zip(got_v.iter().copied()).collect();
+    if let Some(i) = (0..n).find(|&i| got[i] != want[i]) {
+        panic!("{what}: element {i} is {:?} on the GPU, {:?} by a stable sort", got[i], want[i]);
+    }
+    (got_k, got_v)
+}
+
 #[test]
 fn radix_sort_matches_a_stable_sort() {
     let Some(mut ctx) = gpu_common::gpu_or_skip("radix_sort_matches_a_stable_sort") else { return };
@@ -108,20 +136,8 @@ fn radix_sort_matches_a_stable_sort() {
         let key_bits = 32 + (64 - (tiles - 1).leading_zeros()).max(1);
         ctx.write(&keys_buf, &keys).unwrap();
         ctx.write(&values_buf, &values).unwrap();
-        ctx.begin().unwrap();
-        record_radix_sort(&mut ctx, &keys_buf, &values_buf, n, key_bits, &scratch).unwrap();
-        ctx.submit_and_wait().unwrap();
-        let mut got_k = vec![0u64; n];
-        let mut got_v = vec![0u32; n];
-        ctx.read(&keys_buf, &mut got_k).unwrap();
-        ctx.read(&values_buf, &mut got_v).unwrap();
-        // Plain stable sort of the pairs.
-        let mut want: Vec<(u64, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
-        want.sort_by_key(|p| p.0);
-        let got: Vec<(u64, u32)> = got_k.iter().copied().zip(got_v.iter().copied()).collect();
-        if let Some(i) = (0..n).find(|&i| got[i] != want[i]) {
-            panic!("n = {n}, {key_bits}-bit keys: element {i} is {:?} on the GPU, {:?} by a stable sort", got[i], want[i]);
-        }
+        let what = format!("n = {n}, {key_bits}-bit keys");
+        let (got_k, got_v) = sort_on_device_like_a_stable_sort(&mut ctx, (&keys_buf, &values_buf, &scratch), &keys, &values, key_bits, &what);
         // The CPU reference of the same name agrees too.
         let (mut ck, mut cv) = (keys.clone(), values.clone());
         let (mut kt, mut vt, mut h) = (vec![0u64; n], vec![0u32; n], vec![0u32; sort_histogram_len(n)]);
@@ -165,18 +181,7 @@ fn staged_host_transfers_cross_chunks_and_sort_like_the_mapped_arena() {
     assert!(k0 == keys && v0 == values, "staged round trip changed the data");
     assert_eq!(p0, [1, 2, 3]);
     let key_bits = 32 + 10;
-    ctx.begin().unwrap();
-    record_radix_sort(&mut ctx, &keys_buf, &values_buf, n, key_bits, &scratch).unwrap();
-    ctx.submit_and_wait().unwrap();
-    let (mut got_k, mut got_v) = (vec![0u64; n], vec![0u32; n]);
-    ctx.read(&keys_buf, &mut got_k).unwrap();
-    ctx.read(&values_buf, &mut got_v).unwrap();
-    let mut want: Vec<(u64, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
-    want.sort_by_key(|p| p.0);
-    let got: Vec<(u64, u32)> = got_k.iter().copied().zip(got_v.iter().copied()).collect();
-    if let Some(i) = (0..n).find(|&i| got[i] != want[i]) {
-        panic!("staged: element {i} is {:?} on the GPU, {:?} by a stable sort", got[i], want[i]);
-    }
+    let (got_k, _) = sort_on_device_like_a_stable_sort(&mut ctx, (&keys_buf, &values_buf, &scratch), &keys, &values, key_bits, "staged");
     // A short read of a long buffer reads only what was asked.
     let mut head = vec![0u64; 5];
     ctx.read(&keys_buf, &mut head).unwrap();
