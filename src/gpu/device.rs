@@ -47,6 +47,12 @@ pub struct GpuOptions {
     pub host_staging: Option<u64>,
 }
 
+/// What a staged transfer moves: host bytes to the arena, or arena bytes to the host.
+enum Staged<'a> {
+    Write(&'a [u8]),
+    Read(&'a mut [u8]),
+}
+
 /// Staging buffer of a discrete GPU's host transfers (host memory, outside the GPU budget);
 /// larger transfers go in chunks of this size.
 pub const STAGING_BYTES: u64 = 64 << 20;
@@ -737,9 +743,7 @@ impl GpuContext {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let t0 = Instant::now();
         if self.mapped.is_null() {
-            self.staged_transfer(buf.offset, bytes.len(), |staging, at, n| unsafe {
-                std::ptr::copy_nonoverlapping(bytes.as_ptr().add(at), staging, n)
-            }, |_, _, _| {}, true)?;
+            self.staged_transfer(buf.offset, Staged::Write(bytes))?;
         } else {
             unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.mapped.add(buf.offset as usize), bytes.len()) };
         }
@@ -761,10 +765,7 @@ impl GpuContext {
         let t0 = Instant::now();
         let len = bytes.len();
         if self.mapped.is_null() {
-            let dst = bytes.as_mut_ptr();
-            self.staged_transfer(buf.offset, len, |_, _, _| {}, |staging, at, n| unsafe {
-                std::ptr::copy_nonoverlapping(staging, dst.add(at), n)
-            }, false)?;
+            self.staged_transfer(buf.offset, Staged::Read(bytes))?;
         } else {
             unsafe { std::ptr::copy_nonoverlapping(self.mapped.add(buf.offset as usize), bytes.as_mut_ptr(), len) };
         }
@@ -776,18 +777,13 @@ impl GpuContext {
         Ok(())
     }
 
-    /// A staged host transfer of `len` bytes at arena offset `offset`, in chunks of the
-    /// staging buffer: `upload` (to the arena) fills the staging buffer with `before(staging,
-    /// at, n)` and copies it in; otherwise the arena is copied out and `after(staging, at, n)`
-    /// reads it. One submission per chunk on the idle queue, waited for.
-    fn staged_transfer(
-        &self,
-        offset: u64,
-        len: usize,
-        before: impl Fn(*mut u8, usize, usize),
-        after: impl Fn(*const u8, usize, usize),
-        upload: bool,
-    ) -> Result<(), GpuError> {
+    /// A staged host transfer at arena offset `offset`, in chunks of the staging buffer: one
+    /// submission per chunk on the idle queue, waited for.
+    fn staged_transfer(&self, offset: u64, mut transfer: Staged<'_>) -> Result<(), GpuError> {
+        let (upload, len) = match &transfer {
+            Staged::Write(b) => (true, b.len()),
+            Staged::Read(b) => (false, b.len()),
+        };
         let d = &self.device;
         let cb = self.command_buffer;
         let what = if upload { "write (staged)" } else { "read (staged)" };
@@ -796,7 +792,9 @@ impl GpuContext {
         let mut at = 0;
         while at < len {
             let n = chunk.min(len - at);
-            before(self.staging_mapped, at, n);
+            if let Staged::Write(b) = &transfer {
+                unsafe { std::ptr::copy_nonoverlapping(b.as_ptr().add(at), self.staging_mapped, n) };
+            }
             let (src, dst, src_off, dst_off) = match upload {
                 true => (self.staging_buffer, self.buffer, 0, offset + at as u64),
                 false => (self.buffer, self.staging_buffer, offset + at as u64, 0),
@@ -818,7 +816,9 @@ impl GpuContext {
                 d.wait_for_fences(&[self.fence], true, u64::MAX).map_err(terr("vkWaitForFences"))?;
                 d.reset_fences(&[self.fence]).map_err(terr("vkResetFences"))?;
             }
-            after(self.staging_mapped, at, n);
+            if let Staged::Read(b) = &mut transfer {
+                unsafe { std::ptr::copy_nonoverlapping(self.staging_mapped, b.as_mut_ptr().add(at), n) };
+            }
             at += n;
         }
         Ok(())

@@ -380,9 +380,9 @@ impl Tracker {
     /// depth grid) with their variance, are linked as an insertion links them (flow measured
     /// now), their depth is re-solved over the window with every pose held as recorded (the
     /// newest may have been logged before its deferred rounds ran), and the tracker starts
-    /// tracking against the newest. Their poses are the gauge of the window BA while they are in the window
-    /// (its oldest poses are held fixed), so the tracker continues in the recorded frame and
-    /// scale. Everything is checked before anything changes: an error leaves the tracker
+    /// tracking against the newest. Their poses are the gauge of the window BA while they are
+    /// in the window (its oldest poses are held fixed), so the tracker continues in the
+    /// recorded frame and scale. Everything is checked before anything changes: an error leaves the tracker
     /// empty and usable.
     pub fn seed(&mut self, seed: &TrackerSeed<'_>) -> Result<(), TrackError> {
         let st = &mut self.st;
@@ -1047,22 +1047,20 @@ impl State {
             }
         }
         self.estimate_new_edges()?;
-        {
-            // Depth from the recorded poses: flow/BA rounds over the newest seeds with every
-            // pose fixed (depth only). Seed frames have none yet; seeded keyframes have their
-            // logged depth, but the newest may have been logged before the rounds an insertion
-            // spreads over the next frames had run (frames tracked against it then drifted by
-            // up to 0.7 cm per frame in the crash harness until the next keyframe).
-            self.window.clear();
-            self.window.extend_from_slice(&self.kfs.order[n.saturating_sub(self.cap.ba_window)..]);
-            let fixed = self.window.len();
+        // Depth from the recorded poses: flow/BA rounds over the newest seeds with every
+        // pose fixed (depth only). Seed frames have none yet; seeded keyframes have their
+        // logged depth, but the newest may have been logged before the rounds an insertion
+        // spreads over the next frames had run (frames tracked against it then drifted by
+        // up to 0.7 cm per frame in the crash harness until the next keyframe).
+        self.window.clear();
+        self.window.extend_from_slice(&self.kfs.order[n.saturating_sub(self.cap.ba_window)..]);
+        let fixed = self.window.len();
+        self.solve_window(self.cfg.init_iterations, fixed);
+        for _ in 1..self.cfg.init_rounds {
+            self.estimate_new_edges()?;
             self.solve_window(self.cfg.init_iterations, fixed);
-            for _ in 1..self.cfg.init_rounds {
-                self.estimate_new_edges()?;
-                self.solve_window(self.cfg.init_iterations, fixed);
-            }
-            self.window_covariance(fixed);
         }
+        self.window_covariance(fixed);
         self.new_edges.clear();
         let newest = self.kfs.newest().expect("seeded");
         self.ref_slot = newest;
