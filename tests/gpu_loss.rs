@@ -100,7 +100,7 @@ fn upload_view(ctx: &mut GpuContext, s: &Scene) -> DeviceView {
 fn gpu_loss(ctx: &mut GpuContext, gpu: &mut GpuLoss, v: &DeviceView, s: &Scene, config: &LossConfig, with_medium: bool) -> (LossTerms, Vec<f32>, Vec<[f32; 4]>, Vec<f32>) {
     let (w, h) = (s.colour.width, s.colour.height);
     let n = w * h;
-    gpu.upload_target(ctx, &TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var }).unwrap();
+    gpu.upload_target(ctx, &TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var }, None).unwrap();
     let bufs = LossBuffers { colour: &v.colour, scalars: &v.scalars, c_med: with_medium.then_some(&v.c_med), up_colour: &v.up_colour, up_scalars: &v.up_scalars };
     ctx.begin().unwrap();
     gpu.record(ctx, &bufs, w, h, config).unwrap();
@@ -219,19 +219,19 @@ fn loss_kernels_refuse_bad_input() {
     assert!(gpu.read_terms(&ctx).is_err(), "read_terms before any record must fail");
     // A non-finite keyframe pixel is named.
     s.target.data[17] = f32::NAN;
-    let e = gpu.upload_target(&mut ctx, &TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var }).unwrap_err();
+    let e = gpu.upload_target(&mut ctx, &TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var }, None).unwrap_err();
     assert!(matches!(e, VulkanRenderError::Loss(LossError::NonFinite { what: "target image", index: 17, .. })), "{e}");
     s.target.data[17] = 0.5;
     // Larger than the buffers.
     let big = scene(w + 1, h, 4);
-    let e = gpu.upload_target(&mut ctx, &TargetView { image: &big.target, depth: &big.track_depth, depth_variance: &big.track_var }).unwrap_err();
+    let e = gpu.upload_target(&mut ctx, &TargetView { image: &big.target, depth: &big.track_depth, depth_variance: &big.track_var }, None).unwrap_err();
     assert!(matches!(e, VulkanRenderError::Loss(LossError::CapacityExceeded { .. })), "{e}");
     // Depth of another size than the image.
     let small = scene(w - 1, h, 4);
-    let e = gpu.upload_target(&mut ctx, &TargetView { image: &s.target, depth: &small.track_depth, depth_variance: &s.track_var }).unwrap_err();
+    let e = gpu.upload_target(&mut ctx, &TargetView { image: &s.target, depth: &small.track_depth, depth_variance: &s.track_var }, None).unwrap_err();
     assert!(matches!(e, VulkanRenderError::Loss(LossError::SizeMismatch { what: "tracked depth", .. })), "{e}");
     // A render of another size than the uploaded target.
-    gpu.upload_target(&mut ctx, &TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var }).unwrap();
+    gpu.upload_target(&mut ctx, &TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var }, None).unwrap();
     ctx.begin().unwrap();
     let e = gpu.record(&mut ctx, &bufs, w, h - 1, &config).unwrap_err();
     assert!(matches!(e, VulkanRenderError::Loss(LossError::SizeMismatch { .. })), "{e}");
@@ -249,5 +249,66 @@ fn loss_kernels_refuse_bad_input() {
     ctx.submit_and_wait().unwrap();
     let e = gpu.read_terms(&ctx).unwrap_err();
     assert!(matches!(e, VulkanRenderError::Loss(LossError::NonFinite { .. })), "{e}");
+    ctx.arena_reset_to(mark);
+}
+
+/// Keyed targets stay on the device: a step on a keyframe whose target is still in a slot
+/// uploads nothing and compares with exactly that target; with more keyframes than slots the
+/// least recently used slot is refilled, and an unkeyed upload never leaves a reusable key.
+#[test]
+fn keyed_targets_are_kept_on_the_device() {
+    use duv::map::vulkan::loss::TargetKey;
+    let Some(mut ctx) = gpu_common::gpu_or_skip("keyed_targets_are_kept_on_the_device") else { return };
+    let (w, h) = (45, 29);
+    let mark = ctx.arena_used_bytes();
+    let mut gpu = GpuLoss::new(&mut ctx, w, h).unwrap();
+    assert_eq!(gpu.target_slots(), 1);
+    assert_eq!(gpu.reserve_target_slots(&mut ctx, 2).unwrap(), 2, "two small slots fit");
+    let scenes: Vec<Scene> = (0..3).map(|k| scene(w, h, 40 + k)).collect();
+    let keys: Vec<TargetKey> = (0..3).map(|_| TargetKey::fresh()).collect();
+    // Each keyframe's target against the same render.
+    let v = upload_view(&mut ctx, &scenes[0]);
+    let bufs = LossBuffers { colour: &v.colour, scalars: &v.scalars, c_med: Some(&v.c_med), up_colour: &v.up_colour, up_scalars: &v.up_scalars };
+    let config = LossConfig::default();
+    let total = |ctx: &mut GpuContext, gpu: &mut GpuLoss, s: &Scene, key: Option<TargetKey>, garble: bool| {
+        let target = TargetView { image: &s.target, depth: &s.track_depth, depth_variance: &s.track_var };
+        let garbled;
+        let target = if garble {
+            // What the host passes on a hit is not read: the slot is.
+            garbled = Image { data: s.target.data.iter().map(|p| 1.0 - p).collect(), ..s.target.clone() };
+            TargetView { image: &garbled, ..target }
+        } else {
+            target
+        };
+        gpu.upload_target(ctx, &target, key).unwrap();
+        ctx.begin().unwrap();
+        gpu.record(ctx, &bufs, w, h, &config).unwrap();
+        ctx.submit_and_wait().unwrap();
+        gpu.read_terms(ctx).unwrap().total
+    };
+    let expect: Vec<f64> = (0..3).map(|k| cpu_loss(&Scene { colour: scenes[0].colour.clone(), depth: scenes[0].depth.clone(), depth_var: scenes[0].depth_var.clone(), alpha: scenes[0].alpha.clone(), medium: scenes[0].medium.clone(), target: scenes[k].target.clone(), track_depth: scenes[k].track_depth.clone(), track_var: scenes[k].track_var.clone() }, &config, true).0.total).collect();
+    let near = |got: f64, want: f64| (got - want).abs() <= VALUE_REL_TOL * want.abs().max(1e-6);
+    let a = total(&mut ctx, &mut gpu, &scenes[0], Some(keys[0]), false);
+    let b = total(&mut ctx, &mut gpu, &scenes[1], Some(keys[1]), false);
+    assert!(near(a, expect[0]) && near(b, expect[1]), "fresh uploads: {a} vs {}, {b} vs {}", expect[0], expect[1]);
+    assert_eq!(gpu.target_hits, 0);
+    // Both are on the device: neither is uploaded again (the garbled host image is ignored).
+    assert_eq!(total(&mut ctx, &mut gpu, &scenes[0], Some(keys[0]), true).to_bits(), a.to_bits());
+    assert_eq!(total(&mut ctx, &mut gpu, &scenes[1], Some(keys[1]), true).to_bits(), b.to_bits());
+    assert_eq!(gpu.target_hits, 2);
+    // A third keyframe takes the least recently used slot (keyframe 0's) ...
+    let c = total(&mut ctx, &mut gpu, &scenes[2], Some(keys[2]), false);
+    assert!(near(c, expect[2]), "{c} vs {}", expect[2]);
+    assert_eq!(total(&mut ctx, &mut gpu, &scenes[1], Some(keys[1]), true).to_bits(), b.to_bits(), "keyframe 1 was kept");
+    assert_eq!(gpu.target_hits, 3);
+    // ... so keyframe 0 is uploaded again (a garbled image would now be compared).
+    let garbled = total(&mut ctx, &mut gpu, &scenes[0], Some(keys[0]), true);
+    assert_eq!(gpu.target_hits, 3, "keyframe 0 was evicted");
+    assert!(!near(garbled, expect[0]), "the re-upload must read the host image");
+    // An unkeyed upload refills slot 0 and forgets its key.
+    let unkeyed = total(&mut ctx, &mut gpu, &scenes[1], None, false);
+    assert!(near(unkeyed, expect[1]));
+    let again = total(&mut ctx, &mut gpu, &scenes[2], Some(keys[2]), false);
+    assert!(near(again, expect[2]));
     ctx.arena_reset_to(mark);
 }

@@ -133,6 +133,10 @@ fn vulkan_mapper_runs_are_bit_identical() {
         for _ in 0..25 {
             m.iterate().unwrap();
         }
+        // The host's copy of the map is behind the device's until synced.
+        assert!(m.host_map_stale(), "steps since the last densification leave the host copy behind");
+        m.sync_from_device().unwrap();
+        assert!(!m.host_map_stale());
         let medium: Vec<u32> = m.medium().params().iter().map(|v| v.to_bits()).collect();
         maps.push((map_bits(m.gaussians()), medium, m.gaussians().len()));
     }
@@ -239,5 +243,7 @@ fn device_optimiser_state_comes_back_with_the_map() {
         gpu.iterate().unwrap();
         restored.iterate().unwrap();
     }
+    gpu.sync_from_device().unwrap();
+    restored.sync_from_device().unwrap();
     assert_eq!(map_bits(gpu.gaussians()), map_bits(restored.gaussians()), "a restored checkpoint must continue like the uninterrupted run");
 }

@@ -5,7 +5,7 @@
 mod gpu_common;
 
 use duv::core::rng::Rng;
-use duv::gpu::{GpuContext, GpuError, GpuOptions};
+use duv::gpu::{GpuBuffer, GpuContext, GpuError, GpuOptions};
 use duv::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, SCAN_BLOCK, SORT_BLOCK};
 use duv::map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
 
@@ -186,6 +186,32 @@ fn staged_host_transfers_cross_chunks_and_sort_like_the_mapped_arena() {
     let mut head = vec![0u64; 5];
     ctx.read(&keys_buf, &mut head).unwrap();
     assert_eq!(head, got_k[..5]);
+
+    // Small writes wait in the staging buffer's tail (512 bytes here) until the next
+    // submission or transfer: 150 writes of 3 words overflow both its bytes and its 64
+    // entries, later writes to a buffer replace earlier ones, and the result is as if each
+    // had been written at once.
+    let buffers: Vec<GpuBuffer<u32>> = (0..40).map(|_| ctx.alloc::<u32>("small writes", 3).unwrap()).collect();
+    let mut model = vec![[0u32; 3]; buffers.len()];
+    for k in 0..150u32 {
+        let at = (k as usize * 7) % buffers.len();
+        model[at] = [k, k + 1000, k + 2000];
+        ctx.write(&buffers[at], &model[at]).unwrap();
+    }
+    for (b, want) in buffers.iter().zip(&model) {
+        let mut got = [0u32; 3];
+        ctx.read(b, &mut got).unwrap();
+        assert_eq!(&got, want, "deferred small writes lost or reordered");
+    }
+    // A small write is on the device before the next submission's first command.
+    let copy_to = ctx.alloc::<u32>("copy of a small write", 3).unwrap();
+    ctx.write(&buffers[3], &[7, 8, 9]).unwrap();
+    ctx.begin().unwrap();
+    ctx.copy(buffers[3].range(), copy_to.range()).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut got = [0u32; 3];
+    ctx.read(&copy_to, &mut got).unwrap();
+    assert_eq!(got, [7, 8, 9], "a kernel after a small write must see it");
 }
 
 #[test]

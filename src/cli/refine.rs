@@ -343,6 +343,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     bar.finish();
     let ms_per_iteration = start.elapsed().as_secs_f64() * 1e3 / a.iterations.max(1) as f64;
 
+    mapper.sync_from_device()?;
     write_ply(&a.out.join("map.ply"), mapper.gaussians())?;
     mapper.save_checkpoint(&a.out.join("map.ckpt"))?;
     let medium = mapper.medium_summary(&keyframes[0].world_from_cam);

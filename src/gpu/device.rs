@@ -56,6 +56,11 @@ enum Staged<'a> {
 /// Staging buffer of a discrete GPU's host transfers (host memory, outside the GPU budget);
 /// larger transfers go in chunks of this size.
 pub const STAGING_BYTES: u64 = 64 << 20;
+/// Staged transfers: writes of at most this many bytes wait in the staging buffer and are
+/// copied at the start of the next submission instead of being submitted on their own.
+pub const DEFERRED_WRITE_BYTES: usize = 64 << 10;
+/// Deferred writes held at once; one more makes them go to the device first.
+const MAX_DEFERRED_WRITES: usize = 64;
 
 impl GpuOptions {
     /// An arena of `gpu_mb` MiB, the device from [`DEVICE_ENV`], the pipeline cache in
@@ -200,6 +205,13 @@ pub struct GpuContext {
     staging_buffer: vk::Buffer,
     staging_mapped: *mut u8,
     staging_bytes: u64,
+    /// Staged transfers: the tail of the staging buffer (from `deferred_at`, `deferred_bytes`
+    /// long) holds small writes not yet copied; `deferred` lists their copies, recorded at
+    /// the start of the next submission (see [`GpuContext::write`]).
+    deferred_at: u64,
+    deferred_bytes: u64,
+    deferred: std::cell::RefCell<Vec<vk::BufferCopy>>,
+    deferred_used: std::cell::Cell<u64>,
     arena: Arena,
     pipeline_cache: vk::PipelineCache,
     pipelines: Vec<Pipeline>,
@@ -424,6 +436,10 @@ impl GpuContext {
             staging_buffer: vk::Buffer::null(),
             staging_mapped: std::ptr::null_mut(),
             staging_bytes: 0,
+            deferred_at: 0,
+            deferred_bytes: 0,
+            deferred: std::cell::RefCell::new(Vec::with_capacity(MAX_DEFERRED_WRITES)),
+            deferred_used: std::cell::Cell::new(0),
             arena: Arena::new(arena_bytes, 256),
             pipeline_cache: vk::PipelineCache::null(),
             pipelines: Vec::with_capacity(KERNEL_COUNT),
@@ -583,7 +599,10 @@ impl GpuContext {
             unsafe { device.bind_buffer_memory(self.staging_buffer, self.staging_memory, 0) }.map_err(vk_err("vkBindBufferMemory (staging)"))?;
             self.staging_mapped = unsafe { device.map_memory(self.staging_memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
                 .map_err(vk_err("vkMapMemory (staging)"))? as *mut u8;
-            self.staging_bytes = bytes;
+            // The last eighth (at most 1 MiB) for deferred small writes, the rest for chunks.
+            self.deferred_bytes = (bytes / 8).min(1 << 20) & !3;
+            self.staging_bytes = bytes - self.deferred_bytes;
+            self.deferred_at = self.staging_bytes;
             self.info.host_transfers = "staged";
         } else {
             self.mapped = unsafe { device.map_memory(self.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
@@ -742,7 +761,18 @@ impl GpuContext {
         }
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let t0 = Instant::now();
-        if self.mapped.is_null() {
+        if self.mapped.is_null() && bytes.len() <= DEFERRED_WRITE_BYTES && (bytes.len() as u64) <= self.deferred_bytes {
+            // Into the staging tail; copied at the start of the next submission (or transfer).
+            let used = self.deferred_used.get();
+            if used + bytes.len() as u64 > self.deferred_bytes || self.deferred.borrow().len() == MAX_DEFERRED_WRITES {
+                self.flush_deferred()?;
+            }
+            let used = self.deferred_used.get();
+            unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.staging_mapped.add((self.deferred_at + used) as usize), bytes.len()) };
+            self.deferred.borrow_mut().push(vk::BufferCopy { src_offset: self.deferred_at + used, dst_offset: buf.offset, size: bytes.len() as u64 });
+            // Each write from a 4-byte boundary.
+            self.deferred_used.set((used + bytes.len() as u64).next_multiple_of(4));
+        } else if self.mapped.is_null() {
             self.staged_transfer(buf.offset, Staged::Write(bytes))?;
         } else {
             unsafe { std::ptr::copy_nonoverlapping(bytes.as_ptr(), self.mapped.add(buf.offset as usize), bytes.len()) };
@@ -777,8 +807,28 @@ impl GpuContext {
         Ok(())
     }
 
+    /// Records the copies of the deferred small writes (in the order written) and forgets them.
+    fn record_deferred(&self, cb: vk::CommandBuffer) {
+        let mut pending = self.deferred.borrow_mut();
+        if pending.is_empty() {
+            return;
+        }
+        unsafe { self.device.cmd_copy_buffer(cb, self.staging_buffer, self.buffer, &pending) };
+        pending.clear();
+        self.deferred_used.set(0);
+    }
+
+    /// The deferred small writes to the device now, in a submission of their own.
+    fn flush_deferred(&self) -> Result<(), GpuError> {
+        if self.deferred.borrow().is_empty() {
+            return Ok(());
+        }
+        self.staged_transfer(0, Staged::Write(&[]))
+    }
+
     /// A staged host transfer at arena offset `offset`, in chunks of the staging buffer: one
-    /// submission per chunk on the idle queue, waited for.
+    /// submission per chunk on the idle queue, waited for; the deferred small writes are
+    /// copied first, in the first one (an empty transfer submits only them).
     fn staged_transfer(&self, offset: u64, mut transfer: Staged<'_>) -> Result<(), GpuError> {
         let (upload, len) = match &transfer {
             Staged::Write(b) => (true, b.len()),
@@ -790,7 +840,8 @@ impl GpuContext {
         let terr = |call: &'static str| move |result| GpuError::Kernel { kernel: what, call, result };
         let chunk = self.staging_bytes as usize;
         let mut at = 0;
-        while at < len {
+        let mut first = true;
+        while at < len || first {
             let n = chunk.min(len - at);
             if let Staged::Write(b) = &transfer {
                 unsafe { std::ptr::copy_nonoverlapping(b.as_ptr().add(at), self.staging_mapped, n) };
@@ -806,7 +857,13 @@ impl GpuContext {
                 // Earlier kernels' writes before the copy, the copy before later kernels and
                 // before the host reads the staging buffer.
                 self.barrier();
-                d.cmd_copy_buffer(cb, src, dst, &[vk::BufferCopy { src_offset: src_off, dst_offset: dst_off, size: n as u64 }]);
+                if first {
+                    self.record_deferred(cb);
+                    self.barrier();
+                }
+                if n > 0 {
+                    d.cmd_copy_buffer(cb, src, dst, &[vk::BufferCopy { src_offset: src_off, dst_offset: dst_off, size: n as u64 }]);
+                }
                 self.barrier();
                 let to_host = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
                 d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
@@ -820,6 +877,7 @@ impl GpuContext {
                 unsafe { std::ptr::copy_nonoverlapping(self.staging_mapped, b.as_mut_ptr().add(at), n) };
             }
             at += n;
+            first = false;
         }
         Ok(())
     }
@@ -837,6 +895,10 @@ impl GpuContext {
             if let Some(q) = self.query_pool {
                 d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32);
             }
+        }
+        if !self.deferred.borrow().is_empty() {
+            self.record_deferred(self.command_buffer);
+            self.barrier();
         }
         self.recording = true;
         self.recorded = 0;

@@ -30,7 +30,7 @@ use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, Mediu
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
 use super::schedule::pick_keyframe;
-use super::vulkan::{DeviceMediumBackward, DeviceMediumStep, MapperDevice, RenderBackend, VulkanRenderError};
+use super::vulkan::{loss::TargetKey, DeviceMediumBackward, DeviceMediumStep, MapperDevice, RenderBackend, VulkanRenderError};
 use crate::core::rng::Rng;
 use crate::core::alloc::prefault;
 use crate::core::{ImageRgb8, ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
@@ -341,6 +341,9 @@ pub(crate) struct MapKeyframe {
     pub(crate) kf: Keyframe,
     pub(crate) image: ImageRgbF32,
     pub(crate) target_variance: PlaneF32,
+    /// Names this slot's target (image, depth, variance) for the device's target cache; a
+    /// new one at every refill.
+    pub(crate) target_key: TargetKey,
 }
 
 impl MapKeyframe {
@@ -363,12 +366,13 @@ impl MapKeyframe {
         prefault(&mut kf.inv_depth_variance.data);
         prefault(&mut image.data);
         prefault(&mut target_variance.data);
-        MapKeyframe { kf, image, target_variance }
+        MapKeyframe { kf, image, target_variance, target_key: TargetKey::fresh() }
     }
 
     /// Copies `kf` into this slot (same size: [`Mapper::add_keyframe`] checks it) with its
     /// float image and depth target; allocates nothing.
     fn refill(&mut self, kf: &Keyframe) {
+        self.target_key = TargetKey::fresh();
         let k = &mut self.kf;
         k.index = kf.index;
         k.t_ns = kf.t_ns;
@@ -554,7 +558,11 @@ impl Mapper {
         if let Some(grid) = self.medium_ws.grid() {
             self.raster.enable_device_medium(grid.step, self.medium.layout())?;
         }
+        // Last of the fixed buffers: every held keyframe's target on the device, as many as
+        // fit in half the arena left, so a step on a keyframe seen before uploads nothing.
+        let slots = self.raster.reserve_target_slots(self.capacity.max_keyframes)?;
         let what = self.render_device();
+        tracing::info!(target_slots = slots, "map.device_targets");
         tracing::info!(renderer = %what, "map.device");
         Ok(what)
     }
@@ -575,17 +583,24 @@ impl Mapper {
     }
 
     /// On the Vulkan renderer the optimiser's map lives on the device between densification
-    /// steps: [`Mapper::gaussians`] is read back after every step, but the Adam moments and
-    /// the densification statistics only here (and at every densify/prune, new keyframe and
-    /// checkpoint). Call it before reading [`Mapper::adam_group`] or the statistics; nothing to
-    /// do on the CPU reference.
+    /// steps and nothing of it is read back after a step: the parameters ([`Mapper::gaussians`]),
+    /// the Adam moments and the densification statistics come to the host here (and at every
+    /// densify/prune, new keyframe and checkpoint). Call it before reading
+    /// [`Mapper::gaussians`]' values, [`Mapper::adam_group`] or the statistics; nothing to do
+    /// on the CPU reference.
     pub fn sync_from_device(&mut self) -> Result<(), MapperError> {
-        Ok(self.raster.sync(&mut self.grads, &mut self.adam)?)
+        Ok(self.raster.sync(&mut self.gaussians, &mut self.grads, &mut self.adam)?)
     }
 
     /// Synced, and the host copy is the map again: before the host changes the map.
     fn release_device_map(&mut self) -> Result<(), MapperError> {
-        Ok(self.raster.release(&mut self.grads, &mut self.adam)?)
+        Ok(self.raster.release(&mut self.gaussians, &mut self.grads, &mut self.adam)?)
+    }
+
+    /// Whether [`Mapper::gaussians`]' values are behind the device map's (optimisation steps on
+    /// Vulkan since the last [`Mapper::sync_from_device`]); the count is always current.
+    pub fn host_map_stale(&self) -> bool {
+        self.raster.host_params_stale()
     }
 
     pub fn config(&self) -> &MapperConfig {
@@ -594,6 +609,8 @@ impl Mapper {
     pub fn capacity(&self) -> MapperCapacity {
         self.capacity
     }
+    /// The map as the host has it: on Vulkan, as of the last [`Mapper::sync_from_device`] (or
+    /// host change of the map), see [`Mapper::host_map_stale`]; its `len()` is always current.
     pub fn gaussians(&self) -> &Gaussians {
         &self.gaussians
     }
@@ -1010,6 +1027,7 @@ impl Mapper {
             &v.planes9,
             &v.out,
             &target,
+            Some(kf.target_key),
             &self.config.loss,
             &mut self.loss_ws,
             &mut v.upstream,
@@ -1058,7 +1076,7 @@ impl Mapper {
     /// The Gaussians' Adam step: on the device map when it is resident, else on the host.
     fn step_gaussians(&mut self) -> Result<(), MapperError> {
         if self.config.optimise_gaussians && self.raster.is_resident() {
-            if !self.raster.adam_step(&mut self.gaussians, &mut self.grads, &mut self.adam)? {
+            if !self.raster.adam_step(&self.gaussians, &mut self.grads, &mut self.adam)? {
                 // Refused on the device, nothing changed; name the value as the host step would.
                 let bad = ParamGroup::ALL.iter().find_map(|&g| {
                     let values = self.grads.group(g);

@@ -191,6 +191,8 @@ impl MappingStage {
         let _span = tracing::debug_span!("map.export").entered();
         let renders = dir.join("renders");
         std::fs::create_dir_all(&renders).map_err(|source| StageError::CreateDir { path: renders.display().to_string(), source })?;
+        // The device map's values (Vulkan) come to the host first.
+        self.mapper.sync_from_device()?;
         write_ply(&dir.join("map.ply"), self.mapper.gaussians())?;
         self.mapper.save_checkpoint(&dir.join("map.ckpt"))?;
         let medium = self.medium_summary();

@@ -18,7 +18,8 @@ use crate::map::gaussians::{GaussianGrads, Gaussians};
 /// Counts of one forward pass.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct RenderStats {
-    /// Gaussians that reach at least one tile.
+    /// Gaussians that reach at least one tile (0, not counted, from the Vulkan forward of an
+    /// optimisation step, `GpuForwardRenderer::forward_on_device`).
     pub visible: usize,
     /// (tile, Gaussian) intersections.
     pub intersections: usize,

@@ -84,14 +84,58 @@ pub struct LossBuffers<'a> {
     pub up_scalars: &'a GpuBuffer<[f32; 4]>,
 }
 
+/// One keyframe target on the device: its image (RGB per pixel) and the tracker's
+/// `[depth, variance]` per pixel.
+struct TargetSlot {
+    image: GpuBuffer<f32>,
+    track: GpuBuffer<[f32; 2]>,
+    /// The [`TargetKey`] of what it holds (`None`: nothing reusable).
+    key: Option<TargetKey>,
+    /// Width and height of what it holds.
+    size: (usize, usize),
+    /// When it was last used ([`GpuLoss::upload_target`] calls), for least-recently-used reuse.
+    last_used: u64,
+}
+
+/// Names a keyframe target's contents for [`GpuLoss::upload_target`]'s cache: the same key must
+/// never name different pixels (the mapper draws a new one from [`TargetKey::fresh`] whenever a
+/// keyframe slot is refilled).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TargetKey(u64);
+
+impl TargetKey {
+    /// A key no other call in this process returns.
+    pub fn fresh() -> Self {
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
+        TargetKey(NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed))
+    }
+}
+
+impl TargetSlot {
+    fn new(ctx: &mut GpuContext, pixels: usize) -> Result<Self, GpuError> {
+        Ok(TargetSlot {
+            image: ctx.alloc("loss target image", pixels * 3)?,
+            track: ctx.alloc("loss tracked depth and variance", pixels)?,
+            key: None,
+            size: (0, 0),
+            last_used: 0,
+        })
+    }
+}
+
 /// The loss stage on the GPU for images up to `max_width x max_height`.
 pub struct GpuLoss {
     max_width: usize,
     max_height: usize,
-    /// The keyframe image, RGB per pixel.
-    pub target: GpuBuffer<f32>,
-    /// The tracker's `[depth, variance]` per pixel.
-    pub track: GpuBuffer<[f32; 2]>,
+    /// Keyframe targets on the device: slot 0 from [`Self::new`], more from
+    /// [`Self::reserve_target_slots`]; a keyed target found here is not uploaded again.
+    slots: Vec<TargetSlot>,
+    /// The slot the next [`Self::record`] compares with.
+    current: usize,
+    /// [`Self::upload_target`] calls so far (the slots' clock).
+    uses: u64,
+    /// Target uploads skipped because the keyed target was on the device.
+    pub target_hits: u64,
     window: GpuBuffer<f32>,
     moments_a: GpuBuffer<[f32; 4]>,
     moments_b: GpuBuffer<[f32; 4]>,
@@ -118,8 +162,10 @@ impl GpuLoss {
         Ok(GpuLoss {
             max_width,
             max_height,
-            target: ctx.alloc("loss target image", n * 3)?,
-            track: ctx.alloc("loss tracked depth and variance", n)?,
+            slots: vec![TargetSlot::new(ctx, n)?],
+            current: 0,
+            uses: 0,
+            target_hits: 0,
             window,
             moments_a: ctx.alloc("SSIM moments", n * MOMENTS)?,
             moments_b: ctx.alloc("SSIM partials", n * SSIM_PARTIALS)?,
@@ -135,10 +181,43 @@ impl GpuLoss {
         })
     }
 
-    /// Uploads the view's keyframe image, tracked depth and variance, with the CPU reference's
-    /// checks (sizes, a finite image; non-finite depth or variance marks a pixel invalid).
-    pub fn upload_target(&mut self, ctx: &mut GpuContext, target: &TargetView) -> Result<(), super::VulkanRenderError> {
+    /// Adds target slots (each one keyframe at the largest image size) until there are
+    /// `wanted` or the next would take more than half of the arena still free, whichever comes
+    /// first; called once at start-up, after every fixed buffer. Returns the slot count.
+    pub fn reserve_target_slots(&mut self, ctx: &mut GpuContext, wanted: usize) -> Result<usize, GpuError> {
+        let n = (self.max_width * self.max_height).max(1);
+        // Image and track, each rounded up to the arena's alignment.
+        let slot_bytes = (4 * 5 * n as u64).next_multiple_of(256) + 512;
+        while self.slots.len() < wanted {
+            let free = ctx.arena_capacity_bytes().saturating_sub(ctx.arena_used_bytes());
+            if slot_bytes > free / 2 {
+                break;
+            }
+            self.slots.push(TargetSlot::new(ctx, n)?);
+        }
+        Ok(self.slots.len())
+    }
+
+    /// Number of keyframe targets the device holds at once.
+    pub fn target_slots(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Makes the view's keyframe image, tracked depth and variance the target of the next
+    /// [`Self::record`], with the CPU reference's checks (sizes, a finite image; non-finite
+    /// depth or variance marks a pixel invalid). With a `key` whose target is still in a slot
+    /// nothing is checked or uploaded again; otherwise it goes into the least recently used
+    /// slot (slot 0 when unkeyed).
+    pub fn upload_target(&mut self, ctx: &mut GpuContext, target: &TargetView, key: Option<TargetKey>) -> Result<(), super::VulkanRenderError> {
+        self.uses += 1;
         let (w, h) = (target.image.width, target.image.height);
+        if let Some(slot) = key.and_then(|k| self.slots.iter().position(|s| s.key == Some(k) && s.size == (w, h))) {
+            self.current = slot;
+            self.slots[slot].last_used = self.uses;
+            self.target_hits += 1;
+            self.target_size = Some((w, h));
+            return Ok(());
+        }
         if w == 0 || h == 0 {
             return Err(LossError::Empty { what: "target image", width: w, height: h }.into());
         }
@@ -159,8 +238,19 @@ impl GpuLoss {
         for ((s, &d), &v) in self.staging_track[..n].iter_mut().zip(&target.depth.data).zip(&target.depth_variance.data) {
             *s = [d, v];
         }
-        ctx.write(&self.target, &target.image.data)?;
-        ctx.write(&self.track, &self.staging_track[..n])?;
+        let slot = match key {
+            None => 0,
+            Some(_) => (0..self.slots.len()).min_by_key(|&i| self.slots[i].last_used).unwrap_or(0),
+        };
+        let s = &mut self.slots[slot];
+        // Forgotten first: a failed write leaves no stale key behind.
+        s.key = None;
+        ctx.write(&s.image, &target.image.data)?;
+        ctx.write(&s.track, &self.staging_track[..n])?;
+        s.key = key;
+        s.size = (w, h);
+        s.last_used = self.uses;
+        self.current = slot;
         self.target_size = Some((w, h));
         Ok(())
     }
@@ -206,8 +296,8 @@ impl GpuLoss {
             Some(match name {
                 "colour" => bufs.colour.range(),
                 "scalars" => bufs.scalars.range(),
-                "target_image" => self.target.range(),
-                "track" => self.track.range(),
+                "target_image" => self.slots[self.current].image.range(),
+                "track" => self.slots[self.current].track.range(),
                 "up_colour" => bufs.up_colour.range(),
                 "up_scalars" => bufs.up_scalars.range(),
                 "partials" => self.partials.range(),

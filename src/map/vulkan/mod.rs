@@ -834,9 +834,10 @@ impl GpuForwardRenderer {
     }
 
     /// [`Self::forward`] that leaves the rendered images on the device (in [`Self::raster`]),
-    /// for the loss kernels; nothing but the intersection count and offsets is read back.
+    /// for the loss kernels; nothing but the intersection count is read back (so
+    /// [`RenderStats::visible`] is 0: not counted).
     /// With `params_on_device` the map already in [`GpuProjection::params`] is rendered
-    /// (`gaussians` is checked, not uploaded: the device map is the optimiser's).
+    /// (`gaussians`, the host's copy, only gives the count: the device map is the optimiser's).
     #[allow(clippy::too_many_arguments)]
     pub fn forward_on_device(
         &mut self,
@@ -890,7 +891,11 @@ impl GpuForwardRenderer {
         if let Some(out) = out.as_deref() {
             check_output(out, &grid)?;
         }
-        validate_gaussians(gaussians)?;
+        // The device's own map was checked when it went there; Adam there refuses a
+        // non-finite gradient, so it stays finite (the host copy may be behind it).
+        if !params_on_device {
+            validate_gaussians(gaussians)?;
+        }
         if let MediumSource::Host(medium) = medium {
             for (what, plane) in medium.planes() {
                 check_rgb(what, plane, what != "c_med")?;
@@ -937,7 +942,9 @@ impl GpuForwardRenderer {
             self.raster.read(ctx, out)?;
         }
         let mut visible = 0;
-        if n > 0 {
+        // Counted only with the images (an optimisation step's forward would read every
+        // Gaussian's offset back for a statistic nothing uses).
+        if n > 0 && out.is_some() {
             // Visible Gaussians: those with a non-empty tile range in the offsets.
             let mut offsets = std::mem::take(&mut self.projection.staging_offsets);
             ctx.read(&self.projection.isect_offsets, &mut offsets[..n + 1])?;
@@ -977,6 +984,9 @@ pub struct GpuRenderer {
     /// `Some(n)` while the device holds the optimiser's map of `n` Gaussians (parameters,
     /// gradients and densification statistics, Adam moments): see [`Self::make_resident`].
     resident: Option<usize>,
+    /// The device map's parameters changed since the host last had them ([`Self::adam_step`]
+    /// reads nothing back; [`Self::sync`] does).
+    params_stale: bool,
     last: Option<GpuForwardState>,
     /// Host staging of the loss's dL/dc_med (allocated once).
     staging_c_med: Vec<f32>,
@@ -997,6 +1007,7 @@ impl GpuRenderer {
             adam: optimiser::GpuMapAdam::new(ctx, capacity.max_gaussians)?,
             medium: None,
             resident: None,
+            params_stale: false,
             last: None,
             staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
         })
@@ -1057,9 +1068,10 @@ impl GpuRenderer {
     /// Hands the map to the device optimiser: uploads the parameters, the gradients with the
     /// densification statistics (which then accumulate on the device) and the Adam moments
     /// of `adam` (one group per [`ParamGroup`]). From here until [`Self::release`] the device
-    /// copy is the map: [`Self::forward_on_device`] renders it without an upload,
-    /// [`Self::loss_and_backward`] zeroes the parameter gradients on the device and reads none
-    /// back, and [`Self::adam_step`] updates it and reads only the parameters back.
+    /// copy is the map: [`Self::forward_on_device`] and [`Self::forward`] render it without an
+    /// upload, [`Self::loss_and_backward`] zeroes the parameter gradients on the device and
+    /// reads none back, and [`Self::adam_step`] updates it and reads nothing back (the host's
+    /// parameters are behind until [`Self::sync`]).
     pub fn make_resident(&mut self, ctx: &mut GpuContext, gaussians: &Gaussians, grads: &GaussianGrads, adam: &[AdamGroup]) -> Result<(), VulkanRenderError> {
         let n = gaussians.len();
         if grads.len() != n {
@@ -1071,6 +1083,7 @@ impl GpuRenderer {
         self.project_backward.upload(ctx, grads)?;
         self.adam.upload_moments(ctx, adam, n)?;
         self.resident = Some(n);
+        self.params_stale = false;
         Ok(())
     }
 
@@ -1079,13 +1092,23 @@ impl GpuRenderer {
         self.resident.is_some()
     }
 
-    /// Reads the device's gradients, densification statistics and Adam moments into `grads`
-    /// and `adam` (the parameters are on the host after every [`Self::adam_step`]); the map
-    /// stays resident. Nothing to do when it is not.
-    pub fn sync(&mut self, ctx: &GpuContext, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+    /// Whether the host's parameters are behind the resident device map's (steps since the
+    /// last [`Self::sync`]).
+    pub fn host_params_stale(&self) -> bool {
+        self.resident.is_some() && self.params_stale
+    }
+
+    /// Reads the device map's parameters into `gaussians` (when they changed since the host
+    /// last had them), its gradients, densification statistics and Adam moments into `grads`
+    /// and `adam`; the map stays resident. Nothing to do when it is not.
+    pub fn sync(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
         let Some(n) = self.resident else { return Ok(()) };
-        if grads.len() != n {
+        if grads.len() != n || gaussians.len() != n {
             return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: n }.into());
+        }
+        if self.params_stale {
+            self.fwd.projection.read_params(ctx, gaussians)?;
+            self.params_stale = false;
         }
         self.project_backward.read(ctx, grads)?;
         self.adam.read_moments(ctx, adam, n)?;
@@ -1094,8 +1117,8 @@ impl GpuRenderer {
 
     /// [`Self::sync`], then the host copy is the map again (before the host changes it:
     /// densification, pruning, new keyframes).
-    pub fn release(&mut self, ctx: &GpuContext, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
-        self.sync(ctx, grads, adam)?;
+    pub fn release(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+        self.sync(ctx, gaussians, grads, adam)?;
         self.resident = None;
         Ok(())
     }
@@ -1103,13 +1126,15 @@ impl GpuRenderer {
     /// Forgets the device map without reading it (the host replaced the whole map).
     pub fn drop_resident(&mut self) {
         self.resident = None;
+        self.params_stale = false;
     }
 
     /// One Adam step of every parameter group on the device map with the gradients of the
-    /// last [`Self::loss_and_backward`]; the updated parameters are read back into
-    /// `gaussians` and each group's step is counted. Returns `false`, changing nothing, when a
-    /// gradient is not finite (as `AdamGroup::step` refuses it).
-    pub fn adam_step(&mut self, ctx: &mut GpuContext, gaussians: &mut Gaussians, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
+    /// last [`Self::loss_and_backward`]; each group's step is counted, nothing is read back
+    /// (the host's copy of the map, `gaussians`, only sized, is behind until [`Self::sync`]).
+    /// Returns `false`, changing nothing, when a gradient is not finite (as `AdamGroup::step`
+    /// refuses it).
+    pub fn adam_step(&mut self, ctx: &mut GpuContext, gaussians: &Gaussians, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
         let Some(n) = self.resident else {
             return Err(RenderError::NoForward { why: "the map is not on the device (make_resident)" }.into());
         };
@@ -1125,7 +1150,7 @@ impl GpuRenderer {
             return Ok(false);
         }
         adam.iter_mut().for_each(AdamGroup::count_step);
-        self.fwd.projection.read_params(ctx, gaussians)?;
+        self.params_stale = true;
         Ok(true)
     }
 
@@ -1157,6 +1182,7 @@ impl GpuRenderer {
         ctx: &mut GpuContext,
         gaussians: &Gaussians,
         target: &crate::map::loss::TargetView,
+        target_key: Option<loss::TargetKey>,
         loss_config: &crate::map::loss::LossConfig,
         grads: &mut GaussianGrads,
         medium_grads: &mut MediumPlanes,
@@ -1177,7 +1203,7 @@ impl GpuRenderer {
         check_size("loss dL/dmedium", d_medium_loss.width, d_medium_loss.height, &grid)?;
         let _span = tracing::debug_span!("map.gpu_loss_backward", intersections = last.n_isects).entered();
         let (w, h) = (grid.width, grid.height);
-        self.loss.upload_target(ctx, target)?;
+        self.loss.upload_target(ctx, target, target_key)?;
         let n = last.n_gaussians;
         let resident = self.check_resident(n)?;
         if !resident {
@@ -1266,7 +1292,9 @@ impl GpuRenderer {
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
         self.last = None;
-        let stats = self.fwd.forward(ctx, gaussians, camera, cam_from_world, medium, config, out)?;
+        // A resident map is rendered as the device holds it (the host's may be behind).
+        let on_device = self.check_resident(gaussians.len())?;
+        let stats = self.fwd.forward_impl(ctx, gaussians, camera, cam_from_world, MediumSource::Host(medium), config, Some(out), on_device)?;
         self.remember(camera, config, gaussians.len(), stats.intersections);
         Ok(stats)
     }
@@ -1443,18 +1471,33 @@ impl RenderBackend {
         matches!(self, RenderBackend::Vulkan { renderer, .. } if renderer.is_resident())
     }
 
-    /// [`GpuRenderer::sync`]: the device's statistics and moments into `grads` and `adam`.
-    pub fn sync(&mut self, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+    /// Whether the host's copy of the map is behind the device's ([`GpuRenderer::host_params_stale`]).
+    pub fn host_params_stale(&self) -> bool {
+        matches!(self, RenderBackend::Vulkan { renderer, .. } if renderer.host_params_stale())
+    }
+
+    /// Target slots the device holds ([`loss::GpuLoss::reserve_target_slots`]): up to
+    /// `wanted`; 0 on the CPU reference.
+    pub fn reserve_target_slots(&mut self, wanted: usize) -> Result<usize, VulkanRenderError> {
         match self {
-            RenderBackend::Vulkan { ctx, renderer } => renderer.sync(ctx, grads, adam),
+            RenderBackend::Vulkan { ctx, renderer } => Ok(renderer.loss.reserve_target_slots(ctx, wanted)?),
+            RenderBackend::Cpu { .. } => Ok(0),
+        }
+    }
+
+    /// [`GpuRenderer::sync`]: the device's parameters, statistics and moments into
+    /// `gaussians`, `grads` and `adam`.
+    pub fn sync(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.sync(ctx, gaussians, grads, adam),
             RenderBackend::Cpu { .. } => Ok(()),
         }
     }
 
     /// [`GpuRenderer::release`]: synced, and the host copy is the map again.
-    pub fn release(&mut self, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+    pub fn release(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
         match self {
-            RenderBackend::Vulkan { ctx, renderer } => renderer.release(ctx, grads, adam),
+            RenderBackend::Vulkan { ctx, renderer } => renderer.release(ctx, gaussians, grads, adam),
             RenderBackend::Cpu { .. } => Ok(()),
         }
     }
@@ -1468,7 +1511,7 @@ impl RenderBackend {
 
     /// [`GpuRenderer::adam_step`] on the resident map; on a refused step the gradients are
     /// read into `grads` so the caller can name the bad value.
-    pub fn adam_step(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
+    pub fn adam_step(&mut self, gaussians: &Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
         match self {
             RenderBackend::Vulkan { ctx, renderer } => {
                 let taken = renderer.adam_step(ctx, gaussians, adam)?;
@@ -1531,6 +1574,7 @@ impl RenderBackend {
         medium9: &crate::map::medium::MediumPlanes,
         out: &RenderOutput,
         target: &crate::map::loss::TargetView,
+        target_key: Option<loss::TargetKey>,
         loss_config: &crate::map::loss::LossConfig,
         loss_ws: &mut crate::map::loss::LossWorkspace,
         upstream: &mut RenderUpstream,
@@ -1540,7 +1584,7 @@ impl RenderBackend {
         device_medium: Option<&mut DeviceMediumBackward>,
     ) -> Result<(crate::map::loss::LossTerms, f64), VulkanRenderError> {
         match self {
-            RenderBackend::Vulkan { ctx, renderer } => renderer.loss_and_backward(ctx, gaussians, target, loss_config, grads, medium_grads, d_medium_loss, device_medium),
+            RenderBackend::Vulkan { ctx, renderer } => renderer.loss_and_backward(ctx, gaussians, target, target_key, loss_config, grads, medium_grads, d_medium_loss, device_medium),
             RenderBackend::Cpu { ws, .. } => {
                 let rendered =
                     crate::map::loss::RenderedView { color: &out.colour, depth: &out.depth, depth_variance: &out.depth_var, alpha: &out.alpha, medium: Some(medium9) };
