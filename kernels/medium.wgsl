@@ -3,16 +3,18 @@
 // order of operations). Node (i, j) of the grid sits at pixel (i step, j step); its world
 // direction is computed on the host (`View::direction`: lens undistortion) and uploaded.
 //
-//   nodes                     one thread per node: encoding, two softplus layers of 64, the
-//                             heads (sigmoid c_med, softplus sigma_att and sigma_bs) -> node_out
+//   nodes                     one workgroup per node, a thread per hidden unit: encoding, two
+//                             softplus layers of 64, the heads (sigmoid c_med, softplus
+//                             sigma_att and sigma_bs) -> node_out
 //   interpolate               one thread per pixel: bilinear from the 4 nodes (`MediumGrid::cell`)
 //                             into the rasteriser's three RGB-interleaved planes
 //   interpolate_adjoint_rows  one thread per (image row y, node column i): gather over the
 //                             pixels of the row in x order (the CPU's row pass) -> d_rows
 //   interpolate_adjoint_cols  one thread per node: gather over the rows in y order (the CPU's
 //                             column pass) -> d_nodes
-//   nodes_backward            one thread per node: recomputes the forward pass, back-propagates
-//                             d_nodes and stores the node's record (below)
+//   nodes_backward            one workgroup per node, a thread per hidden unit: recomputes the
+//                             forward pass, back-propagates d_nodes and stores the node's
+//                             record (below)
 //   param_grad_partials       one thread per (parameter, chunk of chunk_nodes nodes): the sum of
 //                             activation * delta over the chunk's nodes in node order
 //   param_grad_sum            one thread per parameter: the chunks' sums in chunk order, ADDED
@@ -76,18 +78,16 @@ var<immediate> dims: MediumDims;
 @group(0) @binding(12) var<storage, read_write> partials: array<f32>;
 @group(0) @binding(13) var<storage, read_write> grads: array<f32>;
 
-// One node's activations (`Activations` of the CPU reference).
-var<private> x: array<f32, MAX_INPUTS>;
-var<private> h1: array<f32, HIDDEN>;
-// softplus'(z1) = sigmoid(z1)
-var<private> s1: array<f32, HIDDEN>;
-var<private> h2: array<f32, HIDDEN>;
-var<private> s2: array<f32, HIDDEN>;
-// The heads' pre-activations and outputs.
-var<private> pre: array<f32, CHANNELS>;
-var<private> out: array<f32, CHANNELS>;
-var<private> d_o: array<f32, CHANNELS>;
-var<private> d_z2: array<f32, HIDDEN>;
+// The network with one workgroup per node and one thread per hidden unit: each unit's sum
+// over its inputs in input order, as `forward` (and the CPU) adds them, so the values are the
+// same as one thread per node would give; the layers meet in workgroup memory.
+var<workgroup> wx: array<f32, MAX_INPUTS>;
+var<workgroup> wh1: array<f32, HIDDEN>;
+var<workgroup> ws1: array<f32, HIDDEN>;
+var<workgroup> wh2: array<f32, HIDDEN>;
+var<workgroup> ws2: array<f32, HIDDEN>;
+var<workgroup> wd_o: array<f32, CHANNELS>;
+var<workgroup> wd_z2: array<f32, HIDDEN>;
 
 // ln(1 + v), accurate for small v (no log1p in WGSL): log(u) v / (u - 1) with u = 1 + v
 // cancels the rounding of u.
@@ -126,81 +126,17 @@ fn softplus_sigmoid(z: f32) -> vec2<f32> {
     return vec2<f32>(ln_1p(e), e / (1.0 + e));
 }
 
-// `forward_pixel`: encoding, two hidden layers (one axpy per input, as `dense_softplus`), the
-// heads. Leaves every activation in the private arrays.
-fn forward(dir: vec3<f32>) {
-    x[0] = dir.x;
-    x[1] = dir.y;
-    x[2] = dir.z;
-    var freq = 1.0;
-    for (var k = 0u; k < dims.pe_frequencies; k++) {
-        for (var a = 0u; a < 3u; a++) {
-            let arg = freq * dir[a];
-            x[3u + 6u * k + a] = sin(arg);
-            x[3u + 6u * k + 3u + a] = cos(arg);
-        }
-        freq += freq;
-    }
-    for (var k = 0u; k < HIDDEN; k++) {
-        h1[k] = params[dims.b1 + k];
-    }
-    for (var i = 0u; i < dims.inputs; i++) {
-        let xi = x[i];
-        let row = dims.w1 + i * HIDDEN;
-        for (var k = 0u; k < HIDDEN; k++) {
-            h1[k] += xi * params[row + k];
-        }
-    }
-    for (var k = 0u; k < HIDDEN; k++) {
-        let hs = softplus_sigmoid(h1[k]);
-        h1[k] = hs.x;
-        s1[k] = hs.y;
-    }
-    for (var k = 0u; k < HIDDEN; k++) {
-        h2[k] = params[dims.b2 + k];
-    }
-    for (var i = 0u; i < HIDDEN; i++) {
-        let hi = h1[i];
-        let row = dims.w2 + i * HIDDEN;
-        for (var k = 0u; k < HIDDEN; k++) {
-            h2[k] += hi * params[row + k];
-        }
-    }
-    for (var k = 0u; k < HIDDEN; k++) {
-        let hs = softplus_sigmoid(h2[k]);
-        h2[k] = hs.x;
-        s2[k] = hs.y;
-    }
-    for (var k = 0u; k < CHANNELS; k++) {
-        pre[k] = params[dims.b_heads + k];
-    }
-    for (var i = 0u; i < HIDDEN; i++) {
-        let hi = h2[i];
-        let row = dims.w_heads + i * CHANNELS;
-        for (var k = 0u; k < CHANNELS; k++) {
-            pre[k] += hi * params[row + k];
-        }
-    }
-    for (var k = 0u; k < CHANNELS; k++) {
-        if (k < 3u) {
-            out[k] = sigmoid(pre[k]);
-        } else {
-            out[k] = softplus(pre[k]);
-        }
-    }
-}
-
-// `real::dot` (eight partial sums, then the tail) of head row `row` with d_o (9 values).
+// `real::dot` (eight partial sums, then the tail) of head row `row` with wd_o (9 values).
 fn dot_head_row(row: u32) -> f32 {
     var acc: array<f32, 8>;
     for (var l = 0u; l < 8u; l++) {
-        acc[l] = 0.0 + params[row + l] * d_o[l];
+        acc[l] = 0.0 + params[row + l] * wd_o[l];
     }
-    let tail = 0.0 + params[row + 8u] * d_o[8];
+    let tail = 0.0 + params[row + 8u] * wd_o[8];
     return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail;
 }
 
-// `real::dot` of hidden row `row` of W2 with d_z2 (64 values: eight chunks of eight, no tail).
+// `real::dot` of hidden row `row` of W2 with wd_z2 (64 values: eight chunks of eight, no tail).
 fn dot_hidden_row(row: u32) -> f32 {
     var acc: array<f32, 8>;
     for (var l = 0u; l < 8u; l++) {
@@ -208,7 +144,7 @@ fn dot_hidden_row(row: u32) -> f32 {
     }
     for (var c = 0u; c < 8u; c++) {
         for (var l = 0u; l < 8u; l++) {
-            acc[l] += params[row + c * 8u + l] * d_z2[c * 8u + l];
+            acc[l] += params[row + c * 8u + l] * wd_z2[c * 8u + l];
         }
     }
     return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + 0.0;
@@ -234,16 +170,81 @@ fn cell(p: u32, nodes: u32) -> Cell {
     return Cell(i0, min(i0 + 1u, nodes - 1u), f32(p % dims.step) / f32(dims.step));
 }
 
+// Node index of a workgroup (2D grid past 65535 workgroups).
+fn node_of(wg: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return wg.y * groups.x + wg.x;
+}
+
+// Input `i` of the encoding of `dir` (`forward`'s order: direction, then per frequency sin and
+// cos of each axis); `freq` doubles from 1 exactly as there.
+fn encoding(dir: vec3<f32>, i: u32) -> f32 {
+    if (i < 3u) {
+        return dir[i];
+    }
+    let k = (i - 3u) / 6u;
+    let r = (i - 3u) % 6u;
+    var freq = 1.0;
+    for (var f = 0u; f < k; f++) {
+        freq += freq;
+    }
+    let arg = freq * dir[r % 3u];
+    if (r < 3u) {
+        return sin(arg);
+    }
+    return cos(arg);
+}
+
+// The forward pass of node `n` by the workgroup (thread t: hidden unit t; threads below
+// CHANNELS: head t, returned). Leaves x, h1, s1, h2, s2 in workgroup memory.
+fn forward_shared(n: u32, t: u32) -> vec2<f32> {
+    let dir = node_dir(n);
+    for (var i = t; i < dims.inputs; i += HIDDEN) {
+        wx[i] = encoding(dir, i);
+    }
+    workgroupBarrier();
+    var z1 = params[dims.b1 + t];
+    for (var i = 0u; i < dims.inputs; i++) {
+        z1 += wx[i] * params[dims.w1 + i * HIDDEN + t];
+    }
+    let a1 = softplus_sigmoid(z1);
+    wh1[t] = a1.x;
+    ws1[t] = a1.y;
+    workgroupBarrier();
+    var z2 = params[dims.b2 + t];
+    for (var i = 0u; i < HIDDEN; i++) {
+        z2 += wh1[i] * params[dims.w2 + i * HIDDEN + t];
+    }
+    let a2 = softplus_sigmoid(z2);
+    wh2[t] = a2.x;
+    ws2[t] = a2.y;
+    workgroupBarrier();
+    // Head t: (pre-activation, output).
+    var head = vec2<f32>(0.0);
+    if (t < CHANNELS) {
+        var z = params[dims.b_heads + t];
+        for (var i = 0u; i < HIDDEN; i++) {
+            z += wh2[i] * params[dims.w_heads + i * CHANNELS + t];
+        }
+        head.x = z;
+        if (t < 3u) {
+            head.y = sigmoid(z);
+        } else {
+            head.y = softplus(z);
+        }
+    }
+    return head;
+}
+
 @compute @workgroup_size(64)
-fn nodes(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    // 2D grid for more than 65535 workgroups.
-    let n = gid.y * groups.x * 64u + gid.x;
+fn nodes(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    let n = node_of(wg, groups);
+    // Uniform per workgroup: the barriers below are reached by all or none.
     if (n >= node_count()) {
         return;
     }
-    forward(node_dir(n));
-    for (var k = 0u; k < CHANNELS; k++) {
-        node_out[n * CHANNELS + k] = out[k];
+    let head = forward_shared(n, t);
+    if (t < CHANNELS) {
+        node_out[n * CHANNELS + t] = head.y;
     }
 }
 
@@ -352,8 +353,8 @@ fn interpolate_adjoint_cols(@builtin(global_invocation_id) gid: vec3<u32>, @buil
 }
 
 @compute @workgroup_size(64)
-fn nodes_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
-    let n = gid.y * groups.x * 64u + gid.x;
+fn nodes_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    let n = node_of(wg, groups);
     if (n >= node_count()) {
         return;
     }
@@ -364,44 +365,45 @@ fn nodes_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let doo = h2o + HIDDEN;
     let dz2o = doo + CHANNELS;
     let dz1o = dz2o + HIDDEN;
-    records[base] = 1.0;
     var nonzero = false;
     for (var k = 0u; k < CHANNELS; k++) {
         nonzero = nonzero || d_nodes[n * CHANNELS + k] != 0.0;
     }
     if (!nonzero) {
-        // The CPU skips such a node; a record of zeros adds nothing.
-        for (var r = 1u; r < dims.record; r++) {
-            records[base + r] = 0.0;
+        // The CPU skips such a node; a record of zeros adds nothing (uniform: the same
+        // d_nodes for every thread).
+        for (var r = t; r < dims.record; r += HIDDEN) {
+            records[base + r] = select(0.0, 1.0, r == 0u);
         }
         return;
     }
-    forward(node_dir(n));
-    for (var i = 0u; i < dims.inputs; i++) {
-        records[xo + i] = x[i];
+    let head = forward_shared(n, t);
+    if (t == 0u) {
+        records[base] = 1.0;
     }
-    for (var i = 0u; i < HIDDEN; i++) {
-        records[h1o + i] = h1[i];
-        records[h2o + i] = h2[i];
+    for (var i = t; i < dims.inputs; i += HIDDEN) {
+        records[xo + i] = wx[i];
     }
+    records[h1o + t] = wh1[t];
+    records[h2o + t] = wh2[t];
     // Heads: sigmoid' = s (1 - s); softplus' = sigmoid(o).
-    for (var k = 0u; k < CHANNELS; k++) {
+    if (t < CHANNELS) {
         var slope = 0.0;
-        if (k < 3u) {
-            slope = out[k] * (1.0 - out[k]);
+        if (t < 3u) {
+            slope = head.y * (1.0 - head.y);
         } else {
-            slope = sigmoid(pre[k]);
+            slope = sigmoid(head.x);
         }
-        d_o[k] = d_nodes[n * CHANNELS + k] * slope;
-        records[doo + k] = d_o[k];
+        let d = d_nodes[n * CHANNELS + t] * slope;
+        wd_o[t] = d;
+        records[doo + t] = d;
     }
-    for (var i = 0u; i < HIDDEN; i++) {
-        d_z2[i] = dot_head_row(dims.w_heads + i * CHANNELS) * s2[i];
-        records[dz2o + i] = d_z2[i];
-    }
-    for (var i = 0u; i < HIDDEN; i++) {
-        records[dz1o + i] = dot_hidden_row(dims.w2 + i * HIDDEN) * s1[i];
-    }
+    workgroupBarrier();
+    let dz2 = dot_head_row(dims.w_heads + t * CHANNELS) * ws2[t];
+    wd_z2[t] = dz2;
+    records[dz2o + t] = dz2;
+    workgroupBarrier();
+    records[dz1o + t] = dot_hidden_row(dims.w2 + t * HIDDEN) * ws1[t];
 }
 
 @compute @workgroup_size(64)

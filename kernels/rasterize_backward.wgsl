@@ -16,9 +16,9 @@
 // bit-identical. Each pixel writes the gradient with respect to its medium parameters.
 //
 // `rasterize_backward_atomic` (the default where the device has VK_EXT_shader_atomic_float):
-// the same per-pixel arithmetic and subgroup sums, then lane 0 adds its subgroup's sums to the
-// intersection's partials with float atomics (zeroed before the dispatch). No workgroup
-// memory, no barriers, no workgroup-wide reduction, which took 60% of the backward on
+// the same per-pixel arithmetic and subgroup sums, then the lanes add their subgroup's sums to
+// the intersection's partials with float atomics (zeroed before the dispatch), one value per
+// lane. No workgroup memory, no barriers, no workgroup-wide reduction, which took 60% of the backward on
 // lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
 // tile's last. The order of the additions, and so the last bits, may vary between runs.
 //
@@ -444,21 +444,22 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
                 let s1 = subgroupAdd(c.b);
                 let s2 = subgroupAdd(c.c);
                 let s3 = subgroupAdd(c.pixels);
-                if (lane == 0u) {
-                    let o = k * GRAD_FLOATS;
-                    atomicAdd(&partials_sum[o], s0.x);
-                    atomicAdd(&partials_sum[o + 1u], s0.y);
-                    atomicAdd(&partials_sum[o + 2u], s0.z);
-                    atomicAdd(&partials_sum[o + 3u], s0.w);
-                    atomicAdd(&partials_sum[o + 4u], s1.x);
-                    atomicAdd(&partials_sum[o + 5u], s1.y);
-                    atomicAdd(&partials_sum[o + 6u], s1.z);
-                    atomicAdd(&partials_sum[o + 7u], s1.w);
-                    atomicAdd(&partials_sum[o + 8u], s2.x);
-                    atomicAdd(&partials_sum[o + 9u], s2.y);
-                    atomicAdd(&partials_sum[o + 10u], s2.z);
-                    atomicAdd(&partials_sum[o + 11u], s2.w);
-                    atomicAdd(&partial_pixels_sum[k], u32(s3));
+                // Every lane holds the sums: lanes 0-11 add one float each, lane 12 the pixel
+                // count (13 atomics at once instead of one lane's 13 in turn; a subgroup of
+                // fewer than 13 lanes, where lane 0 adds them all).
+                let o = k * GRAD_FLOATS;
+                for (var v = lane; v < RED_VALUES; v += sg) {
+                    if (v == GRAD_FLOATS) {
+                        atomicAdd(&partial_pixels_sum[k], u32(s3));
+                    } else {
+                        var s = s0;
+                        if (v >= 8u) {
+                            s = s2;
+                        } else if (v >= 4u) {
+                            s = s1;
+                        }
+                        atomicAdd(&partials_sum[o + v], s[v & 3u]);
+                    }
                 }
             }
         }

@@ -243,7 +243,7 @@ impl GpuMedium {
         let dims = self.dims_words(&grid);
         let imm = bytemuck::bytes_of(&dims);
         let bind = |name: &str| self.binding(name, Some(planes), None);
-        for (kernel, items) in [(Kernel::MediumNodes, grid.nodes()), (Kernel::MediumInterpolate, grid.width * grid.height)] {
+        for (kernel, items) in [(Kernel::MediumNodes, grid.nodes() * NODE_THREADS), (Kernel::MediumInterpolate, grid.width * grid.height)] {
             ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
         }
         Ok(())
@@ -267,7 +267,7 @@ impl GpuMedium {
         for (kernel, items) in [
             (Kernel::MediumInterpolateAdjointRows, grid.height * grid.nodes_x),
             (Kernel::MediumInterpolateAdjointCols, grid.nodes()),
-            (Kernel::MediumNodesBackward, grid.nodes()),
+            (Kernel::MediumNodesBackward, grid.nodes() * NODE_THREADS),
         ] {
             ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
         }
@@ -307,6 +307,10 @@ fn check_planes(grid: &MediumGrid, planes: [&GpuBuffer<f32>; 3]) -> Result<(), G
     }
     Ok(())
 }
+
+/// Threads per node of `nodes` and `nodes_backward`: one workgroup per node, a thread per
+/// hidden unit.
+const NODE_THREADS: usize = HIDDEN;
 
 /// Workgroups for one thread per item of `n`, as a 2D grid past 65535 workgroups (the kernels
 /// flatten `gid.y * groups.x * size + gid.x`).
