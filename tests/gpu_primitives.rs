@@ -212,6 +212,27 @@ fn staged_host_transfers_cross_chunks_and_sort_like_the_mapped_arena() {
     let mut got = [0u32; 3];
     ctx.read(&copy_to, &mut got).unwrap();
     assert_eq!(got, [7, 8, 9], "a kernel after a small write must see it");
+
+    // A prefetched range is read from the submission's own copy (no submission of its own)
+    // until the next write or submission; a read outside it, or after those, is an ordinary
+    // staged read of what the arena holds then.
+    let prefetched = |ctx: &GpuContext| ctx.host_stats().prefetched_reads;
+    ctx.begin().unwrap();
+    ctx.copy(buffers[5].range(), copy_to.range()).unwrap();
+    ctx.prefetch(copy_to.range()).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let (before, submits) = (prefetched(&ctx), ctx.host_stats().submits);
+    ctx.read(&copy_to, &mut got).unwrap();
+    assert_eq!(got, model[5]);
+    let mut first = [0u32; 1];
+    ctx.read(&copy_to, &mut first).unwrap();
+    assert_eq!(first[0], model[5][0]);
+    assert_eq!((prefetched(&ctx) - before, ctx.host_stats().submits - submits), (2, 0), "both reads from the prefetched copy");
+    ctx.read(&buffers[6], &mut got).unwrap();
+    assert_eq!((got, prefetched(&ctx) - before), (model[6], 2), "not prefetched: an ordinary read");
+    ctx.write(&copy_to, &[4, 5, 6]).unwrap();
+    ctx.read(&copy_to, &mut got).unwrap();
+    assert_eq!((got, prefetched(&ctx) - before), ([4, 5, 6], 2), "a write drops the prefetched copies");
 }
 
 #[test]

@@ -61,6 +61,8 @@ pub const STAGING_BYTES: u64 = 64 << 20;
 pub const DEFERRED_WRITE_BYTES: usize = 64 << 10;
 /// Deferred writes held at once; one more makes them go to the device first.
 const MAX_DEFERRED_WRITES: usize = 64;
+/// Prefetched ranges per submission; more are read the ordinary way.
+const MAX_PREFETCHES: usize = 16;
 
 impl GpuOptions {
     /// An arena of `gpu_mb` MiB, the device from [`DEVICE_ENV`], the pipeline cache in
@@ -125,6 +127,9 @@ pub struct HostStats {
     pub writes: u64,
     pub write_bytes: u64,
     pub write_ns: u64,
+    /// Of `reads`, those served from a copy the last submission made
+    /// ([`GpuContext::prefetch`]; no submission of their own).
+    pub prefetched_reads: u64,
 }
 
 impl HostStats {
@@ -139,16 +144,18 @@ impl HostStats {
             writes: self.writes - earlier.writes,
             write_bytes: self.write_bytes - earlier.write_bytes,
             write_ns: self.write_ns - earlier.write_ns,
+            prefetched_reads: self.prefetched_reads - earlier.prefetched_reads,
         }
     }
     /// One line per `per` steps: submissions, reads, writes, their bytes and milliseconds.
     pub fn describe_per(&self, per: u64) -> String {
         let p = per.max(1) as f64;
         format!(
-            "{:.1} submissions ({:.3} ms submit to fence), {:.1} reads ({:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
+            "{:.1} submissions ({:.3} ms submit to fence), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
             self.submits as f64 / p,
             self.submit_wait_ns as f64 * 1e-6 / p,
             self.reads as f64 / p,
+            self.prefetched_reads as f64 / p,
             self.read_bytes as f64 * 1e-6 / p,
             self.read_ns as f64 * 1e-6 / p,
             self.writes as f64 / p,
@@ -212,6 +219,14 @@ pub struct GpuContext {
     deferred_bytes: u64,
     deferred: std::cell::RefCell<Vec<vk::BufferCopy>>,
     deferred_used: std::cell::Cell<u64>,
+    /// Staged transfers: after the deferred writes, `prefetch_bytes` of the staging buffer
+    /// from `prefetch_at` take the copies [`GpuContext::prefetch`] records into a submission;
+    /// `prefetched` lists them (src_offset: arena, dst_offset: staging) until the next
+    /// `begin` or write.
+    prefetch_at: u64,
+    prefetch_bytes: u64,
+    prefetched: std::cell::RefCell<Vec<vk::BufferCopy>>,
+    prefetch_used: u64,
     arena: Arena,
     pipeline_cache: vk::PipelineCache,
     pipelines: Vec<Pipeline>,
@@ -440,6 +455,10 @@ impl GpuContext {
             deferred_bytes: 0,
             deferred: std::cell::RefCell::new(Vec::with_capacity(MAX_DEFERRED_WRITES)),
             deferred_used: std::cell::Cell::new(0),
+            prefetch_at: 0,
+            prefetch_bytes: 0,
+            prefetched: std::cell::RefCell::new(Vec::with_capacity(MAX_PREFETCHES)),
+            prefetch_used: 0,
             arena: Arena::new(arena_bytes, 256),
             pipeline_cache: vk::PipelineCache::null(),
             pipelines: Vec::with_capacity(KERNEL_COUNT),
@@ -599,10 +618,14 @@ impl GpuContext {
             unsafe { device.bind_buffer_memory(self.staging_buffer, self.staging_memory, 0) }.map_err(vk_err("vkBindBufferMemory (staging)"))?;
             self.staging_mapped = unsafe { device.map_memory(self.staging_memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
                 .map_err(vk_err("vkMapMemory (staging)"))? as *mut u8;
-            // The last eighth (at most 1 MiB) for deferred small writes, the rest for chunks.
-            self.deferred_bytes = (bytes / 8).min(1 << 20) & !3;
-            self.staging_bytes = bytes - self.deferred_bytes;
+            // The last eighth (at most 2 MiB): half for deferred small writes, half for
+            // prefetched reads; the rest for chunks.
+            let tail = (bytes / 8).min(2 << 20) & !7;
+            self.deferred_bytes = tail / 2;
+            self.prefetch_bytes = tail - self.deferred_bytes;
+            self.staging_bytes = bytes - tail;
             self.deferred_at = self.staging_bytes;
+            self.prefetch_at = self.deferred_at + self.deferred_bytes;
             self.info.host_transfers = "staged";
         } else {
             self.mapped = unsafe { device.map_memory(self.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
@@ -761,6 +784,8 @@ impl GpuContext {
         }
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let t0 = Instant::now();
+        // What the last submission left for the host may no longer be the arena's.
+        self.prefetched.get_mut().clear();
         if self.mapped.is_null() && bytes.len() <= DEFERRED_WRITE_BYTES && (bytes.len() as u64) <= self.deferred_bytes {
             // Into the staging tail; copied at the start of the next submission (or transfer).
             let used = self.deferred_used.get();
@@ -794,7 +819,14 @@ impl GpuContext {
         let bytes: &mut [u8] = bytemuck::cast_slice_mut(out);
         let t0 = Instant::now();
         let len = bytes.len();
-        if self.mapped.is_null() {
+        let (start, end) = (buf.offset, buf.offset + len as u64);
+        let copied = self.prefetched.borrow().iter().find(|c| c.src_offset <= start && end <= c.src_offset + c.size).map(|c| c.dst_offset + (start - c.src_offset));
+        if let Some(at) = copied {
+            unsafe { std::ptr::copy_nonoverlapping(self.staging_mapped.add(at as usize), bytes.as_mut_ptr(), len) };
+            let mut h = self.host.get();
+            h.prefetched_reads += 1;
+            self.host.set(h);
+        } else if self.mapped.is_null() {
             self.staged_transfer(buf.offset, Staged::Read(bytes))?;
         } else {
             unsafe { std::ptr::copy_nonoverlapping(self.mapped.add(buf.offset as usize), bytes.as_mut_ptr(), len) };
@@ -900,6 +932,8 @@ impl GpuContext {
             self.record_deferred(self.command_buffer);
             self.barrier();
         }
+        self.prefetched.get_mut().clear();
+        self.prefetch_used = 0;
         self.recording = true;
         self.recorded = 0;
         self.last_kernel = None;
@@ -1002,6 +1036,33 @@ impl GpuContext {
         }
         unsafe { self.device.cmd_fill_buffer(self.command_buffer, self.buffer, range.offset, range.size, value) };
         self.barrier();
+        Ok(())
+    }
+
+    /// Records a copy of `range` for the host at this point of the submission: after
+    /// [`Self::submit_and_wait`] a [`Self::read`] within it takes the copy instead of a
+    /// submission of its own (until the next [`Self::begin`] or [`Self::write`]). Staged
+    /// transfers only (a mapped arena is read in place); a range that does not fit what is
+    /// left of the prefetch space is read the ordinary way.
+    pub fn prefetch(&mut self, range: GpuRange) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: "prefetch" });
+        }
+        let size = range.size.next_multiple_of(4);
+        if !self.mapped.is_null() || size == 0 || self.prefetch_used + size > self.prefetch_bytes || self.prefetched.get_mut().len() == MAX_PREFETCHES {
+            return Ok(());
+        }
+        let copy = vk::BufferCopy { src_offset: range.offset, dst_offset: self.prefetch_at + self.prefetch_used, size: range.size };
+        let d = &self.device;
+        let cb = self.command_buffer;
+        unsafe {
+            d.cmd_copy_buffer(cb, self.buffer, self.staging_buffer, &[copy]);
+            let to_host = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
+            d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
+        }
+        self.barrier();
+        self.prefetch_used += size;
+        self.prefetched.get_mut().push(copy);
         Ok(())
     }
 

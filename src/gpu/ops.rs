@@ -38,6 +38,12 @@ impl ScanScratch {
         })
     }
 
+    /// Records the status for the host in the scan's submission ([`GpuContext::prefetch`]), so
+    /// that [`Self::result`] needs no submission of its own.
+    pub fn prefetch_result(&self, ctx: &mut GpuContext) -> Result<(), GpuError> {
+        ctx.prefetch(self.status.range())
+    }
+
     /// After the submission: `Ok(total)`, or `Err(needed)` when the total exceeded the limit
     /// (then the offsets were not written).
     pub fn result(&self, ctx: &GpuContext) -> Result<Result<u64, u64>, GpuError> {

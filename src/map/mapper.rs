@@ -1008,6 +1008,10 @@ impl Mapper {
             self.medium_forward(&camera, &pose)?;
         }
         self.forward_within_capacity(&camera, &pose, false, device_map, device_medium)?;
+        if device_map && self.raster.is_resident() {
+            // The Gaussians' Adam step in the same submission as the loss and backward.
+            self.raster.arm_adam_step(&self.adam)?;
+        }
         let kf = &self.keyframes[slot];
         let v = &mut self.view;
         let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };

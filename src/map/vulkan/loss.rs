@@ -332,6 +332,14 @@ impl GpuLoss {
         Ok(())
     }
 
+    /// Records what [`Self::read_terms`] reads for the host in the loss's submission
+    /// ([`GpuContext::prefetch`]): the valid depth count and the per-workgroup sums.
+    pub fn prefetch_terms(&self, ctx: &mut GpuContext) -> Result<(), GpuError> {
+        let Some((w, h, ..)) = self.last else { return Ok(()) };
+        ctx.prefetch(self.valid_count.range())?;
+        ctx.prefetch(self.partials.slice_range(0, (w * h).div_ceil(WG) * LOSS_PARTIALS)?)
+    }
+
     /// Each term's value and the weighted total of the last recorded (and submitted) loss, as
     /// [`crate::map::loss::total_loss`] returns them.
     pub fn read_terms(&mut self, ctx: &GpuContext) -> Result<LossTerms, super::VulkanRenderError> {

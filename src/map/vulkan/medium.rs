@@ -288,6 +288,12 @@ impl GpuMedium {
     }
 
     /// Reads dL/d params ([`MediumLayout`] order) into `out` (exactly the layout's length).
+    /// Records the parameter gradient for the host in the backward's submission
+    /// ([`GpuContext::prefetch`]), for [`Self::read_grads`].
+    pub fn prefetch_grads(&self, ctx: &mut GpuContext) -> Result<(), GpuError> {
+        ctx.prefetch(self.grads.range())
+    }
+
     pub fn read_grads(&self, ctx: &GpuContext, out: &mut [f32]) -> Result<(), GpuMediumError> {
         if out.len() != self.layout.len {
             return Err(MediumError::LengthMismatch { what: "medium parameter gradient", len: out.len(), expected: self.layout.len }.into());

@@ -923,6 +923,7 @@ impl GpuForwardRenderer {
             }
         }
         self.projection.record(ctx, n, self.capacity.max_intersections)?;
+        self.projection.scan.prefetch_result(ctx)?;
         ctx.submit_and_wait()?;
         let n_isects = if n == 0 {
             0
@@ -987,6 +988,10 @@ pub struct GpuRenderer {
     /// The device map's parameters changed since the host last had them ([`Self::adam_step`]
     /// reads nothing back; [`Self::sync`] does).
     params_stale: bool,
+    /// [`Self::arm_adam_step`] was called: the next [`Self::loss_and_backward`] ends with the
+    /// Adam step, whose outcome (`Some(taken)`) waits in `fused_adam` for [`Self::adam_step`].
+    adam_armed: bool,
+    fused_adam: Option<bool>,
     last: Option<GpuForwardState>,
     /// Host staging of the loss's dL/dc_med (allocated once).
     staging_c_med: Vec<f32>,
@@ -1008,6 +1013,8 @@ impl GpuRenderer {
             medium: None,
             resident: None,
             params_stale: false,
+            adam_armed: false,
+            fused_adam: None,
             last: None,
             staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
         })
@@ -1084,6 +1091,7 @@ impl GpuRenderer {
         self.adam.upload_moments(ctx, adam, n)?;
         self.resident = Some(n);
         self.params_stale = false;
+        self.disarm_adam();
         Ok(())
     }
 
@@ -1120,6 +1128,7 @@ impl GpuRenderer {
     pub fn release(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
         self.sync(ctx, gaussians, grads, adam)?;
         self.resident = None;
+        self.disarm_adam();
         Ok(())
     }
 
@@ -1127,6 +1136,28 @@ impl GpuRenderer {
     pub fn drop_resident(&mut self) {
         self.resident = None;
         self.params_stale = false;
+        self.disarm_adam();
+    }
+
+    fn disarm_adam(&mut self) {
+        self.adam_armed = false;
+        self.fused_adam = None;
+    }
+
+    /// Makes the next [`Self::loss_and_backward`] end with the Adam step of the resident map
+    /// (its constants from `adam` written now), in the same submission, so that
+    /// [`Self::adam_step`] then only counts it (or reports it refused) instead of submitting
+    /// it. A loss that is not finite is still an error after that step was taken (or refused
+    /// for a non-finite gradient).
+    pub fn arm_adam_step(&mut self, ctx: &mut GpuContext, adam: &[AdamGroup]) -> Result<(), VulkanRenderError> {
+        if self.resident.is_none() || adam.len() != ParamGroup::ALL.len() {
+            return Err(RenderError::NoForward { why: "the map is not on the device (make_resident)" }.into());
+        }
+        let consts: [StepConstants; 6] = std::array::from_fn(|k| adam[k].next_step_constants());
+        self.adam.write_constants(ctx, &consts)?;
+        self.adam_armed = true;
+        self.fused_adam = None;
+        Ok(())
     }
 
     /// One Adam step of every parameter group on the device map with the gradients of the
@@ -1140,6 +1171,14 @@ impl GpuRenderer {
         };
         if gaussians.len() != n || adam.len() != ParamGroup::ALL.len() {
             return Err(RenderError::NoForward { why: "the device map and the host map differ in size" }.into());
+        }
+        if let Some(taken) = self.fused_adam.take() {
+            // Already run, at the end of the loss's submission (`arm_adam_step`).
+            if taken {
+                adam.iter_mut().for_each(AdamGroup::count_step);
+                self.params_stale = true;
+            }
+            return Ok(taken);
         }
         let consts: [StepConstants; 6] = std::array::from_fn(|k| adam[k].next_step_constants());
         self.adam.write_constants(ctx, &consts)?;
@@ -1206,6 +1245,8 @@ impl GpuRenderer {
         self.loss.upload_target(ctx, target, target_key)?;
         let n = last.n_gaussians;
         let resident = self.check_resident(n)?;
+        let fuse_adam = std::mem::take(&mut self.adam_armed) && resident;
+        self.fused_adam = None;
         if !resident {
             self.project_backward.upload(ctx, grads)?;
         }
@@ -1256,7 +1297,18 @@ impl GpuRenderer {
             (Some(_), None) => return Err(RenderError::NoForward { why: "no device medium (GpuRenderer::enable_medium)" }.into()),
             (None, _) => None,
         };
+        if fuse_adam {
+            self.adam.record_step(ctx, &fwd.projection.params, &self.project_backward.grads, n)?;
+            self.adam.prefetch_refused(ctx)?;
+        }
+        self.loss.prefetch_terms(ctx)?;
+        if let Some((_, gm)) = device_medium.as_ref() {
+            gm.prefetch_grads(ctx)?;
+        }
         ctx.submit_and_wait()?;
+        if fuse_adam {
+            self.fused_adam = Some(!self.adam.step_refused(ctx)?);
+        }
         let terms = self.loss.read_terms(ctx)?;
         if !resident {
             self.project_backward.read(ctx, grads)?;
@@ -1474,6 +1526,15 @@ impl RenderBackend {
     /// Whether the host's copy of the map is behind the device's ([`GpuRenderer::host_params_stale`]).
     pub fn host_params_stale(&self) -> bool {
         matches!(self, RenderBackend::Vulkan { renderer, .. } if renderer.host_params_stale())
+    }
+
+    /// [`GpuRenderer::arm_adam_step`]: the next loss and backward end with the device map's
+    /// Adam step; nothing on the CPU reference.
+    pub fn arm_adam_step(&mut self, adam: &[AdamGroup]) -> Result<(), VulkanRenderError> {
+        match self {
+            RenderBackend::Vulkan { ctx, renderer } => renderer.arm_adam_step(ctx, adam),
+            RenderBackend::Cpu { .. } => Ok(()),
+        }
     }
 
     /// Target slots the device holds ([`loss::GpuLoss::reserve_target_slots`]): up to

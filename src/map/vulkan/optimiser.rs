@@ -144,6 +144,11 @@ impl GpuMapAdam {
 
     /// After the submission of [`Self::record_step`]: whether the step was refused for a
     /// non-finite gradient (nothing changed then).
+    /// Records the refusal flag for the host in the step's submission ([`GpuContext::prefetch`]).
+    pub fn prefetch_refused(&self, ctx: &mut GpuContext) -> Result<(), GpuError> {
+        ctx.prefetch(self.flag.range())
+    }
+
     pub fn step_refused(&self, ctx: &GpuContext) -> Result<bool, GpuError> {
         let mut flag = [0u32];
         ctx.read(&self.flag, &mut flag)?;
