@@ -16,10 +16,10 @@
 // bit-identical. Each pixel writes the gradient with respect to its medium parameters.
 //
 // `rasterize_backward_atomic` (the default where the device has VK_EXT_shader_atomic_float):
-// the same per-pixel arithmetic and subgroup sums, then the lanes add their subgroup's sums to
-// the intersection's partials with float atomics (zeroed before the dispatch), one value per
-// lane. No workgroup memory, no barriers, no workgroup-wide reduction, which took 60% of the backward on
-// lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
+// the same per-pixel arithmetic; the subgroup's 13 sums per intersection by a reduce-scatter
+// (`add_subgroup_sums`), each added once to the intersection's partials with a float atomic
+// (zeroed before the dispatch). No workgroup memory, no barriers, no workgroup-wide
+// reduction, which took 60% of the backward on lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
 // tile's last. The order of the additions, and so the last bits, may vary between runs.
 //
 // `reduce_isect_grads`: one thread per Gaussian sums its intersections' partials, found
@@ -390,11 +390,11 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
             }
         }
         workgroupBarrier();
-        // Thread j * 13 + v adds value v of intersection base + j over the subgroups, in
-        // subgroup order.
-        if (t_index < count * RED_VALUES) {
-            let j = t_index / RED_VALUES;
-            let v = t_index % RED_VALUES;
+        // Thread j * 13 + v (and + 256, for subgroups of more than 19 lanes) adds value v of
+        // intersection base + j over the subgroups, in subgroup order.
+        for (var i = t_index; i < count * RED_VALUES; i = i + 256u) {
+            let j = i / RED_VALUES;
+            let v = i % RED_VALUES;
             var acc = 0.0;
             for (var g = 0u; g < sg_count; g = g + 1u) {
                 acc = acc + red[(g * sg + j) * RED_VALUES + v];
@@ -412,6 +412,77 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
     }
     if (inside) {
         write_medium_grads(x, y, st);
+    }
+}
+
+// One halving step of `add_subgroup_sums`: lanes with `mask` set keep the upper half of the
+// `half * 2` values they hold, the others the lower half, each adding its partner's copy of the
+// half it keeps (the partner sends the half it gives up). Returns the offset of the kept half.
+fn halve(v: ptr<function, array<f32, 16>>, half: u32, mask: u32, lane: u32) -> u32 {
+    let upper = (lane & mask) != 0u;
+    for (var i = 0u; i < half; i++) {
+        let lo = (*v)[i];
+        let hi = (*v)[i + half];
+        let send = select(hi, lo, upper);
+        let keep = select(lo, hi, upper);
+        (*v)[i] = keep + subgroupShuffleXor(send, mask);
+    }
+    return select(0u, half, upper);
+}
+
+// Adds one intersection's 13 subgroup sums (the 12 gradient floats and the pixel count) to
+// its partials with atomics, by a reduce-scatter instead of 13 full reductions: each halving
+// step trades half of what a lane holds with the lane `mask` away (mask = sg/2, sg/4, ...)
+// until each lane holds 16/sg of the values (one, for 16 lanes and more, with full adds over
+// the lanes left); lanes then add the values they own, once each. 15 shuffles for 32 lanes,
+// where 13 subgroupAdds take 65. Called in uniform control flow (every lane of the subgroup).
+fn add_subgroup_sums(c: Contribution, k: u32, lane: u32, sg: u32) {
+    var v = array<f32, 16>(c.a.x, c.a.y, c.a.z, c.a.w, c.b.x, c.b.y, c.b.z, c.b.w,
+                           c.c.x, c.c.y, c.c.z, c.c.w, c.pixels, 0.0, 0.0, 0.0);
+    var first = 0u;
+    var held = 16u;
+    var mask = sg >> 1u;
+    // Unrolled by hand so that every step indexes the array with constants.
+    if (mask >= 1u) {
+        first += halve(&v, 8u, mask, lane);
+        held = 8u;
+        mask = mask >> 1u;
+    }
+    if (mask >= 1u) {
+        first += halve(&v, 4u, mask, lane);
+        held = 4u;
+        mask = mask >> 1u;
+    }
+    if (mask >= 1u) {
+        first += halve(&v, 2u, mask, lane);
+        held = 2u;
+        mask = mask >> 1u;
+    }
+    if (mask >= 1u) {
+        first += halve(&v, 1u, mask, lane);
+        held = 1u;
+        mask = mask >> 1u;
+    }
+    // More than 16 lanes: the lanes that differ only in the low bits hold the same value.
+    let owner_bits = select(0u, 2u * mask - 1u, mask >= 1u);
+    for (var m = mask; m >= 1u; m = m >> 1u) {
+        v[0] = v[0] + subgroupShuffleXor(v[0], m);
+    }
+    if ((lane & owner_bits) != 0u) {
+        return;
+    }
+    let o = k * GRAD_FLOATS;
+    // A constant trip count, so that the array keeps constant indices once unrolled.
+    for (var i = 0u; i < 16u; i++) {
+        let value = first + i;
+        if (i >= held) {
+            break;
+        }
+        if (value < GRAD_FLOATS) {
+            atomicAdd(&partials_sum[o + value], v[i]);
+        } else if (value == GRAD_FLOATS) {
+            atomicAdd(&partial_pixels_sum[k], u32(v[i]));
+        }
     }
 }
 
@@ -440,27 +511,7 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
             let k = base + j;
             let c = splat_contribution(p, &st, own, j, k < end);
             if (subgroupAny(c.pixels > 0.0)) {
-                let s0 = subgroupAdd(c.a);
-                let s1 = subgroupAdd(c.b);
-                let s2 = subgroupAdd(c.c);
-                let s3 = subgroupAdd(c.pixels);
-                // Every lane holds the sums: lanes 0-11 add one float each, lane 12 the pixel
-                // count (13 atomics at once instead of one lane's 13 in turn; a subgroup of
-                // fewer than 13 lanes, where lane 0 adds them all).
-                let o = k * GRAD_FLOATS;
-                for (var v = lane; v < RED_VALUES; v += sg) {
-                    if (v == GRAD_FLOATS) {
-                        atomicAdd(&partial_pixels_sum[k], u32(s3));
-                    } else {
-                        var s = s0;
-                        if (v >= 8u) {
-                            s = s2;
-                        } else if (v >= 4u) {
-                            s = s1;
-                        }
-                        atomicAdd(&partials_sum[o + v], s[v & 3u]);
-                    }
-                }
+                add_subgroup_sums(c, k, lane, sg);
             }
         }
         batch_end = base;

@@ -656,13 +656,17 @@ fn adam_step_matches_adam_group() {
         ctx.submit_and_wait().unwrap();
     }
     let (cpu_m, cpu_v) = group.moments();
-    for (name, buf, want) in [("params", &values, &cpu_params[..]), ("m", &m, &cpu_m[..n]), ("v", &v, &cpu_v[..n])] {
+    // The floor of the scale: m = beta1 m + (1 - beta1) g adds terms up to 0.2 that can
+    // cancel, and a device that fuses it into an FMA (measured on an NVIDIA H100: m
+    // -0.00045665205 against -0.00045663118, a few rounding steps of the terms) differs from
+    // the CPU's two roundings by more than 1e-5 of the small result.
+    for (name, buf, want, floor) in [("params", &values, &cpu_params[..], 1e-3), ("m", &m, &cpu_m[..n], 1e-2), ("v", &v, &cpu_v[..n], 1e-3)] {
         let mut got = vec![0.0f32; n];
         ctx.read(buf, &mut got).unwrap();
         let (i, err) = got
             .iter()
             .zip(want)
-            .map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(1e-3))
+            .map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(floor))
             .enumerate()
             .fold((0, 0.0), |acc, (i, e)| if e > acc.1 { (i, e) } else { acc });
         eprintln!("adam {name}: max scaled error {err:.2e}");

@@ -128,8 +128,11 @@ fn vulkan_mapper_runs_are_bit_identical() {
     let staged = GpuOptions { host_staging: Some(64 << 10), ..options.clone() };
     for options in [&options, &options, &staged] {
         let mut m = mapper_with(MapperDevice::Vulkan, config.clone(), &kfs, 3000, options);
-        let transfers = m.gpu().map(|g| g.info().host_transfers);
-        assert_eq!(transfers, Some(if options.host_staging.is_some() { "staged" } else { "mapped" }));
+        // Staged where forced; otherwise whatever the device's memory calls for (mapped on
+        // lavapipe, staged on a discrete GPU).
+        if options.host_staging.is_some() {
+            assert_eq!(m.gpu().map(|g| g.info().host_transfers), Some("staged"));
+        }
         for _ in 0..25 {
             m.iterate().unwrap();
         }
@@ -222,7 +225,10 @@ fn restored_mapping_stage_keeps_the_vulkan_renderer() {
 fn device_optimiser_state_comes_back_with_the_map() {
     let kfs = sequence(WaterPreset::Coastal);
     let config = MapperConfig { densify_every: 0, ..MapperConfig::default() };
-    let mut gpu = mapper_on(MapperDevice::Vulkan, config, &kfs, 3000);
+    // Deterministic: float atomics add in whatever order the device runs them (lavapipe's
+    // happens to repeat, an NVIDIA GPU's does not), and the runs are compared bit for bit.
+    let options = GpuOptions { deterministic: true, ..gpu_options() };
+    let mut gpu = mapper_with(MapperDevice::Vulkan, config, &kfs, 3000, &options);
     let steps = 12;
     for _ in 0..steps {
         gpu.iterate().unwrap();
@@ -238,7 +244,7 @@ fn device_optimiser_state_comes_back_with_the_map() {
     }
     let bytes = gpu.checkpoint_bytes().unwrap();
     let mut restored = Mapper::from_checkpoint_bytes(&bytes, "mid-run", Default::default()).unwrap();
-    restored.use_device(MapperDevice::Vulkan, &gpu_options()).unwrap();
+    restored.use_device(MapperDevice::Vulkan, &options).unwrap();
     for _ in 0..steps {
         gpu.iterate().unwrap();
         restored.iterate().unwrap();
