@@ -17,8 +17,9 @@
 //
 // `rasterize_backward_atomic` (the default where the device has VK_EXT_shader_atomic_float):
 // the same per-pixel arithmetic; the subgroup's 13 sums per intersection by a reduce-scatter
-// (`add_subgroup_sums`), each added once to the intersection's partials with a float atomic
-// (zeroed before the dispatch). No workgroup memory, no barriers, no workgroup-wide
+// on subgroups of 32 lanes and more (`add_subgroup_sums`), by 13 `subgroupAdd`s on fewer
+// (`add_subgroup_sums_by_adds`), each sum added once to the intersection's partials with a
+// float atomic (zeroed before the dispatch). No workgroup memory, no barriers, no workgroup-wide
 // reduction, which took 60% of the backward on lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
 // tile's last. The order of the additions, and so the last bits, may vary between runs.
 //
@@ -45,7 +46,8 @@ struct RasterParams {
     width: u32,
     height: u32,
     tiles_x: u32,
-    // 0: inverse depth, 1: depth (`DepthMode`)
+    // Low byte: 0 inverse depth, 1 depth (`DepthMode`); bit 8: the atomic kernel's
+    // reduce-scatter on any subgroup size (`GpuRasterBackward::force_reduce_scatter`).
     depth_mode: u32,
 }
 
@@ -97,14 +99,14 @@ fn load_splat_vecs(g: u32) -> SplatVecs {
 }
 
 fn depth_value(z: f32) -> f32 {
-    if (params.depth_mode == 0u) {
+    if ((params.depth_mode & 0xffu) == 0u) {
         return 1.0 / z;
     }
     return z;
 }
 
 fn depth_value_dz(z: f32) -> f32 {
-    if (params.depth_mode == 0u) {
+    if ((params.depth_mode & 0xffu) == 0u) {
         return -1.0 / (z * z);
     }
     return 1.0;
@@ -471,18 +473,53 @@ fn add_subgroup_sums(c: Contribution, k: u32, lane: u32, sg: u32) {
     if ((lane & owner_bits) != 0u) {
         return;
     }
+    // Constant indices only (a dynamically indexed array lives in memory on a CPU device).
     let o = k * GRAD_FLOATS;
-    // A constant trip count, so that the array keeps constant indices once unrolled.
-    for (var i = 0u; i < 16u; i++) {
-        let value = first + i;
-        if (i >= held) {
-            break;
+    add_sum(o, k, first, v[0]);
+    if (held >= 2u) {
+        add_sum(o, k, first + 1u, v[1]);
+    }
+    if (held >= 4u) {
+        add_sum(o, k, first + 2u, v[2]);
+        add_sum(o, k, first + 3u, v[3]);
+    }
+    if (held >= 8u) {
+        for (var i = 4u; i < 8u; i++) {
+            add_sum(o, k, first + i, v[i]);
         }
-        if (value < GRAD_FLOATS) {
-            atomicAdd(&partials_sum[o + value], v[i]);
-        } else if (value == GRAD_FLOATS) {
-            atomicAdd(&partial_pixels_sum[k], u32(v[i]));
+    }
+    if (held >= 16u) {
+        for (var i = 8u; i < 16u; i++) {
+            add_sum(o, k, first + i, v[i]);
         }
+    }
+}
+
+// `add_subgroup_sums` by 13 `subgroupAdd`s, each lane then adding one sum (faster with few
+// lanes, as lavapipe's 8).
+fn add_subgroup_sums_by_adds(c: Contribution, k: u32, lane: u32, sg: u32) {
+    let s0 = subgroupAdd(c.a);
+    let s1 = subgroupAdd(c.b);
+    let s2 = subgroupAdd(c.c);
+    let s3 = subgroupAdd(c.pixels);
+    let o = k * GRAD_FLOATS;
+    for (var v = lane; v < RED_VALUES; v += sg) {
+        var s = s0;
+        if (v >= 8u) {
+            s = s2;
+        } else if (v >= 4u) {
+            s = s1;
+        }
+        add_sum(o, k, v, select(s[v & 3u], s3, v == GRAD_FLOATS));
+    }
+}
+
+// Adds value `value` (of the 13) of intersection `k`, whose floats start at `o`.
+fn add_sum(o: u32, k: u32, value: u32, sum: f32) {
+    if (value < GRAD_FLOATS) {
+        atomicAdd(&partials_sum[o + value], sum);
+    } else if (value == GRAD_FLOATS) {
+        atomicAdd(&partial_pixels_sum[k], u32(sum));
     }
 }
 
@@ -511,7 +548,11 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
             let k = base + j;
             let c = splat_contribution(p, &st, own, j, k < end);
             if (subgroupAny(c.pixels > 0.0)) {
-                add_subgroup_sums(c, k, lane, sg);
+                if (sg >= 32u || (params.depth_mode & 0x100u) != 0u) {
+                    add_subgroup_sums(c, k, lane, sg);
+                } else {
+                    add_subgroup_sums_by_adds(c, k, lane, sg);
+                }
             }
         }
         batch_end = base;

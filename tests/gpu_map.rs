@@ -432,9 +432,16 @@ fn rasterize_backward_matches_the_cpu_reference() {
         raster.upload_medium(&mut ctx, &medium).unwrap();
         raster.upload_output(&mut ctx, &fwd).unwrap();
         bwd.upload_upstream(&mut ctx, &up).unwrap();
-        // Deterministic mode (reductions), then float atomics where the device has them.
-        for deterministic in [true, false] {
-            let mode_name = if ctx.set_deterministic(deterministic) { "deterministic" } else { "atomic" };
+        // Deterministic mode (reductions), then float atomics where the device has them, with
+        // the subgroup sums the device's subgroup size picks and with the reduce-scatter
+        // forced (lavapipe's 8 lanes would not take it otherwise).
+        for (deterministic, scatter) in [(true, false), (false, false), (false, true)] {
+            bwd.force_reduce_scatter = scatter;
+            let mode_name = match (ctx.set_deterministic(deterministic), scatter) {
+                (true, _) => "deterministic",
+                (false, false) => "atomic",
+                (false, true) => "atomic, reduce-scatter",
+            };
             if !deterministic && mode_name == "deterministic" {
                 eprintln!("{mode:?}: the device has no float atomics: rasterize_backward_atomic not run");
                 continue;
