@@ -15,11 +15,12 @@
 // walk starts). No float atomics, a fixed order on a given device: repeated runs are
 // bit-identical. Each pixel writes the gradient with respect to its medium parameters.
 //
-// `rasterize_backward_atomic` (the default where the device has VK_EXT_shader_atomic_float):
-// the same per-pixel arithmetic; the subgroup's 13 sums per intersection by a reduce-scatter
-// on subgroups of 32 lanes and more (`add_subgroup_sums`), by 13 `subgroupAdd`s on fewer
-// (`add_subgroup_sums_by_adds`), each sum added once to the intersection's partials with a
-// float atomic (zeroed before the dispatch). No workgroup memory, no barriers, no workgroup-wide
+// `rasterize_backward_atomic` and `rasterize_backward_atomic_scatter` (the default where the
+// device has VK_EXT_shader_atomic_float; the host takes the second on subgroups of 32 lanes
+// and more): the same per-pixel arithmetic; the subgroup's 13 sums per intersection by 13
+// `subgroupAdd`s (`add_subgroup_sums_by_adds`) or by a reduce-scatter (`add_subgroup_sums`),
+// each sum added once to the intersection's partials with a float atomic (zeroed before the
+// dispatch). No workgroup memory, no barriers, no workgroup-wide
 // reduction, which took 60% of the backward on lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
 // tile's last. The order of the additions, and so the last bits, may vary between runs.
 //
@@ -46,8 +47,7 @@ struct RasterParams {
     width: u32,
     height: u32,
     tiles_x: u32,
-    // Low byte: 0 inverse depth, 1 depth (`DepthMode`); bit 8: the atomic kernel's
-    // reduce-scatter on any subgroup size (`GpuRasterBackward::force_reduce_scatter`).
+    // 0: inverse depth, 1: depth (`DepthMode`)
     depth_mode: u32,
 }
 
@@ -99,14 +99,14 @@ fn load_splat_vecs(g: u32) -> SplatVecs {
 }
 
 fn depth_value(z: f32) -> f32 {
-    if ((params.depth_mode & 0xffu) == 0u) {
+    if (params.depth_mode == 0u) {
         return 1.0 / z;
     }
     return z;
 }
 
 fn depth_value_dz(z: f32) -> f32 {
-    if ((params.depth_mode & 0xffu) == 0u) {
+    if (params.depth_mode == 0u) {
         return -1.0 / (z * z);
     }
     return 1.0;
@@ -523,9 +523,9 @@ fn add_sum(o: u32, k: u32, value: u32, sum: f32) {
     }
 }
 
-@compute @workgroup_size(256)
-fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
-                             @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+// The atomic backward of one tile (both atomic entry points): `scatter` (a constant at each
+// call, so each entry point keeps one of the two paths) picks the subgroup sums.
+fn backward_atomic(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatter: bool) {
     let tile = wg.y * params.tiles_x + wg.x;
     let x = wg.x * TILE + t_index % TILE;
     let y = wg.y * TILE + t_index / TILE;
@@ -548,7 +548,7 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
             let k = base + j;
             let c = splat_contribution(p, &st, own, j, k < end);
             if (subgroupAny(c.pixels > 0.0)) {
-                if (sg >= 32u || (params.depth_mode & 0x100u) != 0u) {
+                if (scatter) {
                     add_subgroup_sums(c, k, lane, sg);
                 } else {
                     add_subgroup_sums_by_adds(c, k, lane, sg);
@@ -560,6 +560,18 @@ fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(loca
     if (inside) {
         write_medium_grads(x, y, st);
     }
+}
+
+@compute @workgroup_size(256)
+fn rasterize_backward_atomic(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
+                             @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    backward_atomic(wg, t_index, lane, sg, false);
+}
+
+@compute @workgroup_size(256)
+fn rasterize_backward_atomic_scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
+                                     @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    backward_atomic(wg, t_index, lane, sg, true);
 }
 
 struct ReduceParams {

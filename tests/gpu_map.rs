@@ -374,13 +374,15 @@ fn rasterize_backward_matches_the_cpu_reference() {
         "grad_sigma_bs"
     ]);
     assert!(!table.float_atomics);
-    // The atomic variant: the same buffers, its sums through atomic views of the partials.
-    let atomic = Kernel::RasterizeBackwardRasterizeBackwardAtomic.info();
-    assert!(atomic.float_atomics);
-    let atomic_names: Vec<&str> = atomic.bindings.iter().map(|b| b.name).collect();
+    // The atomic variants: the same buffers, their sums through atomic views of the partials.
     let mut want_names: Vec<&str> = names.iter().filter(|n| !n.starts_with("partial")).copied().collect();
     want_names.extend(["partials_sum", "partial_pixels_sum"]);
-    assert_eq!(atomic_names, want_names);
+    for kernel in [Kernel::RasterizeBackwardRasterizeBackwardAtomic, Kernel::RasterizeBackwardRasterizeBackwardAtomicScatter] {
+        let atomic = kernel.info();
+        assert!(atomic.float_atomics, "{}", kernel.name());
+        let atomic_names: Vec<&str> = atomic.bindings.iter().map(|b| b.name).collect();
+        assert_eq!(atomic_names, want_names, "{}", kernel.name());
+    }
     let reduce: Vec<&str> = Kernel::RasterizeBackwardReduceIsectGrads.info().bindings.iter().map(|b| b.name).collect();
     assert_eq!(reduce, ["isect_offsets", "slot_to_sorted", "in_partials", "in_partial_pixels", "splat_grads", "splat_pixels"]);
     for (mode, seed) in [(DepthMode::InverseDepth, 23), (DepthMode::Depth, 24)] {

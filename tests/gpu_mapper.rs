@@ -253,3 +253,43 @@ fn device_optimiser_state_comes_back_with_the_map() {
     restored.sync_from_device().unwrap();
     assert_eq!(map_bits(gpu.gaussians()), map_bits(restored.gaussians()), "a restored checkpoint must continue like the uninterrupted run");
 }
+
+/// Between densification steps nothing of the device map comes back after a step
+/// (`Mapper::host_map_stale`): a render in that state shows the device's map, exactly as the
+/// same map uploaded from the host after `sync_from_device` renders, and not the host's older
+/// copy. The keyframe targets stay on the device: once each keyframe was used, steps upload
+/// no target again.
+#[test]
+fn the_device_map_is_what_renders_between_syncs() {
+    let kfs = sequence(WaterPreset::Coastal);
+    let config = MapperConfig { densify_every: 0, ..MapperConfig::default() };
+    let options = GpuOptions { deterministic: true, ..gpu_options() };
+    let mut m = mapper_with(MapperDevice::Vulkan, config, &kfs[..3], 3000, &options);
+    let seeded = m.render_keyframe(0).unwrap().colour.data.clone();
+    let host_before = m.gaussians().clone();
+    for slot in [0, 1, 2] {
+        m.step_on(slot).unwrap();
+    }
+    // Every keyframe's target is on the device now: ten more steps write only small buffers
+    // (the medium network's parameters, the view, Adam's constants), less than half a target
+    // per step, where each step would otherwise upload a whole one.
+    let writes_before = m.gpu().unwrap().host_stats();
+    for i in 0..10 {
+        m.step_on(i % 3).unwrap();
+    }
+    let writes = m.gpu().unwrap().host_stats().since(&writes_before);
+    let target_bytes = (W * H * 5 * 4) as u64;
+    assert!(writes.write_bytes < 10 * target_bytes / 2, "10 steps wrote {} bytes, a target is {target_bytes}", writes.write_bytes);
+    assert!(m.host_map_stale());
+    assert!(m.gaussians() == &host_before, "a step must not touch the host's copy");
+    let device = m.render_keyframe(0).unwrap().colour.data.clone();
+    assert!(device != seeded, "13 steps changed nothing");
+    m.sync_from_device().unwrap();
+    assert!(!m.host_map_stale());
+    assert!(m.gaussians() != &host_before, "the sync brought the stepped map back");
+    // The synced host map, handed to the device again, renders the same bits.
+    let synced = m.gaussians().clone();
+    m.set_gaussians(&synced).unwrap();
+    let uploaded = m.render_keyframe(0).unwrap().colour.data.clone();
+    assert!(uploaded == device, "the render between syncs was not the device's map");
+}

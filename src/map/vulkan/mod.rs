@@ -430,19 +430,17 @@ pub struct GpuRasterBackward {
     /// [`GRAD_FLOATS`] per Gaussian, and its pixel count.
     pub splat_grads: GpuBuffer<f32>,
     pub splat_pixels: GpuBuffer<u32>,
-    /// The atomic kernel sums a subgroup's 13 values per intersection by a reduce-scatter on
-    /// subgroups of 32 lanes and more (faster there: 0.98 -> 0.78 ms at 640x480/100k on an
-    /// H100) and by 13 `subgroupAdd`s below (1.5x faster on lavapipe's 8 lanes); `true`
-    /// takes the reduce-scatter on any subgroup size (tests, so that lavapipe runs it too).
+    /// The atomic backward sums a subgroup's 13 values per intersection by a reduce-scatter
+    /// (`rasterize_backward_atomic_scatter`) on subgroups of 32 lanes and more (faster there:
+    /// 0.98 -> 0.78 ms at 640x480/100k on an H100) and by 13 `subgroupAdd`s
+    /// (`rasterize_backward_atomic`) below (1.5x faster on lavapipe's 8 lanes); `true` takes
+    /// the reduce-scatter on any subgroup size (tests, so that lavapipe runs it too).
     pub force_reduce_scatter: bool,
     /// Host staging (allocated once).
     staging_up: Vec<[f32; 4]>,
     staging_grads: Vec<f32>,
     staging_pixels: Vec<u32>,
 }
-
-/// `rasterize_backward.wgsl`: bit 8 of `depth_mode` (`RasterParams`).
-const FORCE_REDUCE_SCATTER: u32 = 1 << 8;
 
 impl GpuRasterBackward {
     pub fn new(ctx: &mut GpuContext, max_pixels: usize, max_intersections: usize, max_gaussians: usize) -> Result<Self, GpuError> {
@@ -516,8 +514,6 @@ impl GpuRasterBackward {
             DepthMode::InverseDepth => 0u32,
             DepthMode::Depth => 1,
         };
-        // Bit 8 of the mode word: the reduce-scatter on any subgroup size.
-        let mode = mode | if self.force_reduce_scatter { FORCE_REDUCE_SCATTER } else { 0 };
         let params = [fx.to_bits(), fy.to_bits(), cx.to_bits(), cy.to_bits(), grid.width as u32, grid.height as u32, grid.tiles_x as u32, mode];
         let kernel = if ctx.deterministic() {
             Kernel::RasterizeBackwardRasterizeBackward
@@ -527,7 +523,11 @@ impl GpuRasterBackward {
                 ctx.fill(self.partials.slice_range(0, n_isects * GRAD_FLOATS)?, 0)?;
                 ctx.fill(self.partial_pixels.slice_range(0, n_isects)?, 0)?;
             }
-            Kernel::RasterizeBackwardRasterizeBackwardAtomic
+            if self.force_reduce_scatter || ctx.info().subgroup_size >= 32 {
+                Kernel::RasterizeBackwardRasterizeBackwardAtomicScatter
+            } else {
+                Kernel::RasterizeBackwardRasterizeBackwardAtomic
+            }
         };
         let lookup = |name: &str| {
             Some(match name {
