@@ -1,9 +1,9 @@
 //! The mapping losses (Eq. 12-14) on the GPU: the twin of [`crate::map::loss::total_loss`],
 //! kernels in `kernels/loss.wgsl`.
 //!
-//! [`GpuLoss`] holds the keyframe the view is compared with (image, tracked depth and
-//! variance, uploaded once per view by [`GpuLoss::upload_target`]) and the SSIM and reduction
-//! scratch, all allocated once for the largest image. [`GpuLoss::record`] reads the rendered
+//! [`GpuLoss`] holds the keyframes the views are compared with (image, tracked depth and
+//! variance, uploaded by [`GpuLoss::upload_target`] unless the keyed target is still in one of
+//! its slots) and the SSIM and reduction scratch, all allocated once for the largest image. [`GpuLoss::record`] reads the rendered
 //! images where the rasteriser left them ([`LossBuffers`]) and writes the renderer's upstream
 //! gradients where the rasteriser backward reads them, so a forward, the loss and the
 //! backward run with no image crossing to the host. [`GpuLoss::read_terms`] reads back only
