@@ -1155,6 +1155,12 @@ impl GpuRenderer {
         self.fused_adam = None;
     }
 
+    /// The constants of each group's next step (one group per [`ParamGroup`]).
+    fn write_next_step_constants(&self, ctx: &mut GpuContext, adam: &[AdamGroup]) -> Result<(), GpuError> {
+        let consts: [StepConstants; 6] = std::array::from_fn(|k| adam[k].next_step_constants());
+        self.adam.write_constants(ctx, &consts)
+    }
+
     /// Makes the next [`Self::loss_and_backward`] end with the Adam step of the resident map
     /// (its constants from `adam` written now), in the same submission, so that
     /// [`Self::adam_step`] then only counts it (or reports it refused) instead of submitting
@@ -1164,8 +1170,7 @@ impl GpuRenderer {
         if self.resident.is_none() || adam.len() != ParamGroup::ALL.len() {
             return Err(RenderError::NoForward { why: "the map is not on the device (make_resident)" }.into());
         }
-        let consts: [StepConstants; 6] = std::array::from_fn(|k| adam[k].next_step_constants());
-        self.adam.write_constants(ctx, &consts)?;
+        self.write_next_step_constants(ctx, adam)?;
         self.adam_armed = true;
         self.fused_adam = None;
         Ok(())
@@ -1191,8 +1196,7 @@ impl GpuRenderer {
             }
             return Ok(taken);
         }
-        let consts: [StepConstants; 6] = std::array::from_fn(|k| adam[k].next_step_constants());
-        self.adam.write_constants(ctx, &consts)?;
+        self.write_next_step_constants(ctx, adam)?;
         ctx.begin()?;
         self.adam.record_step(ctx, &self.fwd.projection.params, &self.project_backward.grads, n)?;
         ctx.submit_and_wait()?;
