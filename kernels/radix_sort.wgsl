@@ -3,7 +3,8 @@
 // shape and the same 4096-element blocks):
 //   histogram  one workgroup per block: digit counts -> hist[block * 256 + digit]
 //   scan       one workgroup: exclusive scan in digit-major order (block b's digit-d elements
-//              follow those of blocks < b and precede digit d + 1), in place
+//              follow those of blocks < b and precede digit d + 1), in place; the digit
+//              totals' scan is a workgroup scan
 //   scatter    one workgroup per block, 256-element chunks in order: stable scatter to dst,
 //              the rank within a chunk from per-digit thread bitmasks (popcounts)
 // Keys are u64 stored as vec2<u32> (lo, hi), the little-endian layout of a Rust u64.
@@ -14,10 +15,11 @@ const RADIX: u32 = 256u;
 const SORT_BLOCK: u32 = 4096u;
 
 struct SortParams {
+    // Pairs, or COUNT_ON_DEVICE: count[0].
     n: u32,
     shift: u32,
-    blocks: u32,
-    pad: u32,
+    pad0: u32,
+    pad1: u32,
 }
 
 var<immediate> params: SortParams;
@@ -27,6 +29,22 @@ var<immediate> params: SortParams;
 @group(0) @binding(2) var<storage, read_write> hist: array<u32>;
 @group(0) @binding(3) var<storage, read_write> dst_keys: array<vec2<u32>>;
 @group(0) @binding(4) var<storage, read_write> dst_values: array<u32>;
+// The pair count when `params.n` is `COUNT_ON_DEVICE` (written by an earlier kernel of the
+// submission; the host dispatched the blocks indirectly).
+@group(0) @binding(5) var<storage, read> count: array<u32>;
+
+const COUNT_ON_DEVICE: u32 = 0xffffffffu;
+
+fn pair_count() -> u32 {
+    if (params.n == COUNT_ON_DEVICE) {
+        return count[0];
+    }
+    return params.n;
+}
+
+fn block_count() -> u32 {
+    return (pair_count() + SORT_BLOCK - 1u) / SORT_BLOCK;
+}
 
 var<workgroup> counts: array<atomic<u32>, 256>;
 var<workgroup> digit_offset: array<u32, 256>;
@@ -45,9 +63,10 @@ fn histogram(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     atomicStore(&counts[t], 0u);
     workgroupBarrier();
     let base = wg.x * SORT_BLOCK;
+    let n = pair_count();
     for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
         let i = base + k * WG + t;
-        if (i < params.n) {
+        if (i < n) {
             atomicAdd(&counts[digit_of(src_keys[i])], 1u);
         }
     }
@@ -58,23 +77,48 @@ fn histogram(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
 @compute @workgroup_size(256)
 fn scan(@builtin(local_invocation_index) t: u32) {
     // Thread t owns digit t: its total over all blocks.
+    let blocks = block_count();
     var total = 0u;
-    for (var b = 0u; b < params.blocks; b = b + 1u) {
+    // Four independent loads per iteration (a loop of one waits out each load in turn).
+    var b = 0u;
+    for (; b + 4u <= blocks; b = b + 4u) {
+        let c0 = hist[b * RADIX + t];
+        let c1 = hist[(b + 1u) * RADIX + t];
+        let c2 = hist[(b + 2u) * RADIX + t];
+        let c3 = hist[(b + 3u) * RADIX + t];
+        total = total + ((c0 + c1) + (c2 + c3));
+    }
+    for (; b < blocks; b = b + 1u) {
         total = total + hist[b * RADIX + t];
     }
+    // Exclusive scan of the digit totals over the workgroup (Hillis-Steele, 8 steps).
     digit_offset[t] = total;
     workgroupBarrier();
-    if (t == 0u) {
-        var running = 0u;
-        for (var d = 0u; d < RADIX; d = d + 1u) {
-            let c = digit_offset[d];
-            digit_offset[d] = running;
-            running = running + c;
+    var inclusive = total;
+    for (var step = 1u; step < RADIX; step = step << 1u) {
+        var add = 0u;
+        if (t >= step) {
+            add = digit_offset[t - step];
         }
+        workgroupBarrier();
+        inclusive = inclusive + add;
+        digit_offset[t] = inclusive;
+        workgroupBarrier();
     }
-    workgroupBarrier();
-    var running = digit_offset[t];
-    for (var b = 0u; b < params.blocks; b = b + 1u) {
+    var running = inclusive - total;
+    b = 0u;
+    for (; b + 4u <= blocks; b = b + 4u) {
+        let c0 = hist[b * RADIX + t];
+        let c1 = hist[(b + 1u) * RADIX + t];
+        let c2 = hist[(b + 2u) * RADIX + t];
+        let c3 = hist[(b + 3u) * RADIX + t];
+        hist[b * RADIX + t] = running;
+        hist[(b + 1u) * RADIX + t] = running + c0;
+        hist[(b + 2u) * RADIX + t] = running + c0 + c1;
+        hist[(b + 3u) * RADIX + t] = running + c0 + c1 + c2;
+        running = running + ((c0 + c1) + (c2 + c3));
+    }
+    for (; b < blocks; b = b + 1u) {
         let c = hist[b * RADIX + t];
         hist[b * RADIX + t] = running;
         running = running + c;
@@ -89,11 +133,12 @@ fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index
         atomicStore(&masks[t * 8u + w], 0u);
     }
     let base = wg.x * SORT_BLOCK;
+    let n = pair_count();
     let word = t >> 5u;
     let bit = 1u << (t & 31u);
     for (var k = 0u; k < SORT_BLOCK / WG; k = k + 1u) {
         let i = base + k * WG + t;
-        let valid = i < params.n;
+        let valid = i < n;
         var d = 0u;
         var key = vec2<u32>(0u, 0u);
         workgroupBarrier();

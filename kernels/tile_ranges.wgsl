@@ -21,6 +21,24 @@ var<immediate> params: RangeParams;
 @group(0) @binding(3) var<storage, read> isect_gaussian: array<u32>;
 @group(0) @binding(4) var<storage, read_write> sorted_gaussian: array<u32>;
 @group(0) @binding(5) var<storage, read_write> slot_to_sorted: array<u32>;
+// The key count when `params.n_keys` is `COUNT_ON_DEVICE` (the intersection count an earlier
+// kernel of the submission wrote; the per-intersection kernels are then dispatched
+// indirectly).
+@group(0) @binding(6) var<storage, read> count: array<u32>;
+
+const COUNT_ON_DEVICE: u32 = 0xffffffffu;
+
+fn key_count() -> u32 {
+    if (params.n_keys == COUNT_ON_DEVICE) {
+        return count[0];
+    }
+    return params.n_keys;
+}
+
+// `key_tile` of src/map/render/bin.rs: the bits above the 21 of the depth.
+fn key_tile(key: vec2<u32>) -> u32 {
+    return (key.y << 11u) | (key.x >> 21u);
+}
 
 @compute @workgroup_size(256)
 fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -29,10 +47,10 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     var lo = 0u;
-    var hi = params.n_keys;
+    var hi = key_count();
     while (lo < hi) {
         let mid = lo + (hi - lo) / 2u;
-        if (sorted_keys[mid].y < t) {
+        if (key_tile(sorted_keys[mid]) < t) {
             lo = mid + 1u;
         } else {
             hi = mid;
@@ -44,7 +62,7 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(256)
 fn gather_sorted(@builtin(global_invocation_id) gid: vec3<u32>) {
     let k = gid.x;
-    if (k >= params.n_keys) {
+    if (k >= key_count()) {
         return;
     }
     sorted_gaussian[k] = isect_gaussian[sorted_slots[k]];
@@ -53,7 +71,7 @@ fn gather_sorted(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(256)
 fn invert_permutation(@builtin(global_invocation_id) gid: vec3<u32>) {
     let k = gid.x;
-    if (k >= params.n_keys) {
+    if (k >= key_count()) {
         return;
     }
     slot_to_sorted[sorted_slots[k]] = k;

@@ -12,7 +12,7 @@ use duv::core::rng::Rng;
 use duv::gpu::{BindingKind, Kernel};
 use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use duv::map::render::{
-    bits_for, emit_intersections, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
+    emit_intersections, isect_key_bits, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
     sort_histogram_len, tile_ranges, DepthMode, ProjectedSplat, ProjectionSetup, RasterCapacity, RasterInputs, RasterWorkspace, RenderConfig, RenderError, RenderOutput, TileGrid, TileRect,
     project_backward, rasterize_backward, rasterize_forward, reduce_isect_grads, MediumPlanes, SplatGrad,
 };
@@ -196,7 +196,7 @@ fn cpu_stages(g: &Gaussians, setup: &ProjectionSetup<f32>, grid: &TileGrid) -> C
     let mut isect_gaussian = vec![0u32; total];
     emit_intersections(&splats, &rects, &offsets, grid, &mut keys, &mut slots, &mut isect_gaussian);
     let (mut kt, mut vt, mut hist) = (vec![0u64; total], vec![0u32; total], vec![0u32; sort_histogram_len(total)]);
-    radix_sort_pairs(&mut keys, &mut slots, &mut kt, &mut vt, &mut hist, 32 + bits_for(grid.num_tiles() as u64 - 1));
+    radix_sort_pairs(&mut keys, &mut slots, &mut kt, &mut vt, &mut hist, isect_key_bits(grid.num_tiles()));
     let mut tile_offsets = vec![0u32; grid.num_tiles() + 1];
     tile_ranges(&keys, &mut tile_offsets);
     let mut sorted_gaussian = vec![0u32; total];
@@ -227,16 +227,20 @@ fn binning_sort_and_tile_ranges_match_the_cpu_stages() {
     let raw_rects: Vec<[u32; 4]> = rects.iter().map(|r| [r.x0, r.y0, r.x1, r.y1]).collect();
     ctx.write(&proj.rects, &raw_rects).unwrap();
     ctx.write(&proj.isect_offsets, &offsets).unwrap();
-    ctx.write(&proj.scan.status, &[0u32; 4]).unwrap();
+    // The scan's status as `record_exclusive_scan` leaves it: [overflow, total lo, hi, lo].
+    ctx.write(&proj.scan.status, &[0, total as u32, 0, total as u32]).unwrap();
     let bin = GpuBinning::new(&mut ctx, total + 1000, grid.num_tiles()).unwrap();
     ctx.begin().unwrap();
-    bin.record(&mut ctx, &proj, &grid, n, total).unwrap();
+    bin.record(&mut ctx, &proj, &grid, n).unwrap();
     ctx.submit_and_wait().unwrap();
     let read_u32 = |ctx: &duv::gpu::GpuContext, b: &duv::gpu::GpuBuffer<u32>, len: usize| {
         let mut v = vec![0u32; len];
         ctx.read(b, &mut v).unwrap();
         v
     };
+    // The count and the indirect dispatch arguments the sort and the gathers were sized by.
+    let t = total as u32;
+    assert_eq!(read_u32(&ctx, &bin.isect_args, 8), [t, t.div_ceil(4096), 1, 1, t.div_ceil(256), 1, 1, 0], "intersection count");
     let mut gpu_keys = vec![0u64; total];
     ctx.read(&bin.keys, &mut gpu_keys).unwrap();
     assert_eq!(gpu_keys, keys, "sorted keys");
@@ -276,13 +280,20 @@ fn binning_writes_nothing_after_an_overflow() {
     let (mut s, mut r, mut c) = (vec![ProjectedSplat::default(); n], vec![TileRect::default(); n], vec![0u32; n]);
     project_gaussians(&g, &setup, &grid, &mut s, &mut r, &mut c);
     assert_eq!(needed, c.iter().map(|&v| v as u64).sum::<u64>());
-    // Binning after the flagged scan writes no key even if asked to.
+    // Binning after the flagged scan writes no key, counts no intersection (so sorts and
+    // gathers none) and leaves every tile empty.
     ctx.begin().unwrap();
-    bin.record(&mut ctx, &proj, &grid, n, 64).unwrap();
+    bin.record(&mut ctx, &proj, &grid, n).unwrap();
     ctx.submit_and_wait().unwrap();
     let mut keys = vec![0u64; 64];
     ctx.read(&bin.keys, &mut keys).unwrap();
     assert!(keys.iter().all(|&k| k == u64::MAX), "keys written after an overflow");
+    let mut args = [7u32; 8];
+    ctx.read(&bin.isect_args, &mut args).unwrap();
+    assert_eq!(args, [0, 0, 1, 1, 0, 1, 1, 0], "intersection count after an overflow");
+    let mut offsets = vec![7u32; grid.num_tiles() + 1];
+    ctx.read(&bin.tile_offsets, &mut offsets).unwrap();
+    assert!(offsets.iter().all(|&o| o == 0), "tiles not empty after an overflow: {offsets:?}");
 }
 
 #[test]

@@ -235,6 +235,37 @@ fn staged_host_transfers_cross_chunks_and_sort_like_the_mapped_arena() {
     assert_eq!((got, prefetched(&ctx) - before), ([4, 5, 6], 2), "a write drops the prefetched copies");
 }
 
+/// A command waits (a barrier) only for what it depends on: two fills of separate buffers run
+/// together, a copy from one of them waits, a copy from the other (ordered by that barrier)
+/// does not, a copy of a copy's output waits again; the data are as if each ran in turn.
+#[test]
+fn barriers_only_where_a_command_depends_on_an_earlier_one() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("barriers_only_where_a_command_depends_on_an_earlier_one") else { return };
+    let bufs: Vec<GpuBuffer<u32>> = (0..5).map(|_| ctx.alloc::<u32>("barrier test", 1000).unwrap()).collect();
+    let barriers = |ctx: &GpuContext| ctx.host_stats().barriers;
+    let before = barriers(&ctx);
+    ctx.begin().unwrap();
+    ctx.fill(bufs[0].range(), 11).unwrap();
+    ctx.fill(bufs[1].range(), 22).unwrap();
+    assert_eq!(barriers(&ctx) - before, 0, "two fills of separate buffers");
+    ctx.copy(bufs[0].range(), bufs[2].range()).unwrap();
+    assert_eq!(barriers(&ctx) - before, 1, "a copy of a filled buffer waits for the fill");
+    ctx.copy(bufs[1].range(), bufs[3].range()).unwrap();
+    assert_eq!(barriers(&ctx) - before, 1, "the other fill is already ordered");
+    ctx.copy(bufs[2].range(), bufs[4].range()).unwrap();
+    assert_eq!(barriers(&ctx) - before, 2, "a copy of a copy waits for it");
+    ctx.fill(bufs[0].range(), 33).unwrap();
+    assert_eq!(barriers(&ctx) - before, 2, "overwriting what an ordered copy read");
+    ctx.fill(bufs[4].range(), 44).unwrap();
+    assert_eq!(barriers(&ctx) - before, 3, "write after write");
+    ctx.submit_and_wait().unwrap();
+    let mut got = vec![0u32; 1000];
+    for (b, want) in bufs.iter().zip([33, 22, 11, 22, 44]) {
+        ctx.read(b, &mut got).unwrap();
+        assert!(got.iter().all(|&v| v == want), "{want}: got {:?}", &got[..4]);
+    }
+}
+
 #[test]
 fn device_choice_and_pipeline_cache_on_disk() {
     let Some(ctx) = gpu_common::gpu_or_skip("device_choice_and_pipeline_cache_on_disk") else { return };
@@ -283,7 +314,7 @@ fn device_choice_and_pipeline_cache_on_disk() {
     // A dispatch with the wrong number of buffers names the kernel.
     let b = small.alloc::<u32>("b", 16).unwrap();
     small.begin().unwrap();
-    let err = small.dispatch(duv::gpu::Kernel::RadixSortScan, &[b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
+    let err = small.dispatch(duv::gpu::Kernel::RadixSortScan, &[b.range(), b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
     assert!(err.to_string().contains("radix_sort.scan"), "{err}");
     small.submit_and_wait().unwrap();
 }

@@ -14,9 +14,9 @@ use duv::core::{PinholeCamera, RadTan, Se3};
 use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use duv::map::render::reference::{medium_f64, render_reference, ReferenceView};
 use duv::map::render::{
-    backprop_pixel, bits_for, blend_pixel, exclusive_scan, project_splat, project_splat_backward, radix_sort_pairs, scan_blocks, sigmoid,
+    backprop_pixel, bits_for, blend_pixel, isect_key, isect_key_bits, key_tile, DEPTH_KEY_BITS, exclusive_scan, project_splat, project_splat_backward, radix_sort_pairs, scan_blocks, sigmoid,
     sort_histogram_len, tile_ranges, DepthMode, MediumPlanes, PixelForward, PixelMedium, PixelRay, PixelState, PixelUpstream,
-    ProjectedSplat, ProjectionSetup, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput, RenderUpstream, SplatGrad,
+    ProjectedSplat, ProjectionSetup, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput, RenderUpstream, SplatGrad, TileGrid,
     ALPHA_MIN,
 };
 use render_scene::{camera, f_dc_for, random_gaussians, random_medium, random_upstream, world_from_cam};
@@ -297,16 +297,44 @@ fn tile_ranges_partition_the_sorted_keys() {
     let mut rng = Rng::new(8);
     let tiles = 23usize;
     let n = 512 * 16 + 123;
-    let mut keys: Vec<u64> = (0..n).map(|_| (rng.below(tiles as u64 - 3) + 1) << 32 | rng.below(1 << 31)).collect();
+    let mut keys: Vec<u64> = (0..n).map(|_| isect_key(rng.below(tiles as u64 - 3) as u32 + 1, rng.range(0.1, 40.0) as f32)).collect();
     keys.sort_unstable();
     let mut offsets = vec![0u32; tiles + 1];
     tile_ranges(&keys, &mut offsets);
     assert_eq!((offsets[0], offsets[1], offsets[tiles]), (0, 0, n as u32));
     for t in 0..tiles {
         let range = offsets[t] as usize..offsets[t + 1] as usize;
-        assert!(keys[range.clone()].iter().all(|&k| (k >> 32) as usize == t));
-        assert_eq!(range.len(), keys.iter().filter(|&&k| (k >> 32) as usize == t).count());
+        assert!(keys[range.clone()].iter().all(|&k| key_tile(k) as usize == t));
+        assert_eq!(range.len(), keys.iter().filter(|&&k| key_tile(k) as usize == t).count());
     }
+}
+
+/// Intersection keys order by tile, then by depth to a relative 2^-13; closer depths tie (the
+/// stable sort keeps the Gaussians' order); 640x480's tiles fit 32 bits (four radix passes).
+#[test]
+fn intersection_keys_order_by_tile_then_depth() {
+    let mut rng = Rng::new(9);
+    for _ in 0..10_000 {
+        let (t1, t2) = (rng.below(5000) as u32, rng.below(5000) as u32);
+        let (z1, z2) = (rng.range(0.01, 100.0) as f32, rng.range(0.01, 100.0) as f32);
+        let (k1, k2) = (isect_key(t1, z1), isect_key(t2, z2));
+        assert_eq!((key_tile(k1), key_tile(k2)), (t1, t2));
+        if t1 != t2 {
+            assert_eq!(k1 < k2, t1 < t2);
+            continue;
+        }
+        // Never out of order; strictly ordered beyond twice the resolution.
+        assert_eq!(k1 <= k2, z1 <= z2 || k1 == k2, "depths {z1} and {z2}");
+        if (z1 - z2).abs() > 2.5e-4 * z1.max(z2) {
+            assert_eq!(k1 < k2, z1 < z2, "depths {z1} and {z2}");
+        }
+        let z3 = z1 * 1.00001;
+        assert!(isect_key(t1, z3) - k1 <= 1, "depths {z1} and {z3}: one step at most");
+    }
+    assert_eq!(isect_key(7, 3.0), isect_key(7, 3.0 * (1.0 + 1e-5)), "within the resolution: a tie");
+    assert!(isect_key(7, 3.0) < isect_key(7, 3.0 * (1.0 + 2.5e-4)));
+    assert_eq!(isect_key_bits(TileGrid::new(640, 480).num_tiles()), 32);
+    assert_eq!(DEPTH_KEY_BITS + bits_for(TileGrid::new(1280, 720).num_tiles() as u64 - 1), isect_key_bits(3600));
 }
 
 #[test]

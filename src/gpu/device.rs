@@ -2,8 +2,11 @@
 //! per-kernel timestamp profile.
 //!
 //! Recording: [`GpuContext::begin`], then any number of [`GpuContext::dispatch`] /
-//! [`GpuContext::fill`] / [`GpuContext::copy`] (each followed by a full compute barrier, so
-//! dispatches run in order), then [`GpuContext::submit_and_wait`]. Bindings are pushed with
+//! [`GpuContext::fill`] / [`GpuContext::copy`], then [`GpuContext::submit_and_wait`]. A
+//! command is ordered after the earlier ones by a full compute barrier where it reads what one
+//! of them wrote or writes what one of them touched (byte ranges of the arena, see
+//! [`Hazards`]); commands with no such overlap since the last barrier may run together.
+//! Bindings are pushed with
 //! `VK_KHR_push_descriptor` (no descriptor pools, no allocation per dispatch); small
 //! parameters go in the kernel's immediate (push-constant) block.
 
@@ -63,6 +66,70 @@ pub const DEFERRED_WRITE_BYTES: usize = 64 << 10;
 const MAX_DEFERRED_WRITES: usize = 64;
 /// Prefetched ranges per submission; more are read the ordinary way.
 const MAX_PREFETCHES: usize = 16;
+/// How a dispatch's workgroup count is given.
+#[derive(Clone, Copy, Debug)]
+enum Launch {
+    Groups([u32; 3]),
+    /// Three u32 in the arena, read by the device.
+    Indirect(GpuRange),
+}
+
+/// Arena ranges [`Hazards`] remembers between barriers; one more is a barrier.
+const MAX_HAZARD_RANGES: usize = 48;
+
+/// The arena ranges the commands recorded since the last barrier wrote and read, to decide
+/// whether the next command needs one: it does when it reads or writes a range written since
+/// (read after write, write after write) or writes a range read since (write after read).
+/// Bindings declared `read_write` count as written.
+#[derive(Clone, Debug)]
+pub struct Hazards {
+    writes: [GpuRange; MAX_HAZARD_RANGES],
+    n_writes: usize,
+    reads: [GpuRange; MAX_HAZARD_RANGES],
+    n_reads: usize,
+}
+
+impl Default for Hazards {
+    fn default() -> Self {
+        let none = GpuRange { offset: 0, size: 0 };
+        Hazards { writes: [none; MAX_HAZARD_RANGES], n_writes: 0, reads: [none; MAX_HAZARD_RANGES], n_reads: 0 }
+    }
+}
+
+fn overlaps(a: &GpuRange, b: &GpuRange) -> bool {
+    a.offset < b.offset + b.size && b.offset < a.offset + a.size
+}
+
+impl Hazards {
+    /// Whether a command touching `accesses` (`(range, written)`) must wait for the commands
+    /// since the last barrier: it overlaps what they wrote, writes what they read, or would
+    /// overflow what is remembered.
+    pub fn needs_barrier(&self, accesses: &[(GpuRange, bool)]) -> bool {
+        let (w, r) = (&self.writes[..self.n_writes], &self.reads[..self.n_reads]);
+        let added_w = accesses.iter().filter(|a| a.1).count();
+        if self.n_writes + added_w > MAX_HAZARD_RANGES || self.n_reads + accesses.len() - added_w > MAX_HAZARD_RANGES {
+            return true;
+        }
+        accesses.iter().any(|(range, written)| w.iter().any(|x| overlaps(x, range)) || (*written && r.iter().any(|x| overlaps(x, range))))
+    }
+    /// Remembers a command's accesses (after [`Self::needs_barrier`] said no, or a barrier).
+    pub fn record(&mut self, accesses: &[(GpuRange, bool)]) {
+        for &(range, written) in accesses {
+            if written && self.n_writes < MAX_HAZARD_RANGES {
+                self.writes[self.n_writes] = range;
+                self.n_writes += 1;
+            } else if !written && self.n_reads < MAX_HAZARD_RANGES {
+                self.reads[self.n_reads] = range;
+                self.n_reads += 1;
+            }
+        }
+    }
+    /// A barrier was recorded: everything before it is ordered.
+    pub fn clear(&mut self) {
+        self.n_writes = 0;
+        self.n_reads = 0;
+    }
+}
 
 impl GpuOptions {
     /// An arena of `gpu_mb` MiB, the device from [`DEVICE_ENV`], the pipeline cache in
@@ -130,6 +197,9 @@ pub struct HostStats {
     /// Of `reads`, those served from a copy the last submission made
     /// ([`GpuContext::prefetch`]; no submission of their own).
     pub prefetched_reads: u64,
+    /// Pipeline barriers recorded inside submissions: one only where a command touches what
+    /// another since the last barrier wrote (or writes what one read), see [`Hazards`].
+    pub barriers: u64,
 }
 
 impl HostStats {
@@ -145,15 +215,17 @@ impl HostStats {
             write_bytes: self.write_bytes - earlier.write_bytes,
             write_ns: self.write_ns - earlier.write_ns,
             prefetched_reads: self.prefetched_reads - earlier.prefetched_reads,
+            barriers: self.barriers - earlier.barriers,
         }
     }
     /// One line per `per` steps: submissions, reads, writes, their bytes and milliseconds.
     pub fn describe_per(&self, per: u64) -> String {
         let p = per.max(1) as f64;
         format!(
-            "{:.1} submissions ({:.3} ms submit to fence), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
+            "{:.1} submissions ({:.3} ms submit to fence, {:.1} barriers), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
             self.submits as f64 / p,
             self.submit_wait_ns as f64 * 1e-6 / p,
+            self.barriers as f64 / p,
             self.reads as f64 / p,
             self.prefetched_reads as f64 / p,
             self.read_bytes as f64 * 1e-6 / p,
@@ -237,6 +309,12 @@ pub struct GpuContext {
     recording: bool,
     recorded: usize,
     recorded_kernels: [Kernel; MAX_DISPATCHES],
+    /// What the commands since the last barrier of the open submission touched.
+    hazards: Hazards,
+    /// Timestamp queries wanted ([`GpuContext::set_timestamps`]) and, latched at `begin`,
+    /// taken in the open submission.
+    timestamps_wanted: bool,
+    timing: bool,
     timestamps: Box<[u64; 2 * MAX_DISPATCHES]>,
     profile: KernelProfile,
     /// Host-side counters; a `Cell` because reads take `&self`.
@@ -480,6 +558,9 @@ impl GpuContext {
             deterministic: !cand.float_atomics,
             recording: false,
             recorded: 0,
+            hazards: Hazards::default(),
+            timestamps_wanted: true,
+            timing: false,
             recorded_kernels: [Kernel::all().next().expect("at least one kernel"); MAX_DISPATCHES],
             timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
             profile: KernelProfile::default(),
@@ -558,7 +639,7 @@ impl GpuContext {
             device.create_buffer(
                 &vk::BufferCreateInfo::default()
                     .size(capacity.max(256))
-                    .usage(vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST)
+                    .usage(vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST | vk::BufferUsageFlags::INDIRECT_BUFFER)
                     .sharing_mode(vk::SharingMode::EXCLUSIVE),
                 None,
             )
@@ -924,10 +1005,12 @@ impl GpuContext {
                 &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .map_err(vk_err("vkBeginCommandBuffer"))?;
-            if let Some(q) = self.query_pool {
+            self.timing = self.timestamps_wanted && self.query_pool.is_some();
+            if let (Some(q), true) = (self.query_pool, self.timing) {
                 d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32);
             }
         }
+        self.hazards.clear();
         if !self.deferred.borrow().is_empty() {
             self.record_deferred(self.command_buffer);
             self.barrier();
@@ -940,17 +1023,60 @@ impl GpuContext {
         Ok(())
     }
 
+    /// Orders a command touching `accesses` (`(range, written)`) after the earlier commands
+    /// of the submission where it must ([`Hazards`]), then remembers its accesses.
+    fn order(&mut self, accesses: &[(GpuRange, bool)]) {
+        if self.hazards.needs_barrier(accesses) {
+            self.barrier();
+            self.hazards.clear();
+            let mut h = self.host.get();
+            h.barriers += 1;
+            self.host.set(h);
+        }
+        self.hazards.record(accesses);
+    }
+
+    /// Timestamp queries around every dispatch from the next [`Self::begin`] on (`on`, the
+    /// default) or none (they cost the device a little per dispatch, and the host a read per
+    /// submission). Returns whether the device can take them at all.
+    pub fn set_timestamps(&mut self, on: bool) -> bool {
+        self.timestamps_wanted = on;
+        self.query_pool.is_some()
+    }
+
     fn barrier(&self) {
         let mb = [vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
-            .dst_access_mask(vk::AccessFlags::SHADER_READ | vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_READ | vk::AccessFlags::TRANSFER_WRITE)];
+            .dst_access_mask(
+                vk::AccessFlags::SHADER_READ
+                    | vk::AccessFlags::SHADER_WRITE
+                    | vk::AccessFlags::TRANSFER_READ
+                    | vk::AccessFlags::TRANSFER_WRITE
+                    | vk::AccessFlags::INDIRECT_COMMAND_READ,
+            )];
         let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
-        unsafe { self.device.cmd_pipeline_barrier(self.command_buffer, stages, stages, vk::DependencyFlags::empty(), &mb, &[], &[]) };
+        let dst = stages | vk::PipelineStageFlags::DRAW_INDIRECT;
+        unsafe { self.device.cmd_pipeline_barrier(self.command_buffer, stages, dst, vk::DependencyFlags::empty(), &mb, &[], &[]) };
     }
 
     /// Records `kernel` over `groups` workgroups with `buffers` bound in the order of the
     /// kernel's bindings and `immediates` (its `var<immediate>` block, exactly its size).
     pub fn dispatch(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
+        self.record_dispatch(kernel, buffers, immediates, Launch::Groups(groups))
+    }
+
+    /// [`Self::dispatch`] with the workgroup counts read by the device from `args` (three
+    /// u32, written by an earlier kernel of the submission: `vkCmdDispatchIndirect`), so a
+    /// size computed on the device needs no round trip to the host. Counts beyond the
+    /// device's limits are the writer's to prevent (the host cannot check them).
+    pub fn dispatch_indirect(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], args: GpuRange) -> Result<(), GpuError> {
+        if args.size < 12 || args.offset % 4 != 0 {
+            return Err(GpuError::OutOfRange { what: "indirect dispatch arguments (3 u32)", requested: 12, len: args.size as usize });
+        }
+        self.record_dispatch(kernel, buffers, immediates, Launch::Indirect(args))
+    }
+
+    fn record_dispatch(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], launch: Launch) -> Result<(), GpuError> {
         let name = kernel.name();
         if !self.recording {
             return Err(GpuError::NotRecording { what: name });
@@ -962,23 +1088,27 @@ impl GpuContext {
         if immediates.len() != info.immediate_bytes as usize {
             return Err(GpuError::Immediates { kernel: name, expected: info.immediate_bytes, got: immediates.len() });
         }
-        for (g, max) in groups.iter().zip(self.max_groups) {
-            if *g > max {
-                return Err(GpuError::TooManyWorkgroups { kernel: name, groups: *g, max });
+        if let Launch::Groups(groups) = launch {
+            for (g, max) in groups.iter().zip(self.max_groups) {
+                if *g > max {
+                    return Err(GpuError::TooManyWorkgroups { kernel: name, groups: *g, max });
+                }
             }
         }
         if self.recorded >= MAX_DISPATCHES {
             return Err(GpuError::TooManyDispatches { kernel: name, capacity: MAX_DISPATCHES });
         }
-        if groups.contains(&0) {
+        if matches!(launch, Launch::Groups(g) if g.contains(&0)) {
             return Ok(());
         }
         let mut infos = [vk::DescriptorBufferInfo::default(); MAX_BINDINGS];
-        for ((slot, range), b) in infos.iter_mut().zip(buffers).zip(info.bindings) {
+        let mut accesses = [(GpuRange { offset: 0, size: 0 }, false); MAX_BINDINGS + 1];
+        for (((slot, access), range), b) in infos.iter_mut().zip(accesses.iter_mut()).zip(buffers).zip(info.bindings) {
             if range.size == 0 {
                 return Err(GpuError::EmptyBinding { kernel: name, binding: b.binding, name: b.name });
             }
             *slot = vk::DescriptorBufferInfo { buffer: self.buffer, offset: range.offset, range: range.size };
+            *access = (*range, b.kind == BindingKind::StorageReadWrite);
         }
         let mut writes = [vk::WriteDescriptorSet::default(); MAX_BINDINGS];
         for (i, (w, b)) in writes.iter_mut().zip(info.bindings).enumerate() {
@@ -990,14 +1120,21 @@ impl GpuContext {
                 })
                 .buffer_info(std::slice::from_ref(&infos[i]));
         }
-        let p = &self.pipelines[kernel as usize];
-        if p.pipeline == vk::Pipeline::null() {
+        if self.pipelines[kernel as usize].pipeline == vk::Pipeline::null() {
             return Err(GpuError::NoFloatAtomics { kernel: name });
         }
+        let mut n_access = info.bindings.len();
+        if let Launch::Indirect(args) = launch {
+            accesses[n_access] = (GpuRange { offset: args.offset, size: 12 }, false);
+            n_access += 1;
+        }
+        self.order(&accesses[..n_access]);
+        let p = &self.pipelines[kernel as usize];
         let cb = self.command_buffer;
         let slot = self.recorded as u32;
+        let timing = self.query_pool.filter(|_| self.timing);
         unsafe {
-            if let Some(q) = self.query_pool {
+            if let Some(q) = timing {
                 self.device.cmd_write_timestamp(cb, vk::PipelineStageFlags::TOP_OF_PIPE, q, 2 * slot);
             }
             self.device.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, p.pipeline);
@@ -1005,12 +1142,14 @@ impl GpuContext {
             if !immediates.is_empty() {
                 self.device.cmd_push_constants(cb, p.layout, vk::ShaderStageFlags::COMPUTE, 0, immediates);
             }
-            self.device.cmd_dispatch(cb, groups[0], groups[1], groups[2]);
-            if let Some(q) = self.query_pool {
+            match launch {
+                Launch::Groups(g) => self.device.cmd_dispatch(cb, g[0], g[1], g[2]),
+                Launch::Indirect(args) => self.device.cmd_dispatch_indirect(cb, self.buffer, args.offset),
+            }
+            if let Some(q) = timing {
                 self.device.cmd_write_timestamp(cb, vk::PipelineStageFlags::BOTTOM_OF_PIPE, q, 2 * slot + 1);
             }
         }
-        self.barrier();
         self.recorded_kernels[self.recorded] = kernel;
         self.recorded += 1;
         self.last_kernel = Some(kernel);
@@ -1034,8 +1173,8 @@ impl GpuContext {
         if !self.recording {
             return Err(GpuError::NotRecording { what: "fill" });
         }
+        self.order(&[(range, true)]);
         unsafe { self.device.cmd_fill_buffer(self.command_buffer, self.buffer, range.offset, range.size, value) };
-        self.barrier();
         Ok(())
     }
 
@@ -1053,6 +1192,7 @@ impl GpuContext {
             return Ok(());
         }
         let copy = vk::BufferCopy { src_offset: range.offset, dst_offset: self.prefetch_at + self.prefetch_used, size: range.size };
+        self.order(&[(range, false)]);
         let d = &self.device;
         let cb = self.command_buffer;
         unsafe {
@@ -1060,7 +1200,6 @@ impl GpuContext {
             let to_host = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
             d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
         }
-        self.barrier();
         self.prefetch_used += size;
         self.prefetched.get_mut().push(copy);
         Ok(())
@@ -1071,9 +1210,10 @@ impl GpuContext {
         if !self.recording {
             return Err(GpuError::NotRecording { what: "copy" });
         }
-        let region = [vk::BufferCopy { src_offset: src.offset, dst_offset: dst.offset, size: src.size.min(dst.size) }];
+        let size = src.size.min(dst.size);
+        let region = [vk::BufferCopy { src_offset: src.offset, dst_offset: dst.offset, size }];
+        self.order(&[(GpuRange { offset: src.offset, size }, false), (GpuRange { offset: dst.offset, size }, true)]);
         unsafe { self.device.cmd_copy_buffer(self.command_buffer, self.buffer, self.buffer, &region) };
-        self.barrier();
         Ok(())
     }
 
@@ -1087,6 +1227,12 @@ impl GpuContext {
         let kerr = |call: &'static str| move |result| GpuError::Kernel { kernel: name, call, result };
         let d = &self.device;
         unsafe {
+            // What the kernels wrote, visible to the host (a mapped arena is read in place).
+            let to_host = [vk::MemoryBarrier::default()
+                .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
+                .dst_access_mask(vk::AccessFlags::HOST_READ)];
+            let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
+            d.cmd_pipeline_barrier(self.command_buffer, stages, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
             d.end_command_buffer(self.command_buffer).map_err(vk_err("vkEndCommandBuffer"))?;
             let cbs = [self.command_buffer];
             let submit = [vk::SubmitInfo::default().command_buffers(&cbs)];
@@ -1099,7 +1245,7 @@ impl GpuContext {
             self.host.set(h);
             d.reset_fences(&[self.fence]).map_err(vk_err("vkResetFences"))?;
         }
-        if let (Some(q), Some(period)) = (self.query_pool, self.info.timestamp_period_ns) {
+        if let (Some(q), Some(period), true) = (self.query_pool, self.info.timestamp_period_ns, self.timing) {
             let n = self.recorded;
             if n > 0 {
                 let ts = &mut self.timestamps[..2 * n];
@@ -1167,5 +1313,43 @@ impl Drop for GpuContext {
         let _lifecycle = lifecycle_lock();
         self.destroy_device_objects();
         unsafe { self.instance.destroy_instance(None) };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn r(offset: u64, size: u64) -> GpuRange {
+        GpuRange { offset, size }
+    }
+
+    #[test]
+    fn hazards_order_only_what_overlaps() {
+        let mut h = Hazards::default();
+        // Two kernels on disjoint ranges: no barrier between them.
+        assert!(!h.needs_barrier(&[(r(0, 64), false), (r(64, 64), true)]));
+        h.record(&[(r(0, 64), false), (r(64, 64), true)]);
+        assert!(!h.needs_barrier(&[(r(0, 64), false), (r(256, 64), true)]), "two reads of one range need no barrier");
+        h.record(&[(r(0, 64), false), (r(256, 64), true)]);
+        // Read after write (the last byte of a written range), write after write, write after read.
+        assert!(h.needs_barrier(&[(r(127, 4), false)]));
+        assert!(h.needs_barrier(&[(r(300, 8), true)]));
+        assert!(h.needs_barrier(&[(r(60, 8), true)]));
+        // Adjacent, not overlapping.
+        assert!(!h.needs_barrier(&[(r(128, 128), true)]));
+        h.clear();
+        assert!(!h.needs_barrier(&[(r(64, 64), false), (r(0, 64), true)]));
+    }
+
+    #[test]
+    fn hazards_barrier_when_full() {
+        let mut h = Hazards::default();
+        for i in 0..MAX_HAZARD_RANGES as u64 {
+            assert!(!h.needs_barrier(&[(r(i * 16, 8), true)]));
+            h.record(&[(r(i * 16, 8), true)]);
+        }
+        assert!(h.needs_barrier(&[(r(1 << 20, 8), true)]), "one range more than it remembers");
+        assert!(!h.needs_barrier(&[(r(1 << 20, 8), false)]), "reads are remembered apart");
     }
 }

@@ -3,7 +3,7 @@
 //! (`kernels/radix_sort.wgsl`). Scratch buffers come from the arena once, sized for the
 //! largest input ([`ScanScratch::new`], [`SortScratch::new`]).
 
-use super::arena::GpuBuffer;
+use super::arena::{GpuBuffer, GpuRange};
 use super::device::GpuContext;
 use super::kernels::Kernel;
 use super::GpuError;
@@ -89,6 +89,8 @@ pub struct SortScratch {
     pub keys_tmp: GpuBuffer<u64>,
     pub values_tmp: GpuBuffer<u32>,
     pub histograms: GpuBuffer<u32>,
+    /// What the kernels' `count` binding takes when the host gives the count (unused then).
+    pub unused_count: GpuBuffer<u32>,
 }
 
 impl SortScratch {
@@ -98,6 +100,7 @@ impl SortScratch {
             keys_tmp: ctx.alloc("sort keys (ping-pong)", max_n)?,
             values_tmp: ctx.alloc("sort values (ping-pong)", max_n)?,
             histograms: ctx.alloc("sort histograms", max_n.div_ceil(SORT_BLOCK).max(1) * RADIX)?,
+            unused_count: ctx.alloc("sort count (host-given)", 4)?,
         })
     }
 }
@@ -120,17 +123,58 @@ pub fn record_radix_sort(
         return Ok(());
     }
     let blocks = n.div_ceil(SORT_BLOCK);
-    let passes = key_bits.min(64).div_ceil(8);
     let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
     let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
     let hist = scratch.histograms.slice_range(0, blocks * RADIX)?;
+    record_sort_passes(ctx, (a, b, hist, scratch.unused_count.range()), n as u32, key_bits, |ctx, kernel, bufs, imm| ctx.dispatch(kernel, bufs, imm, groups(blocks)))
+}
+
+/// [`record_radix_sort`] of the first `count[0]` pairs, a count an earlier kernel of the
+/// submission wrote (at most `scratch.max_n`, the caller's kernel's to ensure), with the blocks
+/// dispatched indirectly from `block_args` (three u32: `ceil(count / SORT_BLOCK)`, 1, 1), so
+/// the host never reads the count. The buffers are bound whole (up to `scratch.max_n`).
+pub fn record_radix_sort_indirect(
+    ctx: &mut GpuContext,
+    keys: &GpuBuffer<u64>,
+    values: &GpuBuffer<u32>,
+    count: GpuRange,
+    block_args: GpuRange,
+    key_bits: u32,
+    scratch: &SortScratch,
+) -> Result<(), GpuError> {
+    let n = scratch.max_n.min(keys.len()).min(values.len());
+    if n == 0 {
+        return Ok(());
+    }
+    let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
+    let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
+    let hist = scratch.histograms.range();
+    record_sort_passes(ctx, (a, b, hist, count), COUNT_ON_DEVICE, key_bits, |ctx, kernel, bufs, imm| ctx.dispatch_indirect(kernel, bufs, imm, block_args))
+}
+
+/// The pair count in the sort's immediates that makes its kernels read `count[0]`.
+const COUNT_ON_DEVICE: u32 = u32::MAX;
+
+type SortBuffers = ((GpuRange, GpuRange), (GpuRange, GpuRange), GpuRange, GpuRange);
+
+/// The passes of a radix sort of `n` pairs (or [`COUNT_ON_DEVICE`]) between `a` (keys,
+/// values; the result) and `b`, with `hist` and `count` bound; `per_block` records a
+/// per-block kernel.
+fn record_sort_passes(
+    ctx: &mut GpuContext,
+    (a, b, hist, count): SortBuffers,
+    n: u32,
+    key_bits: u32,
+    per_block: impl Fn(&mut GpuContext, Kernel, &[GpuRange], &[u8]) -> Result<(), GpuError>,
+) -> Result<(), GpuError> {
+    let passes = key_bits.min(64).div_ceil(8);
     for pass in 0..passes {
         let (src, dst) = if pass % 2 == 0 { (a, b) } else { (b, a) };
-        let params = [n as u32, pass * 8, blocks as u32, 0];
+        let params = [n, pass * 8, 0, 0];
         let imm = bytemuck::bytes_of(&params);
-        ctx.dispatch(Kernel::RadixSortHistogram, &[src.0, hist], imm, groups(blocks))?;
-        ctx.dispatch(Kernel::RadixSortScan, &[hist], imm, groups(1))?;
-        ctx.dispatch(Kernel::RadixSortScatter, &[src.0, src.1, hist, dst.0, dst.1], imm, groups(blocks))?;
+        per_block(ctx, Kernel::RadixSortHistogram, &[src.0, hist, count], imm)?;
+        ctx.dispatch(Kernel::RadixSortScan, &[hist, count], imm, groups(1))?;
+        per_block(ctx, Kernel::RadixSortScatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm)?;
     }
     if passes % 2 == 1 {
         ctx.copy(b.0, a.0)?;

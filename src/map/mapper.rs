@@ -582,6 +582,13 @@ impl Mapper {
         self.raster.gpu()
     }
 
+    /// Per-kernel timestamp queries on the Vulkan renderer on (the default) or off, so that a
+    /// timed loop does not pay for them ([`crate::gpu::GpuContext::set_timestamps`]); returns
+    /// whether there are timestamps to take.
+    pub fn set_gpu_timestamps(&mut self, on: bool) -> bool {
+        self.raster.set_gpu_timestamps(on)
+    }
+
     /// On the Vulkan renderer the optimiser's map lives on the device between densification
     /// steps and nothing of it is read back after a step: the parameters ([`Mapper::gaussians`]),
     /// the Adam moments and the densification statistics come to the host here (and at every

@@ -58,7 +58,7 @@ mod sort;
 mod tiles;
 mod workspace;
 
-pub use bin::{emit_intersections, exclusive_scan, isect_key, key_tile, scan_blocks, SCAN_BLOCK};
+pub use bin::{emit_intersections, exclusive_scan, isect_key, isect_key_bits, key_tile, scan_blocks, DEPTH_KEY_BITS, SCAN_BLOCK};
 pub use math::{quat_to_mat3, sigmoid, Float};
 pub use project::{project_gaussians, project_splat, tile_rect, ProjectedSplat, ProjectionSetup, TileRect};
 pub use project_bwd::{project_backward, project_splat_backward};

@@ -4,12 +4,12 @@
 
 use rayon::prelude::*;
 
-use super::bin::{emit_intersections, exclusive_scan, scan_blocks};
+use super::bin::{emit_intersections, exclusive_scan, isect_key_bits, scan_blocks};
 use super::project::{project_gaussians, ProjectedSplat, ProjectionSetup, TileRect};
 use super::project_bwd::project_backward;
 use super::raster_bwd::{rasterize_backward, reduce_isect_grads, SplatGrad};
 use super::raster_fwd::{rasterize_forward, RasterInputs};
-use super::sort::{bits_for, radix_sort_pairs, sort_histogram_len};
+use super::sort::{radix_sort_pairs, sort_histogram_len};
 use super::tiles::{gather_sorted_gaussians, invert_permutation, tile_ranges};
 use super::{DepthMode, MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderUpstream, TileGrid};
 use crate::core::{Image, PinholeCamera, Se3};
@@ -180,7 +180,7 @@ impl RasterWorkspace {
         };
         {
             let _span = tracing::debug_span!("map.sort", intersections = n_isects).entered();
-            let key_bits = 32 + bits_for(grid.num_tiles().saturating_sub(1) as u64);
+            let key_bits = isect_key_bits(grid.num_tiles());
             radix_sort_pairs(
                 &mut self.keys[..n_isects],
                 &mut self.values[..n_isects],

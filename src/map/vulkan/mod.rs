@@ -46,14 +46,14 @@ pub mod loss;
 pub mod medium;
 pub mod optimiser;
 
-use crate::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch};
+use crate::gpu::ops::{record_exclusive_scan, record_radix_sort_indirect, ScanScratch, SortScratch, SORT_BLOCK};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
 use crate::map::adam::{AdamGroup, StepConstants};
 use crate::map::medium::{C_MED, MEDIUM_CHANNELS};
 use crate::map::gaussians::{GaussianGrads, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use crate::core::{PinholeCamera, Se3};
 use crate::map::render::{
-    bits_for, check_backward_inputs, check_output, check_rgb, check_size, validate_gaussians, DepthMode, MediumPlanes, ProjectedSplat, ProjectionSetup,
+    check_backward_inputs, check_output, check_rgb, check_size, validate_gaussians, DepthMode, MediumPlanes, ProjectedSplat, ProjectionSetup,
     RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream, SplatGrad, TileGrid, TileRect,
 };
 
@@ -225,6 +225,9 @@ pub struct GpuBinning {
     pub tile_offsets: GpuBuffer<u32>,
     pub sorted_gaussian: GpuBuffer<u32>,
     pub slot_to_sorted: GpuBuffer<u32>,
+    /// `[count, sort blocks, 1, 1, 256-intersection groups, 1, 1, 0]`, written on the device
+    /// (`intersection_count`).
+    pub isect_args: GpuBuffer<u32>,
 }
 
 impl GpuBinning {
@@ -239,22 +242,23 @@ impl GpuBinning {
             tile_offsets: ctx.alloc("tile offsets", max_tiles + 1)?,
             sorted_gaussian: ctx.alloc("sorted Gaussians", max_intersections)?,
             slot_to_sorted: ctx.alloc("slot to sorted", max_intersections)?,
+            isect_args: ctx.alloc("intersection count and dispatch arguments", 8)?,
         })
     }
 
-    /// Records, for `n` projected Gaussians with `n_isects` intersections (the scan's total,
-    /// read after the projection submission): emit the keys, sort them, tile ranges, gather
-    /// and invert. CPU references: `emit_intersections`, `radix_sort_pairs`, `tile_ranges`,
-    /// `gather_sorted_gaussians`, `invert_permutation`.
-    pub fn record(&self, ctx: &mut GpuContext, proj: &GpuProjection, grid: &TileGrid, n: usize, n_isects: usize) -> Result<(), GpuError> {
+    /// Records, for `n` projected Gaussians, in the projection's submission: emit the keys,
+    /// count them on the device (`intersection_count`: the scan's total, 0 after an overflow,
+    /// which emits nothing), sort them, tile ranges, gather and invert, the per-intersection
+    /// kernels dispatched indirectly from that count, so the host reads nothing between the
+    /// projection and the rasteriser. CPU references: `emit_intersections`,
+    /// `radix_sort_pairs`, `tile_ranges`, `gather_sorted_gaussians`, `invert_permutation`.
+    pub fn record(&self, ctx: &mut GpuContext, proj: &GpuProjection, grid: &TileGrid, n: usize) -> Result<(), GpuError> {
         let num_tiles = grid.num_tiles();
         if num_tiles > self.max_tiles {
             return Err(GpuError::OutOfRange { what: "tile offsets", requested: num_tiles + 1, len: self.max_tiles + 1 });
         }
-        if n_isects > self.max_intersections {
-            return Err(GpuError::OutOfRange { what: "intersection keys", requested: n_isects, len: self.max_intersections });
-        }
-        if n > 0 && n_isects > 0 {
+        let count = self.isect_args.slice_range(0, 1)?;
+        if n > 0 {
             let params = [n as u32, grid.tiles_x as u32, 0, 0];
             let bufs = [
                 proj.splats.range(),
@@ -270,25 +274,37 @@ impl GpuBinning {
                 1,
                 1,
             ])?;
-            let key_bits = 32 + bits_for(num_tiles.saturating_sub(1) as u64);
-            record_radix_sort(ctx, &self.keys, &self.values, n_isects, key_bits, &self.sort)?;
+            let params = [SORT_BLOCK as u32, 0, 0, 0];
+            ctx.dispatch(
+                Kernel::MapGaussianToIntersectsIntersectionCount,
+                &[proj.scan.status.range(), self.isect_args.range()],
+                bytemuck::bytes_of(&params),
+                [1, 1, 1],
+            )?;
+        } else {
+            // No Gaussian, no scan: no intersection (and no dispatch from the arguments).
+            ctx.fill(self.isect_args.range(), 0)?;
         }
-        let params = [n_isects as u32, num_tiles as u32, 0, 0];
+        let key_bits = crate::map::render::isect_key_bits(num_tiles);
+        record_radix_sort_indirect(ctx, &self.keys, &self.values, count, self.isect_args.slice_range(1, 3)?, key_bits, &self.sort)?;
+        let params = [COUNT_ON_DEVICE, num_tiles as u32, 0, 0];
         let imm = bytemuck::bytes_of(&params);
-        ctx.dispatch(Kernel::TileRangesTileRanges, &[self.keys.range(), self.tile_offsets.range()], imm, [
+        ctx.dispatch(Kernel::TileRangesTileRanges, &[self.keys.range(), self.tile_offsets.range(), count], imm, [
             (num_tiles + 1).div_ceil(256) as u32,
             1,
             1,
         ])?;
-        if n_isects > 0 {
-            let groups = [n_isects.div_ceil(256) as u32, 1, 1];
-            let gather = [self.values.range(), self.isect_gaussian.range(), self.sorted_gaussian.range()];
-            ctx.dispatch(Kernel::TileRangesGatherSorted, &gather, imm, groups)?;
-            ctx.dispatch(Kernel::TileRangesInvertPermutation, &[self.values.range(), self.slot_to_sorted.range()], imm, groups)?;
-        }
+        let per_isect = self.isect_args.slice_range(4, 3)?;
+        let gather = [self.values.range(), self.isect_gaussian.range(), self.sorted_gaussian.range(), count];
+        ctx.dispatch_indirect(Kernel::TileRangesGatherSorted, &gather, imm, per_isect)?;
+        ctx.dispatch_indirect(Kernel::TileRangesInvertPermutation, &[self.values.range(), self.slot_to_sorted.range(), count], imm, per_isect)?;
         Ok(())
     }
 }
+
+/// The intersection count in the immediates of the tile-range kernels that makes them read it
+/// from the device (`intersection_count`'s output).
+const COUNT_ON_DEVICE: u32 = u32::MAX;
 
 /// Rasterisation forward buffers for images up to `max_pixels` pixels: the medium planes
 /// (inputs) and every output of [`crate::map::render::RenderOutput`].
@@ -933,7 +949,13 @@ impl GpuForwardRenderer {
                 ctx.copy(r.sigma_att.slice_range(0, 3 * px)?, r.sigma_bs.slice_range(0, 3 * px)?)?;
             }
         }
+        // One submission: the intersection count stays on the device (the binning's kernels
+        // are dispatched from it); the host reads it afterwards. An overflow renders no
+        // intersection and is an error here.
         self.projection.record(ctx, n, self.capacity.max_intersections)?;
+        self.binning.record(ctx, &self.projection, &grid, n)?;
+        let intrinsics = [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32];
+        self.raster.record(ctx, &self.projection.splats, &self.binning, &grid, intrinsics, config.depth_mode)?;
         self.projection.scan.prefetch_result(ctx)?;
         ctx.submit_and_wait()?;
         let n_isects = if n == 0 {
@@ -944,12 +966,6 @@ impl GpuForwardRenderer {
                 Err(needed) => return Err(RenderError::TileOverflow { needed, capacity: self.capacity.max_intersections }.into()),
             }
         };
-        // With no intersection, tile_ranges still writes the (empty) ranges.
-        ctx.begin()?;
-        self.binning.record(ctx, &self.projection, &grid, n, n_isects)?;
-        let intrinsics = [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32];
-        self.raster.record(ctx, &self.projection.splats, &self.binning, &grid, intrinsics, config.depth_mode)?;
-        ctx.submit_and_wait()?;
         if let Some(out) = out.as_deref_mut() {
             self.raster.read(ctx, out)?;
         }
@@ -1505,6 +1521,16 @@ impl RenderBackend {
         match self {
             RenderBackend::Vulkan { ctx, .. } => Some(ctx),
             RenderBackend::Cpu { .. } => None,
+        }
+    }
+
+    /// Timestamp queries on the Vulkan renderer's dispatches on or off
+    /// ([`GpuContext::set_timestamps`]); `false` when there are none to take (CPU reference,
+    /// or a queue without timestamps).
+    pub fn set_gpu_timestamps(&mut self, on: bool) -> bool {
+        match self {
+            RenderBackend::Vulkan { ctx, .. } => ctx.set_timestamps(on),
+            RenderBackend::Cpu { .. } => false,
         }
     }
 
