@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 
 use duv::config::Board;
 use duv::core::rng::Rng;
-use duv::gpu::{GpuContext, GpuOptions};
+use duv::gpu::{GpuContext, GpuOptions, Kernel};
 use duv::map::gaussians::GaussianGrads;
 use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
 use duv::core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
@@ -146,6 +146,7 @@ fn main() {
             // The backward in deterministic mode (no float atomics), same inputs.
             if !ctx.deterministic() {
                 ctx.set_deterministic(true);
+                let before = ctx.profile().clone();
                 let mut det_b = Vec::new();
                 for _ in 0..runs {
                     gpu_grads.reset(n).unwrap();
@@ -156,6 +157,9 @@ fn main() {
                 ctx.set_deterministic(false);
                 let db = median_ms(&mut det_b);
                 println!("    backward in deterministic mode (fixed-order reduction instead of float atomics): {db:.2} ms ({:.2}x the atomic backward)", db / gb);
+                let k = Kernel::RasterizeBackwardRasterizeBackward as usize;
+                let ms = (ctx.profile().total_ns[k] - before.total_ns[k]) * 1e-6 / runs as f64;
+                println!("    {:<48} {ms:8.3} ms per iteration (deterministic)", Kernel::RasterizeBackwardRasterizeBackward.name());
             }
             println!("    GPU buffers of this renderer: {used_mib:.1} MiB of the {} MiB arena", ctx.arena_capacity_bytes() >> 20);
             ctx.arena_reset_to(mark);

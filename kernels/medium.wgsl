@@ -88,6 +88,11 @@ var<workgroup> wh2: array<f32, HIDDEN>;
 var<workgroup> ws2: array<f32, HIDDEN>;
 var<workgroup> wd_o: array<f32, CHANNELS>;
 var<workgroup> wd_z2: array<f32, HIDDEN>;
+// W2 in `nodes_backward`, row r at r * W2_ROW: each thread takes a row there, where in
+// `params` the rows of 64 threads (64 floats apart) would make each load touch 32 cache
+// lines; a stride of 65 puts a row's consecutive values in different banks for the threads.
+const W2_ROW: u32 = 65u;
+var<workgroup> w2_rows: array<f32, 4160>;
 
 // ln(1 + v), accurate for small v (no log1p in WGSL): log(u) v / (u - 1) with u = 1 + v
 // cancels the rounding of u.
@@ -136,15 +141,17 @@ fn dot_head_row(row: u32) -> f32 {
     return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail;
 }
 
-// `real::dot` of hidden row `row` of W2 with wd_z2 (64 values: eight chunks of eight, no tail).
-fn dot_hidden_row(row: u32) -> f32 {
+// `real::dot` of hidden row `t` of W2 (from `w2_rows`) with wd_z2 (64 values: eight chunks of
+// eight, no tail).
+fn dot_hidden_row(t: u32) -> f32 {
     var acc: array<f32, 8>;
     for (var l = 0u; l < 8u; l++) {
         acc[l] = 0.0;
     }
+    let row = t * W2_ROW;
     for (var c = 0u; c < 8u; c++) {
         for (var l = 0u; l < 8u; l++) {
-            acc[l] += params[row + c * 8u + l] * wd_z2[c * 8u + l];
+            acc[l] += w2_rows[row + c * 8u + l] * wd_z2[c * 8u + l];
         }
     }
     return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + 0.0;
@@ -377,6 +384,11 @@ fn nodes_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
         }
         return;
     }
+    // Coalesced: thread t loads column t of every row (ordered before the reads by the
+    // barriers of the forward).
+    for (var r = 0u; r < HIDDEN; r++) {
+        w2_rows[r * W2_ROW + t] = params[dims.w2 + r * HIDDEN + t];
+    }
     let head = forward_shared(n, t);
     if (t == 0u) {
         records[base] = 1.0;
@@ -403,7 +415,7 @@ fn nodes_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
     wd_z2[t] = dz2;
     records[dz2o + t] = dz2;
     workgroupBarrier();
-    records[dz1o + t] = dot_hidden_row(dims.w2 + t * HIDDEN) * ws1[t];
+    records[dz1o + t] = dot_hidden_row(t) * ws1[t];
 }
 
 @compute @workgroup_size(64)
