@@ -5,8 +5,9 @@
 // `group_of[o]` is the parameter group of offset o and `consts[group]` its step constants
 // (`StepConstants::new` for the group's next step).
 //
-//   check_grads   one invocation per value: any non-finite gradient sets flag[0] (u32 atomic,
-//                 exact); the CPU refuses such a step
+//   check_grads   one invocation per value: any non-finite gradient sets flag[0] bit 1 (u32
+//                 atomic, exact; the CPU refuses such a step), a tile overflow of the render
+//                 bit 2
 //   map_step      one invocation per value; does nothing when flag[0] is set, so a refused
 //                 step changes nothing
 
@@ -38,6 +39,9 @@ var<immediate> params: MapParams;
 @group(0) @binding(4) var<storage, read_write> flag: array<atomic<u32>>;
 @group(0) @binding(5) var<storage, read> consts: array<GroupConsts>;
 @group(0) @binding(6) var<storage, read> group_of: array<u32>;
+// The render's tile-count scan status ([overflow, ...]): after an overflow the step is not
+// taken (flag bit 2), its gradients are those of a render that did not happen.
+@group(0) @binding(7) var<storage, read> render_status: array<u32>;
 
 fn value_index(gid: vec3<u32>, groups: vec3<u32>) -> u32 {
     // 2D grid for more than 65535 workgroups.
@@ -52,6 +56,9 @@ fn check_grads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     }
     if ((bitcast<u32>(grads[i]) & 0x7f800000u) == 0x7f800000u) {
         atomicOr(&flag[0], 1u);
+    }
+    if (i == 0u && render_status[0] != 0u) {
+        atomicOr(&flag[0], 2u);
     }
 }
 

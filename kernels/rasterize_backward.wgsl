@@ -643,6 +643,23 @@ var<immediate> reduce_params: ReduceParams;
 @group(0) @binding(19) var<storage, read> in_partial_pixels: array<u32>;
 @group(0) @binding(20) var<storage, read_write> splat_grads: array<f32>;
 @group(0) @binding(21) var<storage, read_write> splat_pixels: array<u32>;
+// The render's intersection count on the device (`intersection_count`: 0 after a tile
+// overflow, when the offsets were not written).
+@group(0) @binding(24) var<storage, read> isect_count: array<u32>;
+
+// Zeroes the first `isect_count[0]` intersections' partials for the atomic backward, one
+// thread per intersection (dispatched indirectly from that count).
+@compute @workgroup_size(256)
+fn zero_partials(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x;
+    if (k >= isect_count[0]) {
+        return;
+    }
+    for (var v = 0u; v < GRAD_FLOATS; v = v + 1u) {
+        partials[k * GRAD_FLOATS + v] = 0.0;
+    }
+    partial_pixels[k] = 0u;
+}
 
 @compute @workgroup_size(256)
 fn reduce_isect_grads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
@@ -655,7 +672,13 @@ fn reduce_isect_grads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(nu
         acc[v] = 0.0;
     }
     var pixels = 0u;
-    for (var s = isect_offsets[g]; s < isect_offsets[g + 1u]; s = s + 1u) {
+    // No intersection (or an overflow, whose offsets are stale): every gradient is zero.
+    var first = isect_offsets[g];
+    var last = isect_offsets[g + 1u];
+    if (isect_count[0] == 0u) {
+        last = first;
+    }
+    for (var s = first; s < last; s = s + 1u) {
         let k = slot_to_sorted[s];
         for (var v = 0u; v < GRAD_FLOATS; v = v + 1u) {
             acc[v] = acc[v] + in_partials[k * GRAD_FLOATS + v];

@@ -395,7 +395,9 @@ fn rasterize_backward_matches_the_cpu_reference() {
         assert_eq!(atomic_names, want_names, "{}", kernel.name());
     }
     let reduce: Vec<&str> = Kernel::RasterizeBackwardReduceIsectGrads.info().bindings.iter().map(|b| b.name).collect();
-    assert_eq!(reduce, ["isect_offsets", "slot_to_sorted", "in_partials", "in_partial_pixels", "splat_grads", "splat_pixels"]);
+    assert_eq!(reduce, ["isect_offsets", "slot_to_sorted", "in_partials", "in_partial_pixels", "splat_grads", "splat_pixels", "isect_count"]);
+    let zero: Vec<&str> = Kernel::RasterizeBackwardZeroPartials.info().bindings.iter().map(|b| b.name).collect();
+    assert_eq!((zero, Kernel::RasterizeBackwardZeroPartials.info().immediate_bytes), (vec!["partials", "partial_pixels", "isect_count"], 0));
     for (mode, seed) in [(DepthMode::InverseDepth, 23), (DepthMode::Depth, 24)] {
         let (w, h) = (117, 83); // 8 x 6 tiles, partial tiles on both axes
         let cam = camera(w, h, 100.0);
@@ -442,6 +444,9 @@ fn rasterize_backward_matches_the_cpu_reference() {
         ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();
         ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
         ctx.write(&bin.slot_to_sorted, &cpu.slot_to_sorted).unwrap();
+        // The intersection count and dispatch arguments `intersection_count` would write.
+        let t = cpu.total as u32;
+        ctx.write(&bin.isect_args, &[t, t.div_ceil(4096), 1, 1, t.div_ceil(256), 1, 1, 0]).unwrap();
         raster.upload_medium(&mut ctx, &medium).unwrap();
         raster.upload_output(&mut ctx, &fwd).unwrap();
         bwd.upload_upstream(&mut ctx, &up).unwrap();
@@ -466,7 +471,7 @@ fn rasterize_backward_matches_the_cpu_reference() {
             }
             ctx.fill(bwd.partial_pixels.range(), 0xdead).unwrap();
             ctx.fill(bwd.splat_pixels.range(), 0xdead).unwrap();
-            bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+            bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n).unwrap();
             ctx.submit_and_wait().unwrap();
             let mut got = vec![SplatGrad::default(); n];
             let mut got_medium = MediumPlanes::new(w, h);
@@ -476,7 +481,7 @@ fn rasterize_backward_matches_the_cpu_reference() {
             if deterministic {
                 // No float atomics: a second run gives the same bits.
                 ctx.begin().unwrap();
-                bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n, cpu.total).unwrap();
+                bwd.record(&mut ctx, &proj.splats, &proj.isect_offsets, &bin, &raster, &grid, intrinsics, mode, n).unwrap();
                 ctx.submit_and_wait().unwrap();
                 let mut again = vec![SplatGrad::default(); n];
                 let mut again_medium = MediumPlanes::new(w, h);

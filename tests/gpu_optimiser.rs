@@ -47,6 +47,9 @@ fn map_adam_matches_adam_group_per_group() {
     let mut gpu = GpuMapAdam::new(&mut ctx, capacity).unwrap();
     let dev_params = ctx.alloc::<f32>("params", capacity * PARAMS_PER_GAUSSIAN).unwrap();
     let dev_grads = ctx.alloc::<f32>("grads", capacity * PARAMS_PER_GAUSSIAN).unwrap();
+    // The render's tile-count scan status: no overflow.
+    let render_status = ctx.alloc::<u32>("render status", 4).unwrap();
+    ctx.write(&render_status, &[0, 1000, 0, 1000]).unwrap();
     ctx.write(&dev_params, &interleave(&params, n)).unwrap();
     // One host step first, so the device starts from non-zero moments uploaded from the host.
     let mut grads: Vec<Vec<f32>> = ParamGroup::ALL.iter().map(|g| (0..n * g.width()).map(|_| rng.range(-2.0, 2.0) as f32).collect()).collect();
@@ -64,7 +67,7 @@ fn map_adam_matches_adam_group_per_group() {
         ctx.write(&dev_grads, &interleave(&grads, n)).unwrap();
         gpu.write_constants(&mut ctx, &consts).unwrap();
         ctx.begin().unwrap();
-        gpu.record_step(&mut ctx, &dev_params, &dev_grads, n).unwrap();
+        gpu.record_step(&mut ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
         ctx.submit_and_wait().unwrap();
         assert!(!gpu.step_refused(&ctx).unwrap(), "finite gradients must not be refused");
     }
@@ -99,7 +102,7 @@ fn map_adam_matches_adam_group_per_group() {
     let consts = std::array::from_fn(|k| groups[k].next_step_constants());
     gpu.write_constants(&mut ctx, &consts).unwrap();
     ctx.begin().unwrap();
-    gpu.record_step(&mut ctx, &dev_params, &dev_grads, n).unwrap();
+    gpu.record_step(&mut ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
     ctx.submit_and_wait().unwrap();
     assert!(gpu.step_refused(&ctx).unwrap(), "a NaN gradient must refuse the step");
     ctx.read(&dev_params, &mut got).unwrap();
@@ -109,6 +112,15 @@ fn map_adam_matches_adam_group_per_group() {
     for k in 0..groups.len() {
         assert_eq!(again[k].moments(), read[k].moments(), "a refused step changed the moments");
     }
+    // Finite gradients after a render whose intersections overflowed: not taken either.
+    ctx.write(&dev_grads, &interleave(&grads, n)).unwrap();
+    ctx.write(&render_status, &[1, 5000, 0, 5000]).unwrap();
+    ctx.begin().unwrap();
+    gpu.record_step(&mut ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
+    ctx.submit_and_wait().unwrap();
+    assert!(gpu.step_refused(&ctx).unwrap(), "a step after a tile overflow must not be taken");
+    ctx.read(&dev_params, &mut got).unwrap();
+    assert!(got.iter().zip(&before).all(|(a, b)| a.to_bits() == b.to_bits()), "a step after an overflow changed the parameters");
     // More Gaussians than the buffers hold is an error.
     assert!(gpu.upload_moments(&mut ctx, &groups, capacity + 1).is_err());
     ctx.arena_reset_to(mark);

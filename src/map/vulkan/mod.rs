@@ -514,13 +514,12 @@ impl GpuRasterBackward {
         intrinsics: [f32; 4],
         depth_mode: DepthMode,
         n: usize,
-        n_isects: usize,
     ) -> Result<(), GpuError> {
         if grid.width * grid.height > self.max_pixels.min(fwd.max_pixels) {
             return Err(GpuError::OutOfRange { what: "dL/dc_med", requested: grid.width * grid.height, len: self.max_pixels });
         }
-        if n_isects > self.max_intersections {
-            return Err(GpuError::OutOfRange { what: "intersection splat gradients", requested: n_isects, len: self.max_intersections });
+        if bin.max_intersections > self.max_intersections {
+            return Err(GpuError::OutOfRange { what: "intersection splat gradients", requested: bin.max_intersections, len: self.max_intersections });
         }
         if n > self.max_gaussians {
             return Err(GpuError::OutOfRange { what: "splat gradients", requested: n, len: self.max_gaussians });
@@ -534,11 +533,10 @@ impl GpuRasterBackward {
         let kernel = if ctx.deterministic() {
             Kernel::RasterizeBackwardRasterizeBackward
         } else {
-            // The atomic kernel adds into zeroed partials.
-            if n_isects > 0 {
-                ctx.fill(self.partials.slice_range(0, n_isects * GRAD_FLOATS)?, 0)?;
-                ctx.fill(self.partial_pixels.slice_range(0, n_isects)?, 0)?;
-            }
+            // The atomic kernel adds into zeroed partials: the render's intersections', counted
+            // on the device.
+            let zero = [self.partials.range(), self.partial_pixels.range(), bin.isect_args.slice_range(0, 1)?];
+            ctx.dispatch_indirect(Kernel::RasterizeBackwardZeroPartials, &zero, &[], bin.isect_args.slice_range(4, 3)?)?;
             if self.force_reduce_scatter || ctx.info().subgroup_size >= 32 {
                 Kernel::RasterizeBackwardRasterizeBackwardAtomicScatter
             } else {
@@ -580,6 +578,7 @@ impl GpuRasterBackward {
             self.partial_pixels.range(),
             self.splat_grads.range(),
             self.splat_pixels.range(),
+            bin.isect_args.slice_range(0, 1)?,
         ];
         ctx.dispatch(Kernel::RasterizeBackwardReduceIsectGrads, &bufs, bytemuck::bytes_of(&params), [
             gx as u32,
@@ -1214,7 +1213,7 @@ impl GpuRenderer {
         }
         self.write_next_step_constants(ctx, adam)?;
         ctx.begin()?;
-        self.adam.record_step(ctx, &self.fwd.projection.params, &self.project_backward.grads, n)?;
+        self.adam.record_step(ctx, &self.fwd.projection.params, &self.project_backward.grads, self.fwd.projection.scan.status.range(), n)?;
         ctx.submit_and_wait()?;
         if self.adam.step_refused(ctx)? {
             return Ok(false);
@@ -1305,7 +1304,6 @@ impl GpuRenderer {
             last.intrinsics,
             last.depth_mode,
             n,
-            last.n_isects,
         )?;
         self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
         let device_medium = match (device_medium, self.medium.as_ref()) {
@@ -1329,7 +1327,7 @@ impl GpuRenderer {
             (None, _) => None,
         };
         if fuse_adam {
-            self.adam.record_step(ctx, &fwd.projection.params, &self.project_backward.grads, n)?;
+            self.adam.record_step(ctx, &fwd.projection.params, &self.project_backward.grads, fwd.projection.scan.status.range(), n)?;
             self.adam.prefetch_refused(ctx)?;
         }
         self.loss.prefetch_terms(ctx)?;
@@ -1418,7 +1416,6 @@ impl GpuRenderer {
             last.intrinsics,
             last.depth_mode,
             n,
-            last.n_isects,
         )?;
         self.project_backward.record(ctx, &fwd.projection, &self.raster_backward, n)?;
         ctx.submit_and_wait()?;

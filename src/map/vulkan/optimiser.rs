@@ -110,7 +110,9 @@ impl GpuMapAdam {
 
     /// Records one step over `n` Gaussians of `params` with `grads` (same layout): the
     /// gradient check, then the update unless it raised the flag.
-    pub fn record_step(&self, ctx: &mut GpuContext, params: &GpuBuffer<f32>, grads: &GpuBuffer<f32>, n: usize) -> Result<(), GpuError> {
+    /// `render_status`: the status of the render's tile-count scan (`[overflow, ...]`); after
+    /// an overflow the step is not taken ([`Self::step_refused`]).
+    pub fn record_step(&self, ctx: &mut GpuContext, params: &GpuBuffer<f32>, grads: &GpuBuffer<f32>, render_status: GpuRange, n: usize) -> Result<(), GpuError> {
         self.check(n)?;
         let values = n * PARAMS_PER_GAUSSIAN;
         for b in [params, grads] {
@@ -135,6 +137,7 @@ impl GpuMapAdam {
                 "flag" => self.flag.range(),
                 "consts" => self.consts.range(),
                 "group_of" => self.group_of.range(),
+                "render_status" => render_status,
                 _ => return None,
             })
         };
