@@ -95,6 +95,9 @@ fn reaches(s: SplatVecs, lo: vec2<f32>, hi: vec2<f32>) -> bool {
     return !(q_min * 0.999 - 1e-3 > s.b.w * 1.0001 + 1e-3);
 }
 
+// Beyond any pixel coordinate (a lane left out of a subgroup's pixel box).
+const BIG: f32 = 1e30;
+
 // Bit `j` of a subgroup ballot.
 fn ballot_bit(m: vec4<u32>, j: u32) -> bool {
     var w = m.x;
@@ -135,13 +138,13 @@ fn rasterize(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     var m2 = 0.0;
     var end = start;
     var done = !inside;
-    // The subgroup's pixels' box.
-    let lo = vec2<f32>(subgroupMin(fx), subgroupMin(fy));
-    let hi = vec2<f32>(subgroupMax(fx), subgroupMax(fy));
     for (var b = start; b < stop; b = b + sg) {
         if (subgroupAll(done)) {
             break;
         }
+        // The box of the subgroup's pixels still blending.
+        let lo = vec2<f32>(subgroupMin(select(fx, BIG, done)), subgroupMin(select(fy, BIG, done)));
+        let hi = vec2<f32>(subgroupMax(select(fx, -BIG, done)), subgroupMax(select(fy, -BIG, done)));
         var own: SplatVecs;
         if (b + lane < stop) {
             own = load_splat_vecs(sorted_gaussian[b + lane]);

@@ -122,6 +122,9 @@ fn reaches(s: SplatVecs, lo: vec2<f32>, hi: vec2<f32>) -> bool {
     return !(q_min * 0.999 - 1e-3 > s.b.w * 1.0001 + 1e-3);
 }
 
+// Beyond any pixel coordinate (a lane left out of a subgroup's pixel box).
+const BIG: f32 = 1e30;
+
 // Bit `j` of a subgroup ballot.
 fn ballot_bit(m: vec4<u32>, j: u32) -> bool {
     var w = m.x;
@@ -585,12 +588,13 @@ fn backward_atomic(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatter: boo
     // Without barriers each subgroup walks only the splats one of its pixels blended: from the
     // largest `end` of its lanes (where blending stopped early, most of the tile's list).
     var batch_end = subgroupMax(end);
-    // The subgroup's pixels' box.
-    let lo = vec2<f32>(subgroupMin(p.fx), subgroupMin(p.fy));
-    let hi = vec2<f32>(subgroupMax(p.fx), subgroupMax(p.fy));
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
+        // The box of the subgroup's pixels that blended a splat of this batch (end > base).
+        let out_of_batch = end <= base;
+        let lo = vec2<f32>(subgroupMin(select(p.fx, BIG, out_of_batch)), subgroupMin(select(p.fy, BIG, out_of_batch)));
+        let hi = vec2<f32>(subgroupMax(select(p.fx, -BIG, out_of_batch)), subgroupMax(select(p.fy, -BIG, out_of_batch)));
         let own = load_batch(base, count, lane);
         let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
         for (var jj = 0u; jj < count; jj = jj + 1u) {

@@ -26,8 +26,9 @@ fn interleave(groups: &[Vec<f32>], n: usize) -> Vec<f32> {
     out
 }
 
-fn worst(got: &[f32], want: &[f32]) -> (usize, f64) {
-    got.iter().zip(want).map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(1e-3)).enumerate().fold((0, 0.0), |acc, (i, e)| if e > acc.1 { (i, e) } else { acc })
+/// The largest of |got - want| / max(|want|, floor).
+fn worst(got: &[f32], want: &[f32], floor: f64) -> (usize, f64) {
+    got.iter().zip(want).map(|(a, b)| (a - b).abs() as f64 / (b.abs() as f64).max(floor)).enumerate().fold((0, 0.0), |acc, (i, e)| if e > acc.1 { (i, e) } else { acc })
 }
 
 #[test]
@@ -73,7 +74,7 @@ fn map_adam_matches_adam_group_per_group() {
     }
     let mut got = vec![0.0f32; n * PARAMS_PER_GAUSSIAN];
     ctx.read(&dev_params, &mut got).unwrap();
-    let (i, err) = worst(&got, &interleave(&params, n));
+    let (i, err) = worst(&got, &interleave(&params, n), 1e-3);
     eprintln!("map Adam: parameters, max scaled error {err:.2e}");
     assert!(err <= ADAM_REL_TOL, "parameter value {i}: scaled error {err:.2e}");
     // The device moments, read back into a copy of the groups, against the host's.
@@ -88,7 +89,10 @@ fn map_adam_matches_adam_group_per_group() {
         let (wm, wv) = groups[k].moments();
         let (gm, gv) = read[k].moments();
         for (name, got, want) in [("m", gm, wm), ("v", gv, wv)] {
-            let (i, err) = worst(got, want);
+            // A moment near zero is a difference of terms of the gradients' size (up to 2),
+            // which a device with fused multiply-adds rounds once where the CPU rounds twice
+            // (seen on an NVIDIA H100: 1.4e-8 on an m of 2.3e-4): scaled by at least 1e-2.
+            let (i, err) = worst(got, want, 1e-2);
             eprintln!("map Adam: {} {name}, max scaled error {err:.2e}", g.name());
             assert!(err <= ADAM_REL_TOL, "{} {name}[{i}]: GPU {} vs CPU {} (scaled error {err:.2e})", g.name(), got[i], want[i]);
         }

@@ -266,6 +266,67 @@ fn barriers_only_where_a_command_depends_on_an_earlier_one() {
     }
 }
 
+/// A submission left running ([`GpuContext::submit`]) while the next is recorded: the next
+/// sees what it wrote, a range it copied for the host is read after it ran, a small write made
+/// meanwhile lands before the next submission's commands, and both are timed.
+#[test]
+fn a_submission_left_running_is_ordered_before_the_next() {
+    let Some(mapped) = gpu_common::gpu_or_skip("a_submission_left_running_is_ordered_before_the_next") else { return };
+    let staged = GpuContext::new(&GpuOptions { arena_bytes: 16 << 20, host_staging: Some(1 << 20), ..GpuOptions::with_budget_mb(16) }).unwrap();
+    assert_eq!(staged.info().host_transfers, "staged");
+    for ctx in [mapped, staged] {
+        submission_left_running(ctx);
+    }
+}
+
+fn submission_left_running(mut ctx: GpuContext) {
+    let n = SORT_BLOCK * 2 + 5;
+    let keys_buf = ctx.alloc::<u64>("keys", n).unwrap();
+    let values_buf = ctx.alloc::<u32>("values", n).unwrap();
+    let scratch = SortScratch::new(&mut ctx, n).unwrap();
+    let copy = ctx.alloc::<u64>("copy of the sorted keys", n).unwrap();
+    let small = ctx.alloc::<u32>("small write", 4).unwrap();
+    let small_copy = ctx.alloc::<u32>("copy of the small write", 4).unwrap();
+    let mut rng = Rng::new(12);
+    let keys = splat_like_keys(&mut rng, n, 300);
+    let values: Vec<u32> = (0..n as u32).collect();
+    ctx.write(&keys_buf, &keys).unwrap();
+    ctx.write(&values_buf, &values).unwrap();
+    ctx.write(&small, &[1, 2, 3, 4]).unwrap();
+    let (submits, profiled) = (ctx.host_stats().submits, ctx.profile().dispatches.iter().sum::<u64>());
+    ctx.begin().unwrap();
+    record_radix_sort(&mut ctx, &keys_buf, &values_buf, n, 32 + 9, &scratch).unwrap();
+    ctx.prefetch(values_buf.range()).unwrap();
+    ctx.submit().unwrap();
+    // Meanwhile: a small write (deferred: it must not reach the arena before the sort ran, nor
+    // be lost) and the next recording.
+    ctx.write(&small, &[5, 6, 7, 8]).unwrap();
+    ctx.begin().unwrap();
+    ctx.copy(keys_buf.range(), copy.range()).unwrap();
+    ctx.copy(small.range(), small_copy.range()).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut want: Vec<(u64, u32)> = keys.iter().copied().zip(values.iter().copied()).collect();
+    want.sort_by_key(|p| p.0);
+    let mut got_keys = vec![0u64; n];
+    ctx.read(&copy, &mut got_keys).unwrap();
+    assert!(got_keys.iter().zip(&want).all(|(g, w)| *g == w.0), "the second submission copied the keys before the sort finished");
+    let mut got_values = vec![0u32; n];
+    let before = ctx.host_stats().prefetched_reads;
+    ctx.read(&values_buf, &mut got_values).unwrap();
+    let prefetched = if ctx.info().host_transfers == "staged" { 1 } else { 0 };
+    assert_eq!(ctx.host_stats().prefetched_reads - before, prefetched, "the first submission's copy for the host");
+    assert!(got_values.iter().zip(&want).all(|(g, w)| *g == w.1), "sorted values");
+    let mut got_small = [0u32; 4];
+    ctx.read(&small_copy, &mut got_small).unwrap();
+    assert_eq!(got_small, [5, 6, 7, 8], "a small write made while a submission ran");
+    assert_eq!(ctx.host_stats().submits - submits, 2);
+    if ctx.info().timestamp_period_ns.is_some() {
+        // Every pass of the sort (three kernels each) timed, from the first submission.
+        let timed = ctx.profile().dispatches.iter().sum::<u64>() - profiled;
+        assert_eq!(timed, 3 * (41u64).div_ceil(8), "dispatches timed over both submissions");
+    }
+}
+
 #[test]
 fn device_choice_and_pipeline_cache_on_disk() {
     let Some(ctx) = gpu_common::gpu_or_skip("device_choice_and_pipeline_cache_on_disk") else { return };

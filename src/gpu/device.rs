@@ -271,8 +271,20 @@ pub struct GpuContext {
     push_descriptor: ash::khr::push_descriptor::Device,
     queue: vk::Queue,
     command_pool: vk::CommandPool,
+    /// The command buffer and fence being recorded next; their spares belong to a
+    /// submission [`GpuContext::submit`] left running (`in_flight`).
     command_buffer: vk::CommandBuffer,
     fence: vk::Fence,
+    spare_command_buffer: vk::CommandBuffer,
+    spare_fence: vk::Fence,
+    /// A submission is running that nothing waited for yet (since when, for the host stats).
+    in_flight: std::cell::Cell<Option<Instant>>,
+    /// The timestamps of the dispatches recorded so far are not yet in the profile.
+    untimed: bool,
+    /// Dispatches in submitted command buffers since the queue was last idle at a `begin`, and
+    /// the prefetch list's length and bytes then (what a running submission will fill).
+    submitted: usize,
+    prefetch_submitted: (usize, u64),
     query_pool: Option<vk::QueryPool>,
     memory: vk::DeviceMemory,
     buffer: vk::Buffer,
@@ -521,6 +533,12 @@ impl GpuContext {
             command_pool: vk::CommandPool::null(),
             command_buffer: vk::CommandBuffer::null(),
             fence: vk::Fence::null(),
+            spare_command_buffer: vk::CommandBuffer::null(),
+            spare_fence: vk::Fence::null(),
+            in_flight: std::cell::Cell::new(None),
+            untimed: false,
+            submitted: 0,
+            prefetch_submitted: (0, 0),
             query_pool: None,
             memory: vk::DeviceMemory::null(),
             buffer: vk::Buffer::null(),
@@ -608,16 +626,18 @@ impl GpuContext {
             )
         }
         .map_err(vk_err("vkCreateCommandPool"))?;
-        self.command_buffer = unsafe {
+        let cbs = unsafe {
             device.allocate_command_buffers(
                 &vk::CommandBufferAllocateInfo::default()
                     .command_pool(self.command_pool)
                     .level(vk::CommandBufferLevel::PRIMARY)
-                    .command_buffer_count(1),
+                    .command_buffer_count(2),
             )
         }
-        .map_err(vk_err("vkAllocateCommandBuffers"))?[0];
+        .map_err(vk_err("vkAllocateCommandBuffers"))?;
+        (self.command_buffer, self.spare_command_buffer) = (cbs[0], cbs[1]);
         self.fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?;
+        self.spare_fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?;
         if timestamps {
             self.query_pool = Some(
                 unsafe {
@@ -865,9 +885,17 @@ impl GpuContext {
         }
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let t0 = Instant::now();
-        // What the last submission left for the host may no longer be the arena's.
-        self.prefetched.get_mut().clear();
-        if self.mapped.is_null() && bytes.len() <= DEFERRED_WRITE_BYTES && (bytes.len() as u64) <= self.deferred_bytes {
+        // What the last submission copied for the host of this range is no longer the arena's.
+        let (start, end) = (buf.offset, buf.offset + bytes.len() as u64);
+        self.prefetched.get_mut().retain(|c| c.src_offset + c.size <= start || end <= c.src_offset);
+        let deferred = self.mapped.is_null() && bytes.len() <= DEFERRED_WRITE_BYTES && (bytes.len() as u64) <= self.deferred_bytes;
+        if !deferred {
+            // In place or by a transfer: not while a submission may still read the arena. (A
+            // deferred write goes after what a running submission copies from the staging
+            // tail, and reaches the arena in the next submission, after it.)
+            self.wait_in_flight()?;
+        }
+        if deferred {
             // Into the staging tail; copied at the start of the next submission (or transfer).
             let used = self.deferred_used.get();
             if used + bytes.len() as u64 > self.deferred_bytes || self.deferred.borrow().len() == MAX_DEFERRED_WRITES {
@@ -894,6 +922,7 @@ impl GpuContext {
     /// Copies the first `out.len()` elements of `buf` to `out`.
     pub fn read<T: Pod>(&self, buf: &GpuBuffer<T>, out: &mut [T]) -> Result<(), GpuError> {
         self.check_idle("read")?;
+        self.wait_in_flight()?;
         if out.len() > buf.len {
             return Err(GpuError::OutOfRange { what: buf.what, requested: out.len(), len: buf.len });
         }
@@ -928,7 +957,29 @@ impl GpuContext {
         }
         unsafe { self.device.cmd_copy_buffer(cb, self.staging_buffer, self.buffer, &pending) };
         pending.clear();
-        self.deferred_used.set(0);
+        // The copied bytes stay reserved until the copies ran (`release_deferred`).
+    }
+
+    /// The staging tail is free again once the queue is idle and no write waits in it.
+    fn release_deferred(&self) {
+        if self.in_flight.get().is_none() && self.deferred.borrow().is_empty() {
+            self.deferred_used.set(0);
+        }
+    }
+
+    /// Waits for the submission [`Self::submit`] left running, if any.
+    fn wait_in_flight(&self) -> Result<(), GpuError> {
+        let Some(t0) = self.in_flight.get() else { return Ok(()) };
+        let d = &self.device;
+        unsafe {
+            d.wait_for_fences(&[self.spare_fence], true, u64::MAX).map_err(vk_err("vkWaitForFences (submission left running)"))?;
+            d.reset_fences(&[self.spare_fence]).map_err(vk_err("vkResetFences"))?;
+        }
+        self.in_flight.set(None);
+        let mut h = self.host.get();
+        h.submit_wait_ns += t0.elapsed().as_nanos() as u64;
+        self.host.set(h);
+        Ok(())
     }
 
     /// The deferred small writes to the device now, in a submission of their own.
@@ -947,6 +998,7 @@ impl GpuContext {
             Staged::Write(b) => (true, b.len()),
             Staged::Read(b) => (false, b.len()),
         };
+        self.wait_in_flight()?;
         let d = &self.device;
         let cb = self.command_buffer;
         let what = if upload { "write (staged)" } else { "read (staged)" };
@@ -992,11 +1044,16 @@ impl GpuContext {
             at += n;
             first = false;
         }
+        self.release_deferred();
         Ok(())
     }
 
     /// Starts recording a submission.
     pub fn begin(&mut self) -> Result<(), GpuError> {
+        let running = self.in_flight.get().is_some();
+        if !running {
+            self.collect_timestamps()?;
+        }
         let d = &self.device;
         unsafe {
             d.reset_command_buffer(self.command_buffer, vk::CommandBufferResetFlags::empty()).map_err(vk_err("vkResetCommandBuffer"))?;
@@ -1005,21 +1062,60 @@ impl GpuContext {
                 &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
             )
             .map_err(vk_err("vkBeginCommandBuffer"))?;
+        }
+        if running {
+            // After a submission still running: its queries, prefetched copies and deferred
+            // copies are kept (what a recording abandoned since added is dropped), and this one
+            // starts with a barrier that orders it after that one's commands.
+            self.recorded = self.submitted;
+            let (len, used) = self.prefetch_submitted;
+            self.prefetched.get_mut().truncate(len);
+            self.prefetch_used = used;
+            if let (Some(q), true) = (self.query_pool, self.timing) {
+                let first = 2 * self.recorded as u32;
+                unsafe { d.cmd_reset_query_pool(self.command_buffer, q, first, 2 * MAX_DISPATCHES as u32 - first) };
+            }
+            self.barrier();
+        } else {
             self.timing = self.timestamps_wanted && self.query_pool.is_some();
             if let (Some(q), true) = (self.query_pool, self.timing) {
-                d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32);
+                unsafe { d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32) };
             }
+            self.prefetched.get_mut().clear();
+            self.prefetch_used = 0;
+            self.recorded = 0;
+            self.submitted = 0;
         }
         self.hazards.clear();
         if !self.deferred.borrow().is_empty() {
             self.record_deferred(self.command_buffer);
             self.barrier();
         }
-        self.prefetched.get_mut().clear();
-        self.prefetch_used = 0;
         self.recording = true;
-        self.recorded = 0;
         self.last_kernel = None;
+        Ok(())
+    }
+
+    /// Adds the timestamps of the submissions since the last collection to the profile (the
+    /// queue is idle).
+    fn collect_timestamps(&mut self) -> Result<(), GpuError> {
+        if !std::mem::take(&mut self.untimed) {
+            return Ok(());
+        }
+        if let (Some(q), Some(period), true) = (self.query_pool, self.info.timestamp_period_ns, self.timing) {
+            let n = self.submitted;
+            if n > 0 {
+                let ts = &mut self.timestamps[..2 * n];
+                unsafe { self.device.get_query_pool_results(q, 0, ts, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
+                    .map_err(vk_err("vkGetQueryPoolResults"))?;
+                for i in 0..n {
+                    let k = self.recorded_kernels[i] as usize;
+                    let ticks = self.timestamps[2 * i + 1].wrapping_sub(self.timestamps[2 * i]);
+                    self.profile.dispatches[k] += 1;
+                    self.profile.total_ns[k] += ticks as f64 * period as f64;
+                }
+            }
+        }
         Ok(())
     }
 
@@ -1217,14 +1313,14 @@ impl GpuContext {
         Ok(())
     }
 
-    /// Submits what was recorded, waits for it and adds the dispatch times to the profile.
-    pub fn submit_and_wait(&mut self) -> Result<(), GpuError> {
+    /// Ends the recording: the host-visibility barrier, `vkEndCommandBuffer`, `vkQueueSubmit`
+    /// with `self.fence`.
+    fn end_and_submit(&mut self) -> Result<Instant, GpuError> {
         if !self.recording {
-            return Err(GpuError::NotRecording { what: "submit_and_wait" });
+            return Err(GpuError::NotRecording { what: "submit" });
         }
         self.recording = false;
         let name = self.last_kernel.map(|k| k.name()).unwrap_or("(no kernel)");
-        let kerr = |call: &'static str| move |result| GpuError::Kernel { kernel: name, call, result };
         let d = &self.device;
         unsafe {
             // What the kernels wrote, visible to the host (a mapped arena is read in place).
@@ -1237,28 +1333,53 @@ impl GpuContext {
             let cbs = [self.command_buffer];
             let submit = [vk::SubmitInfo::default().command_buffers(&cbs)];
             let t0 = Instant::now();
-            d.queue_submit(self.queue, &submit, self.fence).map_err(kerr("vkQueueSubmit"))?;
-            d.wait_for_fences(&[self.fence], true, u64::MAX).map_err(kerr("vkWaitForFences (last kernel recorded)"))?;
+            d.queue_submit(self.queue, &submit, self.fence).map_err(|result| GpuError::Kernel { kernel: name, call: "vkQueueSubmit", result })?;
+            self.submitted = self.recorded;
+            self.prefetch_submitted = (self.prefetched.get_mut().len(), self.prefetch_used);
+            self.untimed = true;
             let mut h = self.host.get();
             h.submits += 1;
-            h.submit_wait_ns += t0.elapsed().as_nanos() as u64;
             self.host.set(h);
+            Ok(t0)
+        }
+    }
+
+    /// Submits what was recorded and returns without waiting: the device runs it while the
+    /// host records the next submission, which [`Self::begin`] orders after it. Reads, writes
+    /// that are not deferred, and the next `submit` wait for it; [`Self::submit_and_wait`]
+    /// waits for both. One submission runs this way at a time.
+    pub fn submit(&mut self) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: "submit" });
+        }
+        self.wait_in_flight()?;
+        let t0 = self.end_and_submit()?;
+        std::mem::swap(&mut self.command_buffer, &mut self.spare_command_buffer);
+        std::mem::swap(&mut self.fence, &mut self.spare_fence);
+        self.in_flight.set(Some(t0));
+        Ok(())
+    }
+
+    /// Submits what was recorded, waits for it (and for a submission [`Self::submit`] left
+    /// running) and adds the dispatch times to the profile.
+    pub fn submit_and_wait(&mut self) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what: "submit_and_wait" });
+        }
+        let name = self.last_kernel.map(|k| k.name()).unwrap_or("(no kernel)");
+        let t0 = self.end_and_submit()?;
+        let d = &self.device;
+        unsafe {
+            d.wait_for_fences(&[self.fence], true, u64::MAX)
+                .map_err(|result| GpuError::Kernel { kernel: name, call: "vkWaitForFences (last kernel recorded)", result })?;
             d.reset_fences(&[self.fence]).map_err(vk_err("vkResetFences"))?;
         }
-        if let (Some(q), Some(period), true) = (self.query_pool, self.info.timestamp_period_ns, self.timing) {
-            let n = self.recorded;
-            if n > 0 {
-                let ts = &mut self.timestamps[..2 * n];
-                unsafe { d.get_query_pool_results(q, 0, ts, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
-                    .map_err(vk_err("vkGetQueryPoolResults"))?;
-                for i in 0..n {
-                    let k = self.recorded_kernels[i] as usize;
-                    let ticks = self.timestamps[2 * i + 1].wrapping_sub(self.timestamps[2 * i]);
-                    self.profile.dispatches[k] += 1;
-                    self.profile.total_ns[k] += ticks as f64 * period as f64;
-                }
-            }
-        }
+        let mut h = self.host.get();
+        h.submit_wait_ns += t0.elapsed().as_nanos() as u64;
+        self.host.set(h);
+        self.wait_in_flight()?;
+        self.collect_timestamps()?;
+        self.release_deferred();
         Ok(())
     }
 
@@ -1299,6 +1420,7 @@ impl GpuContext {
                 d.destroy_query_pool(q, None);
             }
             d.destroy_fence(self.fence, None);
+            d.destroy_fence(self.spare_fence, None);
             d.destroy_command_pool(self.command_pool, None);
             d.destroy_device(None);
         }

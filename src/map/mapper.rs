@@ -1014,42 +1014,58 @@ impl Mapper {
         if !device_medium {
             self.medium_forward(&camera, &pose)?;
         }
-        self.forward_within_capacity(&camera, &pose, false, device_map, device_medium)?;
-        if device_map && self.raster.is_resident() {
-            // The Gaussians' Adam step in the same submission as the loss and backward.
-            self.raster.arm_adam_step(&self.adam)?;
-        }
-        let kf = &self.keyframes[slot];
-        let v = &mut self.view;
-        let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
-        // A resident device map has its gradients zeroed on the device (the host's are not
-        // read back unless a step is refused).
-        if !(device_map && self.raster.is_resident()) {
-            self.grads.zero_params();
-        }
-        let mut medium_back = DeviceMediumBackward {
-            prior: self.medium_prior.as_ref(),
-            single_coefficient: self.config.single_medium_coefficient,
-            param_grads: &mut self.medium_grads,
+        // On Vulkan the forward's submission runs while the loss and backward are recorded; a
+        // tile overflow then shows with the loss (nothing of that step taken) and the step is
+        // done again after the overflow policy, as when the forward reports it.
+        let mut tries = 0;
+        let (loss, psnr_db) = loop {
+            self.forward_within_capacity(&camera, &pose, false, device_map, device_medium)?;
+            if device_map && self.raster.is_resident() {
+                // The Gaussians' Adam step in the same submission as the loss and backward.
+                self.raster.arm_adam_step(&self.adam)?;
+            }
+            let kf = &self.keyframes[slot];
+            let v = &mut self.view;
+            let target = TargetView { image: &kf.image, depth: &kf.kf.inv_depth, depth_variance: &kf.target_variance };
+            // A resident device map has its gradients zeroed on the device (the host's are
+            // not read back unless a step is refused).
+            if !(device_map && self.raster.is_resident()) {
+                self.grads.zero_params();
+            }
+            let mut medium_back = DeviceMediumBackward {
+                prior: self.medium_prior.as_ref(),
+                single_coefficient: self.config.single_medium_coefficient,
+                param_grads: &mut self.medium_grads,
+            };
+            let result = self.raster.loss_and_backward(
+                &self.gaussians,
+                &v.planes,
+                &v.planes9,
+                &v.out,
+                &target,
+                Some(kf.target_key),
+                &self.config.loss,
+                &mut self.loss_ws,
+                &mut v.upstream,
+                &mut self.grads,
+                &mut v.planes_grad,
+                &mut v.d_medium_loss,
+                match device_medium {
+                    true => Some(&mut medium_back),
+                    false => None,
+                },
+            );
+            match result {
+                Err(VulkanRenderError::Render(RenderError::TileOverflow { needed, capacity })) if tries < OVERFLOW_RETRIES && !self.gaussians.is_empty() => {
+                    tries += 1;
+                    self.prune_for_overflow(needed, capacity)?;
+                }
+                other => break other?,
+            }
         };
-        let (loss, psnr_db) = self.raster.loss_and_backward(
-            &self.gaussians,
-            &v.planes,
-            &v.planes9,
-            &v.out,
-            &target,
-            Some(kf.target_key),
-            &self.config.loss,
-            &mut self.loss_ws,
-            &mut v.upstream,
-            &mut self.grads,
-            &mut v.planes_grad,
-            &mut v.d_medium_loss,
-            match device_medium {
-                true => Some(&mut medium_back),
-                false => None,
-            },
-        )?;
+        if let Some(n) = self.raster.last_intersections() {
+            self.intersections_tight = n * 10 > self.raster_capacity.max_intersections * 9;
+        }
         if device_medium {
             // The medium's backward ran on the device; `medium_grads` holds its gradient.
             if self.config.optimise_medium {
@@ -1148,24 +1164,30 @@ impl Mapper {
                 }
                 Err(VulkanRenderError::Render(RenderError::TileOverflow { needed, capacity })) if tries < OVERFLOW_RETRIES && !self.gaussians.is_empty() => {
                     tries += 1;
-                    let n = self.gaussians.len();
-                    // Half the excess share: the largest go first and cover more tiles than
-                    // the average, so this converges from below in a few renders.
-                    self.release_device_map()?;
-                    let share = (0.5 * (1.0 - capacity as f64 / needed.max(1) as f64) + 0.02).clamp(0.01, 1.0);
-                    let count = ((n as f64 * share).ceil() as usize).clamp(1, n);
-                    let pruned = remove_gaussians(&mut self.gaussians, &mut self.grads, &mut self.adam, count, Removal::Largest, &mut self.densify_scratch)?;
-                    self.intersections_tight = true;
-                    let o = &mut self.overflow;
-                    o.events += 1;
-                    o.pruned += pruned as u64;
-                    o.largest_needed = o.largest_needed.max(needed);
-                    o.capacity = capacity;
-                    tracing::warn!(needed, capacity, pruned, "map: tile intersections overflow; pruned the largest Gaussians, densification paused");
+                    self.prune_for_overflow(needed, capacity)?;
                 }
                 Err(e) => return Err(e.into()),
             }
         }
+    }
+
+    /// The tile-overflow policy's pruning: the Gaussians with the largest axis, half the excess
+    /// share of the map plus 2% (the largest go first and cover more tiles than the average,
+    /// so this converges from below in a few renders); densification pauses.
+    fn prune_for_overflow(&mut self, needed: u64, capacity: usize) -> Result<(), MapperError> {
+        let n = self.gaussians.len();
+        self.release_device_map()?;
+        let share = (0.5 * (1.0 - capacity as f64 / needed.max(1) as f64) + 0.02).clamp(0.01, 1.0);
+        let count = ((n as f64 * share).ceil() as usize).clamp(1, n);
+        let pruned = remove_gaussians(&mut self.gaussians, &mut self.grads, &mut self.adam, count, Removal::Largest, &mut self.densify_scratch)?;
+        self.intersections_tight = true;
+        let o = &mut self.overflow;
+        o.events += 1;
+        o.pruned += pruned as u64;
+        o.largest_needed = o.largest_needed.max(needed);
+        o.capacity = capacity;
+        tracing::warn!(needed, capacity, pruned, "map: tile intersections overflow; pruned the largest Gaussians, densification paused");
+        Ok(())
     }
 
     /// What the tile-overflow policy has done so far.

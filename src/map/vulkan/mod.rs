@@ -856,7 +856,7 @@ impl GpuForwardRenderer {
         config: &RenderConfig,
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
-        self.forward_impl(ctx, gaussians, camera, cam_from_world, MediumSource::Host(medium), config, Some(out), false)
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, MediumSource::Host(medium), config, Some(out), false, false)
     }
 
     /// [`Self::forward`] that leaves the rendered images on the device (in [`Self::raster`]),
@@ -864,6 +864,9 @@ impl GpuForwardRenderer {
     /// [`RenderStats::visible`] is 0: not counted).
     /// With `params_on_device` the map already in [`GpuProjection::params`] is rendered
     /// (`gaussians`, the host's copy, only gives the count: the device map is the optimiser's).
+    /// With `defer` the submission is left running ([`GpuContext::submit`]) and the stats are
+    /// zeros: the intersection count, and a tile overflow, are the next submission's to read
+    /// ([`GpuRenderer::loss_and_backward`]).
     #[allow(clippy::too_many_arguments)]
     pub fn forward_on_device(
         &mut self,
@@ -874,8 +877,9 @@ impl GpuForwardRenderer {
         medium: MediumSource,
         config: &RenderConfig,
         params_on_device: bool,
+        defer: bool,
     ) -> Result<RenderStats, VulkanRenderError> {
-        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, None, params_on_device)
+        self.forward_impl(ctx, gaussians, camera, cam_from_world, medium, config, None, params_on_device, defer)
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -889,6 +893,7 @@ impl GpuForwardRenderer {
         config: &RenderConfig,
         mut out: Option<&mut RenderOutput>,
         params_on_device: bool,
+        defer: bool,
     ) -> Result<RenderStats, VulkanRenderError> {
         let _span = tracing::debug_span!("map.gpu_forward", gaussians = gaussians.len()).entered();
         if camera.width == 0 || camera.height == 0 {
@@ -956,6 +961,10 @@ impl GpuForwardRenderer {
         let intrinsics = [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32];
         self.raster.record(ctx, &self.projection.splats, &self.binning, &grid, intrinsics, config.depth_mode)?;
         self.projection.scan.prefetch_result(ctx)?;
+        if defer && out.is_none() {
+            ctx.submit()?;
+            return Ok(RenderStats { visible: 0, intersections: 0 });
+        }
         ctx.submit_and_wait()?;
         let n_isects = if n == 0 {
             0
@@ -1019,6 +1028,9 @@ pub struct GpuRenderer {
     adam_armed: bool,
     fused_adam: Option<bool>,
     last: Option<GpuForwardState>,
+    /// The last forward was deferred: its intersection count is read after the loss's
+    /// submission.
+    count_pending: bool,
     /// Host staging of the loss's dL/dc_med (allocated once).
     staging_c_med: Vec<f32>,
 }
@@ -1042,11 +1054,17 @@ impl GpuRenderer {
             adam_armed: false,
             fused_adam: None,
             last: None,
+            count_pending: false,
             staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
         })
     }
 
     /// [`GpuForwardRenderer::forward_on_device`], remembered for [`Self::loss_and_backward`].
+    /// With `defer` its submission is left running while the host records the loss and
+    /// backward ([`GpuContext::submit`]); the stats are then zeros and the intersection count,
+    /// or a [`RenderError::TileOverflow`], comes with [`Self::loss_and_backward`] (whose Adam
+    /// step is not taken after an overflow).
+    #[allow(clippy::too_many_arguments)]
     pub fn forward_on_device(
         &mut self,
         ctx: &mut GpuContext,
@@ -1056,8 +1074,10 @@ impl GpuRenderer {
         medium: &MediumPlanes,
         device_medium: Option<&DeviceMediumStep>,
         config: &RenderConfig,
+        defer: bool,
     ) -> Result<RenderStats, VulkanRenderError> {
         self.last = None;
+        self.count_pending = false;
         let on_device = self.check_resident(gaussians.len())?;
         let source = match (device_medium, self.medium.as_mut()) {
             (Some(step), Some(gm)) => {
@@ -1068,8 +1088,9 @@ impl GpuRenderer {
             (Some(_), None) => return Err(RenderError::NoForward { why: "no device medium (GpuRenderer::enable_medium)" }.into()),
             (None, _) => MediumSource::Host(medium),
         };
-        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, source, config, on_device)?;
+        let stats = self.fwd.forward_on_device(ctx, gaussians, camera, cam_from_world, source, config, on_device, defer)?;
         self.remember(camera, config, gaussians.len(), stats.intersections);
+        self.count_pending = defer;
         Ok(stats)
     }
 
@@ -1335,6 +1356,23 @@ impl GpuRenderer {
             gm.prefetch_grads(ctx)?;
         }
         ctx.submit_and_wait()?;
+        if std::mem::take(&mut self.count_pending) {
+            // The deferred forward's count: after an overflow nothing of this step counts
+            // (its render had no intersection, Adam did not step).
+            let total = match n {
+                0 => 0,
+                _ => match self.fwd.projection.scan.result(ctx)? {
+                    Ok(total) => total as usize,
+                    Err(needed) => {
+                        self.last = None;
+                        return Err(RenderError::TileOverflow { needed, capacity: self.fwd.capacity.max_intersections }.into());
+                    }
+                },
+            };
+            if let Some(l) = self.last.as_mut() {
+                l.n_isects = total;
+            }
+        }
         if fuse_adam {
             self.fused_adam = Some(!self.adam.step_refused(ctx)?);
         }
@@ -1375,7 +1413,7 @@ impl GpuRenderer {
         self.last = None;
         // A resident map is rendered as the device holds it (the host's may be behind).
         let on_device = self.check_resident(gaussians.len())?;
-        let stats = self.fwd.forward_impl(ctx, gaussians, camera, cam_from_world, MediumSource::Host(medium), config, Some(out), on_device)?;
+        let stats = self.fwd.forward_impl(ctx, gaussians, camera, cam_from_world, MediumSource::Host(medium), config, Some(out), on_device, false)?;
         self.remember(camera, config, gaussians.len(), stats.intersections);
         Ok(stats)
     }
@@ -1521,6 +1559,16 @@ impl RenderBackend {
         }
     }
 
+    /// The intersection count of the last render on the Vulkan renderer (after
+    /// [`Self::loss_and_backward`] for a [`Self::forward_for_loss`], whose stats do not have
+    /// it); `None` on the CPU reference, whose forward stats do.
+    pub fn last_intersections(&self) -> Option<usize> {
+        match self {
+            RenderBackend::Vulkan { renderer, .. } => renderer.last.map(|l| l.n_isects),
+            RenderBackend::Cpu { .. } => None,
+        }
+    }
+
     /// Timestamp queries on the Vulkan renderer's dispatches on or off
     /// ([`GpuContext::set_timestamps`]); `false` when there are none to take (CPU reference,
     /// or a queue without timestamps).
@@ -1624,8 +1672,9 @@ impl RenderBackend {
     }
 
     /// The forward of an optimisation step: on Vulkan the images stay on the device for
-    /// [`Self::loss_and_backward`] (`out` is not written); on the CPU reference it is
-    /// [`Self::forward`].
+    /// [`Self::loss_and_backward`] (`out` is not written) and the submission is left running
+    /// while the loss and backward are recorded, so the stats are zeros and a tile overflow
+    /// is [`Self::loss_and_backward`]'s error; on the CPU reference it is [`Self::forward`].
     pub fn forward_for_loss(
         &mut self,
         gaussians: &Gaussians,
@@ -1637,7 +1686,7 @@ impl RenderBackend {
         out: &mut RenderOutput,
     ) -> Result<RenderStats, VulkanRenderError> {
         match self {
-            RenderBackend::Vulkan { ctx, renderer } => renderer.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, device_medium, config),
+            RenderBackend::Vulkan { ctx, renderer } => renderer.forward_on_device(ctx, gaussians, camera, cam_from_world, medium, device_medium, config, true),
             RenderBackend::Cpu { ws, .. } => Ok(ws.forward(gaussians, camera, cam_from_world, medium, config, out)?),
         }
     }
