@@ -651,18 +651,23 @@ var<immediate> reduce_params: ReduceParams;
 // overflow, when the offsets were not written).
 @group(0) @binding(24) var<storage, read> isect_count: array<u32>;
 
-// Zeroes the first `isect_count[0]` intersections' partials for the atomic backward, one
-// thread per intersection (dispatched indirectly from that count).
+// Zeroes the first `isect_count[0]` intersections' partials for the atomic backward, a
+// workgroup per 256 intersections (dispatched indirectly from that count): their 12 x 256
+// consecutive floats, thread t taking every 256th from t (so each store is coalesced).
 @compute @workgroup_size(256)
-fn zero_partials(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let k = gid.x;
-    if (k >= isect_count[0]) {
-        return;
-    }
+fn zero_partials(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t: u32) {
+    let count = isect_count[0];
+    let first = wg.x * 256u;
+    let end = count * GRAD_FLOATS;
     for (var v = 0u; v < GRAD_FLOATS; v = v + 1u) {
-        partials[k * GRAD_FLOATS + v] = 0.0;
+        let i = first * GRAD_FLOATS + v * 256u + t;
+        if (i < end) {
+            partials[i] = 0.0;
+        }
     }
-    partial_pixels[k] = 0u;
+    if (first + t < count) {
+        partial_pixels[first + t] = 0u;
+    }
 }
 
 @compute @workgroup_size(256)
