@@ -182,8 +182,9 @@ impl std::fmt::Display for DeviceInfo {
 /// what the kernel timestamps do not show (submission latency, transfers, host copies).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct HostStats {
-    /// Kernel submissions ([`GpuContext::submit_and_wait`]) and the wall time from submit to
-    /// the fence (GPU time included).
+    /// Kernel submissions ([`GpuContext::submit_and_wait`], [`GpuContext::submit`]) and the
+    /// wall time from submit to the fence (GPU time included), summed per submission: one left
+    /// running overlaps the next, so the sum can exceed the wall time.
     pub submits: u64,
     pub submit_wait_ns: u64,
     /// Host reads and writes of the arena (a staged one is one submission per chunk), bytes
