@@ -33,7 +33,7 @@ fn main() {
     for path in &files {
         println!("cargo:rerun-if-changed={}", path.display());
         let stem = path.file_stem().unwrap().to_str().unwrap().to_owned();
-        let source = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let source = with_includes(&std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())), &kernels_dir.join("shared"));
         let module = naga::front::wgsl::parse_str(&source)
             .unwrap_or_else(|e| panic!("\n{}", e.emit_to_string_with_path(&source, &path.display().to_string())));
         let info = Validator::new(ValidationFlags::all(), Capabilities::IMMEDIATES | Capabilities::SUBGROUP | Capabilities::SHADER_FLOAT32_ATOMIC)
@@ -181,4 +181,22 @@ fn scalar_name(s: &naga::Scalar) -> String {
         _ => "?",
     };
     format!("{k}{}", s.width * 8)
+}
+
+/// `source` with each line `//!include NAME` replaced by `shared/NAME` (code two kernels share;
+/// not compiled on its own).
+fn with_includes(source: &str, shared: &std::path::Path) -> String {
+    let mut out = String::with_capacity(source.len());
+    for line in source.lines() {
+        match line.strip_prefix("//!include ") {
+            Some(name) => {
+                let path = shared.join(name.trim());
+                println!("cargo:rerun-if-changed={}", path.display());
+                out.push_str(&std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())));
+            }
+            None => out.push_str(line),
+        }
+        out.push('\n');
+    }
+    out
 }

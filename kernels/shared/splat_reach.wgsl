@@ -1,0 +1,51 @@
+// Shared by rasterize.wgsl and rasterize_backward.wgsl (`//!include splat_reach.wgsl`, pasted
+// in by build.rs; it needs their `SplatVecs`): whether a subgroup can skip a splat.
+
+// Whether splat `s` can reach a pixel of the box `lo`..`hi` (pixel coordinates as the hit
+// test takes them): a pixel it blends has q <= q_max (the hit test's bound), so the least q
+// over the box must be within that bound. q is a convex quadratic in the offset from the
+// mean: its least value over the box is 0 with the mean inside, else on an edge, where it is
+// the edge's 1-D quadratic at its vertex clamped to the edge. Compared with a margin for
+// rounding. A splat no pixel of a subgroup can reach is skipped by the whole subgroup, which
+// changes nothing: it would blend nowhere.
+fn reaches(s: SplatVecs, lo: vec2<f32>, hi: vec2<f32>) -> bool {
+    let a = s.a.z;
+    let b = s.a.w;
+    let c = s.b.x;
+    if (!(a > 0.0 && c > 0.0)) {
+        return true;
+    }
+    let d_lo = lo - s.a.xy;
+    let d_hi = hi - s.a.xy;
+    if (all(d_lo <= vec2<f32>(0.0)) && all(d_hi >= vec2<f32>(0.0))) {
+        return true;
+    }
+    // Horizontal edges (dy fixed): dx at the vertex -b dy / a, clamped.
+    let dx0 = clamp(-b * d_lo.y / a, d_lo.x, d_hi.x);
+    let dx1 = clamp(-b * d_hi.y / a, d_lo.x, d_hi.x);
+    // Vertical edges (dx fixed): dy at the vertex -b dx / c, clamped.
+    let dy0 = clamp(-b * d_lo.x / c, d_lo.y, d_hi.y);
+    let dy1 = clamp(-b * d_hi.x / c, d_lo.y, d_hi.y);
+    let q0 = a * dx0 * dx0 + 2.0 * b * dx0 * d_lo.y + c * d_lo.y * d_lo.y;
+    let q1 = a * dx1 * dx1 + 2.0 * b * dx1 * d_hi.y + c * d_hi.y * d_hi.y;
+    let q2 = a * d_lo.x * d_lo.x + 2.0 * b * d_lo.x * dy0 + c * dy0 * dy0;
+    let q3 = a * d_hi.x * d_hi.x + 2.0 * b * d_hi.x * dy1 + c * dy1 * dy1;
+    let q_min = min(min(q0, q1), min(q2, q3));
+    return !(q_min * 0.999 - 1e-3 > s.b.w * 1.0001 + 1e-3);
+}
+
+// Beyond any pixel coordinate (a lane left out of a subgroup's pixel box).
+const BIG: f32 = 1e30;
+
+// Bit `j` of a subgroup ballot.
+fn ballot_bit(m: vec4<u32>, j: u32) -> bool {
+    var w = m.x;
+    if (j >= 96u) {
+        w = m.w;
+    } else if (j >= 64u) {
+        w = m.z;
+    } else if (j >= 32u) {
+        w = m.y;
+    }
+    return ((w >> (j & 31u)) & 1u) != 0u;
+}
