@@ -29,17 +29,13 @@ var<immediate> params: SortParams;
 @group(0) @binding(2) var<storage, read_write> hist: array<u32>;
 @group(0) @binding(3) var<storage, read_write> dst_keys: array<vec2<u32>>;
 @group(0) @binding(4) var<storage, read_write> dst_values: array<u32>;
-// The pair count when `params.n` is `COUNT_ON_DEVICE` (written by an earlier kernel of the
-// submission; the host dispatched the blocks indirectly).
+// The pair count when `params.n` is `COUNT_ON_DEVICE`.
 @group(0) @binding(5) var<storage, read> count: array<u32>;
 
-const COUNT_ON_DEVICE: u32 = 0xffffffffu;
+//!include device_count.wgsl
 
 fn pair_count() -> u32 {
-    if (params.n == COUNT_ON_DEVICE) {
-        return count[0];
-    }
-    return params.n;
+    return host_or_device_count(params.n);
 }
 
 fn block_count() -> u32 {

@@ -21,18 +21,13 @@ var<immediate> params: RangeParams;
 @group(0) @binding(3) var<storage, read> isect_gaussian: array<u32>;
 @group(0) @binding(4) var<storage, read_write> sorted_gaussian: array<u32>;
 @group(0) @binding(5) var<storage, read_write> slot_to_sorted: array<u32>;
-// The key count when `params.n_keys` is `COUNT_ON_DEVICE` (the intersection count an earlier
-// kernel of the submission wrote; the per-intersection kernels are then dispatched
-// indirectly).
+// The key count when `params.n_keys` is `COUNT_ON_DEVICE` (the intersection count).
 @group(0) @binding(6) var<storage, read> count: array<u32>;
 
-const COUNT_ON_DEVICE: u32 = 0xffffffffu;
+//!include device_count.wgsl
 
 fn key_count() -> u32 {
-    if (params.n_keys == COUNT_ON_DEVICE) {
-        return count[0];
-    }
-    return params.n_keys;
+    return host_or_device_count(params.n_keys);
 }
 
 // `key_tile` of src/map/render/bin.rs: the bits above the 21 of the depth.

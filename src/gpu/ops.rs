@@ -152,8 +152,9 @@ pub fn record_radix_sort_indirect(
     record_sort_passes(ctx, (a, b, hist, count), COUNT_ON_DEVICE, key_bits, |ctx, kernel, bufs, imm| ctx.dispatch_indirect(kernel, bufs, imm, block_args))
 }
 
-/// The pair count in the sort's immediates that makes its kernels read `count[0]`.
-const COUNT_ON_DEVICE: u32 = u32::MAX;
+/// The count in a kernel's immediates that makes it read `count[0]`, a count an earlier kernel
+/// of the submission wrote (`kernels/shared/device_count.wgsl`: the sort, the tile ranges).
+pub const COUNT_ON_DEVICE: u32 = u32::MAX;
 
 type SortBuffers = ((GpuRange, GpuRange), (GpuRange, GpuRange), GpuRange, GpuRange);
 

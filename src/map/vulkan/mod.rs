@@ -46,7 +46,7 @@ pub mod loss;
 pub mod medium;
 pub mod optimiser;
 
-use crate::gpu::ops::{record_exclusive_scan, record_radix_sort_indirect, ScanScratch, SortScratch, SORT_BLOCK};
+use crate::gpu::ops::{record_exclusive_scan, record_radix_sort_indirect, ScanScratch, SortScratch, COUNT_ON_DEVICE, SORT_BLOCK};
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
 use crate::map::adam::{AdamGroup, StepConstants};
 use crate::map::medium::{C_MED, MEDIUM_CHANNELS};
@@ -301,10 +301,6 @@ impl GpuBinning {
         Ok(())
     }
 }
-
-/// The intersection count in the immediates of the tile-range kernels that makes them read it
-/// from the device (`intersection_count`'s output).
-const COUNT_ON_DEVICE: u32 = u32::MAX;
 
 /// Rasterisation forward buffers for images up to `max_pixels` pixels: the medium planes
 /// (inputs) and every output of [`crate::map::render::RenderOutput`].
