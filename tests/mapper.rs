@@ -605,3 +605,20 @@ fn photometric_pose_refinement_brings_perturbed_keyframes_back_and_sharpens_the_
     assert!(refined.0 < 0.6 * before.0 && refined.1 < 0.6 * before.1, "{before:?} -> {refined:?}");
     assert!(psnr_refined > psnr_plain + 1.0, "PSNR {psnr_plain:.2} -> {psnr_refined:.2}");
 }
+
+#[test]
+fn a_config_file_may_set_one_field_of_a_section_and_keep_the_other_defaults() {
+    let config: MapperConfig = toml::from_str("[loss]\nssim_lambda = 0.4\n[lr]\nmean = 1e-3\n[medium]\npe_frequencies = 2\n").unwrap();
+    let defaults = MapperConfig::default();
+    assert_eq!(config.loss.ssim_lambda, 0.4);
+    assert_eq!(config.loss.photometric_weight, defaults.loss.photometric_weight);
+    assert_eq!(config.loss.kl_weight, defaults.loss.kl_weight);
+    assert_eq!(config.lr.mean, 1e-3);
+    assert_eq!(config.lr.log_scale, defaults.lr.log_scale);
+    assert_eq!(config.medium.pe_frequencies, 2);
+    assert_ne!(defaults.medium.pe_frequencies, 2);
+    assert_eq!(config.render, defaults.render);
+    // A misspelt field is still an error that names it.
+    let err = toml::from_str::<MapperConfig>("[loss]\nssim_lamda = 0.4\n").unwrap_err().to_string();
+    assert!(err.contains("ssim_lamda"), "{err}");
+}

@@ -148,9 +148,10 @@ pub enum LossError {
 }
 
 /// Weights and parameters of the mapping loss. Defaults live in [`LossConfig::default`] and
-/// nowhere else; they are starting points, to be tuned on generated sequences.
+/// nowhere else; they are starting points, to be tuned on generated sequences. A config file
+/// may give any subset of the fields.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct LossConfig {
     /// Weight of the photometric term `(1 - lambda) L1 + lambda (1 - SSIM)` (Eq. 13).
     pub photometric_weight: f64,

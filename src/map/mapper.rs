@@ -77,9 +77,10 @@ impl From<VulkanRenderError> for MapperError {
     }
 }
 
-/// Adam learning rates, one per parameter group.
+/// Adam learning rates, one per parameter group. A config file may give any subset; the rest
+/// keep [`LearningRates::default`].
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct LearningRates {
     /// Gaussian means, metres per step.
     pub mean: f64,
@@ -95,6 +96,12 @@ pub struct LearningRates {
     pub f_rest: f64,
     /// Medium network parameters per step.
     pub medium: f64,
+}
+
+impl Default for LearningRates {
+    fn default() -> Self {
+        LearningRates { mean: 4e-4, log_scale: 1e-2, rotation: 1e-3, opacity_logit: 2.5e-2, f_dc: 1e-2, f_rest: 5e-4, medium: 1e-3 }
+    }
 }
 
 impl LearningRates {
@@ -209,7 +216,7 @@ impl Default for MapperConfig {
             loss: LossConfig::default(),
             render: RenderConfig::default(),
             medium: MediumConfig::default(),
-            lr: LearningRates { mean: 4e-4, log_scale: 1e-2, rotation: 1e-3, opacity_logit: 2.5e-2, f_dc: 1e-2, f_rest: 5e-4, medium: 1e-3 },
+            lr: LearningRates::default(),
             seed: 1,
             init_stride_px: 2,
             init_max_rel_std: 0.5,

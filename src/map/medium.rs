@@ -102,9 +102,9 @@ pub enum MediumError {
 }
 
 /// Shape and initialisation of the medium network. Defaults live in
-/// [`MediumConfig::default`] and nowhere else.
+/// [`MediumConfig::default`] and nowhere else; a config file may give any subset of the fields.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct MediumConfig {
     /// Positional-encoding frequencies L (the direction plus sin/cos at `2^k`, k < L); at most 12.
     pub pe_frequencies: usize,
