@@ -69,3 +69,13 @@ fn refine_with_pose_refinement_writes_the_poses_and_says_what_it_did() {
     assert!(stderr.contains("--perturb-poses-m and --perturb-poses-deg need --sim") && !stderr.contains("panicked"), "{stderr}");
     assert!(!dir.path().join("x").exists());
 }
+
+#[test]
+fn a_missing_file_is_named_once_in_the_error() {
+    let out = duv().args(["bench", "map", "--poses", "tracked", "--board", "boards/no-such-board.toml", "--frames", "10"]).output().unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8(out.stderr).unwrap();
+    let line = stderr.lines().find(|l| l.starts_with("error: ")).unwrap_or_else(|| panic!("no error line:\n{stderr}"));
+    assert!(line.contains("boards/no-such-board.toml"), "{line}");
+    assert_eq!(line.matches("No such file or directory").count(), 1, "{line}");
+}

@@ -487,14 +487,14 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             }
             results.push(r);
             // Keep the report current while the next run works.
-            write_reports(&a, &results)?;
+            write_reports(&a, base.init_stride_px, &results)?;
         }
     }
     println!("wrote {}", a.out.display());
     Ok(())
 }
 
-fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> {
+fn write_reports(a: &BenchMapArgs, init_stride_px: usize, results: &[RunResult]) -> anyhow::Result<()> {
     write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(results)?.as_bytes())?;
     let mut md = format!(
         "# duv bench map\n\n{}x{}, {} frames, {}, {}, cap {} Gaussians, seeded every {} px.\n\n",
@@ -510,7 +510,7 @@ fn write_reports(a: &BenchMapArgs, results: &[RunResult]) -> anyhow::Result<()> 
             None => format!("{} iterations", a.iterations),
         },
         a.max_gaussians,
-        a.init_stride_px.map_or("config's".into(), |s| s.to_string())
+        init_stride_px
     );
     md.push_str("| water | variant | PSNR dB | SSIM | restored PSNR dB | beta_D rel.err | beta_B rel.err | B_inf rel.err | ms/it | Gaussians |\n|---|---|---|---|---|---|---|---|---|---|\n");
     let f = |v: [f64; 3]| format!("{:.2} {:.2} {:.2}", v[0], v[1], v[2]);

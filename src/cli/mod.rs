@@ -13,3 +13,35 @@ pub mod refine;
 pub mod replay;
 pub mod run;
 pub mod sim;
+
+/// The error and its causes as one line, `outer: cause: ...`, leaving out a cause whose text
+/// the line already ends with (our error types print their source in their own message, as
+/// `path: No such file or directory`, and anyhow's `{:#}` would print it twice).
+pub fn error_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if line.ends_with(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
+}
+
+#[cfg(test)]
+mod tests {
+    use super::error_line;
+
+    #[test]
+    fn error_line_prints_each_cause_once() {
+        let io = std::io::Error::new(std::io::ErrorKind::NotFound, "No such file or directory (os error 2)");
+        let e = anyhow::Error::new(duv::io::IoError::file(std::path::Path::new("boards/x.toml"), io)).context("loading the board");
+        assert_eq!(error_line(&e), "loading the board: boards/x.toml: No such file or directory (os error 2)");
+        let plain = anyhow::anyhow!("inner").context("outer");
+        assert_eq!(error_line(&plain), "outer: inner");
+    }
+}
