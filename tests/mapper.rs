@@ -622,3 +622,33 @@ fn a_config_file_may_set_one_field_of_a_section_and_keep_the_other_defaults() {
     let err = toml::from_str::<MapperConfig>("[loss]\nssim_lamda = 0.4\n").unwrap_err().to_string();
     assert!(err.contains("ssim_lamda"), "{err}");
 }
+
+#[test]
+fn the_medium_estimate_is_made_again_with_more_keyframes_until_the_configured_count() {
+    let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
+    (cfg.width, cfg.height, cfg.frames, cfg.vignetting) = (160, 120, 40, 0.0);
+    let r = SimRenderer::new(&cfg).expect("sim");
+    let kfs = sim_keyframes(&r, 5, 8);
+    assert_eq!(kfs.len(), 8);
+    let cap = MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 };
+    let mut samples = Vec::new();
+    for until in [0, 16] {
+        let config = MapperConfig { refine_medium_estimate_until_keyframes: until, ..MapperConfig::default() };
+        let mut m = Mapper::new(config, cap).unwrap();
+        let mut seen = Vec::new();
+        for (i, k) in kfs.iter().enumerate() {
+            m.add_keyframe(k.keyframe.clone()).unwrap();
+            if i == 3 || i == 7 {
+                let e = m.medium_estimate().expect("an estimate from 4 keyframes on");
+                assert_eq!(e.accepted, [true; 3], "{e:?}");
+                seen.push(e.samples);
+            }
+        }
+        samples.push(seen);
+    }
+    // Stopping at the first estimate that sets every channel: the one from 4 keyframes stays.
+    assert_eq!(samples[0][0], samples[0][1], "{samples:?}");
+    // Refining up to 16 keyframes: the estimate from 8 keyframes replaces it (more depth blocks).
+    assert_eq!(samples[1][0], samples[0][0], "{samples:?}");
+    assert!(samples[1][1] > samples[1][0], "{samples:?}");
+}

@@ -175,7 +175,7 @@ struct Metrics {
     mean_ssim: f64,
     mean_restored_psnr_db: Option<f64>,
     medium: MediumParams,
-    /// The closed-form estimate the optimisation started from (`MapperConfig::estimate_medium_at_keyframes`).
+    /// The newest closed-form estimate of the medium (`MapperConfig::estimate_medium_at_keyframes`, `refine_medium_estimate_until_keyframes`).
     medium_estimate: Option<duv::map::medium_estimate::MediumEstimate>,
     medium_truth: Option<MediumParams>,
     /// Relative error of each recovered coefficient, in the order beta_D, beta_B, B_inf (R G B each).
