@@ -532,6 +532,7 @@ fn seeding_and_carving_settings_out_of_range_are_refused_by_name() {
         (MapperConfig { carve_in_front_factor: f64::NAN, ..MapperConfig::default() }, "carve_in_front_factor"),
         (MapperConfig { late_init_max_rel_std: -1.0, ..MapperConfig::default() }, "late_init_max_rel_std"),
         (MapperConfig { init_replace_fraction: 1.5, ..MapperConfig::default() }, "init_replace_fraction"),
+        (MapperConfig { refine_medium_estimate_min_change: -0.1, ..MapperConfig::default() }, "refine_medium_estimate_min_change"),
     ] {
         match Mapper::new(config, capacity(100)) {
             Err(MapperError::InvalidConfig { field: f, .. }) => assert_eq!(f, field),
@@ -631,24 +632,34 @@ fn the_medium_estimate_is_made_again_with_more_keyframes_until_the_configured_co
     let kfs = sim_keyframes(&r, 5, 8);
     assert_eq!(kfs.len(), 8);
     let cap = MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 };
-    let mut samples = Vec::new();
-    for until in [0, 16] {
-        let config = MapperConfig { refine_medium_estimate_until_keyframes: until, ..MapperConfig::default() };
+    // (refine until, min change): the estimate's depth blocks at 4 and 8 keyframes, and
+    // whether the medium network changed when the eighth keyframe came in.
+    let mut runs = Vec::new();
+    for (until, min_change) in [(0, 0.05), (16, 0.0), (16, 1e9)] {
+        let config = MapperConfig { refine_medium_estimate_until_keyframes: until, refine_medium_estimate_min_change: min_change, ..MapperConfig::default() };
         let mut m = Mapper::new(config, cap).unwrap();
-        let mut seen = Vec::new();
+        let (mut samples, mut before) = (Vec::new(), Vec::new());
         for (i, k) in kfs.iter().enumerate() {
+            if i == 7 {
+                before = m.medium().params().to_vec();
+            }
             m.add_keyframe(k.keyframe.clone()).unwrap();
             if i == 3 || i == 7 {
                 let e = m.medium_estimate().expect("an estimate from 4 keyframes on");
                 assert_eq!(e.accepted, [true; 3], "{e:?}");
-                seen.push(e.samples);
+                samples.push(e.samples);
             }
         }
-        samples.push(seen);
+        runs.push((samples, before != m.medium().params()));
     }
     // Stopping at the first estimate that sets every channel: the one from 4 keyframes stays.
-    assert_eq!(samples[0][0], samples[0][1], "{samples:?}");
-    // Refining up to 16 keyframes: the estimate from 8 keyframes replaces it (more depth blocks).
-    assert_eq!(samples[1][0], samples[0][0], "{samples:?}");
-    assert!(samples[1][1] > samples[1][0], "{samples:?}");
+    assert_eq!(runs[0].0[0], runs[0].0[1], "{runs:?}");
+    assert!(!runs[0].1, "{runs:?}");
+    // Refining up to 16 keyframes: an estimate from 8 keyframes (more depth blocks) is made;
+    // it replaces the medium when any move counts, and not when none does.
+    for run in &runs[1..] {
+        assert_eq!(run.0[0], runs[0].0[0], "{runs:?}");
+        assert!(run.0[1] > run.0[0], "{runs:?}");
+    }
+    assert!(runs[1].1 && !runs[2].1, "{runs:?}");
 }

@@ -201,11 +201,15 @@ pub struct MapperConfig {
     pub estimate_medium_at_keyframes: usize,
     /// The estimate is also made again at twice as many keyframes while that is at most this
     /// many, even once every channel is set: more views see each surface over a wider spread
-    /// of ranges, and each channel a later estimate accepts replaces the earlier one (on the
-    /// tracked turbid survey the estimate from 4 keyframes had red's attenuation 16 % low,
-    /// the one from 8 within 5 %). 0 (or at most `estimate_medium_at_keyframes`) stops at the
-    /// first estimate that sets every channel.
+    /// of ranges. A channel a later estimate accepts replaces the earlier one when one of its
+    /// three coefficients moved by more than `refine_medium_estimate_min_change` (relative);
+    /// otherwise the medium is left alone, since each replacement restarts the medium network
+    /// and recolours the map (on the tracked turbid survey the estimate from 4 keyframes had
+    /// red's attenuation 16 % low, the one from 16 within 3 %). 0 (or at most
+    /// `estimate_medium_at_keyframes`) stops at the first estimate that sets every channel.
     pub refine_medium_estimate_until_keyframes: usize,
+    /// See `refine_medium_estimate_until_keyframes`; >= 0.
+    pub refine_medium_estimate_min_change: f64,
     /// Settings of that estimate.
     pub medium_estimate: MediumEstimateConfig,
     /// Weight of the prior that keeps the medium near the accepted estimate
@@ -249,6 +253,7 @@ impl Default for MapperConfig {
             single_medium_coefficient: false,
             estimate_medium_at_keyframes: 4,
             refine_medium_estimate_until_keyframes: 16,
+            refine_medium_estimate_min_change: 0.05,
             medium_estimate: MediumEstimateConfig::default(),
             medium_prior_weight: 0.01,
             medium_prior_rel_std: 0.1,
@@ -269,6 +274,9 @@ impl MapperConfig {
             AdamGroupConfig { lr: self.lr.of(g), ..AdamGroupConfig::default() }.validate()?;
         }
         AdamGroupConfig { lr: self.lr.medium, ..AdamGroupConfig::default() }.validate()?;
+        if !(self.refine_medium_estimate_min_change.is_finite() && self.refine_medium_estimate_min_change >= 0.0) {
+            return bad("refine_medium_estimate_min_change", self.refine_medium_estimate_min_change, "must be finite and >= 0");
+        }
         if !(self.medium_prior_weight.is_finite() && self.medium_prior_weight >= 0.0) {
             return bad("medium_prior_weight", self.medium_prior_weight, "must be finite and >= 0");
         }
@@ -923,9 +931,11 @@ impl Mapper {
 
     /// Estimates the water from the held keyframes ([`super::medium_estimate`]), sets the
     /// medium network to it (uniform in direction, as a fresh network; moments reset; the
-    /// channels the estimate did not accept keep the current medium along the first
-    /// keyframe's axis) and re-derives every Gaussian's base colour for the new water. When no
-    /// channel is accepted, or on an error, nothing changes.
+    /// channels the estimate did not accept, and those an earlier estimate set that this one
+    /// moved by no more than `refine_medium_estimate_min_change`, keep the current medium
+    /// along the first keyframe's axis) and re-derives every Gaussian's base colour for the
+    /// new water. When no channel is taken, or on an error, the medium and map are unchanged
+    /// (the estimate is still kept as [`Self::medium_estimate`]).
     pub fn estimate_medium(&mut self) -> Result<MediumEstimate, MapperError> {
         let _span = tracing::info_span!("map.medium_estimate", keyframes = self.keyframes.len()).entered();
         self.release_device_map()?;
@@ -934,10 +944,29 @@ impl Mapper {
         let before = self.medium.summary_along_axis(&first);
         let estimate = estimate_medium(&keyframes, before.beta_d, &self.config.medium_estimate)?;
         self.medium_estimate = Some(estimate.clone());
-        if !estimate.accepted.iter().any(|&a| a) {
+        // A channel the medium already takes from an earlier estimate changes only when the
+        // new one moved it by more than the configured share.
+        let min_change = self.config.refine_medium_estimate_min_change;
+        let adopt: [bool; 3] = std::array::from_fn(|c| {
+            estimate.accepted[c]
+                && match &self.medium_prior {
+                    Some(p) if p.channels[c] => {
+                        let (a, b) = (&p.medium, &estimate.medium);
+                        let moved = |x: f64, y: f64| (y - x).abs() > min_change * x.abs();
+                        moved(a.beta_d[c], b.beta_d[c]) || moved(a.beta_b[c], b.beta_b[c]) || moved(a.b_inf[c], b.b_inf[c])
+                    }
+                    _ => true,
+                }
+        });
+        if !adopt.iter().any(|&a| a) {
             return Ok(estimate);
         }
-        let water = estimate.or(&before);
+        let mut water = before;
+        for c in (0..3).filter(|&c| adopt[c]) {
+            water.beta_d[c] = estimate.medium.beta_d[c];
+            water.beta_b[c] = estimate.medium.beta_b[c];
+            water.b_inf[c] = estimate.medium.b_inf[c];
+        }
         let mut medium = self.config.medium;
         for c in 0..3 {
             medium.init_c_med[c] = water.b_inf[c].clamp(1e-3, 0.999);
@@ -952,7 +981,7 @@ impl Mapper {
             rel_std: self.config.medium_prior_rel_std,
             b_inf_std: self.config.medium_prior_b_inf_std,
         });
-        for c in (0..3).filter(|&c| estimate.accepted[c]) {
+        for c in (0..3).filter(|&c| adopt[c]) {
             prior.channels[c] = true;
             prior.medium.beta_d[c] = water.beta_d[c];
             prior.medium.beta_b[c] = water.beta_b[c];
