@@ -417,7 +417,8 @@ struct Pair {
     colour: [[f64; 3]; 2],
 }
 
-/// Every sample projected into every other keyframe where it is in view and not occluded.
+/// Each sample projected into the other keyframes where it is in view and not occluded, at
+/// most `max_partners` of them per sample: those where its range differs most.
 fn view_pairs(views: &[View], samples: &[Sample], cfg: &MediumEstimateConfig) -> Vec<Pair> {
     let cams_from_world: Vec<_> = views.iter().map(|v| v.kf.world_from_cam.inverse()).collect();
     let mut pairs = Vec::with_capacity(samples.len() * cfg.max_partners.min(views.len().saturating_sub(1)));
