@@ -161,6 +161,29 @@ fn main() {
                 let ms = (ctx.profile().total_ns[k] - before.total_ns[k]) * 1e-6 / runs as f64;
                 println!("    {:<48} {ms:8.3} ms per iteration (deterministic)", Kernel::RasterizeBackwardRasterizeBackward.name());
             }
+            // The atomic backward with the other `pixel_pairs` setting, same inputs.
+            if !ctx.deterministic() {
+                let was = ctx.pixel_pairs();
+                ctx.set_pixel_pairs(!was);
+                let before = ctx.profile().clone();
+                let mut other_b = Vec::new();
+                for _ in 0..runs {
+                    gpu_grads.reset(n).unwrap();
+                    let t = Instant::now();
+                    gpu.backward(&mut ctx, &gaussians, &medium, &gpu_out, &up, &mut gpu_grads, &mut gpu_medium_grads).unwrap();
+                    other_b.push(t.elapsed());
+                }
+                let ob = median_ms(&mut other_b);
+                let which = if was { "one pixel per thread" } else { "pixel pairs" };
+                println!("    backward with {which}: {ob:.2} ms ({:.2}x the backward above)", ob / gb);
+                for (k, d, ms) in ctx.profile().rows() {
+                    let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);
+                    if d > d0 && k.name().starts_with("rasterize_backward.rasterize") {
+                        println!("    {:<48} {:8.3} ms per iteration ({which})", k.name(), (ms - ns0 * 1e-6) / runs as f64);
+                    }
+                }
+                ctx.set_pixel_pairs(was);
+            }
             println!("    GPU buffers of this renderer: {used_mib:.1} MiB of the {} MiB arena", ctx.arena_capacity_bytes() >> 20);
             ctx.arena_reset_to(mark);
         }
@@ -174,18 +197,26 @@ fn main() {
     }
 }
 
-/// Median ms of `Mapper::step_on` on the CPU and the Vulkan mapper for `n` random Gaussians
+/// Median ms of `Mapper::step_on` on the CPU mapper and on the Vulkan mapper with one and two
+/// pixels per thread in the rasterisers (`GpuOptions::pixel_pairs`), for `n` random Gaussians
 /// at `w x h`, one keyframe (the CPU render of the map, no tracked depth), no densification.
+/// The mappers' steps alternate, so the three share the machine's state.
 fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
     let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
     let mut rng = Rng::new(n as u64);
     let gaussians = random_gaussians(&mut rng, n, n, &cam, &world_from_cam(), (1.0, 10.0), (0.7, 4.0), (-2.0, 3.0));
     let config = MapperConfig { densify_every: 0, intersections_per_gaussian: 16, ..MapperConfig::default() };
     let capacity = MapperCapacity { max_gaussians: n, max_keyframes: 2, width: w, height: h };
-    let mut times = Vec::new();
-    for device in [MapperDevice::Cpu, MapperDevice::Vulkan] {
+    let variants = [(MapperDevice::Cpu, None), (MapperDevice::Vulkan, Some(false)), (MapperDevice::Vulkan, Some(true))];
+    let mut mappers = Vec::new();
+    for (device, pairs) in variants {
         let mut m = Mapper::new(config.clone(), capacity).unwrap();
-        let what = m.use_device(device, &GpuOptions::with_budget_mb(gpu_mb)).unwrap();
+        let options = GpuOptions { pixel_pairs: pairs, ..GpuOptions::with_budget_mb(gpu_mb) };
+        let what = m.use_device(device, &options).unwrap();
+        if device == MapperDevice::Vulkan && !m.renders_on_vulkan() {
+            println!("mapper step {w}x{h}, {n} Gaussians: no Vulkan mapper ({what})");
+            return;
+        }
         m.set_gaussians(&gaussians).unwrap();
         let render = m.render(&cam, &world_from_cam()).unwrap();
         let image = ImageRgb8 { width: w, height: h, data: render.colour.data.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect() };
@@ -200,18 +231,23 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
         };
         m.add_keyframe(&kf).unwrap();
         m.step_on(0).unwrap();
-        // The timed steps without timestamp queries; then as many with them, for the
-        // per-kernel table (and their median, to show what the queries cost).
-        let timestamps = m.set_gpu_timestamps(false);
-        let host_before = m.gpu().map(|g| g.host_stats());
-        let mut samples = Vec::new();
-        for _ in 0..runs {
+        m.set_gpu_timestamps(false);
+        mappers.push((m, what, Vec::new()));
+    }
+    // The timed steps without timestamp queries, the mappers in turn.
+    let host_before: Vec<_> = mappers.iter().map(|(m, _, _)| m.gpu().map(|g| g.host_stats())).collect();
+    for _ in 0..runs {
+        for (m, _, samples) in mappers.iter_mut() {
             let t = Instant::now();
             m.step_on(0).unwrap();
             samples.push(t.elapsed());
         }
+    }
+    // Then as many with timestamp queries, for the per-kernel tables (and their median, to
+    // show what the queries cost).
+    for ((m, _, _), host_before) in mappers.iter_mut().zip(host_before) {
         let host_after = m.gpu().map(|g| g.host_stats());
-        m.set_gpu_timestamps(true);
+        let timestamps = m.set_gpu_timestamps(true);
         let before = m.gpu().map(|g| g.profile().clone());
         let mut profiled = Vec::new();
         if timestamps {
@@ -221,13 +257,13 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
                 profiled.push(t.elapsed());
             }
         }
-        // Per-kernel GPU time of the Vulkan mapper's steps (timestamp queries).
         if let (Some(before), Some(host_before), Some(host_after), Some(gpu)) = (before, host_before, host_after, m.gpu()) {
-            println!("Vulkan mapper step {w}x{h}, {n} Gaussians, host side per step: {}", host_after.since(&host_before).describe_per(runs as u64));
+            let which = if gpu.pixel_pairs() { "pixel pairs" } else { "one pixel per thread" };
+            println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), host side per step: {}", host_after.since(&host_before).describe_per(runs as u64));
             if timestamps {
-                println!("Vulkan mapper step {w}x{h}, {n} Gaussians, with timestamp queries: {:.2} ms", median_ms(&mut profiled));
+                println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), with timestamp queries: {:.2} ms", median_ms(&mut profiled));
             }
-            println!("Vulkan mapper step {w}x{h}, {n} Gaussians, per kernel:");
+            println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), per kernel:");
             for (k, d, ms) in gpu.profile().rows() {
                 let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);
                 let ms = ms - ns0 * 1e-6;
@@ -236,16 +272,20 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
                 }
             }
         }
-        times.push((what, median_ms(&mut samples), m.gaussians().len()));
     }
-    let (cpu, gpu) = (&times[0], &times[1]);
+    let times: Vec<(String, f64, usize)> = mappers.iter_mut().map(|(m, what, samples)| (what.clone(), median_ms(samples), m.gaussians().len())).collect();
+    let (cpu, one, pairs) = (&times[0], &times[1], &times[2]);
     println!(
-        "mapper step {w}x{h}, {n} Gaussians: CPU mapper {:8.2} ms, Vulkan mapper {:8.2} ms (CPU/Vulkan {:.2}x; {}; {} and {} Gaussians after the steps)",
+        "mapper step {w}x{h}, {n} Gaussians: CPU mapper {:8.2} ms, Vulkan mapper {:8.2} ms, with pixel pairs {:8.2} ms (CPU/Vulkan {:.2}x and {:.2}x, pairs/one {:.3}; {}; {}, {} and {} Gaussians after the steps)",
         cpu.1,
-        gpu.1,
-        cpu.1 / gpu.1,
-        gpu.0,
+        one.1,
+        pairs.1,
+        cpu.1 / one.1,
+        cpu.1 / pairs.1,
+        pairs.1 / one.1,
+        one.0,
         cpu.2,
-        gpu.2
+        one.2,
+        pairs.2
     );
 }

@@ -9,6 +9,9 @@
 // (`subgroupAll`). Measured on lavapipe (Mesa 22.3): loading staged splats from workgroup
 // memory gathers lane by lane and made this kernel 5-10x slower than the shuffles.
 //
+// `rasterize_pairs` (the default, `GpuContext::pixel_pairs`) takes two pixels per thread, 128
+// threads a tile, so each shuffled splat serves two pixels.
+//
 // Per pixel and channel: C = c_med + sum_n w_n (c_n exp(-sigma_att t_n) - c_med exp(-sigma_bs t_n)),
 // restored = sum_n w_n c_n, depth D and variance V by West's weighted update, alpha = sum w_n,
 // final_t (object transmittance behind the last blended splat) and isect_end for the backward.
@@ -64,6 +67,135 @@ fn load_splat_vecs(g: u32) -> SplatVecs {
 
 //!include splat_reach.wgsl
 
+// What a pixel reads once: its position, ray and medium.
+struct PixelMedium {
+    fx: f32,
+    fy: f32,
+    ray_norm: f32,
+    m_c: vec3<f32>,
+    m_att: vec3<f32>,
+    m_bs: vec3<f32>,
+}
+
+// What a pixel carries from splat to splat (front to back).
+struct PixelBlend {
+    t: f32,
+    colour: vec3<f32>,
+    restored: vec3<f32>,
+    w_sum: f32,
+    mean: f32,
+    m2: f32,
+    end: u32,
+    done: bool,
+}
+
+fn pixel_medium(x: u32, y: u32) -> PixelMedium {
+    var p: PixelMedium;
+    p.fx = f32(x);
+    p.fy = f32(y);
+    let xn = (p.fx - params.cx) / params.fx;
+    let yn = (p.fy - params.cy) / params.fy;
+    p.ray_norm = sqrt(xn * xn + yn * yn + 1.0);
+    let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
+    p.m_c = vec3<f32>(c_med[pix * 3u], c_med[pix * 3u + 1u], c_med[pix * 3u + 2u]);
+    p.m_att = vec3<f32>(sigma_att[pix * 3u], sigma_att[pix * 3u + 1u], sigma_att[pix * 3u + 2u]);
+    p.m_bs = vec3<f32>(sigma_bs[pix * 3u], sigma_bs[pix * 3u + 1u], sigma_bs[pix * 3u + 2u]);
+    return p;
+}
+
+fn pixel_blend(inside: bool, start: u32) -> PixelBlend {
+    var b: PixelBlend;
+    b.t = 1.0;
+    b.colour = vec3<f32>(0.0);
+    b.restored = vec3<f32>(0.0);
+    b.w_sum = 0.0;
+    b.mean = 0.0;
+    b.m2 = 0.0;
+    b.end = start;
+    b.done = !inside;
+    return b;
+}
+
+// Blends splat `s` (intersection `k`) into the pixel, unless it is finished or the splat
+// misses it.
+fn blend_splat(p: PixelMedium, b: ptr<function, PixelBlend>, s: SplatVecs, k: u32) {
+    if ((*b).done) {
+        return;
+    }
+    let dx = p.fx - s.a.x;
+    let dy = p.fy - s.a.y;
+    let q = s.a.z * dx * dx + 2.0 * s.a.w * dx * dy + s.b.x * dy * dy;
+    if (q > s.b.w * 1.0001 + 1e-3) {
+        return;
+    }
+    let gauss = exp(-0.5 * q);
+    let raw = s.b.z * gauss;
+    if (raw < ALPHA_MIN) {
+        return;
+    }
+    let alpha = min(raw, ALPHA_MAX);
+    let next_t = (*b).t * (1.0 - alpha);
+    if (next_t < T_MIN) {
+        (*b).done = true;
+        return;
+    }
+    let w = alpha * (*b).t;
+    let z = s.b.y;
+    let range_m = z * p.ray_norm;
+    let direct = s.c.xyz * exp(-p.m_att * range_m);
+    let veiled = p.m_c * exp(-p.m_bs * range_m);
+    (*b).colour = (*b).colour + w * (direct - veiled);
+    (*b).restored = (*b).restored + w * s.c.xyz;
+    var d = z;
+    if (params.depth_mode == 0u) {
+        d = 1.0 / z;
+    }
+    let w_new = (*b).w_sum + w;
+    let delta = d - (*b).mean;
+    (*b).mean = (*b).mean + delta * w / w_new;
+    (*b).m2 = (*b).m2 + w * delta * (d - (*b).mean);
+    (*b).w_sum = w_new;
+    (*b).t = next_t;
+    (*b).end = k + 1u;
+}
+
+fn write_pixel(x: u32, y: u32, p: PixelMedium, b: PixelBlend) {
+    let i = y * params.width + x;
+    let colour = b.colour + p.m_c;
+    out_colour[i * 3u] = colour.x;
+    out_colour[i * 3u + 1u] = colour.y;
+    out_colour[i * 3u + 2u] = colour.z;
+    out_restored[i * 3u] = b.restored.x;
+    out_restored[i * 3u + 1u] = b.restored.y;
+    out_restored[i * 3u + 2u] = b.restored.z;
+    var depth = 0.0;
+    var depth_var = 0.0;
+    if (b.w_sum > 0.0) {
+        depth = b.mean;
+        depth_var = b.m2 / b.w_sum;
+    }
+    out_scalars[i] = vec4<f32>(depth, depth_var, b.w_sum, b.t);
+    out_isect_end[i] = b.end;
+}
+
+// Lane l's splat of the step from `b` (zero beyond the tile's list).
+fn load_step(b: u32, stop: u32, lane: u32) -> SplatVecs {
+    var own: SplatVecs;
+    if (b + lane < stop) {
+        own = load_splat_vecs(sorted_gaussian[b + lane]);
+    }
+    return own;
+}
+
+// Splat j of the step, shared by lane j (every lane shuffles, finished ones too).
+fn shared_splat(own: SplatVecs, j: u32) -> SplatVecs {
+    var s: SplatVecs;
+    s.a = subgroupShuffle(own.a, j);
+    s.b = subgroupShuffle(own.b, j);
+    s.c = subgroupShuffle(own.c, j);
+    return s;
+}
+
 @compute @workgroup_size(256)
 fn rasterize(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
              @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
@@ -71,103 +203,76 @@ fn rasterize(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     let x = wg.x * TILE + t_index % TILE;
     let y = wg.y * TILE + t_index / TILE;
     let inside = x < params.width && y < params.height;
-    let fx = f32(x);
-    let fy = f32(y);
-    let xn = (fx - params.cx) / params.fx;
-    let yn = (fy - params.cy) / params.fy;
-    let ray_norm = sqrt(xn * xn + yn * yn + 1.0);
-    let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
-    let m_c = vec3<f32>(c_med[pix * 3u], c_med[pix * 3u + 1u], c_med[pix * 3u + 2u]);
-    let m_att = vec3<f32>(sigma_att[pix * 3u], sigma_att[pix * 3u + 1u], sigma_att[pix * 3u + 2u]);
-    let m_bs = vec3<f32>(sigma_bs[pix * 3u], sigma_bs[pix * 3u + 1u], sigma_bs[pix * 3u + 2u]);
-
+    let p = pixel_medium(x, y);
     let start = tile_offsets[tile];
     let stop = tile_offsets[tile + 1u];
-    var t = 1.0;
-    var colour = vec3<f32>(0.0);
-    var restored = vec3<f32>(0.0);
-    var w_sum = 0.0;
-    var mean = 0.0;
-    var m2 = 0.0;
-    var end = start;
-    var done = !inside;
+    var px = pixel_blend(inside, start);
     for (var b = start; b < stop; b = b + sg) {
-        if (subgroupAll(done)) {
+        if (subgroupAll(px.done)) {
             break;
         }
         // The box of the subgroup's pixels still blending.
-        let lo = vec2<f32>(subgroupMin(select(fx, BIG, done)), subgroupMin(select(fy, BIG, done)));
-        let hi = vec2<f32>(subgroupMax(select(fx, -BIG, done)), subgroupMax(select(fy, -BIG, done)));
-        var own: SplatVecs;
-        if (b + lane < stop) {
-            own = load_splat_vecs(sorted_gaussian[b + lane]);
-        }
+        let lo = vec2<f32>(subgroupMin(select(p.fx, BIG, px.done)), subgroupMin(select(p.fy, BIG, px.done)));
+        let hi = vec2<f32>(subgroupMax(select(p.fx, -BIG, px.done)), subgroupMax(select(p.fy, -BIG, px.done)));
+        let own = load_step(b, stop, lane);
         let count = min(sg, stop - b);
         let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
         for (var j = 0u; j < count; j = j + 1u) {
             if (!ballot_bit(reach, j)) {
                 continue;
             }
-            // Every lane shuffles (finished ones too), then skips.
-            let va = subgroupShuffle(own.a, j);
-            let vb = subgroupShuffle(own.b, j);
-            let vc = subgroupShuffle(own.c, j);
-            if (done) {
-                continue;
-            }
-            let dx = fx - va.x;
-            let dy = fy - va.y;
-            let q = va.z * dx * dx + 2.0 * va.w * dx * dy + vb.x * dy * dy;
-            if (q > vb.w * 1.0001 + 1e-3) {
-                continue;
-            }
-            let gauss = exp(-0.5 * q);
-            let raw = vb.z * gauss;
-            if (raw < ALPHA_MIN) {
-                continue;
-            }
-            let alpha = min(raw, ALPHA_MAX);
-            let next_t = t * (1.0 - alpha);
-            if (next_t < T_MIN) {
-                done = true;
-                continue;
-            }
-            let w = alpha * t;
-            let z = vb.y;
-            let range_m = z * ray_norm;
-            let direct = vc.xyz * exp(-m_att * range_m);
-            let veiled = m_c * exp(-m_bs * range_m);
-            colour = colour + w * (direct - veiled);
-            restored = restored + w * vc.xyz;
-            var d = z;
-            if (params.depth_mode == 0u) {
-                d = 1.0 / z;
-            }
-            let w_new = w_sum + w;
-            let delta = d - mean;
-            mean = mean + delta * w / w_new;
-            m2 = m2 + w * delta * (d - mean);
-            w_sum = w_new;
-            t = next_t;
-            end = b + j + 1u;
+            blend_splat(p, &px, shared_splat(own, j), b + j);
         }
     }
     if (inside) {
-        let i = y * params.width + x;
-        colour = colour + m_c;
-        out_colour[i * 3u] = colour.x;
-        out_colour[i * 3u + 1u] = colour.y;
-        out_colour[i * 3u + 2u] = colour.z;
-        out_restored[i * 3u] = restored.x;
-        out_restored[i * 3u + 1u] = restored.y;
-        out_restored[i * 3u + 2u] = restored.z;
-        var depth = 0.0;
-        var depth_var = 0.0;
-        if (w_sum > 0.0) {
-            depth = mean;
-            depth_var = m2 / w_sum;
+        write_pixel(x, y, p, px);
+    }
+}
+
+// `rasterize` with two pixels per thread (`GpuContext::pixel_pairs`): thread t of 128 takes
+// column t % 16 and rows 2 (t / 16) and the one below, so each splat the subgroup shares serves
+// two pixels (half the shuffles per pixel). The same arithmetic per pixel.
+@compute @workgroup_size(128)
+fn rasterize_pairs(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
+                   @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    let tile = wg.y * params.tiles_x + wg.x;
+    let x = wg.x * TILE + t_index % TILE;
+    let y0 = wg.y * TILE + 2u * (t_index / TILE);
+    let y1 = y0 + 1u;
+    let in0 = x < params.width && y0 < params.height;
+    let in1 = x < params.width && y1 < params.height;
+    let p0 = pixel_medium(x, y0);
+    let p1 = pixel_medium(x, y1);
+    let start = tile_offsets[tile];
+    let stop = tile_offsets[tile + 1u];
+    var px0 = pixel_blend(in0, start);
+    var px1 = pixel_blend(in1, start);
+    for (var b = start; b < stop; b = b + sg) {
+        let done = px0.done && px1.done;
+        if (subgroupAll(done)) {
+            break;
         }
-        out_scalars[i] = vec4<f32>(depth, depth_var, w_sum, t);
-        out_isect_end[i] = end;
+        // The box of the subgroup's pixels still blending.
+        let y_lo = select(p0.fy, p1.fy, px0.done);
+        let y_hi = select(p1.fy, p0.fy, px1.done);
+        let lo = vec2<f32>(subgroupMin(select(p0.fx, BIG, done)), subgroupMin(select(y_lo, BIG, done)));
+        let hi = vec2<f32>(subgroupMax(select(p0.fx, -BIG, done)), subgroupMax(select(y_hi, -BIG, done)));
+        let own = load_step(b, stop, lane);
+        let count = min(sg, stop - b);
+        let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
+        for (var j = 0u; j < count; j = j + 1u) {
+            if (!ballot_bit(reach, j)) {
+                continue;
+            }
+            let s = shared_splat(own, j);
+            blend_splat(p0, &px0, s, b + j);
+            blend_splat(p1, &px1, s, b + j);
+        }
+    }
+    if (in0) {
+        write_pixel(x, y0, p0, px0);
+    }
+    if (in1) {
+        write_pixel(x, y1, p1, px1);
     }
 }

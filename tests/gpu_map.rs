@@ -335,28 +335,33 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
         ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();
         ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
         raster.upload_medium(&mut ctx, &medium).unwrap();
-        ctx.begin().unwrap();
-        raster.record(&mut ctx, &proj.splats, &bin, &grid, intrinsics, mode).unwrap();
-        ctx.submit_and_wait().unwrap();
-        let mut got = RenderOutput::new(w, h);
-        raster.read(&ctx, &mut got).unwrap();
-        ctx.arena_reset_to(arena_mark);
-
-        let planes: [(&str, &[f32], &[f32]); 6] = [
-            ("colour", &got.colour.data, &want.colour.data),
-            ("restored", &got.restored.data, &want.restored.data),
-            ("depth", &got.depth.data, &want.depth.data),
-            ("depth_var", &got.depth_var.data, &want.depth_var.data),
-            ("alpha", &got.alpha.data, &want.alpha.data),
-            ("final_t", &got.final_t.data, &want.final_t.data),
-        ];
-        for (name, a, b) in planes {
-            let (i, err) = a.iter().zip(b).map(|(x, y)| (x - y).abs() as f64).enumerate().fold((0, 0.0), |m, (i, e)| if e > m.1 { (i, e) } else { m });
-            eprintln!("{mode:?} {name}: max abs error {err:.2e}");
-            assert!(err <= RASTER_FORWARD_TOL, "{mode:?} {name}: max abs error {err:.3e} at element {i} (GPU {}, CPU {})", a[i], b[i]);
+        // One pixel per thread and two (`rasterize_pairs`): the same arithmetic per pixel.
+        let pairs_default = ctx.pixel_pairs();
+        for pairs in [false, true] {
+            ctx.set_pixel_pairs(pairs);
+            ctx.begin().unwrap();
+            raster.record(&mut ctx, &proj.splats, &bin, &grid, intrinsics, mode).unwrap();
+            ctx.submit_and_wait().unwrap();
+            let mut got = RenderOutput::new(w, h);
+            raster.read(&ctx, &mut got).unwrap();
+            let planes: [(&str, &[f32], &[f32]); 6] = [
+                ("colour", &got.colour.data, &want.colour.data),
+                ("restored", &got.restored.data, &want.restored.data),
+                ("depth", &got.depth.data, &want.depth.data),
+                ("depth_var", &got.depth_var.data, &want.depth_var.data),
+                ("alpha", &got.alpha.data, &want.alpha.data),
+                ("final_t", &got.final_t.data, &want.final_t.data),
+            ];
+            for (name, a, b) in planes {
+                let (i, err) = a.iter().zip(b).map(|(x, y)| (x - y).abs() as f64).enumerate().fold((0, 0.0), |m, (i, e)| if e > m.1 { (i, e) } else { m });
+                eprintln!("{mode:?} pairs {pairs} {name}: max abs error {err:.2e}");
+                assert!(err <= RASTER_FORWARD_TOL, "{mode:?} pairs {pairs} {name}: max abs error {err:.3e} at element {i} (GPU {}, CPU {})", a[i], b[i]);
+            }
+            let ends_differ = got.isect_end.iter().zip(&want.isect_end).filter(|(a, b)| a != b).count();
+            assert_eq!(ends_differ, 0, "{mode:?} pairs {pairs}: {ends_differ} pixels stop blending at a different splat");
         }
-        let ends_differ = got.isect_end.iter().zip(&want.isect_end).filter(|(a, b)| a != b).count();
-        assert_eq!(ends_differ, 0, "{mode:?}: {ends_differ} pixels stop blending at a different splat");
+        ctx.set_pixel_pairs(pairs_default);
+        ctx.arena_reset_to(arena_mark);
     }
 }
 
@@ -453,12 +458,17 @@ fn rasterize_backward_matches_the_cpu_reference() {
         // Deterministic mode (reductions), then float atomics where the device has them, with
         // the subgroup sums the device's subgroup size picks and with the reduce-scatter
         // forced (lavapipe's 8 lanes would not take it otherwise).
-        for (deterministic, scatter) in [(true, false), (false, false), (false, true)] {
+        // Each atomic kernel with one pixel per thread and with two (`pixel_pairs`).
+        let pairs_default = ctx.pixel_pairs();
+        for (deterministic, scatter, pairs) in [(true, false, false), (false, false, false), (false, true, false), (false, false, true), (false, true, true)] {
             bwd.force_reduce_scatter = scatter;
-            let mode_name = match (ctx.set_deterministic(deterministic), scatter) {
-                (true, _) => "deterministic",
-                (false, false) => "atomic",
-                (false, true) => "atomic, reduce-scatter",
+            ctx.set_pixel_pairs(pairs);
+            let mode_name = match (ctx.set_deterministic(deterministic), scatter, pairs) {
+                (true, _, _) => "deterministic",
+                (false, false, false) => "atomic",
+                (false, true, false) => "atomic, reduce-scatter",
+                (false, false, true) => "atomic, pixel pairs",
+                (false, true, true) => "atomic, pixel pairs, reduce-scatter",
             };
             if !deterministic && mode_name == "deterministic" {
                 eprintln!("{mode:?}: the device has no float atomics: rasterize_backward_atomic not run");
@@ -522,6 +532,7 @@ fn rasterize_backward_matches_the_cpu_reference() {
             );
         }
         ctx.set_deterministic(false);
+        ctx.set_pixel_pairs(pairs_default);
         ctx.arena_reset_to(arena_mark);
     }
 }

@@ -339,6 +339,7 @@ fn device_choice_and_pipeline_cache_on_disk() {
         pipeline_cache_dir: Some(dir.path().to_path_buf()),
         deterministic: device.is_none(),
         host_staging: None,
+        pixel_pairs: None,
     };
     // By index and by a case-insensitive substring of the name.
     let mut by_index = GpuContext::new(&options(Some("0"))).unwrap();

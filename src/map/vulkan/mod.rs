@@ -371,7 +371,8 @@ impl GpuRasterForward {
             self.scalars.range(),
             self.isect_end.range(),
         ];
-        ctx.dispatch(Kernel::RasterizeRasterize, &bufs, bytemuck::bytes_of(&params), [grid.tiles_x as u32, grid.tiles_y as u32, 1])
+        let kernel = if ctx.pixel_pairs() { Kernel::RasterizeRasterizePairs } else { Kernel::RasterizeRasterize };
+        ctx.dispatch(kernel, &bufs, bytemuck::bytes_of(&params), [grid.tiles_x as u32, grid.tiles_y as u32, 1])
     }
 
     /// Reads the outputs of a `width x height` render into `out`.
@@ -533,10 +534,11 @@ impl GpuRasterBackward {
             // on the device.
             let zero = [self.partials.range(), self.partial_pixels.range(), bin.isect_args.slice_range(0, 1)?];
             ctx.dispatch_indirect(Kernel::RasterizeBackwardZeroPartials, &zero, &[], bin.isect_args.slice_range(4, 3)?)?;
-            if self.force_reduce_scatter || ctx.info().subgroup_size >= 32 {
-                Kernel::RasterizeBackwardRasterizeBackwardAtomicScatter
-            } else {
-                Kernel::RasterizeBackwardRasterizeBackwardAtomic
+            match (self.force_reduce_scatter || ctx.info().subgroup_size >= 32, ctx.pixel_pairs()) {
+                (true, false) => Kernel::RasterizeBackwardRasterizeBackwardAtomicScatter,
+                (false, false) => Kernel::RasterizeBackwardRasterizeBackwardAtomic,
+                (true, true) => Kernel::RasterizeBackwardRasterizeBackwardAtomicPairsScatter,
+                (false, true) => Kernel::RasterizeBackwardRasterizeBackwardAtomicPairs,
             }
         };
         let lookup = |name: &str| {
