@@ -9,8 +9,8 @@
 // (`subgroupAll`). Measured on lavapipe (Mesa 22.3): loading staged splats from workgroup
 // memory gathers lane by lane and made this kernel 5-10x slower than the shuffles.
 //
-// `rasterize_pairs` (the default, `GpuContext::pixel_pairs`) takes two pixels per thread, 128
-// threads a tile, so each shuffled splat serves two pixels.
+// `rasterize_pairs` (`GpuContext::pixel_pairs`, the default on subgroups under 32 lanes) takes
+// two pixels per thread, 128 threads a tile, so each shuffled splat serves two pixels.
 //
 // Per pixel and channel: C = c_med + sum_n w_n (c_n exp(-sigma_att t_n) - c_med exp(-sigma_bs t_n)),
 // restored = sum_n w_n c_n, depth D and variance V by West's weighted update, alpha = sum w_n,

@@ -50,7 +50,7 @@ pub struct GpuOptions {
     pub host_staging: Option<u64>,
     /// The rasterisers with two pixels per thread (`*_pairs` entry points: each splat a
     /// subgroup shares serves two pixels, so half the shuffles, subgroup sums and atomics per
-    /// pixel); `None` takes [`DEFAULT_PIXEL_PAIRS`].
+    /// pixel); `None` decides by the subgroup size ([`PIXEL_PAIRS_BELOW_SUBGROUP`]).
     pub pixel_pairs: Option<bool>,
 }
 
@@ -63,9 +63,12 @@ enum Staged<'a> {
 /// Staging buffer of a discrete GPU's host transfers (host memory, outside the GPU budget);
 /// larger transfers go in chunks of this size.
 pub const STAGING_BYTES: u64 = 64 << 20;
-/// [`GpuOptions::pixel_pairs`] when not given (measured on lavapipe: the backward in 0.58x the
-/// time of one pixel per thread, the forward in 0.79x).
-pub const DEFAULT_PIXEL_PAIRS: bool = true;
+/// [`GpuOptions::pixel_pairs`] when not given: on devices whose subgroups have fewer lanes than
+/// this (CPU devices such as lavapipe, 8 lanes: the backward in 0.58-0.73x the time of one
+/// pixel per thread, the forward in 0.79x), not on wider ones (an H100, 32 lanes: the backward
+/// 0.750 ms against 0.711 ms, the forward 0.28 against 0.27 ms at 640x480 with 100k Gaussians;
+/// half the threads per tile hide less latency there).
+pub const PIXEL_PAIRS_BELOW_SUBGROUP: u32 = 32;
 /// Staged transfers: writes of at most this many bytes wait in the staging buffer and are
 /// copied at the start of the next submission instead of being submitted on their own.
 pub const DEFERRED_WRITE_BYTES: usize = 64 << 10;
@@ -208,6 +211,10 @@ pub struct HostStats {
     /// Pipeline barriers recorded inside submissions: one only where a command touches what
     /// another since the last barrier wrote (or writes what one read), see [`Hazards`].
     pub barriers: u64,
+    /// Host time recording submissions (from [`GpuContext::begin`] to the submit), and of it
+    /// the time recorded with no submission running (the device waits for the host then).
+    pub record_ns: u64,
+    pub record_idle_ns: u64,
 }
 
 impl HostStats {
@@ -224,16 +231,20 @@ impl HostStats {
             write_ns: self.write_ns - earlier.write_ns,
             prefetched_reads: self.prefetched_reads - earlier.prefetched_reads,
             barriers: self.barriers - earlier.barriers,
+            record_ns: self.record_ns - earlier.record_ns,
+            record_idle_ns: self.record_idle_ns - earlier.record_idle_ns,
         }
     }
     /// One line per `per` steps: submissions, reads, writes, their bytes and milliseconds.
     pub fn describe_per(&self, per: u64) -> String {
         let p = per.max(1) as f64;
         format!(
-            "{:.1} submissions ({:.3} ms submit to fence, {:.1} barriers), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
+            "{:.1} submissions ({:.3} ms submit to fence, {:.1} barriers; recorded in {:.3} ms, {:.3} ms of it with none running), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
             self.submits as f64 / p,
             self.submit_wait_ns as f64 * 1e-6 / p,
             self.barriers as f64 / p,
+            self.record_ns as f64 * 1e-6 / p,
+            self.record_idle_ns as f64 * 1e-6 / p,
             self.reads as f64 / p,
             self.prefetched_reads as f64 / p,
             self.read_bytes as f64 * 1e-6 / p,
@@ -287,6 +298,8 @@ pub struct GpuContext {
     spare_fence: vk::Fence,
     /// A submission is running that nothing waited for yet (since when, for the host stats).
     in_flight: std::cell::Cell<Option<Instant>>,
+    /// When the open recording began and whether a submission was running then (HostStats).
+    recording_since: Option<(Instant, bool)>,
     /// The timestamps of the dispatches recorded so far are not yet in the profile.
     untimed: bool,
     /// Dispatches in submitted command buffers since the queue was last idle at a `begin`, and
@@ -546,6 +559,7 @@ impl GpuContext {
             spare_command_buffer: vk::CommandBuffer::null(),
             spare_fence: vk::Fence::null(),
             in_flight: std::cell::Cell::new(None),
+            recording_since: None,
             untimed: false,
             submitted: 0,
             prefetch_submitted: (0, 0),
@@ -584,7 +598,7 @@ impl GpuContext {
                 host_transfers: "mapped",
             },
             deterministic: !cand.float_atomics,
-            pixel_pairs: DEFAULT_PIXEL_PAIRS,
+            pixel_pairs: false,
             recording: false,
             recorded: 0,
             hazards: Hazards::default(),
@@ -761,7 +775,7 @@ impl GpuContext {
         self.info.pipeline_cache_file = cache_file;
 
         self.deterministic = options.deterministic || !self.info.float_atomics;
-        self.pixel_pairs = options.pixel_pairs.unwrap_or(DEFAULT_PIXEL_PAIRS);
+        self.pixel_pairs = options.pixel_pairs.unwrap_or(self.info.subgroup_size < PIXEL_PAIRS_BELOW_SUBGROUP);
         for kernel in Kernel::all() {
             // A kernel with float atomics has no pipeline on a device without them (a null
             // pipeline; dispatching it is an error).
@@ -1073,6 +1087,7 @@ impl GpuContext {
     /// Starts recording a submission.
     pub fn begin(&mut self) -> Result<(), GpuError> {
         let running = self.in_flight.get().is_some();
+        self.recording_since = Some((Instant::now(), running));
         if !running {
             self.collect_timestamps()?;
         }
@@ -1355,6 +1370,17 @@ impl GpuContext {
             let cbs = [self.command_buffer];
             let submit = [vk::SubmitInfo::default().command_buffers(&cbs)];
             let t0 = Instant::now();
+            if let Some((since, running)) = self.recording_since.take() {
+                let mut h = self.host.get();
+                let ns = t0.duration_since(since).as_nanos() as u64;
+                h.record_ns += ns;
+                // Recorded while nothing ran, or the one running finished meanwhile (unknown
+                // here: counted as running).
+                if !running {
+                    h.record_idle_ns += ns;
+                }
+                self.host.set(h);
+            }
             d.queue_submit(self.queue, &submit, self.fence).map_err(|result| GpuError::Kernel { kernel: name, call: "vkQueueSubmit", result })?;
             self.submitted = self.recorded;
             self.prefetch_submitted = (self.prefetched.get_mut().len(), self.prefetch_used);
