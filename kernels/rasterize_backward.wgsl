@@ -8,7 +8,7 @@
 // `subgroupShuffle`, as the forward does. Each thread back-propagates its pixel through the
 // splats it blended in the forward pass (`start .. isect_end`), recovering the transmittance
 // from the stored final T (`backprop_splat`). Per intersection, the 13 contributions (12
-// gradient floats and the pixel count) are summed within the subgroup (`subgroupAdd`) and each
+// gradient floats and the pixel count) are summed within the subgroup (`subgroup_sum4`) and each
 // subgroup's sums go to workgroup memory; after each step of `sg` intersections one barrier,
 // then the subgroups' sums are added in subgroup order and one SplatGrad per sorted
 // intersection is written (zero behind the last splat a pixel of the tile blended, where the
@@ -17,8 +17,8 @@
 //
 // `rasterize_backward_atomic` and `rasterize_backward_atomic_scatter` (the default where the
 // device has VK_EXT_shader_atomic_float; the host takes the second on subgroups of 32 lanes
-// and more): the same per-pixel arithmetic; the subgroup's 13 sums per intersection by 13
-// `subgroupAdd`s (`add_subgroup_sums_by_adds`) or by a reduce-scatter (`add_subgroup_sums`),
+// and more): the same per-pixel arithmetic; the subgroup's 13 sums per intersection by four
+// vector butterflies (`add_subgroup_sums_by_adds`) or by a reduce-scatter (`add_subgroup_sums`),
 // each sum added once to the intersection's partials with a float atomic (zeroed before the
 // dispatch). No workgroup memory, no barriers, no workgroup-wide
 // reduction, which took 60% of the backward on lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
@@ -378,10 +378,10 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
             var s2 = vec4<f32>(0.0);
             var s3 = 0.0;
             if (subgroupAny(c.pixels > 0.0)) {
-                s0 = subgroupAdd(c.a);
-                s1 = subgroupAdd(c.b);
-                s2 = subgroupAdd(c.c);
-                s3 = subgroupAdd(c.pixels);
+                s0 = subgroup_sum4(c.a, sg);
+                s1 = subgroup_sum4(c.b, sg);
+                s2 = subgroup_sum4(c.c, sg);
+                s3 = subgroup_sum4(vec4<f32>(c.pixels, 0.0, 0.0, 0.0), sg).x;
             }
             if (lane == 0u) {
                 let o = (sg_id * sg + j) * RED_VALUES;
@@ -446,7 +446,8 @@ fn halve(v: ptr<function, array<f32, 16>>, half: u32, mask: u32, lane: u32) -> u
 // step trades half of what a lane holds with the lane `mask` away (mask = sg/2, sg/4, ...)
 // until each lane holds 16/sg of the values (one, for 16 lanes and more, with full adds over
 // the lanes left); lanes then add the values they own, once each. 15 shuffles for 32 lanes,
-// where 13 subgroupAdds take 65. Called in uniform control flow (every lane of the subgroup).
+// where 13 full sums take 65 (and `subgroup_sum4`'s four butterflies 20 of four floats each).
+// Called in uniform control flow (every lane of the subgroup).
 fn add_subgroup_sums(c: Contribution, k: u32, lane: u32, sg: u32) {
     var v = array<f32, 16>(c.a.x, c.a.y, c.a.z, c.a.w, c.b.x, c.b.y, c.b.z, c.b.w,
                            c.c.x, c.c.y, c.c.z, c.c.w, c.pixels, 0.0, 0.0, 0.0);
@@ -504,13 +505,29 @@ fn add_subgroup_sums(c: Contribution, k: u32, lane: u32, sg: u32) {
     }
 }
 
-// `add_subgroup_sums` by 13 `subgroupAdd`s, each lane then adding one sum (faster with few
-// lanes, as lavapipe's 8).
+// The sum of `v` over the subgroup, in every lane, by a butterfly of `subgroupShuffleXor`s
+// with constant masks (as `subgroupAdd` would be, without its cost on lavapipe: there the
+// backward took 0.79-0.82x the time). Deterministic: every lane adds the same pairs in the
+// same order, so all lanes hold the same bits, run after run. Uniform control flow only.
+fn subgroup_sum4(v: vec4<f32>, sg: u32) -> vec4<f32> {
+    var s = v;
+    if (sg > 1u) { s = s + subgroupShuffleXor(s, 1u); }
+    if (sg > 2u) { s = s + subgroupShuffleXor(s, 2u); }
+    if (sg > 4u) { s = s + subgroupShuffleXor(s, 4u); }
+    if (sg > 8u) { s = s + subgroupShuffleXor(s, 8u); }
+    if (sg > 16u) { s = s + subgroupShuffleXor(s, 16u); }
+    if (sg > 32u) { s = s + subgroupShuffleXor(s, 32u); }
+    if (sg > 64u) { s = s + subgroupShuffleXor(s, 64u); }
+    return s;
+}
+
+// `add_subgroup_sums` by four vector sums over the subgroup (`subgroup_sum4`), each lane then
+// adding one sum (faster with few lanes, as lavapipe's 8).
 fn add_subgroup_sums_by_adds(c: Contribution, k: u32, lane: u32, sg: u32) {
-    let s0 = subgroupAdd(c.a);
-    let s1 = subgroupAdd(c.b);
-    let s2 = subgroupAdd(c.c);
-    let s3 = subgroupAdd(c.pixels);
+    let s0 = subgroup_sum4(c.a, sg);
+    let s1 = subgroup_sum4(c.b, sg);
+    let s2 = subgroup_sum4(c.c, sg);
+    let s3 = subgroup_sum4(vec4<f32>(c.pixels, 0.0, 0.0, 0.0), sg).x;
     let o = k * GRAD_FLOATS;
     for (var v = lane; v < RED_VALUES; v += sg) {
         var s = s0;
