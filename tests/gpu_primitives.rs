@@ -128,21 +128,23 @@ fn radix_sort_matches_a_stable_sort() {
     let max_n = cases.iter().map(|c| c.0).max().unwrap();
     let keys_buf = ctx.alloc::<u64>("keys", max_n).unwrap();
     let values_buf = ctx.alloc::<u32>("values", max_n).unwrap();
-    let scratch = SortScratch::new(&mut ctx, max_n).unwrap();
+    let mut scratch = SortScratch::new(&mut ctx, max_n).unwrap();
     let mut rng = Rng::new(11);
-    for &(n, tiles) in &cases {
+    // The workgroup kernels and the serial ones (the default on a CPU device).
+    for (&(n, tiles), serial) in cases.iter().flat_map(|c| [(c, false), (c, true)]) {
+        scratch.serial = Some(serial);
         let keys = splat_like_keys(&mut rng, n, tiles);
         let values: Vec<u32> = (0..n as u32).collect();
         let key_bits = 32 + (64 - (tiles - 1).leading_zeros()).max(1);
         ctx.write(&keys_buf, &keys).unwrap();
         ctx.write(&values_buf, &values).unwrap();
-        let what = format!("n = {n}, {key_bits}-bit keys");
+        let what = format!("n = {n}, {key_bits}-bit keys, serial {serial}");
         let (got_k, got_v) = sort_on_device_like_a_stable_sort(&mut ctx, (&keys_buf, &values_buf, &scratch), &keys, &values, key_bits, &what);
         // The CPU reference of the same name agrees too.
         let (mut ck, mut cv) = (keys.clone(), values.clone());
         let (mut kt, mut vt, mut h) = (vec![0u64; n], vec![0u32; n], vec![0u32; sort_histogram_len(n)]);
         radix_sort_pairs(&mut ck, &mut cv, &mut kt, &mut vt, &mut h, key_bits);
-        assert_eq!((ck, cv), (got_k, got_v), "n = {n}: GPU vs map::render::radix_sort_pairs");
+        assert_eq!((ck, cv), (got_k, got_v), "{what}: GPU vs map::render::radix_sort_pairs");
     }
     let rows: Vec<String> = ctx.profile().rows().map(|(k, d, ms)| format!("{} x{d}: {ms:.2} ms", k.name())).collect();
     eprintln!("kernel times: {}", rows.join(", "));

@@ -176,6 +176,13 @@ pub struct DeviceInfo {
     pub host_transfers: &'static str,
 }
 
+impl DeviceInfo {
+    /// A device that runs on the CPU (lavapipe): some kernels have a variant for it.
+    pub fn is_cpu(&self) -> bool {
+        self.device_type == type_name(vk::PhysicalDeviceType::CPU)
+    }
+}
+
 impl std::fmt::Display for DeviceInfo {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let (a, b, c) = self.api_version;

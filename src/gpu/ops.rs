@@ -91,6 +91,9 @@ pub struct SortScratch {
     pub histograms: GpuBuffer<u32>,
     /// What the kernels' `count` binding takes when the host gives the count (unused then).
     pub unused_count: GpuBuffer<u32>,
+    /// The scatter by one invocation per block (`scatter_serial`) or by a workgroup
+    /// (`scatter`); `None` (the default) takes the serial one on a CPU device.
+    pub serial: Option<bool>,
 }
 
 impl SortScratch {
@@ -101,6 +104,7 @@ impl SortScratch {
             values_tmp: ctx.alloc("sort values (ping-pong)", max_n)?,
             histograms: ctx.alloc("sort histograms", max_n.div_ceil(SORT_BLOCK).max(1) * RADIX)?,
             unused_count: ctx.alloc("sort count (host-given)", 4)?,
+            serial: None,
         })
     }
 }
@@ -126,7 +130,7 @@ pub fn record_radix_sort(
     let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
     let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
     let hist = scratch.histograms.slice_range(0, blocks * RADIX)?;
-    record_sort_passes(ctx, (a, b, hist, scratch.unused_count.range()), n as u32, key_bits, |ctx, kernel, bufs, imm| ctx.dispatch(kernel, bufs, imm, groups(blocks)))
+    record_sort_passes(ctx, (a, b, hist, scratch.unused_count.range()), n as u32, key_bits, scratch.serial, |ctx, kernel, bufs, imm| ctx.dispatch(kernel, bufs, imm, groups(blocks)))
 }
 
 /// [`record_radix_sort`] of the first `count[0]` pairs, a count an earlier kernel of the
@@ -149,7 +153,7 @@ pub fn record_radix_sort_indirect(
     let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
     let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
     let hist = scratch.histograms.range();
-    record_sort_passes(ctx, (a, b, hist, count), COUNT_ON_DEVICE, key_bits, |ctx, kernel, bufs, imm| ctx.dispatch_indirect(kernel, bufs, imm, block_args))
+    record_sort_passes(ctx, (a, b, hist, count), COUNT_ON_DEVICE, key_bits, scratch.serial, |ctx, kernel, bufs, imm| ctx.dispatch_indirect(kernel, bufs, imm, block_args))
 }
 
 /// The count in a kernel's immediates that makes it read `count[0]`, a count an earlier kernel
@@ -166,16 +170,23 @@ fn record_sort_passes(
     (a, b, hist, count): SortBuffers,
     n: u32,
     key_bits: u32,
+    serial: Option<bool>,
     per_block: impl Fn(&mut GpuContext, Kernel, &[GpuRange], &[u8]) -> Result<(), GpuError>,
 ) -> Result<(), GpuError> {
     let passes = key_bits.min(64).div_ceil(8);
+    // On a CPU device the scatter by one invocation per block, in element order (what the
+    // CPU does); the workgroup kernel's barriers and workgroup atomics cost lavapipe 2.6-5x.
+    let scatter = match serial.unwrap_or(ctx.info().is_cpu()) {
+        true => Kernel::RadixSortScatterSerial,
+        false => Kernel::RadixSortScatter,
+    };
     for pass in 0..passes {
         let (src, dst) = if pass % 2 == 0 { (a, b) } else { (b, a) };
         let params = [n, pass * 8, 0, 0];
         let imm = bytemuck::bytes_of(&params);
         per_block(ctx, Kernel::RadixSortHistogram, &[src.0, hist, count], imm)?;
         ctx.dispatch(Kernel::RadixSortScan, &[hist, count], imm, groups(1))?;
-        per_block(ctx, Kernel::RadixSortScatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm)?;
+        per_block(ctx, scatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm)?;
     }
     if passes % 2 == 1 {
         ctx.copy(b.0, a.0)?;
