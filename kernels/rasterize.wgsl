@@ -67,15 +67,7 @@ fn load_splat_vecs(g: u32) -> SplatVecs {
 
 //!include splat_reach.wgsl
 
-// What a pixel reads once: its position, ray and medium.
-struct PixelMedium {
-    fx: f32,
-    fy: f32,
-    ray_norm: f32,
-    m_c: vec3<f32>,
-    m_att: vec3<f32>,
-    m_bs: vec3<f32>,
-}
+//!include pixel_medium.wgsl
 
 // What a pixel carries from splat to splat (front to back).
 struct PixelBlend {
@@ -87,20 +79,6 @@ struct PixelBlend {
     m2: f32,
     end: u32,
     done: bool,
-}
-
-fn pixel_medium(x: u32, y: u32) -> PixelMedium {
-    var p: PixelMedium;
-    p.fx = f32(x);
-    p.fy = f32(y);
-    let xn = (p.fx - params.cx) / params.fx;
-    let yn = (p.fy - params.cy) / params.fy;
-    p.ray_norm = sqrt(xn * xn + yn * yn + 1.0);
-    let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
-    p.m_c = vec3<f32>(c_med[pix * 3u], c_med[pix * 3u + 1u], c_med[pix * 3u + 2u]);
-    p.m_att = vec3<f32>(sigma_att[pix * 3u], sigma_att[pix * 3u + 1u], sigma_att[pix * 3u + 2u]);
-    p.m_bs = vec3<f32>(sigma_bs[pix * 3u], sigma_bs[pix * 3u + 1u], sigma_bs[pix * 3u + 2u]);
-    return p;
 }
 
 fn pixel_blend(inside: bool, start: u32) -> PixelBlend {

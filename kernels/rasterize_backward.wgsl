@@ -162,17 +162,18 @@ struct Contribution {
     pixels: f32,
 }
 
+//!include pixel_medium.wgsl
+
 fn pixel_inputs(x: u32, y: u32) -> PixelInputs {
     var p: PixelInputs;
-    p.fx = f32(x);
-    p.fy = f32(y);
-    let xn = (p.fx - params.cx) / params.fx;
-    let yn = (p.fy - params.cy) / params.fy;
-    p.ray_norm = sqrt(xn * xn + yn * yn + 1.0);
+    let m = pixel_medium(x, y);
+    p.fx = m.fx;
+    p.fy = m.fy;
+    p.ray_norm = m.ray_norm;
+    p.m_c = m.m_c;
+    p.m_att = m.m_att;
+    p.m_bs = m.m_bs;
     let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
-    p.m_c = vec3<f32>(c_med[pix * 3u], c_med[pix * 3u + 1u], c_med[pix * 3u + 2u]);
-    p.m_att = vec3<f32>(sigma_att[pix * 3u], sigma_att[pix * 3u + 1u], sigma_att[pix * 3u + 2u]);
-    p.m_bs = vec3<f32>(sigma_bs[pix * 3u], sigma_bs[pix * 3u + 1u], sigma_bs[pix * 3u + 2u]);
     p.up_c = vec3<f32>(up_colour[pix * 3u], up_colour[pix * 3u + 1u], up_colour[pix * 3u + 2u]);
     p.up_r = vec3<f32>(up_restored[pix * 3u], up_restored[pix * 3u + 1u], up_restored[pix * 3u + 2u]);
     p.up_s = up_scalars[pix];
