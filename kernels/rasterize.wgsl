@@ -189,12 +189,11 @@ fn rasterize(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
         if (subgroupAll(px.done)) {
             break;
         }
-        // The box of the subgroup's pixels still blending.
-        let lo = vec2<f32>(subgroupMin(select(p.fx, BIG, px.done)), subgroupMin(select(p.fy, BIG, px.done)));
-        let hi = vec2<f32>(subgroupMax(select(p.fx, -BIG, px.done)), subgroupMax(select(p.fy, -BIG, px.done)));
         let own = load_step(b, stop, lane);
         let count = min(sg, stop - b);
-        let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
+        // Against the box of the subgroup's pixels still blending.
+        let at = vec2<f32>(p.fx, p.fy);
+        let reach = batch_reach(own, count, lane, at, at, px.done);
         for (var j = 0u; j < count; j = j + 1u) {
             if (!ballot_bit(reach, j)) {
                 continue;
@@ -230,14 +229,12 @@ fn rasterize_pairs(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
         if (subgroupAll(done)) {
             break;
         }
-        // The box of the subgroup's pixels still blending.
-        let y_lo = select(p0.fy, p1.fy, px0.done);
-        let y_hi = select(p1.fy, p0.fy, px1.done);
-        let lo = vec2<f32>(subgroupMin(select(p0.fx, BIG, done)), subgroupMin(select(y_lo, BIG, done)));
-        let hi = vec2<f32>(subgroupMax(select(p0.fx, -BIG, done)), subgroupMax(select(y_hi, -BIG, done)));
         let own = load_step(b, stop, lane);
         let count = min(sg, stop - b);
-        let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
+        // Against the box of the subgroup's pixels still blending.
+        let lo = vec2<f32>(p0.fx, select(p0.fy, p1.fy, px0.done));
+        let hi = vec2<f32>(p0.fx, select(p1.fy, p0.fy, px1.done));
+        let reach = batch_reach(own, count, lane, lo, hi, done);
         for (var j = 0u; j < count; j = j + 1u) {
             if (!ballot_bit(reach, j)) {
                 continue;

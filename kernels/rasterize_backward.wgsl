@@ -126,14 +126,12 @@ fn depth_value_dz(z: f32) -> f32 {
 @group(0) @binding(22) var<storage, read_write> partials_sum: array<atomic<f32>>;
 @group(0) @binding(23) var<storage, read_write> partial_pixels_sum: array<atomic<u32>>;
 
+//!include pixel_medium.wgsl
+
 // What a pixel reads once: its ray, medium, upstream gradients and forward state.
 struct PixelInputs {
-    fx: f32,
-    fy: f32,
-    ray_norm: f32,
-    m_c: vec3<f32>,
-    m_att: vec3<f32>,
-    m_bs: vec3<f32>,
+    // position, ray and medium (`pixel_medium`)
+    m: PixelMedium,
     up_c: vec3<f32>,
     up_r: vec3<f32>,
     // dL/d (depth, depth_var, alpha), 0
@@ -162,17 +160,9 @@ struct Contribution {
     pixels: f32,
 }
 
-//!include pixel_medium.wgsl
-
 fn pixel_inputs(x: u32, y: u32) -> PixelInputs {
     var p: PixelInputs;
-    let m = pixel_medium(x, y);
-    p.fx = m.fx;
-    p.fy = m.fy;
-    p.ray_norm = m.ray_norm;
-    p.m_c = m.m_c;
-    p.m_att = m.m_att;
-    p.m_bs = m.m_bs;
+    p.m = pixel_medium(x, y);
     let pix = min(y, params.height - 1u) * params.width + min(x, params.width - 1u);
     p.up_c = vec3<f32>(up_colour[pix * 3u], up_colour[pix * 3u + 1u], up_colour[pix * 3u + 2u]);
     p.up_r = vec3<f32>(up_restored[pix * 3u], up_restored[pix * 3u + 1u], up_restored[pix * 3u + 2u]);
@@ -182,7 +172,7 @@ fn pixel_inputs(x: u32, y: u32) -> PixelInputs {
     if (p.state.z > 0.0) {
         p.inv_w = 1.0 / p.state.z;
     }
-    p.sigma_med = (p.m_att.x + p.m_att.y + p.m_att.z) / 3.0;
+    p.sigma_med = (p.m.m_att.x + p.m.m_att.y + p.m.m_att.z) / 3.0;
     return p;
 }
 
@@ -207,8 +197,8 @@ fn backprop_splat(p: PixelInputs, st: ptr<function, PixelState>, s: SplatVecs) -
     let conic = vec3<f32>(s.a.z, s.a.w, s.b.x);
     let z = s.b.y;
     let opacity = s.b.z;
-    let dx = p.fx - s.a.x;
-    let dy = p.fy - s.a.y;
+    let dx = p.m.fx - s.a.x;
+    let dy = p.m.fy - s.a.y;
     let q = conic.x * dx * dx + 2.0 * conic.y * dx * dy + conic.z * dy * dy;
     var hit = q <= s.b.w * 1.0001 + 1e-3;
     var gauss = 0.0;
@@ -229,29 +219,29 @@ fn backprop_splat(p: PixelInputs, st: ptr<function, PixelState>, s: SplatVecs) -
     let one_minus = 1.0 - alpha;
     (*st).t = (*st).t / one_minus;
     let w = (*st).t * alpha;
-    let range_m = z * p.ray_norm;
+    let range_m = z * p.m.ray_norm;
     out.pixels = 1.0;
     var value = 0.0;
     var g_range = 0.0;
     // The three channels as vectors (no per-channel indexing, which a CPU device turns into
     // memory accesses); the sums over channels in channel order, as the CPU reference adds
     // them.
-    let e_att = exp(-p.m_att * range_m);
-    let e_bs = exp(-p.m_bs * range_m);
+    let e_att = exp(-p.m.m_att * range_m);
+    let e_bs = exp(-p.m.m_bs * range_m);
     let col = s.c.xyz;
-    let v3 = p.up_c * (col * e_att - p.m_c * e_bs) + p.up_r * col;
+    let v3 = p.up_c * (col * e_att - p.m.m_c * e_bs) + p.up_r * col;
     value = ((value + v3.x) + v3.y) + v3.z;
     let c_colour = w * (p.up_c * e_att + p.up_r);
-    let r3 = w * p.up_c * (p.m_bs * p.m_c * e_bs - p.m_att * col * e_att);
+    let r3 = w * p.up_c * (p.m.m_bs * p.m.m_c * e_bs - p.m.m_att * col * e_att);
     g_range = ((g_range + r3.x) + r3.y) + r3.z;
     (*st).g_c_med = (*st).g_c_med - p.up_c * w * e_bs;
     (*st).g_att = (*st).g_att - p.up_c * w * col * range_m * e_att;
-    (*st).g_bs = (*st).g_bs + p.up_c * w * p.m_c * range_m * e_bs;
+    (*st).g_bs = (*st).g_bs + p.up_c * w * p.m.m_c * range_m * e_bs;
     let d = depth_value(z);
     let dd = d - p.state.x;
     value = value + ((p.up_s.x * dd + p.up_s.y * (dd * dd - p.state.y)) * p.inv_w + p.up_s.z);
     let g_d = w * (p.up_s.x + 2.0 * p.up_s.y * dd) * p.inv_w;
-    let c_z = g_range * p.ray_norm + g_d * depth_value_dz(z);
+    let c_z = g_range * p.m.ray_norm + g_d * depth_value_dz(z);
     let g_alpha = (*st).t * value - (*st).behind / one_minus;
     (*st).behind = (*st).behind + w * value;
     var c_mean2d = vec2<f32>(0.0);
@@ -569,12 +559,10 @@ fn backward_atomic(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatter: boo
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
-        // The box of the subgroup's pixels that blended a splat of this batch (end > base).
-        let out_of_batch = end <= base;
-        let lo = vec2<f32>(subgroupMin(select(p.fx, BIG, out_of_batch)), subgroupMin(select(p.fy, BIG, out_of_batch)));
-        let hi = vec2<f32>(subgroupMax(select(p.fx, -BIG, out_of_batch)), subgroupMax(select(p.fy, -BIG, out_of_batch)));
         let own = load_batch(base, count, lane);
-        let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
+        // Against the box of the subgroup's pixels that blended a splat of this batch (end > base).
+        let at = vec2<f32>(p.m.fx, p.m.fy);
+        let reach = batch_reach(own, count, lane, at, at, end <= base);
         for (var jj = 0u; jj < count; jj = jj + 1u) {
             let j = count - 1u - jj;
             if (!ballot_bit(reach, j)) {
@@ -653,16 +641,13 @@ fn backward_atomic_pairs(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatte
     while (batch_end > start) {
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
-        // The box of the subgroup's pixels that blended a splat of this batch (end > base).
+        let own = load_batch(base, count, lane);
+        // Against the box of the subgroup's pixels that blended a splat of this batch (end > base).
         let out0 = end0 <= base;
         let out1 = end1 <= base;
-        let none = out0 && out1;
-        let y_lo = select(p0.fy, p1.fy, out0);
-        let y_hi = select(p1.fy, p0.fy, out1);
-        let lo = vec2<f32>(subgroupMin(select(p0.fx, BIG, none)), subgroupMin(select(y_lo, BIG, none)));
-        let hi = vec2<f32>(subgroupMax(select(p0.fx, -BIG, none)), subgroupMax(select(y_hi, -BIG, none)));
-        let own = load_batch(base, count, lane);
-        let reach = subgroupBallot(lane < count && reaches(own, lo, hi));
+        let lo = vec2<f32>(p0.m.fx, select(p0.m.fy, p1.m.fy, out0));
+        let hi = vec2<f32>(p0.m.fx, select(p1.m.fy, p0.m.fy, out1));
+        let reach = batch_reach(own, count, lane, lo, hi, out0 && out1);
         for (var jj = 0u; jj < count; jj = jj + 1u) {
             let j = count - 1u - jj;
             if (!ballot_bit(reach, j)) {

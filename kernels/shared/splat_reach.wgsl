@@ -37,6 +37,15 @@ fn reaches(s: SplatVecs, lo: vec2<f32>, hi: vec2<f32>) -> bool {
 // Beyond any pixel coordinate (a lane left out of a subgroup's pixel box).
 const BIG: f32 = 1e30;
 
+// The subgroup's ballot of which splats of a batch of `count` (lane l's is `own`) can reach a
+// pixel of the subgroup's box: the box of every lane's pixels `lo`..`hi` (one pixel, or a
+// lane's pair), lanes `left_out` not counted. Called in uniform control flow.
+fn batch_reach(own: SplatVecs, count: u32, lane: u32, lo: vec2<f32>, hi: vec2<f32>, left_out: bool) -> vec4<u32> {
+    let box_lo = vec2<f32>(subgroupMin(select(lo.x, BIG, left_out)), subgroupMin(select(lo.y, BIG, left_out)));
+    let box_hi = vec2<f32>(subgroupMax(select(hi.x, -BIG, left_out)), subgroupMax(select(hi.y, -BIG, left_out)));
+    return subgroupBallot(lane < count && reaches(own, box_lo, box_hi));
+}
+
 // Bit `j` of a subgroup ballot.
 fn ballot_bit(m: vec4<u32>, j: u32) -> bool {
     var w = m.x;
