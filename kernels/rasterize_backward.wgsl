@@ -17,10 +17,13 @@
 //
 // `rasterize_backward_atomic` and `rasterize_backward_atomic_scatter` (the default where the
 // device has VK_EXT_shader_atomic_float; the host takes the second on subgroups of 32 lanes
-// and more): the same per-pixel arithmetic; the subgroup's 13 sums per intersection by four
-// vector butterflies (`add_subgroup_sums_by_adds`) or by a reduce-scatter (`add_subgroup_sums`),
-// each sum added once to the intersection's partials with a float atomic (zeroed before the
-// dispatch). No workgroup memory, no barriers, no workgroup-wide
+// and more): the same per-pixel arithmetic; the subgroup's 13 sums per intersection by three
+// vector butterflies and two ballots for the pixel count (`add_subgroup_sums_by_adds`) or by a
+// reduce-scatter (`add_subgroup_sums`), each sum added once with a float atomic to the
+// intersection's partials or, with `RasterParams::per_gaussian` (the host's choice on a CPU
+// device), straight to its Gaussian's splat gradient, so that neither the intersections'
+// partials need zeroing nor `reduce_isect_grads` runs (zeroed before the dispatch either way).
+// No workgroup memory, no barriers, no workgroup-wide
 // reduction, which took 60% of the backward on lavapipe; each subgroup starts at the last splat one of its pixels blended instead of the
 // tile's last. The order of the additions, and so the last bits, may vary between runs.
 //
@@ -56,6 +59,9 @@ struct RasterParams {
     tiles_x: u32,
     // 0: inverse depth, 1: depth (`DepthMode`)
     depth_mode: u32,
+    // The atomic kernels: 0 adds into the intersection's partials, 1 into the Gaussian's
+    // (`partials_sum` and `partial_pixels_sum` are then the per-Gaussian buffers).
+    per_gaussian: u32,
 }
 
 var<immediate> params: RasterParams;
@@ -372,7 +378,7 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
                 s0 = subgroup_sum4(c.a, sg);
                 s1 = subgroup_sum4(c.b, sg);
                 s2 = subgroup_sum4(c.c, sg);
-                s3 = subgroup_sum4(vec4<f32>(c.pixels, 0.0, 0.0, 0.0), sg).x;
+                s3 = subgroup_count(c.pixels);
             }
             if (lane == 0u) {
                 let o = (sg_id * sg + j) * RED_VALUES;
@@ -512,13 +518,22 @@ fn subgroup_sum4(v: vec4<f32>, sg: u32) -> vec4<f32> {
     return s;
 }
 
-// `add_subgroup_sums` by four vector sums over the subgroup (`subgroup_sum4`), each lane then
+// The sum over the subgroup of `pixels` (0, 1 or 2 in each lane: a lane's pixel count) by
+// two ballots, where a fourth vector sum would take as long as each of the other three.
+fn subgroup_count(pixels: f32) -> f32 {
+    let one = subgroupBallot(pixels >= 1.0);
+    let two = subgroupBallot(pixels >= 2.0);
+    let bits = countOneBits(one) + countOneBits(two);
+    return f32(bits.x + bits.y + bits.z + bits.w);
+}
+
+// `add_subgroup_sums` by three vector sums over the subgroup (`subgroup_sum4`), each lane then
 // adding one sum (faster with few lanes, as lavapipe's 8).
 fn add_subgroup_sums_by_adds(c: Contribution, k: u32, lane: u32, sg: u32) {
     let s0 = subgroup_sum4(c.a, sg);
     let s1 = subgroup_sum4(c.b, sg);
     let s2 = subgroup_sum4(c.c, sg);
-    let s3 = subgroup_sum4(vec4<f32>(c.pixels, 0.0, 0.0, 0.0), sg).x;
+    let s3 = subgroup_count(c.pixels);
     let o = k * GRAD_FLOATS;
     for (var v = lane; v < RED_VALUES; v += sg) {
         var s = s0;
@@ -538,6 +553,15 @@ fn add_sum(o: u32, k: u32, value: u32, sum: f32) {
     } else if (value == GRAD_FLOATS) {
         atomicAdd(&partial_pixels_sum[k], u32(sum));
     }
+}
+
+// Where the atomic kernels add intersection `k`'s sums: its own slot, or its Gaussian's
+// (`RasterParams::per_gaussian`).
+fn sum_slot(k: u32) -> u32 {
+    if (params.per_gaussian != 0u) {
+        return sorted_gaussian[k];
+    }
+    return k;
 }
 
 // The atomic backward of one tile (both atomic entry points): `scatter` (a constant at each
@@ -572,9 +596,9 @@ fn backward_atomic(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatter: boo
             let c = splat_contribution(p, &st, own, j, k < end);
             if (subgroupAny(c.pixels > 0.0)) {
                 if (scatter) {
-                    add_subgroup_sums(c, k, lane, sg);
+                    add_subgroup_sums(c, sum_slot(k), lane, sg);
                 } else {
-                    add_subgroup_sums_by_adds(c, k, lane, sg);
+                    add_subgroup_sums_by_adds(c, sum_slot(k), lane, sg);
                 }
             }
         }
@@ -671,9 +695,9 @@ fn backward_atomic_pairs(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatte
             }
             if (subgroupAny(c.pixels > 0.0)) {
                 if (scatter) {
-                    add_subgroup_sums(c, k, lane, sg);
+                    add_subgroup_sums(c, sum_slot(k), lane, sg);
                 } else {
-                    add_subgroup_sums_by_adds(c, k, lane, sg);
+                    add_subgroup_sums_by_adds(c, sum_slot(k), lane, sg);
                 }
             }
         }
