@@ -4,7 +4,7 @@
 // itself as the sort value and its id per slot. When the tile-count scan flagged an overflow
 // (status[0] != 0) nothing is written: the buffers have a fixed capacity.
 
-const SPLAT_FLOATS: u32 = 11u;
+const SPLAT_FLOATS: u32 = 12u;
 // `DEPTH_KEY_BITS` of src/map/render/bin.rs: the depth's bits below the tile id.
 const DEPTH_KEY_BITS: u32 = 21u;
 

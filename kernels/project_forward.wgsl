@@ -1,13 +1,14 @@
 // Projection with the EWA Jacobian, one thread per Gaussian (CPU reference:
 // `project_gaussians` / `project_splat` / `tile_rect`, src/map/render/project.rs, same
-// order of operations). Writes each splat (11 floats, the layout of
-// `ProjectedSplat<f32>`), its tile rectangle and its tile count (0 when culled).
+// order of operations). Writes each splat (12 floats, three vec4s for the rasterisers: mean2d,
+// conic.xy | conic.z, z, opacity, q_max | colour, 0; `SPLAT_FLOATS` of src/map/vulkan), its
+// tile rectangle and its tile count (0 when culled).
 
 const ALPHA_MIN: f32 = 0.003921568627450980; // 1/255
 const SH_C0: f32 = 0.28209479177387814;
 const SH_C1: f32 = 0.4886025119029199;
 const PARAMS: u32 = 23u;
-const SPLAT_FLOATS: u32 = 11u;
+const SPLAT_FLOATS: u32 = 12u;
 
 // Camera, pose and settings (`ProjectionSetup<f32>` plus the grid), flat scalars.
 struct Setup {
@@ -162,10 +163,11 @@ fn project_forward(@builtin(global_invocation_id) gid: vec3<u32>) {
     splats[o + 4u] = conic.z;
     splats[o + 5u] = z;
     splats[o + 6u] = opacity;
-    splats[o + 7u] = colour.x;
-    splats[o + 8u] = colour.y;
-    splats[o + 9u] = colour.z;
-    splats[o + 10u] = q_max;
+    splats[o + 7u] = q_max;
+    splats[o + 8u] = colour.x;
+    splats[o + 9u] = colour.y;
+    splats[o + 10u] = colour.z;
+    splats[o + 11u] = 0.0;
     let ax = axis(mean2d.x, reach.x, setup.width);
     let ay = axis(mean2d.y, reach.y, setup.height);
     var rect = vec4<u32>(0u);

@@ -17,7 +17,6 @@
 // final_t (object transmittance behind the last blended splat) and isect_end for the backward.
 
 const TILE: u32 = 16u;
-const SPLAT_FLOATS: u32 = 11u;
 const ALPHA_MIN: f32 = 0.003921568627450980; // 1/255
 const ALPHA_MAX: f32 = 0.99;
 const T_MIN: f32 = 0.0001;
@@ -36,7 +35,9 @@ struct RasterParams {
 
 var<immediate> params: RasterParams;
 
-@group(0) @binding(0) var<storage, read> splats: array<f32>;
+// Three vec4s per splat (`SplatVecs`, as project_forward writes them): a vector load takes
+// one pass over a CPU device's lanes where a float takes one each (lavapipe).
+@group(0) @binding(0) var<storage, read> splats: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> sorted_gaussian: array<u32>;
 @group(0) @binding(2) var<storage, read> tile_offsets: array<u32>;
 @group(0) @binding(3) var<storage, read> c_med: array<f32>;
@@ -57,12 +58,7 @@ struct SplatVecs {
 }
 
 fn load_splat_vecs(g: u32) -> SplatVecs {
-    let o = g * SPLAT_FLOATS;
-    var s: SplatVecs;
-    s.a = vec4<f32>(splats[o], splats[o + 1u], splats[o + 2u], splats[o + 3u]);
-    s.b = vec4<f32>(splats[o + 4u], splats[o + 5u], splats[o + 6u], splats[o + 10u]);
-    s.c = vec4<f32>(splats[o + 7u], splats[o + 8u], splats[o + 9u], 0.0);
-    return s;
+    return SplatVecs(splats[3u * g], splats[3u * g + 1u], splats[3u * g + 2u]);
 }
 
 //!include splat_reach.wgsl

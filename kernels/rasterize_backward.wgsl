@@ -41,7 +41,6 @@
 // conic (3), opacity, colour (3), z, mean2d_densify (2); `partial_pixels` the pixel count.
 
 const TILE: u32 = 16u;
-const SPLAT_FLOATS: u32 = 11u;
 const GRAD_FLOATS: u32 = 12u;
 // Reduced values per intersection: the 12 floats and the pixel count.
 const RED_VALUES: u32 = 13u;
@@ -66,7 +65,9 @@ struct RasterParams {
 
 var<immediate> params: RasterParams;
 
-@group(0) @binding(0) var<storage, read> splats: array<f32>;
+// Three vec4s per splat (`SplatVecs`, as project_forward writes them): a vector load takes
+// one pass over a CPU device's lanes where a float takes one each (lavapipe).
+@group(0) @binding(0) var<storage, read> splats: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> sorted_gaussian: array<u32>;
 @group(0) @binding(2) var<storage, read> tile_offsets: array<u32>;
 @group(0) @binding(3) var<storage, read> c_med: array<f32>;
@@ -105,12 +106,7 @@ var<workgroup> wg_top: u32;
 //!include splat_reach.wgsl
 
 fn load_splat_vecs(g: u32) -> SplatVecs {
-    let o = g * SPLAT_FLOATS;
-    var s: SplatVecs;
-    s.a = vec4<f32>(splats[o], splats[o + 1u], splats[o + 2u], splats[o + 3u]);
-    s.b = vec4<f32>(splats[o + 4u], splats[o + 5u], splats[o + 6u], splats[o + 10u]);
-    s.c = vec4<f32>(splats[o + 7u], splats[o + 8u], splats[o + 9u], 0.0);
-    return s;
+    return SplatVecs(splats[3u * g], splats[3u * g + 1u], splats[3u * g + 2u]);
 }
 
 fn depth_value(z: f32) -> f32 {

@@ -19,7 +19,7 @@ use duv::map::render::{
 use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv::map::vulkan::{
     record_adam_step, RenderBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
-    SETUP_WORDS, SPLAT_FLOATS,
+    splat_floats, SETUP_WORDS, SPLAT_FLOATS,
 };
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
@@ -72,10 +72,6 @@ fn check_grads(what: &str, got: &[f32], want: &[f32]) -> f64 {
 
 fn close(a: f32, b: f32) -> bool {
     ((a - b).abs() as f64) <= FORWARD_TOL * (b.abs() as f64).max(1.0)
-}
-
-fn splat_values(s: &ProjectedSplat<f32>) -> [f32; SPLAT_FLOATS] {
-    [s.mean2d[0], s.mean2d[1], s.conic[0], s.conic[1], s.conic[2], s.z, s.opacity, s.colour[0], s.colour[1], s.colour[2], s.q_max]
 }
 
 #[test]
@@ -144,7 +140,7 @@ fn projection_matches_project_gaussians() {
     let mut worst = 0.0f64;
     let mut visible = 0;
     for i in 0..n {
-        let (a, b) = (splat_values(&gpu_splats[i]), splat_values(&cpu_splats[i]));
+        let (a, b) = (splat_floats(&gpu_splats[i]), splat_floats(&cpu_splats[i]));
         for k in 0..SPLAT_FLOATS {
             assert!(close(a[k], b[k]), "Gaussian {i}, splat field {k}: GPU {} vs CPU {}", a[k], b[k]);
             worst = worst.max((a[k] - b[k]).abs() as f64 / (b[k].abs() as f64).max(1.0));
@@ -222,7 +218,7 @@ fn binning_sort_and_tile_ranges_match_the_cpu_stages() {
     assert!(total > 4096 * 2, "want several sort blocks, got {total} intersections");
     // GPU stages from the CPU projection (so that every kernel sees the same input).
     let proj = GpuProjection::new(&mut ctx, n).unwrap();
-    let raw: Vec<f32> = splats.iter().flat_map(splat_values).collect();
+    let raw: Vec<f32> = splats.iter().flat_map(splat_floats).collect();
     ctx.write(&proj.splats, &raw).unwrap();
     let raw_rects: Vec<[u32; 4]> = rects.iter().map(|r| [r.x0, r.y0, r.x1, r.y1]).collect();
     ctx.write(&proj.rects, &raw_rects).unwrap();
@@ -330,7 +326,7 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
         let proj = GpuProjection::new(&mut ctx, n).unwrap();
         let bin = GpuBinning::new(&mut ctx, cpu.total, grid.num_tiles()).unwrap();
         let mut raster = GpuRasterForward::new(&mut ctx, w * h).unwrap();
-        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_values).collect();
+        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_floats).collect();
         ctx.write(&proj.splats, &raw).unwrap();
         ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();
         ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
@@ -443,7 +439,7 @@ fn rasterize_backward_matches_the_cpu_reference() {
         let bin = GpuBinning::new(&mut ctx, cpu.total, grid.num_tiles()).unwrap();
         let mut raster = GpuRasterForward::new(&mut ctx, w * h).unwrap();
         let mut bwd = GpuRasterBackward::new(&mut ctx, w * h, cpu.total, n).unwrap();
-        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_values).collect();
+        let raw: Vec<f32> = cpu.splats.iter().flat_map(splat_floats).collect();
         ctx.write(&proj.splats, &raw).unwrap();
         ctx.write(&proj.isect_offsets, &cpu.offsets).unwrap();
         ctx.write(&bin.sorted_gaussian, &cpu.sorted_gaussian).unwrap();

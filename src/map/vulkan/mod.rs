@@ -57,8 +57,14 @@ use crate::map::render::{
     RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream, SplatGrad, TileGrid, TileRect,
 };
 
-/// Floats per projected splat on the GPU (the field order of [`ProjectedSplat`]).
-pub const SPLAT_FLOATS: usize = 11;
+/// Floats per projected splat on the GPU: three vec4s, `mean2d, conic[0..2] | conic[2], z,
+/// opacity, q_max | colour, 0` (what the rasterisers load as vectors; [`splat_floats`]).
+pub const SPLAT_FLOATS: usize = 12;
+
+/// A [`ProjectedSplat`] in the GPU layout ([`SPLAT_FLOATS`]).
+pub fn splat_floats(s: &ProjectedSplat<f32>) -> [f32; SPLAT_FLOATS] {
+    [s.mean2d[0], s.mean2d[1], s.conic[0], s.conic[1], s.conic[2], s.z, s.opacity, s.q_max, s.colour[0], s.colour[1], s.colour[2], 0.0]
+}
 /// Words of the `Setup` struct of `project_forward.wgsl`.
 pub const SETUP_WORDS: usize = 32;
 
@@ -199,8 +205,8 @@ impl GpuProjection {
                 conic: [r[2], r[3], r[4]],
                 z: r[5],
                 opacity: r[6],
-                colour: [r[7], r[8], r[9]],
-                q_max: r[10],
+                colour: [r[8], r[9], r[10]],
+                q_max: r[7],
             };
         }
         let mut raw_rects = vec![[0u32; 4]; n];
