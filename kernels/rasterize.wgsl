@@ -202,15 +202,15 @@ fn rasterize(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_ind
     }
 }
 
-// `rasterize` with two pixels per thread (`GpuContext::pixel_pairs`): thread t of 128 takes
-// column t % 16 and rows 2 (t / 16) and the one below, so each splat the subgroup shares serves
+// `rasterize` with two pixels per thread (`GpuContext::pixel_pairs`): thread t of 128 takes the
+// pixel pair `pair_x`, `pair_y` (and the row below), so each splat the subgroup shares serves
 // two pixels (half the shuffles per pixel). The same arithmetic per pixel.
 @compute @workgroup_size(128)
 fn rasterize_pairs(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
                    @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
     let tile = wg.y * params.tiles_x + wg.x;
-    let x = wg.x * TILE + t_index % TILE;
-    let y0 = wg.y * TILE + 2u * (t_index / TILE);
+    let x = pair_x(wg, t_index);
+    let y0 = pair_y(wg, t_index);
     let y1 = y0 + 1u;
     let in0 = x < params.width && y0 < params.height;
     let in1 = x < params.width && y1 < params.height;

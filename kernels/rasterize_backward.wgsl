@@ -617,15 +617,6 @@ fn rasterize_backward_atomic_scatter(@builtin(workgroup_id) wg: vec3<u32>, @buil
     backward_atomic(wg, t_index, lane, sg, true);
 }
 
-// The pixel pair of thread `t_index` of a 128-thread workgroup: column t % 16, rows 2 (t / 16)
-// and the one below, so a subgroup of 32 lanes covers a 16x4 block of the tile (8 lanes: 8x2).
-fn pair_x(wg: vec3<u32>, t_index: u32) -> u32 {
-    return wg.x * TILE + t_index % TILE;
-}
-fn pair_y(wg: vec3<u32>, t_index: u32) -> u32 {
-    return wg.y * TILE + 2u * (t_index / TILE);
-}
-
 // The two pixels' contributions to one intersection, added in the lane (each zero unless its
 // pixel blended the splat).
 fn add_contributions(u: Contribution, v: Contribution) -> Contribution {
