@@ -230,14 +230,20 @@ fn rasterize_pairs(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocati
         // Against the box of the subgroup's pixels still blending.
         let lo = vec2<f32>(p0.fx, select(p0.fy, p1.fy, px0.done));
         let hi = vec2<f32>(p0.fx, select(p1.fy, p0.fy, px1.done));
-        let reach = batch_reach(own, count, lane, lo, hi, done);
-        for (var j = 0u; j < count; j = j + 1u) {
-            if (!ballot_bit(reach, j)) {
-                continue;
+        // The reached splats only, front to back (`ballot_first`: a CPU device would run the
+        // others masked).
+        var left = batch_reach(own, count, lane, lo, hi, done);
+        if (ballot_any(left)) {
+            loop {
+                let j = ballot_first(left);
+                left = ballot_clear(left, j);
+                let s = shared_splat(own, j);
+                blend_splat(p0, &px0, s, b + j);
+                blend_splat(p1, &px1, s, b + j);
+                if (!ballot_any(left)) {
+                    break;
+                }
             }
-            let s = shared_splat(own, j);
-            blend_splat(p0, &px0, s, b + j);
-            blend_splat(p1, &px1, s, b + j);
         }
     }
     if (in0) {

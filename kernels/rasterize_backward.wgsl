@@ -658,33 +658,38 @@ fn backward_atomic_pairs(wg: vec3<u32>, t_index: u32, lane: u32, sg: u32, scatte
         let out1 = end1 <= base;
         let lo = vec2<f32>(p0.m.fx, select(p0.m.fy, p1.m.fy, out0));
         let hi = vec2<f32>(p0.m.fx, select(p1.m.fy, p0.m.fy, out1));
-        let reach = batch_reach(own, count, lane, lo, hi, out0 && out1);
-        for (var jj = 0u; jj < count; jj = jj + 1u) {
-            let j = count - 1u - jj;
-            if (!ballot_bit(reach, j)) {
-                continue;
-            }
-            let k = base + j;
-            var s: SplatVecs;
-            s.a = subgroupShuffle(own.a, j);
-            s.b = subgroupShuffle(own.b, j);
-            s.c = subgroupShuffle(own.c, j);
-            var c: Contribution;
-            c.a = vec4<f32>(0.0);
-            c.b = vec4<f32>(0.0);
-            c.c = vec4<f32>(0.0);
-            c.pixels = 0.0;
-            if (k < end0) {
-                c = backprop_splat(p0, &st0, s);
-            }
-            if (k < end1) {
-                c = add_contributions(c, backprop_splat(p1, &st1, s));
-            }
-            if (subgroupAny(c.pixels > 0.0)) {
-                if (scatter) {
-                    add_subgroup_sums(c, sum_slot(k), lane, sg);
-                } else {
-                    add_subgroup_sums_by_adds(c, sum_slot(k), lane, sg);
+        // The reached splats only, back to front (`ballot_last`: a CPU device would run the
+        // others masked).
+        var left = batch_reach(own, count, lane, lo, hi, out0 && out1);
+        if (ballot_any(left)) {
+            loop {
+                let j = ballot_last(left);
+                left = ballot_clear(left, j);
+                let k = base + j;
+                var s: SplatVecs;
+                s.a = subgroupShuffle(own.a, j);
+                s.b = subgroupShuffle(own.b, j);
+                s.c = subgroupShuffle(own.c, j);
+                var c: Contribution;
+                c.a = vec4<f32>(0.0);
+                c.b = vec4<f32>(0.0);
+                c.c = vec4<f32>(0.0);
+                c.pixels = 0.0;
+                if (k < end0) {
+                    c = backprop_splat(p0, &st0, s);
+                }
+                if (k < end1) {
+                    c = add_contributions(c, backprop_splat(p1, &st1, s));
+                }
+                if (subgroupAny(c.pixels > 0.0)) {
+                    if (scatter) {
+                        add_subgroup_sums(c, sum_slot(k), lane, sg);
+                    } else {
+                        add_subgroup_sums_by_adds(c, sum_slot(k), lane, sg);
+                    }
+                }
+                if (!ballot_any(left)) {
+                    break;
                 }
             }
         }
