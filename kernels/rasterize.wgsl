@@ -63,6 +63,8 @@ fn load_splat_vecs(g: u32) -> SplatVecs {
     return SplatVecs(splats[3u * g], splats[3u * g + 1u], splats[3u * g + 2u]);
 }
 
+//!include ballot.wgsl
+
 //!include splat_reach.wgsl
 
 //!include pixel_medium.wgsl

@@ -105,6 +105,8 @@ var<workgroup> wg_stop: u32;
 var<workgroup> wg_end_max: atomic<u32>;
 var<workgroup> wg_top: u32;
 
+//!include ballot.wgsl
+
 //!include splat_reach.wgsl
 
 fn load_splat_vecs(g: u32) -> SplatVecs {

@@ -6,7 +6,9 @@ mod gpu_common;
 
 use duv::core::rng::Rng;
 use duv::gpu::{GpuBuffer, GpuContext, GpuError, GpuOptions};
-use duv::gpu::ops::{record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, SCAN_BLOCK, SORT_BLOCK};
+use duv::gpu::ops::{
+    ballot_walk, record_ballot_walk, record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, BALLOT_WALK_END, BALLOT_WALK_WORDS, SCAN_BLOCK, SORT_BLOCK,
+};
 use duv::map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
 
 /// Sizes crossing the 512-element scan block and (300 007 > 512 * 512) the one-workgroup
@@ -51,6 +53,44 @@ fn prefix_sum_matches_a_sequential_scan() {
         assert_eq!(exclusive_scan(&counts, &mut cpu, &mut sums, u32::MAX as u64), Ok(want[n] as u64));
         assert_eq!(cpu, got, "n = {n}: GPU vs map::render::exclusive_scan");
     }
+}
+
+#[test]
+fn ballot_walk_visits_every_set_bit_in_order() {
+    let Some(mut ctx) = gpu_common::gpu_or_skip("ballot_walk_visits_every_set_bit_in_order") else { return };
+    // Empty, full, one bit at each word's ends, bits only in the upper words (lanes of a
+    // 64-lane subgroup that devices of up to 32 lanes never set), and random masks.
+    let mut masks: Vec<[u32; 4]> = vec![[0; 4], [u32::MAX; 4], [1, 0, 0, 0], [0, 0, 0, 1 << 31], [0, 1, 0, 0], [0, 0, 1 << 31, 0], [0, 0x8000_0001, 0, 0], [0, 0, 0x0f0f_0000, 3]];
+    let mut rng = Rng::new(11);
+    for _ in 0..200 {
+        let sparse = rng.below(2) == 0;
+        masks.push(std::array::from_fn(|_| {
+            let w = rng.below(1 << 32) as u32;
+            if sparse { w & rng.below(1 << 32) as u32 & rng.below(1 << 32) as u32 } else { w }
+        }));
+    }
+    let n = masks.len();
+    let masks_buf = ctx.alloc::<[u32; 4]>("ballot masks", n).unwrap();
+    let order_buf = ctx.alloc::<u32>("ballot walk order", n * BALLOT_WALK_WORDS).unwrap();
+    ctx.write(&masks_buf, &masks).unwrap();
+    ctx.begin().unwrap();
+    ctx.fill(order_buf.range(), 0xdead).unwrap();
+    record_ballot_walk(&mut ctx, &masks_buf, n, &order_buf).unwrap();
+    ctx.submit_and_wait().unwrap();
+    let mut got = vec![0u32; n * BALLOT_WALK_WORDS];
+    ctx.read(&order_buf, &mut got).unwrap();
+    for (i, m) in masks.iter().enumerate() {
+        for (half, back) in [(0, false), (1, true)] {
+            let want = ballot_walk(*m, back);
+            let at = i * BALLOT_WALK_WORDS + half * 128;
+            let walked = &got[at..at + want.len()];
+            assert_eq!(walked, &want[..], "mask {m:08x?}, back to front {back}");
+            if want.len() < 128 {
+                assert_eq!(got[at + want.len()], BALLOT_WALK_END, "mask {m:08x?}, back to front {back}: walked past the last bit");
+            }
+        }
+    }
+    assert_eq!(ballot_walk([0b101, 0, 0, 1], true), [96, 2, 0]);
 }
 
 #[test]

@@ -194,3 +194,34 @@ fn record_sort_passes(
     }
     Ok(())
 }
+
+/// Words of one mask's result in `ballot_walk.walk_order`: its set bits front to back, then
+/// back to front, 128 words each, a shorter walk ended by [`BALLOT_WALK_END`].
+pub const BALLOT_WALK_WORDS: usize = 256;
+/// The end of a walk shorter than 128 in `ballot_walk.walk_order`'s result.
+pub const BALLOT_WALK_END: u32 = u32::MAX;
+
+/// The set bits of a 128-lane subgroup ballot (`mask[w]` holds lanes `32 w .. 32 w + 31`), in
+/// ascending order or, `back_to_front`, descending: what the rasterisers' walk over their reach
+/// ballots visits (CPU reference of `kernels/shared/ballot.wgsl`'s `ballot_first`,
+/// `ballot_last` and `ballot_clear`; `ballot_walk.walk_order` runs them on the device).
+pub fn ballot_walk(mask: [u32; 4], back_to_front: bool) -> Vec<u32> {
+    let mut bits: Vec<u32> = (0..128u32).filter(|&j| mask[(j / 32) as usize] >> (j % 32) & 1 == 1).collect();
+    if back_to_front {
+        bits.reverse();
+    }
+    bits
+}
+
+/// Records `ballot_walk.walk_order` over `masks[..n]` into `order` ([`BALLOT_WALK_WORDS`] per
+/// mask; the parity test of the ballot walk).
+pub fn record_ballot_walk(ctx: &mut GpuContext, masks: &GpuBuffer<[u32; 4]>, n: usize, order: &GpuBuffer<u32>) -> Result<(), GpuError> {
+    if n > masks.len() || n * BALLOT_WALK_WORDS > order.len() {
+        return Err(GpuError::OutOfRange { what: order.what(), requested: n * BALLOT_WALK_WORDS, len: order.len() });
+    }
+    if n == 0 {
+        return Ok(());
+    }
+    let params = [n as u32, 0, 0, 0];
+    ctx.dispatch(Kernel::BallotWalkWalkOrder, &[masks.range(), order.range()], bytemuck::bytes_of(&params), [n.div_ceil(64) as u32, 1, 1])
+}
