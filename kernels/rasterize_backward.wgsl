@@ -317,6 +317,24 @@ fn write_medium_grads(x: u32, y: u32, st: PixelState) {
     grad_sigma_bs[i * 3u + 2u] = st.g_bs.z;
 }
 
+// One subgroup's 13 sums for one intersection of the step into `red`.
+fn write_red(slot: u32, s0: vec4<f32>, s1: vec4<f32>, s2: vec4<f32>, s3: f32) {
+    let o = slot * RED_VALUES;
+    red[o] = s0.x;
+    red[o + 1u] = s0.y;
+    red[o + 2u] = s0.z;
+    red[o + 3u] = s0.w;
+    red[o + 4u] = s1.x;
+    red[o + 5u] = s1.y;
+    red[o + 6u] = s1.z;
+    red[o + 7u] = s1.w;
+    red[o + 8u] = s2.x;
+    red[o + 9u] = s2.y;
+    red[o + 10u] = s2.z;
+    red[o + 11u] = s2.w;
+    red[o + 12u] = s3;
+}
+
 @compute @workgroup_size(256)
 fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) t_index: u32,
                       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32,
@@ -362,40 +380,42 @@ fn rasterize_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invoc
         let count = min(sg, batch_end - start);
         let base = batch_end - count;
         let own = load_batch(base, count, lane);
-        for (var jj = 0u; jj < count; jj = jj + 1u) {
-            let j = count - 1u - jj;
-            let k = base + j;
-            // This pixel's contribution to intersection k (zero unless blended there).
-            let c = splat_contribution(p, &st, own, j, k < end);
-            // Subgroup sums (every lane takes part), written by lane 0; zeros without an add
-            // when no pixel of this subgroup blended the splat (most of a tile's splats for
-            // most subgroups).
-            var s0 = vec4<f32>(0.0);
-            var s1 = vec4<f32>(0.0);
-            var s2 = vec4<f32>(0.0);
-            var s3 = 0.0;
-            if (subgroupAny(c.pixels > 0.0)) {
-                s0 = subgroup_sum4(c.a, sg);
-                s1 = subgroup_sum4(c.b, sg);
-                s2 = subgroup_sum4(c.c, sg);
-                s3 = subgroup_count(c.pixels);
+        // The splats a pixel of this subgroup can reach, back to front (the ballot's set bits,
+        // as the pair kernels walk them: a CPU device would run the others masked); the others'
+        // sums are zero, written below.
+        let at = vec2<f32>(p.m.fx, p.m.fy);
+        let reach = batch_reach(own, count, lane, at, at, end <= base);
+        var left = reach;
+        if (ballot_any(left)) {
+            loop {
+                let j = ballot_last(left);
+                left = ballot_clear(left, j);
+                let k = base + j;
+                // This pixel's contribution to intersection k (zero unless blended there).
+                let c = splat_contribution(p, &st, own, j, k < end);
+                // Subgroup sums (every lane takes part), written by lane 0; zeros without an
+                // add when no pixel of this subgroup blended the splat.
+                var s0 = vec4<f32>(0.0);
+                var s1 = vec4<f32>(0.0);
+                var s2 = vec4<f32>(0.0);
+                var s3 = 0.0;
+                if (subgroupAny(c.pixels > 0.0)) {
+                    s0 = subgroup_sum4(c.a, sg);
+                    s1 = subgroup_sum4(c.b, sg);
+                    s2 = subgroup_sum4(c.c, sg);
+                    s3 = subgroup_count(c.pixels);
+                }
+                if (lane == 0u) {
+                    write_red(sg_id * sg + j, s0, s1, s2, s3);
+                }
+                if (!ballot_any(left)) {
+                    break;
+                }
             }
-            if (lane == 0u) {
-                let o = (sg_id * sg + j) * RED_VALUES;
-                red[o] = s0.x;
-                red[o + 1u] = s0.y;
-                red[o + 2u] = s0.z;
-                red[o + 3u] = s0.w;
-                red[o + 4u] = s1.x;
-                red[o + 5u] = s1.y;
-                red[o + 6u] = s1.z;
-                red[o + 7u] = s1.w;
-                red[o + 8u] = s2.x;
-                red[o + 9u] = s2.y;
-                red[o + 10u] = s2.z;
-                red[o + 11u] = s2.w;
-                red[o + 12u] = s3;
-            }
+        }
+        // Each slot once: lane j writes the zeros of splat j when the subgroup skipped it.
+        if (lane < count && !ballot_bit(reach, lane)) {
+            write_red(sg_id * sg + lane, vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), 0.0);
         }
         workgroupBarrier();
         // Thread j * 13 + v (and + 256, for subgroups of more than 19 lanes) adds value v of
