@@ -5,7 +5,9 @@
 // `rasterize_backward` (deterministic mode): one workgroup per 16x16 tile, one thread per
 // pixel (row-major in the tile). The tile's sorted splats are walked back to front, `sg` (the
 // subgroup size) at a time: lane l loads splat `base + l` and the subgroup shares them by
-// `subgroupShuffle`, as the forward does. Each thread back-propagates its pixel through the
+// `subgroupShuffle`, as the forward does, walking only the splats a pixel of the subgroup can
+// reach (the ballot's set bits; a skipped splat's sums are zeros, which lane j writes for
+// splat j, so each slot is written once). Each thread back-propagates its pixel through the
 // splats it blended in the forward pass (`start .. isect_end`), recovering the transmittance
 // from the stored final T (`backprop_splat`). Per intersection, the 13 contributions (12
 // gradient floats and the pixel count) are summed within the subgroup (`subgroup_sum4`) and each
