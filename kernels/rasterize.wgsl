@@ -11,7 +11,7 @@
 //
 // `rasterize_pairs` (`GpuContext::pixel_pairs`, the default on subgroups under 32 lanes) takes
 // two pixels per thread, 128 threads a tile, so each shuffled splat serves two pixels, and
-// walks only the splats the subgroup reaches (the ballot's set bits, splat_reach.wgsl: on
+// walks only the splats the subgroup reaches (the ballot's set bits, ballot.wgsl: on
 // lavapipe 0.6x the time of stepping through all of them).
 //
 // Per pixel and channel: C = c_med + sum_n w_n (c_n exp(-sigma_att t_n) - c_med exp(-sigma_bs t_n)),

@@ -35,7 +35,7 @@
 // subgroup shares serves two pixels and the pair's contributions are added in the lane before
 // the subgroup sums. On lavapipe the backward took 0.58-0.73x the time of one pixel per
 // thread; on an H100 1.05x (fewer threads per tile hide less latency there). They walk only
-// the splats the subgroup reaches (the ballot's set bits, splat_reach.wgsl), which on
+// the splats the subgroup reaches (the ballot's set bits, ballot.wgsl), which on
 // lavapipe took 0.54x the time of stepping through all of them.
 //
 // `reduce_isect_grads`: one thread per Gaussian sums its intersections' partials, found
