@@ -8,7 +8,8 @@
 //   scatter    one workgroup per block, 256-element chunks in order: stable scatter to dst,
 //              the rank within a chunk from per-digit thread bitmasks (popcounts)
 //   scatter_serial  the scatter of a block by one invocation, in element order (the CPU
-//              reference's loop): taken on CPU devices (lavapipe), where `scatter`'s barriers
+//              reference's loop), eight blocks a workgroup (one a lane of lavapipe's 8; one
+//              a workgroup took 2.4-2.8x as long): taken on CPU devices (lavapipe), where `scatter`'s barriers
 //              and workgroup atomics took 2.6-5x its time (160-310 against 60 ms for four
 //              passes over 392k pairs)
 // Keys are u64 stored as vec2<u32> (lo, hi), the little-endian layout of a Rust u64.
@@ -17,6 +18,8 @@
 const WG: u32 = 256u;
 const RADIX: u32 = 256u;
 const SORT_BLOCK: u32 = 4096u;
+// Blocks per workgroup of `scatter_serial` (`SERIAL_SCATTER_BLOCKS` of src/gpu/ops.rs).
+const SERIAL_BLOCKS: u32 = 8u;
 
 struct SortParams {
     // Pairs, or COUNT_ON_DEVICE: count[0].
@@ -182,14 +185,21 @@ fn scatter(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index
 }
 
 // `scatter` with one invocation per block: each element to its digit's next slot, in element
-// order (stable, the same destination as `scatter`).
-@compute @workgroup_size(1)
-fn scatter_serial(@builtin(workgroup_id) wg: vec3<u32>) {
+// order (stable, the same destination as `scatter`). Invocation i of workgroup g takes block
+// 8 g + i, so a CPU device's 8 lanes each walk a block (one lane a workgroup kept 7 of them
+// idle); workgroups past the last block, where the dispatch is one per block (indirect, from
+// the device's count), do nothing.
+@compute @workgroup_size(SERIAL_BLOCKS)
+fn scatter_serial(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l: u32) {
+    let block = wg.x * SERIAL_BLOCKS + l;
+    if (block >= block_count()) {
+        return;
+    }
     var serial_counts: array<u32, 256>;
     for (var d = 0u; d < RADIX; d = d + 1u) {
-        serial_counts[d] = hist[wg.x * RADIX + d];
+        serial_counts[d] = hist[block * RADIX + d];
     }
-    let base = wg.x * SORT_BLOCK;
+    let base = block * SORT_BLOCK;
     let end = min(base + SORT_BLOCK, pair_count());
     for (var i = base; i < end; i = i + 1u) {
         let key = src_keys[i];

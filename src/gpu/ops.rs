@@ -130,7 +130,9 @@ pub fn record_radix_sort(
     let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
     let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
     let hist = scratch.histograms.slice_range(0, blocks * RADIX)?;
-    record_sort_passes(ctx, (a, b, hist, scratch.unused_count.range()), n as u32, key_bits, scratch.serial, |ctx, kernel, bufs, imm| ctx.dispatch(kernel, bufs, imm, groups(blocks)))
+    record_sort_passes(ctx, (a, b, hist, scratch.unused_count.range()), n as u32, key_bits, scratch.serial, |ctx, kernel, bufs, imm, blocks_per_group| {
+        ctx.dispatch(kernel, bufs, imm, groups(blocks.div_ceil(blocks_per_group)))
+    })
 }
 
 /// [`record_radix_sort`] of the first `count[0]` pairs, a count an earlier kernel of the
@@ -153,7 +155,9 @@ pub fn record_radix_sort_indirect(
     let a = (keys.slice_range(0, n)?, values.slice_range(0, n)?);
     let b = (scratch.keys_tmp.slice_range(0, n)?, scratch.values_tmp.slice_range(0, n)?);
     let hist = scratch.histograms.range();
-    record_sort_passes(ctx, (a, b, hist, count), COUNT_ON_DEVICE, key_bits, scratch.serial, |ctx, kernel, bufs, imm| ctx.dispatch_indirect(kernel, bufs, imm, block_args))
+    // One workgroup per block from the device's count: those of the serial scatter past its
+    // last block do nothing.
+    record_sort_passes(ctx, (a, b, hist, count), COUNT_ON_DEVICE, key_bits, scratch.serial, |ctx, kernel, bufs, imm, _| ctx.dispatch_indirect(kernel, bufs, imm, block_args))
 }
 
 /// The count in a kernel's immediates that makes it read `count[0]`, a count an earlier kernel
@@ -162,31 +166,35 @@ pub const COUNT_ON_DEVICE: u32 = u32::MAX;
 
 type SortBuffers = ((GpuRange, GpuRange), (GpuRange, GpuRange), GpuRange, GpuRange);
 
+/// Blocks per workgroup of the serial scatter (`SERIAL_BLOCKS` of `radix_sort.wgsl`: one
+/// invocation per block, a CPU device's 8 lanes each taking one).
+pub const SERIAL_SCATTER_BLOCKS: usize = 8;
+
 /// The passes of a radix sort of `n` pairs (or [`COUNT_ON_DEVICE`]) between `a` (keys,
 /// values; the result) and `b`, with `hist` and `count` bound; `per_block` records a
-/// per-block kernel.
+/// per-block kernel taking the given number of blocks per workgroup.
 fn record_sort_passes(
     ctx: &mut GpuContext,
     (a, b, hist, count): SortBuffers,
     n: u32,
     key_bits: u32,
     serial: Option<bool>,
-    per_block: impl Fn(&mut GpuContext, Kernel, &[GpuRange], &[u8]) -> Result<(), GpuError>,
+    per_block: impl Fn(&mut GpuContext, Kernel, &[GpuRange], &[u8], usize) -> Result<(), GpuError>,
 ) -> Result<(), GpuError> {
     let passes = key_bits.min(64).div_ceil(8);
     // On a CPU device the scatter by one invocation per block, in element order (what the
     // CPU does); the workgroup kernel's barriers and workgroup atomics cost lavapipe 2.6-5x.
-    let scatter = match serial.unwrap_or(ctx.info().is_cpu()) {
-        true => Kernel::RadixSortScatterSerial,
-        false => Kernel::RadixSortScatter,
+    let (scatter, scatter_blocks) = match serial.unwrap_or(ctx.info().is_cpu()) {
+        true => (Kernel::RadixSortScatterSerial, SERIAL_SCATTER_BLOCKS),
+        false => (Kernel::RadixSortScatter, 1),
     };
     for pass in 0..passes {
         let (src, dst) = if pass % 2 == 0 { (a, b) } else { (b, a) };
         let params = [n, pass * 8, 0, 0];
         let imm = bytemuck::bytes_of(&params);
-        per_block(ctx, Kernel::RadixSortHistogram, &[src.0, hist, count], imm)?;
+        per_block(ctx, Kernel::RadixSortHistogram, &[src.0, hist, count], imm, 1)?;
         ctx.dispatch(Kernel::RadixSortScan, &[hist, count], imm, groups(1))?;
-        per_block(ctx, scatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm)?;
+        per_block(ctx, scatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm, scatter_blocks)?;
     }
     if passes % 2 == 1 {
         ctx.copy(b.0, a.0)?;
