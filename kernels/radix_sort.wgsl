@@ -210,3 +210,27 @@ fn scatter_serial(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocatio
         dst_values[slot] = src_values[i];
     }
 }
+
+// `histogram` with one invocation per block, eight blocks a workgroup (as `scatter_serial`):
+// the block's digit counts in a private array, no workgroup atomics. Taken with
+// `scatter_serial`.
+@compute @workgroup_size(SERIAL_BLOCKS)
+fn histogram_serial(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_index) l: u32) {
+    let block = wg.x * SERIAL_BLOCKS + l;
+    if (block >= block_count()) {
+        return;
+    }
+    var serial_counts: array<u32, 256>;
+    for (var d = 0u; d < RADIX; d = d + 1u) {
+        serial_counts[d] = 0u;
+    }
+    let base = block * SORT_BLOCK;
+    let end = min(base + SORT_BLOCK, pair_count());
+    for (var i = base; i < end; i = i + 1u) {
+        let d = digit_of(src_keys[i]);
+        serial_counts[d] = serial_counts[d] + 1u;
+    }
+    for (var d = 0u; d < RADIX; d = d + 1u) {
+        hist[block * RADIX + d] = serial_counts[d];
+    }
+}

@@ -89,7 +89,9 @@ fn kernel_table_matches_the_host_layouts() {
     assert_eq!(sort.bindings[0].bytes, 8, "sort keys are vec2<u32> = u64");
     assert_eq!(sort.immediate_bytes, 16);
     assert_eq!(Kernel::PrefixSumScanAdd.info().immediate_bytes, 16);
-    assert_eq!(Kernel::RadixSortScatterSerial.info().workgroup_size, [duv::gpu::ops::SERIAL_SCATTER_BLOCKS as u32, 1, 1], "a serial scatter's blocks per workgroup");
+    for k in [Kernel::RadixSortScatterSerial, Kernel::RadixSortHistogramSerial] {
+        assert_eq!(k.info().workgroup_size, [duv::gpu::ops::SERIAL_SCATTER_BLOCKS as u32, 1, 1], "{}: blocks per workgroup", k.name());
+    }
     assert_eq!(PARAMS_PER_GAUSSIAN, 23, "params layout of project_forward.wgsl");
     for k in Kernel::all() {
         assert!(!k.info().spirv.is_empty() && k.info().spirv.len() % 4 == 0, "{}: SPIR-V", k.name());

@@ -166,8 +166,8 @@ pub const COUNT_ON_DEVICE: u32 = u32::MAX;
 
 type SortBuffers = ((GpuRange, GpuRange), (GpuRange, GpuRange), GpuRange, GpuRange);
 
-/// Blocks per workgroup of the serial scatter (`SERIAL_BLOCKS` of `radix_sort.wgsl`: one
-/// invocation per block, a CPU device's 8 lanes each taking one).
+/// Blocks per workgroup of the serial histogram and scatter (`SERIAL_BLOCKS` of
+/// `radix_sort.wgsl`: one invocation per block, a CPU device's 8 lanes each taking one).
 pub const SERIAL_SCATTER_BLOCKS: usize = 8;
 
 /// The passes of a radix sort of `n` pairs (or [`COUNT_ON_DEVICE`]) between `a` (keys,
@@ -182,19 +182,20 @@ fn record_sort_passes(
     per_block: impl Fn(&mut GpuContext, Kernel, &[GpuRange], &[u8], usize) -> Result<(), GpuError>,
 ) -> Result<(), GpuError> {
     let passes = key_bits.min(64).div_ceil(8);
-    // On a CPU device the scatter by one invocation per block, in element order (what the
-    // CPU does); the workgroup kernel's barriers and workgroup atomics cost lavapipe 2.6-5x.
-    let (scatter, scatter_blocks) = match serial.unwrap_or(ctx.info().is_cpu()) {
-        true => (Kernel::RadixSortScatterSerial, SERIAL_SCATTER_BLOCKS),
-        false => (Kernel::RadixSortScatter, 1),
+    // On a CPU device the histogram and scatter by one invocation per block, the scatter in
+    // element order (what the CPU does); the workgroup kernels' barriers and workgroup atomics
+    // cost lavapipe 2.6-5x.
+    let (histogram, scatter, per_group) = match serial.unwrap_or(ctx.info().is_cpu()) {
+        true => (Kernel::RadixSortHistogramSerial, Kernel::RadixSortScatterSerial, SERIAL_SCATTER_BLOCKS),
+        false => (Kernel::RadixSortHistogram, Kernel::RadixSortScatter, 1),
     };
     for pass in 0..passes {
         let (src, dst) = if pass % 2 == 0 { (a, b) } else { (b, a) };
         let params = [n, pass * 8, 0, 0];
         let imm = bytemuck::bytes_of(&params);
-        per_block(ctx, Kernel::RadixSortHistogram, &[src.0, hist, count], imm, 1)?;
+        per_block(ctx, histogram, &[src.0, hist, count], imm, per_group)?;
         ctx.dispatch(Kernel::RadixSortScan, &[hist, count], imm, groups(1))?;
-        per_block(ctx, scatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm, scatter_blocks)?;
+        per_block(ctx, scatter, &[src.0, src.1, hist, dst.0, dst.1, count], imm, per_group)?;
     }
     if passes % 2 == 1 {
         ctx.copy(b.0, a.0)?;
