@@ -20,6 +20,9 @@
 //   param_grad_sum            one thread per parameter: the chunks' sums in chunk order, ADDED
 //                             into grads (as the CPU backward adds)
 //
+//   nodes_serial, nodes_backward_serial, param_grad_blocks
+//                             CPU-device variants (`GpuMedium::serial`), at the end of the file
+//
 // No atomics: every sum has a fixed order, so two runs on one device are bit-identical.
 // Step 1 is the per-pixel network: the interpolation weights are exactly 1 and 0.
 //
@@ -475,4 +478,273 @@ fn param_grad_sum(@builtin(global_invocation_id) gid: vec3<u32>) {
         sum += partials[c * dims.len + p];
     }
     grads[p] = grads[p] + sum;
+}
+
+
+// --- CPU-device variants (`GpuMedium::serial`) -------------------------------------------
+// On a CPU device (lavapipe: 8 lanes, a workgroup's barriers switch coroutines, and every
+// buffer load at an address that differs between lanes or comes from a loop counter is a
+// loop over the lanes) the workgroup per node above spends its time in loads: two per
+// multiply-add. These kernels give each invocation a node (`nodes_serial`,
+// `nodes_backward_serial`) or a block of 8 parameters (`param_grad_blocks`): each lane loads
+// one of 8 consecutive weights (or activations) and `subgroupBroadcast` hands them to the
+// other lanes, so one load serves eight multiply-adds per lane. The weights come from a
+// uniform buffer (the same `params` range: lavapipe's uniform loads gather without a branch
+// per lane). Every sum keeps the order of the kernels above (zero terms pad a row to a
+// multiple of 8, adding exactly nothing), so `nodes_serial` and `param_grad_blocks` give the
+// same bits as `nodes` and `param_grad_partials`. They need all lanes of a subgroup of at
+// least 8 and at most 64 lanes active: out-of-range invocations compute a clamped node and
+// do not store.
+
+// `params` as a uniform buffer: 4 * 2403 floats hold the largest layout (75 inputs); the
+// host allocates `params` at least this long (`UNIFORM_PARAM_FLOATS`).
+@group(0) @binding(14) var<uniform> wparams: array<vec4<f32>, 2403>;
+
+// Private rows: the inputs (at most 75) padded to a multiple of 8, or a hidden layer.
+const ROW: u32 = 80u;
+
+fn wp(i: u32) -> f32 {
+    return wparams[i >> 2u][i & 3u];
+}
+
+// z + a[c] w_0 + ... + a[c + 7] w_7, added in that order, w_l being lane l's `wv`.
+fn add8(z0: f32, wv: f32, a: ptr<private, array<f32, ROW>>, c: u32) -> f32 {
+    var z = z0;
+    z += (*a)[c] * subgroupBroadcast(wv, 0u);
+    z += (*a)[c + 1u] * subgroupBroadcast(wv, 1u);
+    z += (*a)[c + 2u] * subgroupBroadcast(wv, 2u);
+    z += (*a)[c + 3u] * subgroupBroadcast(wv, 3u);
+    z += (*a)[c + 4u] * subgroupBroadcast(wv, 4u);
+    z += (*a)[c + 5u] * subgroupBroadcast(wv, 5u);
+    z += (*a)[c + 6u] * subgroupBroadcast(wv, 6u);
+    z += (*a)[c + 7u] * subgroupBroadcast(wv, 7u);
+    return z;
+}
+
+// The forward pass of node n by one invocation (lane `lane` of its subgroup), as
+// `forward_shared`, into the private rows: x, then h1 / s1 and h2 / s2 (softplus and its
+// slope, the sigmoid) and the nine heads' pre-activations.
+var<private> px: array<f32, ROW>;
+var<private> ph1: array<f32, ROW>;
+var<private> ps1: array<f32, ROW>;
+var<private> ph2: array<f32, ROW>;
+var<private> ps2: array<f32, ROW>;
+var<private> pz: array<f32, CHANNELS>;
+
+fn forward_serial(n: u32, lane: u32) {
+    let dir = node_dir(n);
+    for (var i = 0u; i < dims.inputs; i++) {
+        px[i] = encoding(dir, i);
+    }
+    for (var i = dims.inputs; i < ROW; i++) {
+        px[i] = 0.0;
+    }
+    for (var o = 0u; o < HIDDEN; o++) {
+        var z = wp(dims.b1 + o);
+        for (var c = 0u; c < dims.inputs; c += 8u) {
+            let row = c + (lane & 7u);
+            z = add8(z, select(0.0, wp(dims.w1 + row * HIDDEN + o), row < dims.inputs), &px, c);
+        }
+        let a = softplus_sigmoid(z);
+        ph1[o] = a.x;
+        ps1[o] = a.y;
+    }
+    for (var o = 0u; o < HIDDEN; o++) {
+        var z = wp(dims.b2 + o);
+        for (var c = 0u; c < HIDDEN; c += 8u) {
+            z = add8(z, wp(dims.w2 + (c + (lane & 7u)) * HIDDEN + o), &ph1, c);
+        }
+        let a = softplus_sigmoid(z);
+        ph2[o] = a.x;
+        ps2[o] = a.y;
+    }
+    for (var k = 0u; k < CHANNELS; k++) {
+        var z = wp(dims.b_heads + k);
+        for (var c = 0u; c < HIDDEN; c += 8u) {
+            z = add8(z, wp(dims.w_heads + (c + (lane & 7u)) * CHANNELS + k), &ph2, c);
+        }
+        pz[k] = z;
+    }
+}
+
+// Head k's output from its pre-activation (sigmoid c_med, softplus sigma_att and sigma_bs).
+fn head_out(k: u32, z: f32) -> f32 {
+    if (k < 3u) {
+        return sigmoid(z);
+    }
+    return softplus(z);
+}
+
+// One invocation per node: `nodes`.
+@compute @workgroup_size(64)
+fn nodes_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(subgroup_invocation_id) lane: u32) {
+    let raw = gid.y * groups.x * 64u + gid.x;
+    let n = min(raw, node_count() - 1u);
+    forward_serial(n, lane);
+    if (raw < node_count()) {
+        for (var k = 0u; k < CHANNELS; k++) {
+            node_out[n * CHANNELS + k] = head_out(k, pz[k]);
+        }
+    }
+}
+
+// One invocation per node: `nodes_backward` (the same record; a node whose d_nodes are all
+// zero gets its activations and zero deltas, which add exactly nothing to the gradient).
+@compute @workgroup_size(64)
+fn nodes_backward_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(subgroup_invocation_id) lane: u32) {
+    let raw = gid.y * groups.x * 64u + gid.x;
+    let n = min(raw, node_count() - 1u);
+    let store = raw < node_count();
+    forward_serial(n, lane);
+    let base = n * dims.record;
+    let xo = base + 1u;
+    let h1o = xo + dims.inputs;
+    let h2o = h1o + HIDDEN;
+    let doo = h2o + HIDDEN;
+    let dz2o = doo + CHANNELS;
+    let dz1o = dz2o + HIDDEN;
+    // d_o, padded to 16 for the broadcasts below.
+    var d_o: array<f32, 16>;
+    for (var k = 0u; k < CHANNELS; k++) {
+        var slope = 0.0;
+        if (k < 3u) {
+            let y = sigmoid(pz[k]);
+            slope = y * (1.0 - y);
+        } else {
+            slope = sigmoid(pz[k]);
+        }
+        d_o[k] = d_nodes[n * CHANNELS + k] * slope;
+    }
+    // dz2[t] = (W_heads row t . d_o) s2[t], `dot_head_row`'s order.
+    var dz2: array<f32, ROW>;
+    for (var t = 0u; t < HIDDEN; t++) {
+        let wv = wp(dims.w_heads + t * CHANNELS + (lane & 7u));
+        var acc: array<f32, 8>;
+        acc[0] = 0.0 + subgroupBroadcast(wv, 0u) * d_o[0];
+        acc[1] = 0.0 + subgroupBroadcast(wv, 1u) * d_o[1];
+        acc[2] = 0.0 + subgroupBroadcast(wv, 2u) * d_o[2];
+        acc[3] = 0.0 + subgroupBroadcast(wv, 3u) * d_o[3];
+        acc[4] = 0.0 + subgroupBroadcast(wv, 4u) * d_o[4];
+        acc[5] = 0.0 + subgroupBroadcast(wv, 5u) * d_o[5];
+        acc[6] = 0.0 + subgroupBroadcast(wv, 6u) * d_o[6];
+        acc[7] = 0.0 + subgroupBroadcast(wv, 7u) * d_o[7];
+        let tail = 0.0 + wp(dims.w_heads + t * CHANNELS + 8u) * d_o[8];
+        dz2[t] = (((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail) * ps2[t];
+    }
+    if (store) {
+        records[base] = 1.0;
+        for (var i = 0u; i < dims.inputs; i++) {
+            records[xo + i] = px[i];
+        }
+        for (var t = 0u; t < HIDDEN; t++) {
+            records[h1o + t] = ph1[t];
+            records[h2o + t] = ph2[t];
+            records[dz2o + t] = dz2[t];
+        }
+        for (var k = 0u; k < CHANNELS; k++) {
+            records[doo + k] = d_o[k];
+        }
+    }
+    // dz1[t] = (W2 row t . dz2) s1[t], `dot_hidden_row`'s order.
+    for (var t = 0u; t < HIDDEN; t++) {
+        var acc: array<f32, 8>;
+        for (var l = 0u; l < 8u; l++) {
+            acc[l] = 0.0;
+        }
+        for (var c = 0u; c < HIDDEN; c += 8u) {
+            let wv = wp(dims.w2 + t * HIDDEN + c + (lane & 7u));
+            acc[0] += subgroupBroadcast(wv, 0u) * dz2[c];
+            acc[1] += subgroupBroadcast(wv, 1u) * dz2[c + 1u];
+            acc[2] += subgroupBroadcast(wv, 2u) * dz2[c + 2u];
+            acc[3] += subgroupBroadcast(wv, 3u) * dz2[c + 3u];
+            acc[4] += subgroupBroadcast(wv, 4u) * dz2[c + 4u];
+            acc[5] += subgroupBroadcast(wv, 5u) * dz2[c + 5u];
+            acc[6] += subgroupBroadcast(wv, 6u) * dz2[c + 6u];
+            acc[7] += subgroupBroadcast(wv, 7u) * dz2[c + 7u];
+        }
+        let dz1 = (((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + 0.0) * ps1[t];
+        if (store) {
+            records[dz1o + t] = dz1;
+        }
+    }
+}
+
+// (rows, activation offset, delta offset, first parameter) of tensor k.
+fn tensor_rows(k: u32, xo: u32, h1o: u32, h2o: u32, doo: u32, dz2o: u32, dz1o: u32) -> vec4<u32> {
+    switch k {
+        case 0u: { return vec4<u32>(dims.inputs, xo, dz1o, dims.w1); }
+        case 1u: { return vec4<u32>(1u, 0u, dz1o, dims.b1); }
+        case 2u: { return vec4<u32>(HIDDEN, h1o, dz2o, dims.w2); }
+        case 3u: { return vec4<u32>(1u, 0u, dz2o, dims.b2); }
+        case 4u: { return vec4<u32>(HIDDEN, h2o, doo, dims.w_heads); }
+        default: { return vec4<u32>(1u, 0u, doo, dims.b_heads); }
+    }
+}
+
+// `param_grad_partials` by blocks: one invocation per (8 rows of a tensor, column o) and chunk
+// of nodes. The tensors in `MediumLayout` order, each with its rows' activation and its
+// columns' delta in the node record (a bias is one row whose activation is the record's
+// leading 1); every tensor is 64 columns wide here (the heads' 9 padded), so a subgroup's
+// lanes share their rows. Lane l loads activation row + l of each node, broadcast to the
+// lanes; each sum is over the chunk's nodes in node order from 0.0, as there.
+@compute @workgroup_size(64)
+fn param_grad_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(subgroup_invocation_id) lane: u32) {
+    let chunk = gid.y;
+    var id = gid.x;
+    let xo = 1u;
+    let h1o = xo + dims.inputs;
+    let h2o = h1o + HIDDEN;
+    let doo = h2o + HIDDEN;
+    let dz2o = doo + CHANNELS;
+    let dz1o = dz2o + HIDDEN;
+    var tensor = 0u;
+    var t = vec4<u32>(0u);
+    for (; tensor < 6u; tensor++) {
+        t = tensor_rows(tensor, xo, h1o, h2o, doo, dz2o, dz1o);
+        let threads = (t.x + 7u) / 8u * 64u;
+        if (id < threads) {
+            break;
+        }
+        id -= threads;
+    }
+    if (tensor == 6u) {
+        // Past the last tensor: a whole subgroup (64 threads a tensor block).
+        return;
+    }
+    var cols = HIDDEN;
+    if (tensor >= 4u) {
+        cols = CHANNELS;
+    }
+    let row0 = id / 64u * 8u;
+    let o = id % 64u;
+    // Clamped for the padding lanes: they load in range and store nothing.
+    let d = t.z + min(o, cols - 1u);
+    let a = t.y + min(row0 + (lane & 7u), t.x - 1u);
+    let n0 = chunk * dims.chunk_nodes;
+    let n1 = min(n0 + dims.chunk_nodes, node_count());
+    var acc: array<f32, 8>;
+    for (var l = 0u; l < 8u; l++) {
+        acc[l] = 0.0;
+    }
+    for (var n = n0; n < n1; n++) {
+        let r = n * dims.record;
+        let av = records[r + a];
+        let dv = records[r + d];
+        acc[0] += subgroupBroadcast(av, 0u) * dv;
+        acc[1] += subgroupBroadcast(av, 1u) * dv;
+        acc[2] += subgroupBroadcast(av, 2u) * dv;
+        acc[3] += subgroupBroadcast(av, 3u) * dv;
+        acc[4] += subgroupBroadcast(av, 4u) * dv;
+        acc[5] += subgroupBroadcast(av, 5u) * dv;
+        acc[6] += subgroupBroadcast(av, 6u) * dv;
+        acc[7] += subgroupBroadcast(av, 7u) * dv;
+    }
+    if (o < cols) {
+        for (var l = 0u; l < 8u; l++) {
+            let row = row0 + l;
+            if (row < t.x) {
+                partials[chunk * dims.len + t.w + row * cols + o] = acc[l];
+            }
+        }
+    }
 }

@@ -33,8 +33,8 @@ const GRAD_FLOOR_FRACTION: f64 = 1e-3;
 
 /// A network whose heads vary with the direction: the default initialisation with full-size
 /// head weights, every parameter perturbed.
-fn random_net(rng: &mut Rng) -> MediumNet {
-    let mut net = MediumNet::new(&MediumConfig { head_init_scale: 1.0, ..MediumConfig::default() }).unwrap();
+fn random_net(rng: &mut Rng, pe_frequencies: usize) -> MediumNet {
+    let mut net = MediumNet::new(&MediumConfig { head_init_scale: 1.0, pe_frequencies, ..MediumConfig::default() }).unwrap();
     for p in net.params_mut() {
         *p += rng.range(-0.3, 0.3) as f32;
     }
@@ -125,12 +125,13 @@ fn bits(v: &[f32]) -> Vec<u32> {
 }
 
 /// Forward and backward of a `w x h` view at `step` on a medium sized for `max_w x max_h`
-/// against `MediumWorkspace::with_grid`; a repeat run is bit-identical, a second backward
-/// without zeroing adds.
-fn check_parity(test: &str, (max_w, max_h): (usize, usize), (w, h): (usize, usize), step: usize, seed: u64) {
+/// against `MediumWorkspace::with_grid`, with the node kernels of both kinds (a workgroup per
+/// node, and one invocation per node: `GpuMedium::serial`); a repeat run is bit-identical, a
+/// second backward without zeroing adds, and the two kinds give the same bits.
+fn check_parity(test: &str, (max_w, max_h): (usize, usize), (w, h): (usize, usize), step: usize, pe_frequencies: usize, seed: u64) {
     let Some(mut ctx) = gpu_common::gpu_or_skip(test) else { return };
     let mut rng = Rng::new(seed);
-    let net = random_net(&mut rng);
+    let net = random_net(&mut rng, pe_frequencies);
     let (cam, pose) = view(&mut rng, w, h);
     let d_planes = random_planes(&mut rng, w, h);
 
@@ -156,11 +157,37 @@ fn check_parity(test: &str, (max_w, max_h): (usize, usize), (w, h): (usize, usiz
         ctx.alloc::<f32>("dL/dsigma_bs", max_w * max_h * 3).unwrap(),
     ];
     let up = [&upstream[0], &upstream[1], &upstream[2]];
+    let mut runs = Vec::new();
+    for serial in [false, true] {
+        medium.serial = Some(serial);
+        runs.push(check_one(&mut ctx, &mut medium, &fwd, up, &net, (&cam, &pose), &d_planes, (&want, &want_grads)));
+        eprintln!("[{test}] {w}x{h} step {step}, {} inputs, serial {serial}: CPU {cpu_ms:.1} ms", net.layout().inputs);
+    }
+    for (what, a, b) in [("c_med", &runs[0].planes.c_med, &runs[1].planes.c_med), ("sigma_att", &runs[0].planes.sigma_att, &runs[1].planes.sigma_att), ("sigma_bs", &runs[0].planes.sigma_bs, &runs[1].planes.sigma_bs)] {
+        assert!(bits(&a.data) == bits(&b.data), "forward {what}: the serial node kernels differ from the workgroup per node");
+    }
+    assert!(bits(&runs[0].grads) == bits(&runs[1].grads), "gradient: the serial node kernels differ from the workgroup per node");
+    ctx.arena_reset_to(arena_mark);
+}
+
+/// One kind of node kernels against the CPU reference (`want`), then twice more.
+#[allow(clippy::too_many_arguments)]
+fn check_one(
+    ctx: &mut GpuContext,
+    medium: &mut GpuMedium,
+    fwd: &GpuRasterForward,
+    up: [&duv::gpu::GpuBuffer<f32>; 3],
+    net: &MediumNet,
+    (cam, pose): (&PinholeCamera, &Se3),
+    d_planes: &MediumPlanes,
+    (want, want_grads): (&MediumPlanes, &[f32]),
+) -> GpuRun {
+    let (w, h) = (cam.width, cam.height);
     let t = Instant::now();
-    let got = gpu_run(&mut ctx, &mut medium, &fwd, up, &net, &cam, &pose, &d_planes);
+    let got = gpu_run(ctx, medium, fwd, up, net, cam, pose, d_planes);
     let gpu_ms = t.elapsed().as_secs_f64() * 1e3;
     let grid = medium.grid().unwrap();
-    eprintln!("[{test}] {w}x{h} step {step}: {} nodes ({}x{}); CPU {cpu_ms:.1} ms, GPU {gpu_ms:.1} ms", grid.nodes(), grid.nodes_x, grid.nodes_y);
+    eprintln!("  {w}x{h}: {} nodes ({}x{}); GPU {gpu_ms:.1} ms", grid.nodes(), grid.nodes_x, grid.nodes_y);
 
     let mut worst_fwd = 0.0f64;
     for (what, g, c) in [("c_med", &got.planes.c_med, &want.c_med), ("sigma_att", &got.planes.sigma_att, &want.sigma_att), ("sigma_bs", &got.planes.sigma_bs, &want.sigma_bs)] {
@@ -174,11 +201,11 @@ fn check_parity(test: &str, (max_w, max_h): (usize, usize), (w, h): (usize, usiz
     for (what, plane) in [("c_med", &want.c_med.data), ("sigma_att", &want.sigma_att.data), ("sigma_bs", &want.sigma_bs.data)] {
         assert!(spread(plane) > 0.05, "{what} is nearly constant over the view ({}); perturb the network more", spread(plane));
     }
-    let worst_grad = check_grads(&net.layout(), &got.grads, &want_grads);
-    eprintln!("[{test}] forward max abs error {worst_fwd:.2e}, gradient max scaled error {worst_grad:.2e}");
+    let worst_grad = check_grads(&net.layout(), &got.grads, want_grads);
+    eprintln!("  forward max abs error {worst_fwd:.2e}, gradient max scaled error {worst_grad:.2e}");
 
     // A second run: bit-identical.
-    let again = gpu_run(&mut ctx, &mut medium, &fwd, up, &net, &cam, &pose, &d_planes);
+    let again = gpu_run(ctx, medium, fwd, up, net, cam, pose, d_planes);
     for (what, a, b) in [("c_med", &got.planes.c_med, &again.planes.c_med), ("sigma_att", &got.planes.sigma_att, &again.planes.sigma_att), ("sigma_bs", &got.planes.sigma_bs, &again.planes.sigma_bs)] {
         assert!(bits(&a.data) == bits(&b.data), "forward {what}: second run differs");
     }
@@ -186,13 +213,13 @@ fn check_parity(test: &str, (max_w, max_h): (usize, usize), (w, h): (usize, usiz
 
     // The backward adds: once more without zeroing gives exactly twice the gradient.
     ctx.begin().unwrap();
-    medium.record_backward(&mut ctx, up[0], up[1], up[2]).unwrap();
+    medium.record_backward(ctx, up[0], up[1], up[2]).unwrap();
     ctx.submit_and_wait().unwrap();
     let mut twice = vec![0.0f32; net.param_count()];
-    medium.read_grads(&ctx, &mut twice).unwrap();
+    medium.read_grads(ctx, &mut twice).unwrap();
     let doubled: Vec<f32> = got.grads.iter().map(|v| v + v).collect();
     assert!(bits(&twice) == bits(&doubled), "a second backward must add to the gradient");
-    ctx.arena_reset_to(arena_mark);
+    got
 }
 
 #[test]
@@ -200,20 +227,27 @@ fn grid_medium_matches_medium_workspace() {
     // 203x117 at step 8: 27x16 = 432 nodes (6.75 workgroups of 64, 3.4 chunks of 128), neither
     // size a multiple of the step, 23751 pixels (92.8 workgroups of 256); the medium is sized
     // for a larger view, so the view uses a prefix of every buffer.
-    check_parity("grid_medium_matches_medium_workspace", (256, 128), (203, 117), 8, 11);
+    check_parity("grid_medium_matches_medium_workspace", (256, 128), (203, 117), 8, 4, 11);
 }
 
 #[test]
 fn per_pixel_medium_matches_medium_net() {
     // Step 1: the nodes are the pixels (1073 of them: 17 workgroups of 64, 9 chunks of 128).
-    check_parity("per_pixel_medium_matches_medium_net", (37, 29), (37, 29), 1, 23);
+    check_parity("per_pixel_medium_matches_medium_net", (37, 29), (37, 29), 1, 4, 23);
+}
+
+#[test]
+fn largest_encoding_matches_medium_workspace() {
+    // 12 frequencies: 75 inputs, the largest layout (the whole of the serial kernels' uniform
+    // view of the parameters); 9x7 nodes, one workgroup, 63 of its 64 invocations.
+    check_parity("largest_encoding_matches_medium_workspace", (70, 50), (65, 49), 8, 12, 31);
 }
 
 #[test]
 fn bad_input_is_an_error_not_a_panic() {
     let Some(mut ctx) = gpu_common::gpu_or_skip("bad_input_is_an_error_not_a_panic") else { return };
     let mut rng = Rng::new(5);
-    let net = random_net(&mut rng);
+    let net = random_net(&mut rng, 4);
     let arena_mark = ctx.arena_used_bytes();
     assert!(matches!(GpuMedium::new(&mut ctx, 64, 48, 0, net.layout()), Err(GpuMediumError::Medium(MediumError::InvalidConfig { .. }))));
     assert!(matches!(GpuMedium::new(&mut ctx, 64, 48, 65, net.layout()), Err(GpuMediumError::Medium(MediumError::InvalidConfig { .. }))));

@@ -691,7 +691,7 @@ impl GpuContext {
             device.create_buffer(
                 &vk::BufferCreateInfo::default()
                     .size(capacity.max(256))
-                    .usage(vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST | vk::BufferUsageFlags::INDIRECT_BUFFER)
+                    .usage(vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::UNIFORM_BUFFER | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST | vk::BufferUsageFlags::INDIRECT_BUFFER)
                     .sharing_mode(vk::SharingMode::EXCLUSIVE),
                 None,
             )

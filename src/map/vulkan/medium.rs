@@ -27,6 +27,13 @@
 //! CPU reference's own code ([`GpuMedium::write_view`]) and uploads `3 x nodes` floats.
 //! `step = 1` is the exact per-pixel network (nodes = pixels, interpolation weights 1 and 0).
 //!
+//! On a CPU device the node kernels run one invocation per node instead
+//! ([`GpuMedium::serial`]: `medium.nodes_serial`, `nodes_backward_serial`, and
+//! `param_grad_blocks` for the gradient, 8 rows of a tensor at one column per invocation),
+//! which gives the same bits: lavapipe loads buffer values lane by lane, so there one load per
+//! lane feeds eight multiply-adds through `subgroupBroadcast` (at 640x480, step 8: nodes 46 ->
+//! 4.1 ms, their backward 97 -> 6.8 ms, the parameter gradient 37 -> 9.9 ms).
+//!
 //! Every buffer is allocated once from the arena for a largest view and a grid step
 //! ([`GpuMedium::new`]); a smaller view uses a prefix of each. The node records take
 //! `4 (inputs + 266)` bytes per node: about 6 MB at 640x480 with the default step 8, but
@@ -39,6 +46,9 @@ use crate::map::medium::{MediumError, MediumGrid, MediumLayout, MediumNet, View,
 
 /// Nodes per partial sum of the parameter gradient (`medium.param_grad_partials`).
 pub const NODE_CHUNK: usize = 128;
+/// Floats of `medium.wgsl`'s uniform view of the parameters (`wparams`: 2403 vec4, the
+/// largest layout, 75 inputs); `params` is allocated at least this long.
+pub const UNIFORM_PARAM_FLOATS: usize = 4 * 2403;
 /// Words of the `MediumDims` immediate block of `medium.wgsl`.
 const DIMS_WORDS: usize = 16;
 
@@ -87,6 +97,13 @@ pub struct GpuMedium {
     staging: Vec<f32>,
     /// The grid of the view last written.
     view: Option<MediumGrid>,
+    /// One invocation per node (`medium.nodes_serial`, `nodes_backward_serial`) and the
+    /// parameter gradient by blocks of 8 (`param_grad_blocks`) instead of a workgroup per node
+    /// and a thread per parameter; the same results (`nodes_serial` and `param_grad_blocks`
+    /// bit-identical). `None`: on a CPU device (lavapipe's buffer loads go lane by lane, and
+    /// one loaded weight serves eight multiply-adds there). Needs subgroups of 8 to 64 lanes
+    /// (ignored otherwise).
+    pub serial: Option<bool>,
 }
 
 impl GpuMedium {
@@ -115,7 +132,7 @@ impl GpuMedium {
             max_height,
             max_nodes,
             record,
-            params: ctx.alloc("medium parameters", layout.len)?,
+            params: ctx.alloc("medium parameters", layout.len.max(UNIFORM_PARAM_FLOATS))?,
             grads: ctx.alloc("medium parameter gradient", layout.len)?,
             dirs: ctx.alloc("medium node directions", max_nodes * 3)?,
             node_out: ctx.alloc("medium node outputs", max_nodes * c)?,
@@ -125,6 +142,7 @@ impl GpuMedium {
             partials: ctx.alloc("medium gradient partial sums", max_nodes.div_ceil(NODE_CHUNK) * layout.len)?,
             staging: vec![0.0; max_nodes * 3],
             view: None,
+            serial: None,
         })
     }
 
@@ -208,7 +226,7 @@ impl GpuMedium {
     /// this medium's own, the planes of the forward (`planes`) and their gradients (`upstream`).
     fn binding(&self, name: &str, planes: Option<[&GpuBuffer<f32>; 3]>, upstream: Option<[&GpuBuffer<f32>; 3]>) -> Option<GpuRange> {
         let own = match name {
-            "params" => &self.params,
+            "params" | "wparams" => &self.params,
             "dirs" => &self.dirs,
             "node_out" => &self.node_out,
             "d_rows" => &self.d_rows,
@@ -227,6 +245,14 @@ impl GpuMedium {
         Some(own.range())
     }
 
+    /// Whether the node kernels run one invocation per node (`nodes_serial`,
+    /// `nodes_backward_serial`, `param_grad_blocks`): [`GpuMedium::serial`], by default on a
+    /// CPU device with subgroups of 8 to 64 lanes.
+    fn serial(&self, ctx: &GpuContext) -> bool {
+        let lanes = ctx.info().subgroup_size;
+        self.serial.unwrap_or(ctx.info().is_cpu()) && (8..=64).contains(&lanes)
+    }
+
     fn current_view(&self) -> Result<MediumGrid, GpuMediumError> {
         self.view.ok_or(GpuMediumError::NoView)
     }
@@ -243,7 +269,8 @@ impl GpuMedium {
         let dims = self.dims_words(&grid);
         let imm = bytemuck::bytes_of(&dims);
         let bind = |name: &str| self.binding(name, Some(planes), None);
-        for (kernel, items) in [(Kernel::MediumNodes, grid.nodes() * NODE_THREADS), (Kernel::MediumInterpolate, grid.width * grid.height)] {
+        let nodes = if self.serial(ctx) { (Kernel::MediumNodesSerial, grid.nodes()) } else { (Kernel::MediumNodes, grid.nodes() * NODE_THREADS) };
+        for (kernel, items) in [nodes, (Kernel::MediumInterpolate, grid.width * grid.height)] {
             ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
         }
         Ok(())
@@ -264,18 +291,25 @@ impl GpuMedium {
         let dims = self.dims_words(&grid);
         let imm = bytemuck::bytes_of(&dims);
         let bind = |name: &str| self.binding(name, None, Some(upstream));
+        let serial = self.serial(ctx);
         for (kernel, items) in [
             (Kernel::MediumInterpolateAdjointRows, grid.height * grid.nodes_x),
             (Kernel::MediumInterpolateAdjointCols, grid.nodes()),
-            (Kernel::MediumNodesBackward, grid.nodes() * NODE_THREADS),
+            if serial { (Kernel::MediumNodesBackwardSerial, grid.nodes()) } else { (Kernel::MediumNodesBackward, grid.nodes() * NODE_THREADS) },
         ] {
             ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
         }
-        // One thread per (parameter, chunk of nodes), then one per parameter.
+        // One thread per (parameter, chunk of nodes), or per (8 rows of a tensor, column) and
+        // chunk, then one per parameter.
         let len = self.layout.len;
-        let partials = Kernel::MediumParamGradPartials;
         let chunks = grid.nodes().div_ceil(NODE_CHUNK).min(u32::MAX as usize) as u32;
-        ctx.dispatch_named(partials, bind, imm, [len.div_ceil(partials.info().workgroup_size[0] as usize) as u32, chunks, 1])?;
+        let (partials, threads) = if serial {
+            let l = &self.layout;
+            (Kernel::MediumParamGradBlocks, (l.inputs.div_ceil(8) + 1 + HIDDEN / 8 + 1 + HIDDEN / 8 + 1) * 64)
+        } else {
+            (Kernel::MediumParamGradPartials, len)
+        };
+        ctx.dispatch_named(partials, bind, imm, [threads.div_ceil(partials.info().workgroup_size[0] as usize) as u32, chunks, 1])?;
         let sum = Kernel::MediumParamGradSum;
         ctx.dispatch_named(sum, bind, imm, [len.div_ceil(sum.info().workgroup_size[0] as usize) as u32, 1, 1])?;
         Ok(())
