@@ -452,3 +452,282 @@ fn medium_variation(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(loca
         partials[wid.x * TERMS + 6u] = sums[0].x;
     }
 }
+
+// --- CPU-device variants of the SSIM filters (`GpuLoss::sliding_ssim`) -------------------
+// The filters above load their 11 taps' sources for every pixel; on a CPU device (lavapipe)
+// every such load is a loop over the lanes. These give each invocation a segment of SEG
+// pixels of one row (`*_rows_sliding`: lanes on consecutive rows) or of one column
+// (`*_cols_sliding`: lanes on consecutive columns) and slide the window along it, loading each
+// source once. A tap outside the image holds zeros and adds exactly nothing, so every sum has
+// the same terms in the same order as above: the same bits. `ssim_cols_sliding` leaves each
+// pixel's SSIM (its channels' sum) in moments_b[3 p].w; `ssim_sum` adds it up by workgroups
+// of 256 pixels exactly as `ssim_cols` does.
+
+const SEG: u32 = 32u;
+
+fn taps() -> array<f32, 11> {
+    var g: array<f32, 11>;
+    for (var t = 0u; t < 11u; t++) {
+        g[t] = window[t];
+    }
+    return g;
+}
+
+@compute @workgroup_size(64)
+fn ssim_rows_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let w = params.width;
+    let h = params.height;
+    let i = gid.x;
+    if (i >= (w + SEG - 1u) / SEG * h) {
+        return;
+    }
+    let y = i % h;
+    let x0 = i / h * SEG;
+    let x1 = min(x0 + SEG, w);
+    let row = y * w;
+    let g = taps();
+    // Slot t: the sources at x - 5 + t once shifted for pixel x.
+    var su: array<vec3<f32>, 11>;
+    var sv: array<vec3<f32>, 11>;
+    for (var t = 1u; t < 11u; t++) {
+        let sx = i32(x0 + t) - 6;
+        if (sx >= 0 && sx < i32(w)) {
+            su[t] = rendered_rgb(row + u32(sx));
+            sv[t] = rgb(3u * (row + u32(sx)));
+        }
+    }
+    for (var x = x0; x < x1; x++) {
+        for (var t = 0u; t < 10u; t++) {
+            su[t] = su[t + 1u];
+            sv[t] = sv[t + 1u];
+        }
+        su[10] = vec3<f32>(0.0);
+        sv[10] = vec3<f32>(0.0);
+        if (x + 5u < w) {
+            su[10] = rendered_rgb(row + x + 5u);
+            sv[10] = rgb(3u * (row + x + 5u));
+        }
+        var mx = vec3<f32>(0.0);
+        var my = vec3<f32>(0.0);
+        var exx = vec3<f32>(0.0);
+        var eyy = vec3<f32>(0.0);
+        var exy = vec3<f32>(0.0);
+        for (var t = 0u; t < 11u; t++) {
+            let u = su[t];
+            let v = sv[t];
+            mx += g[t] * u;
+            my += g[t] * v;
+            exx += g[t] * (u * u);
+            eyy += g[t] * (v * v);
+            exy += g[t] * (u * v);
+        }
+        let p = row + x;
+        moments_a[5u * p] = vec4<f32>(mx, 0.0);
+        moments_a[5u * p + 1u] = vec4<f32>(my, 0.0);
+        moments_a[5u * p + 2u] = vec4<f32>(exx, 0.0);
+        moments_a[5u * p + 3u] = vec4<f32>(eyy, 0.0);
+        moments_a[5u * p + 4u] = vec4<f32>(exy, 0.0);
+    }
+}
+
+@compute @workgroup_size(64)
+fn ssim_cols_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let w = params.width;
+    let h = params.height;
+    let i = gid.x;
+    if (i >= (h + SEG - 1u) / SEG * w) {
+        return;
+    }
+    let x = i % w;
+    let y0 = i / w * SEG;
+    let y1 = min(y0 + SEG, h);
+    let g = taps();
+    var rmx: array<vec3<f32>, 11>;
+    var rmy: array<vec3<f32>, 11>;
+    var rxx: array<vec3<f32>, 11>;
+    var ryy: array<vec3<f32>, 11>;
+    var rxy: array<vec3<f32>, 11>;
+    for (var t = 1u; t < 11u; t++) {
+        let sy = i32(y0 + t) - 6;
+        if (sy >= 0 && sy < i32(h)) {
+            let q = 5u * (u32(sy) * w + x);
+            rmx[t] = moments_a[q].xyz;
+            rmy[t] = moments_a[q + 1u].xyz;
+            rxx[t] = moments_a[q + 2u].xyz;
+            ryy[t] = moments_a[q + 3u].xyz;
+            rxy[t] = moments_a[q + 4u].xyz;
+        }
+    }
+    for (var y = y0; y < y1; y++) {
+        for (var t = 0u; t < 10u; t++) {
+            rmx[t] = rmx[t + 1u];
+            rmy[t] = rmy[t + 1u];
+            rxx[t] = rxx[t + 1u];
+            ryy[t] = ryy[t + 1u];
+            rxy[t] = rxy[t + 1u];
+        }
+        rmx[10] = vec3<f32>(0.0);
+        rmy[10] = vec3<f32>(0.0);
+        rxx[10] = vec3<f32>(0.0);
+        ryy[10] = vec3<f32>(0.0);
+        rxy[10] = vec3<f32>(0.0);
+        if (y + 5u < h) {
+            let q = 5u * ((y + 5u) * w + x);
+            rmx[10] = moments_a[q].xyz;
+            rmy[10] = moments_a[q + 1u].xyz;
+            rxx[10] = moments_a[q + 2u].xyz;
+            ryy[10] = moments_a[q + 3u].xyz;
+            rxy[10] = moments_a[q + 4u].xyz;
+        }
+        var mx = vec3<f32>(0.0);
+        var my = vec3<f32>(0.0);
+        var exx = vec3<f32>(0.0);
+        var eyy = vec3<f32>(0.0);
+        var exy = vec3<f32>(0.0);
+        for (var t = 0u; t < 11u; t++) {
+            mx += g[t] * rmx[t];
+            my += g[t] * rmy[t];
+            exx += g[t] * rxx[t];
+            eyy += g[t] * ryy[t];
+            exy += g[t] * rxy[t];
+        }
+        let a1 = 2.0 * mx * my + SSIM_C1;
+        let a2 = 2.0 * (exy - mx * my) + SSIM_C2;
+        let b1 = mx * mx + my * my + SSIM_C1;
+        let b2 = (exx - mx * mx) + (eyy - my * my) + SSIM_C2;
+        let inv_b = 1.0 / (b1 * b2);
+        let s = a1 * a2 * inv_b;
+        let p = y * w + x;
+        moments_b[3u * p] = vec4<f32>(2.0 * my * (a2 - a1) * inv_b - 2.0 * mx * s * (1.0 / b1 - 1.0 / b2), s.x + s.y + s.z);
+        moments_b[3u * p + 1u] = vec4<f32>(-s / b2, 0.0);
+        moments_b[3u * p + 2u] = vec4<f32>(2.0 * a1 * inv_b, 0.0);
+    }
+}
+
+// The SSIM map's sum by workgroups of 256 pixels (after `ssim_cols_sliding`).
+@compute @workgroup_size(256)
+fn ssim_sum(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_index) lid: u32, @builtin(workgroup_id) wid: vec3<u32>,
+            @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_id) sg_id: u32, @builtin(num_subgroups) sg_count: u32) {
+    let p = gid.x;
+    var ssim = 0.0;
+    if (p < params.width * params.height) {
+        ssim = moments_b[3u * p].w;
+    }
+    let sums = reduce_pair(lid, lane, sg_id, sg_count, vec4<f32>(ssim, 0.0, 0.0, 0.0), vec4<f32>(0.0));
+    if (lid == 0u) {
+        partials[wid.x * TERMS + 5u] = sums[0].x;
+    }
+}
+
+@compute @workgroup_size(64)
+fn ssim_back_rows_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let w = params.width;
+    let h = params.height;
+    let i = gid.x;
+    if (i >= (w + SEG - 1u) / SEG * h) {
+        return;
+    }
+    let y = i % h;
+    let x0 = i / h * SEG;
+    let x1 = min(x0 + SEG, w);
+    let row = y * w;
+    let g = taps();
+    var r0: array<vec4<f32>, 11>;
+    var r1: array<vec4<f32>, 11>;
+    var r2: array<vec4<f32>, 11>;
+    for (var t = 1u; t < 11u; t++) {
+        let sx = i32(x0 + t) - 6;
+        if (sx >= 0 && sx < i32(w)) {
+            let q = 3u * (row + u32(sx));
+            r0[t] = moments_b[q];
+            r1[t] = moments_b[q + 1u];
+            r2[t] = moments_b[q + 2u];
+        }
+    }
+    for (var x = x0; x < x1; x++) {
+        for (var t = 0u; t < 10u; t++) {
+            r0[t] = r0[t + 1u];
+            r1[t] = r1[t + 1u];
+            r2[t] = r2[t + 1u];
+        }
+        r0[10] = vec4<f32>(0.0);
+        r1[10] = vec4<f32>(0.0);
+        r2[10] = vec4<f32>(0.0);
+        if (x + 5u < w) {
+            let q = 3u * (row + x + 5u);
+            r0[10] = moments_b[q];
+            r1[10] = moments_b[q + 1u];
+            r2[10] = moments_b[q + 2u];
+        }
+        var f0 = vec4<f32>(0.0);
+        var f1 = vec4<f32>(0.0);
+        var f2 = vec4<f32>(0.0);
+        for (var t = 0u; t < 11u; t++) {
+            f0 += g[t] * r0[t];
+            f1 += g[t] * r1[t];
+            f2 += g[t] * r2[t];
+        }
+        let p = row + x;
+        moments_a[3u * p] = f0;
+        moments_a[3u * p + 1u] = f1;
+        moments_a[3u * p + 2u] = f2;
+    }
+}
+
+@compute @workgroup_size(64)
+fn ssim_back_cols_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let w = params.width;
+    let h = params.height;
+    let i = gid.x;
+    if (i >= (h + SEG - 1u) / SEG * w) {
+        return;
+    }
+    let x = i % w;
+    let y0 = i / w * SEG;
+    let y1 = min(y0 + SEG, h);
+    let g = taps();
+    var r0: array<vec3<f32>, 11>;
+    var r1: array<vec3<f32>, 11>;
+    var r2: array<vec3<f32>, 11>;
+    for (var t = 1u; t < 11u; t++) {
+        let sy = i32(y0 + t) - 6;
+        if (sy >= 0 && sy < i32(h)) {
+            let q = 3u * (u32(sy) * w + x);
+            r0[t] = moments_a[q].xyz;
+            r1[t] = moments_a[q + 1u].xyz;
+            r2[t] = moments_a[q + 2u].xyz;
+        }
+    }
+    let scale = -params.ssim_weight / f32(3u * w * h);
+    for (var y = y0; y < y1; y++) {
+        for (var t = 0u; t < 10u; t++) {
+            r0[t] = r0[t + 1u];
+            r1[t] = r1[t + 1u];
+            r2[t] = r2[t + 1u];
+        }
+        r0[10] = vec3<f32>(0.0);
+        r1[10] = vec3<f32>(0.0);
+        r2[10] = vec3<f32>(0.0);
+        if (y + 5u < h) {
+            let q = 3u * ((y + 5u) * w + x);
+            r0[10] = moments_a[q].xyz;
+            r1[10] = moments_a[q + 1u].xyz;
+            r2[10] = moments_a[q + 2u].xyz;
+        }
+        var f0 = vec3<f32>(0.0);
+        var f1 = vec3<f32>(0.0);
+        var f2 = vec3<f32>(0.0);
+        for (var t = 0u; t < 11u; t++) {
+            f0 += g[t] * r0[t];
+            f1 += g[t] * r1[t];
+            f2 += g[t] * r2[t];
+        }
+        let p = y * w + x;
+        let u = rendered_rgb(p);
+        let v = rgb(3u * p);
+        let d = scale * (f0 + 2.0 * u * f1 + v * f2);
+        up_colour[3u * p] += d.x;
+        up_colour[3u * p + 1u] += d.y;
+        up_colour[3u * p + 2u] += d.z;
+    }
+}

@@ -163,7 +163,15 @@ fn compare(ctx: &mut GpuContext, w: usize, h: usize, config: &LossConfig, with_m
     let mark = ctx.arena_used_bytes();
     let mut gpu = GpuLoss::new(ctx, w + 3, h + 2).unwrap();
     let v = upload_view(ctx, &s);
+    // The SSIM filters by sliding windows (a CPU device's default) against one pixel per
+    // invocation: the same bits.
+    gpu.sliding_ssim = Some(false);
+    let per_pixel = gpu_loss(ctx, &mut gpu, &v, &s, config, with_medium);
+    gpu.sliding_ssim = Some(true);
     let (terms, d_colour, d_scalars, d_c_med) = gpu_loss(ctx, &mut gpu, &v, &s, config, with_medium);
+    assert_eq!(terms.total.to_bits(), per_pixel.0.total.to_bits(), "{label}: loss differs between the sliding and per-pixel SSIM filters");
+    assert_eq!(terms.ssim.to_bits(), per_pixel.0.ssim.to_bits(), "{label}: SSIM term differs between the sliding and per-pixel SSIM filters");
+    assert!(d_colour == per_pixel.1, "{label}: dL/dC differs between the sliding and per-pixel SSIM filters");
     check_values(label, &terms, &cpu_terms);
     let (psnr_gpu, psnr_cpu) = (gpu.last_psnr_db(), psnr_db(&s.colour, &s.target));
     eprintln!("{label}: PSNR GPU {psnr_gpu:.6} dB CPU {psnr_cpu:.6} dB");

@@ -27,8 +27,12 @@ use crate::core::Image;
 use crate::gpu::{GpuBuffer, GpuContext, GpuError, GpuRange, Kernel};
 use crate::map::loss::{ssim_kernel, LossConfig, LossError, LossTerms, TargetView, SSIM_WINDOW};
 
-/// Pixels per workgroup of every loss kernel.
+/// Pixels per workgroup of the per-pixel loss kernels.
 const WG: usize = 256;
+/// Pixels per invocation of the sliding SSIM filters (`SEG` of `loss.wgsl`).
+const SSIM_SEGMENT: usize = 32;
+/// Workgroup size of the sliding SSIM filters.
+const SLIDING_WG: usize = 64;
 /// Partial sums per workgroup (`partials[group * 8 + term]`).
 pub const LOSS_PARTIALS: usize = 8;
 /// RGB vectors (vec4 slots) per pixel of the SSIM moments: x, y, x^2, y^2, xy.
@@ -150,6 +154,12 @@ pub struct GpuLoss {
     target_size: Option<(usize, usize)>,
     last: Option<(usize, usize, LossConfig, bool)>,
     last_mse: f64,
+    /// The SSIM filters by segments of 32 pixels of a row or column per invocation, sliding
+    /// the window (`loss.ssim_rows_sliding`, `ssim_cols_sliding` + `ssim_sum`,
+    /// `ssim_back_rows_sliding`, `ssim_back_cols_sliding`) instead of one pixel per invocation
+    /// loading its 11 taps; the same bits. `None`: on a CPU device (lavapipe loads buffer
+    /// values lane by lane).
+    pub sliding_ssim: Option<bool>,
 }
 
 impl GpuLoss {
@@ -178,6 +188,7 @@ impl GpuLoss {
             target_size: None,
             last: None,
             last_mse: f64::NAN,
+            sliding_ssim: None,
         })
     }
 
@@ -317,8 +328,23 @@ impl GpuLoss {
         }
         ctx.dispatch_named(Kernel::LossLossPixels, lookup, imm, groups)?;
         if config.photometric_weight > 0.0 {
-            for k in [Kernel::LossSsimRows, Kernel::LossSsimCols, Kernel::LossSsimBackRows, Kernel::LossSsimBackCols] {
-                ctx.dispatch_named(k, lookup, imm, groups)?;
+            if self.sliding_ssim.unwrap_or(ctx.info().is_cpu()) {
+                // One invocation per segment of SSIM_SEGMENT pixels of a row, or of a column.
+                let rows = [((width.div_ceil(SSIM_SEGMENT) * height).div_ceil(SLIDING_WG)) as u32, 1, 1];
+                let cols = [((height.div_ceil(SSIM_SEGMENT) * width).div_ceil(SLIDING_WG)) as u32, 1, 1];
+                for (k, g) in [
+                    (Kernel::LossSsimRowsSliding, rows),
+                    (Kernel::LossSsimColsSliding, cols),
+                    (Kernel::LossSsimSum, groups),
+                    (Kernel::LossSsimBackRowsSliding, rows),
+                    (Kernel::LossSsimBackColsSliding, cols),
+                ] {
+                    ctx.dispatch_named(k, lookup, imm, g)?;
+                }
+            } else {
+                for k in [Kernel::LossSsimRows, Kernel::LossSsimCols, Kernel::LossSsimBackRows, Kernel::LossSsimBackCols] {
+                    ctx.dispatch_named(k, lookup, imm, groups)?;
+                }
             }
         }
         if medium.is_some() {
