@@ -76,3 +76,65 @@ fn map_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     m2[i] = v;
     values[i] = values[i] - k.step_size * m / (sqrt(v) * k.inv_sqrt_bias2 + k.eps);
 }
+
+
+// --- CPU-device variants (`GpuMapAdam::quads`) ---------------------------------------------
+// On a CPU device (lavapipe: every buffer access is a loop over the lanes) one invocation per
+// value spends most of its time loading the flag, the value's group and the group's
+// constants. These take four Gaussians per invocation: the flag is read once, the group of
+// each offset and every group's constants once into private arrays. The same arithmetic per
+// value as `check_grads` / `map_step`, so the same bits.
+
+const QUAD: u32 = 4u;
+
+@compute @workgroup_size(64)
+fn check_grads_quads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let q = gid.y * groups.x * 64u + gid.x;
+    let first = q * QUAD * params.stride;
+    if (first >= params.n_values) {
+        return;
+    }
+    let last = min(first + QUAD * params.stride, params.n_values);
+    var bad = false;
+    for (var i = first; i < last; i++) {
+        bad = bad || (bitcast<u32>(grads[i]) & 0x7f800000u) == 0x7f800000u;
+    }
+    if (bad) {
+        atomicOr(&flag[0], 1u);
+    }
+    if (q == 0u && render_status[0] != 0u) {
+        atomicOr(&flag[0], 2u);
+    }
+}
+
+@compute @workgroup_size(64)
+fn map_step_quads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let q = gid.y * groups.x * 64u + gid.x;
+    let first = q * QUAD * params.stride;
+    if (first >= params.n_values || atomicLoad(&flag[0]) != 0u) {
+        return;
+    }
+    var k: array<GroupConsts, 8>;
+    for (var g = 0u; g < 8u; g++) {
+        k[g] = consts[min(g, arrayLength(&consts) - 1u)];
+    }
+    var group: array<u32, 32>;
+    for (var o = 0u; o < min(params.stride, 32u); o++) {
+        group[o] = group_of[o];
+    }
+    let last = min(first + QUAD * params.stride, params.n_values);
+    var o = 0u;
+    for (var i = first; i < last; i++) {
+        let c = k[group[o]];
+        let g = grads[i];
+        let m = c.beta1 * m1[i] + c.one_minus_beta1 * g;
+        let v = c.beta2 * m2[i] + c.one_minus_beta2 * g * g;
+        m1[i] = m;
+        m2[i] = v;
+        values[i] = values[i] - c.step_size * m / (sqrt(v) * c.inv_sqrt_bias2 + c.eps);
+        o += 1u;
+        if (o == params.stride) {
+            o = 0u;
+        }
+    }
+}

@@ -34,7 +34,18 @@ fn worst(got: &[f32], want: &[f32], floor: f64) -> (usize, f64) {
 #[test]
 fn map_adam_matches_adam_group_per_group() {
     let Some(mut ctx) = gpu_common::gpu_or_skip("map_adam_matches_adam_group_per_group") else { return };
-    // 256 * 5 + 11 Gaussians: 23 values each, 1291 * 23 values, the last workgroup partial.
+    // One value per invocation, and four Gaussians per invocation (a CPU device's default):
+    // each against the host, and the same bits.
+    let per_value = check_map_adam(&mut ctx, false);
+    let quads = check_map_adam(&mut ctx, true);
+    assert!(per_value.iter().zip(&quads).all(|(a, b)| a.to_bits() == b.to_bits()), "the quad kernels differ from the per-value ones");
+}
+
+/// Three steps and the refusals with `GpuMapAdam::quads` set to `quads`; returns the
+/// parameters after the three steps.
+fn check_map_adam(ctx: &mut duv::gpu::GpuContext, quads: bool) -> Vec<f32> {
+    // 256 * 5 + 11 Gaussians: 23 values each, 1291 * 23 values, the last workgroup partial
+    // (and the last invocation of four Gaussians three short).
     let n = 256 * 5 + 11;
     let capacity = n + 40;
     let mut rng = Rng::new(23);
@@ -45,9 +56,18 @@ fn map_adam_matches_adam_group_per_group() {
         .collect();
     let mut params: Vec<Vec<f32>> = ParamGroup::ALL.iter().map(|g| (0..n * g.width()).map(|_| rng.range(-1.0, 1.0) as f32).collect()).collect();
     let mark = ctx.arena_used_bytes();
-    let mut gpu = GpuMapAdam::new(&mut ctx, capacity).unwrap();
+    let mut gpu = GpuMapAdam::new(ctx, capacity).unwrap();
+    gpu.quads = Some(quads);
     let dev_params = ctx.alloc::<f32>("params", capacity * PARAMS_PER_GAUSSIAN).unwrap();
     let dev_grads = ctx.alloc::<f32>("grads", capacity * PARAMS_PER_GAUSSIAN).unwrap();
+    // Past the live Gaussians: a NaN gradient and parameters that must keep their bits.
+    let tail = (n * PARAMS_PER_GAUSSIAN..capacity * PARAMS_PER_GAUSSIAN).map(|i| i as f32).collect::<Vec<_>>();
+    let mut tail_grads = vec![0.0f32; capacity * PARAMS_PER_GAUSSIAN];
+    tail_grads[n * PARAMS_PER_GAUSSIAN + 1] = f32::NAN;
+    ctx.write(&dev_grads, &tail_grads).unwrap();
+    let mut full = vec![0.0f32; capacity * PARAMS_PER_GAUSSIAN];
+    full[n * PARAMS_PER_GAUSSIAN..].copy_from_slice(&tail);
+    ctx.write(&dev_params, &full).unwrap();
     // The render's tile-count scan status: no overflow.
     let render_status = ctx.alloc::<u32>("render status", 4).unwrap();
     ctx.write(&render_status, &[0, 1000, 0, 1000]).unwrap();
@@ -58,7 +78,7 @@ fn map_adam_matches_adam_group_per_group() {
         groups[k].step(&mut params[k], &grads[k]).unwrap();
     }
     ctx.write(&dev_params, &interleave(&params, n)).unwrap();
-    gpu.upload_moments(&mut ctx, &groups, n).unwrap();
+    gpu.upload_moments(ctx, &groups, n).unwrap();
     for step in 0..3 {
         grads = ParamGroup::ALL.iter().map(|g| (0..n * g.width()).map(|i| if i % 7 == step { 0.0 } else { rng.range(-2.0, 2.0) as f32 }).collect()).collect();
         let consts = std::array::from_fn(|k| groups[k].next_step_constants());
@@ -66,14 +86,17 @@ fn map_adam_matches_adam_group_per_group() {
             groups[k].step(&mut params[k], &grads[k]).unwrap();
         }
         ctx.write(&dev_grads, &interleave(&grads, n)).unwrap();
-        gpu.write_constants(&mut ctx, &consts).unwrap();
+        gpu.write_constants(ctx, &consts).unwrap();
         ctx.begin().unwrap();
-        gpu.record_step(&mut ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
+        gpu.record_step(ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
         ctx.submit_and_wait().unwrap();
-        assert!(!gpu.step_refused(&ctx).unwrap(), "finite gradients must not be refused");
+        assert!(!gpu.step_refused(ctx).unwrap(), "finite gradients must not be refused");
     }
-    let mut got = vec![0.0f32; n * PARAMS_PER_GAUSSIAN];
-    ctx.read(&dev_params, &mut got).unwrap();
+    let mut whole = vec![0.0f32; capacity * PARAMS_PER_GAUSSIAN];
+    ctx.read(&dev_params, &mut whole).unwrap();
+    assert!(whole[n * PARAMS_PER_GAUSSIAN..].iter().zip(&tail).all(|(a, b)| a.to_bits() == b.to_bits()), "a step changed values past the live Gaussians");
+    let mut got = whole[..n * PARAMS_PER_GAUSSIAN].to_vec();
+    let stepped = got.clone();
     let (i, err) = worst(&got, &interleave(&params, n), 1e-3);
     eprintln!("map Adam: parameters, max scaled error {err:.2e}");
     assert!(err <= ADAM_REL_TOL, "parameter value {i}: scaled error {err:.2e}");
@@ -84,7 +107,7 @@ fn map_adam_matches_adam_group_per_group() {
         m.fill(f32::NAN);
         v.fill(f32::NAN);
     }
-    gpu.read_moments(&ctx, &mut read, n).unwrap();
+    gpu.read_moments(ctx, &mut read, n).unwrap();
     for (k, g) in ParamGroup::ALL.iter().enumerate() {
         let (wm, wv) = groups[k].moments();
         let (gm, gv) = read[k].moments();
@@ -104,15 +127,15 @@ fn map_adam_matches_adam_group_per_group() {
     bad[17 * PARAMS_PER_GAUSSIAN + 11] = f32::NAN;
     ctx.write(&dev_grads, &bad).unwrap();
     let consts = std::array::from_fn(|k| groups[k].next_step_constants());
-    gpu.write_constants(&mut ctx, &consts).unwrap();
+    gpu.write_constants(ctx, &consts).unwrap();
     ctx.begin().unwrap();
-    gpu.record_step(&mut ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
+    gpu.record_step(ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
     ctx.submit_and_wait().unwrap();
-    assert!(gpu.step_refused(&ctx).unwrap(), "a NaN gradient must refuse the step");
+    assert!(gpu.step_refused(ctx).unwrap(), "a NaN gradient must refuse the step");
     ctx.read(&dev_params, &mut got).unwrap();
     assert!(got.iter().zip(&before).all(|(a, b)| a.to_bits() == b.to_bits()), "a refused step changed the parameters");
     let mut again = read.clone();
-    gpu.read_moments(&ctx, &mut again, n).unwrap();
+    gpu.read_moments(ctx, &mut again, n).unwrap();
     for k in 0..groups.len() {
         assert_eq!(again[k].moments(), read[k].moments(), "a refused step changed the moments");
     }
@@ -120,12 +143,13 @@ fn map_adam_matches_adam_group_per_group() {
     ctx.write(&dev_grads, &interleave(&grads, n)).unwrap();
     ctx.write(&render_status, &[1, 5000, 0, 5000]).unwrap();
     ctx.begin().unwrap();
-    gpu.record_step(&mut ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
+    gpu.record_step(ctx, &dev_params, &dev_grads, render_status.range(), n).unwrap();
     ctx.submit_and_wait().unwrap();
-    assert!(gpu.step_refused(&ctx).unwrap(), "a step after a tile overflow must not be taken");
+    assert!(gpu.step_refused(ctx).unwrap(), "a step after a tile overflow must not be taken");
     ctx.read(&dev_params, &mut got).unwrap();
     assert!(got.iter().zip(&before).all(|(a, b)| a.to_bits() == b.to_bits()), "a step after an overflow changed the parameters");
     // More Gaussians than the buffers hold is an error.
-    assert!(gpu.upload_moments(&mut ctx, &groups, capacity + 1).is_err());
+    assert!(gpu.upload_moments(ctx, &groups, capacity + 1).is_err());
     ctx.arena_reset_to(mark);
+    stepped
 }

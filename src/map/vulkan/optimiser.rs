@@ -18,6 +18,8 @@ use crate::map::gaussians::{ParamGroup, PARAMS_PER_GAUSSIAN};
 const GROUPS: usize = ParamGroup::ALL.len();
 /// Floats per group in the constants buffer (`GroupConsts` of `adam_map.wgsl`).
 const CONST_FLOATS: usize = 8;
+/// Gaussians per invocation of the CPU-device kernels (`map_step_quads`).
+const QUAD: usize = 4;
 
 /// The device half of the map's optimiser for up to `capacity` Gaussians.
 pub struct GpuMapAdam {
@@ -30,6 +32,11 @@ pub struct GpuMapAdam {
     flag: GpuBuffer<u32>,
     /// Host staging of one interleaved moment buffer (allocated once).
     staging: Vec<f32>,
+    /// Four Gaussians per invocation (`check_grads_quads`, `map_step_quads`) instead of one
+    /// value; the same bits. `None`: on a CPU device (lavapipe loads buffer values lane by
+    /// lane; this reads the flag, the groups and their constants once per invocation instead
+    /// of once per value).
+    pub quads: Option<bool>,
 }
 
 impl GpuMapAdam {
@@ -48,6 +55,7 @@ impl GpuMapAdam {
             group_of,
             flag: ctx.alloc("Adam non-finite gradient flag", 1)?,
             staging: vec![0.0; capacity * PARAMS_PER_GAUSSIAN],
+            quads: None,
         })
     }
 
@@ -125,7 +133,9 @@ impl GpuMapAdam {
             return Ok(());
         }
         let imm = [values as u32, PARAMS_PER_GAUSSIAN as u32, 0, 0];
-        let groups = values.div_ceil(256);
+        let quads = self.quads.unwrap_or(ctx.info().is_cpu());
+        let (items, size) = if quads { (n.div_ceil(QUAD), 64) } else { (values, 256) };
+        let groups = items.div_ceil(size);
         let gx = groups.min(65535);
         let grid = [gx as u32, groups.div_ceil(gx) as u32, 1];
         let lookup = |name: &str| -> Option<GpuRange> {
@@ -141,8 +151,9 @@ impl GpuMapAdam {
                 _ => return None,
             })
         };
-        ctx.dispatch_named(Kernel::AdamMapCheckGrads, lookup, bytemuck::cast_slice(&imm), grid)?;
-        ctx.dispatch_named(Kernel::AdamMapMapStep, lookup, bytemuck::cast_slice(&imm), grid)
+        let (check, step) = if quads { (Kernel::AdamMapCheckGradsQuads, Kernel::AdamMapMapStepQuads) } else { (Kernel::AdamMapCheckGrads, Kernel::AdamMapMapStep) };
+        ctx.dispatch_named(check, lookup, bytemuck::cast_slice(&imm), grid)?;
+        ctx.dispatch_named(step, lookup, bytemuck::cast_slice(&imm), grid)
     }
 
     /// After the submission of [`Self::record_step`]: whether the step was refused for a
