@@ -20,7 +20,7 @@
 //   param_grad_sum            one thread per parameter: the chunks' sums in chunk order, ADDED
 //                             into grads (as the CPU backward adds)
 //
-//   nodes_serial, nodes_backward_serial, param_grad_blocks
+//   nodes_serial, nodes_backward_serial, param_grad_blocks, interpolate_cells
 //                             CPU-device variants (`GpuMedium::serial`), at the end of the file
 //
 // No atomics: every sum has a fixed order, so two runs on one device are bit-identical.
@@ -745,6 +745,53 @@ fn param_grad_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(sub
             if (row < t.x) {
                 partials[chunk * dims.len + t.w + row * cols + o] = acc[l];
             }
+        }
+    }
+}
+
+// `interpolate` by cells: one invocation per (image row, node cell along x), the cell's
+// pixels of that row in x order, its four nodes loaded once (lanes on consecutive rows). The
+// same weights and sums per pixel as `interpolate`, so the same bits.
+@compute @workgroup_size(64)
+fn interpolate_cells(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
+    let t = gid.y * groups.x * 64u + gid.x;
+    let cells = (dims.width + dims.step - 1u) / dims.step;
+    if (t >= dims.height * cells) {
+        return;
+    }
+    let y = t % dims.height;
+    let x0 = t / dims.height * dims.step;
+    let x1 = min(x0 + dims.step, dims.width);
+    let cx = cell(x0, dims.nodes_x);
+    let cy = cell(y, dims.nodes_y);
+    let fy = cy.frac;
+    let a = (cy.lo * dims.nodes_x + cx.lo) * CHANNELS;
+    let b = (cy.lo * dims.nodes_x + cx.hi) * CHANNELS;
+    let c = (cy.hi * dims.nodes_x + cx.lo) * CHANNELS;
+    let d = (cy.hi * dims.nodes_x + cx.hi) * CHANNELS;
+    var na: array<f32, CHANNELS>;
+    var nb: array<f32, CHANNELS>;
+    var nc: array<f32, CHANNELS>;
+    var nd: array<f32, CHANNELS>;
+    for (var k = 0u; k < CHANNELS; k++) {
+        na[k] = node_out[a + k];
+        nb[k] = node_out[b + k];
+        nc[k] = node_out[c + k];
+        nd[k] = node_out[d + k];
+    }
+    for (var x = x0; x < x1; x++) {
+        let fx = cell(x, dims.nodes_x).frac;
+        let wa = (1.0 - fx) * (1.0 - fy);
+        let wb = fx * (1.0 - fy);
+        let wc = (1.0 - fx) * fy;
+        let wd = fx * fy;
+        let p = y * dims.width + x;
+        for (var k = 0u; k < 3u; k++) {
+            c_med[3u * p + k] = wa * na[k] + wb * nb[k] + wc * nc[k] + wd * nd[k];
+            let k1 = k + 3u;
+            sigma_att[3u * p + k] = wa * na[k1] + wb * nb[k1] + wc * nc[k1] + wd * nd[k1];
+            let k2 = k + 6u;
+            sigma_bs[3u * p + k] = wa * na[k2] + wb * nb[k2] + wc * nc[k2] + wd * nd[k2];
         }
     }
 }

@@ -29,7 +29,8 @@
 //!
 //! On a CPU device the node kernels run one invocation per node instead
 //! ([`GpuMedium::serial`]: `medium.nodes_serial`, `nodes_backward_serial`, and
-//! `param_grad_blocks` for the gradient, 8 rows of a tensor at one column per invocation),
+//! `param_grad_blocks` for the gradient, 8 rows of a tensor at one column per invocation;
+//! `interpolate_cells`, the pixels of one row of a cell per invocation),
 //! which gives the same bits: lavapipe loads buffer values lane by lane, so there one load per
 //! lane feeds eight multiply-adds through `subgroupBroadcast` (at 640x480, step 8: nodes 46 ->
 //! 4.1 ms, their backward 97 -> 6.8 ms, the parameter gradient 37 -> 9.9 ms).
@@ -97,10 +98,10 @@ pub struct GpuMedium {
     staging: Vec<f32>,
     /// The grid of the view last written.
     view: Option<MediumGrid>,
-    /// One invocation per node (`medium.nodes_serial`, `nodes_backward_serial`) and the
-    /// parameter gradient by blocks of 8 (`param_grad_blocks`) instead of a workgroup per node
-    /// and a thread per parameter; the same results (`nodes_serial` and `param_grad_blocks`
-    /// bit-identical). `None`: on a CPU device (lavapipe's buffer loads go lane by lane, and
+    /// One invocation per node (`medium.nodes_serial`, `nodes_backward_serial`), the parameter
+    /// gradient by blocks of 8 (`param_grad_blocks`) and the interpolation by a row of a cell
+    /// (`interpolate_cells`) instead of a workgroup per node, a thread per parameter and one
+    /// per pixel; the same bits. `None`: on a CPU device (lavapipe's buffer loads go lane by lane, and
     /// one loaded weight serves eight multiply-adds there). Needs subgroups of 8 to 64 lanes
     /// (ignored otherwise).
     pub serial: Option<bool>,
@@ -269,8 +270,10 @@ impl GpuMedium {
         let dims = self.dims_words(&grid);
         let imm = bytemuck::bytes_of(&dims);
         let bind = |name: &str| self.binding(name, Some(planes), None);
-        let nodes = if self.serial(ctx) { (Kernel::MediumNodesSerial, grid.nodes()) } else { (Kernel::MediumNodes, grid.nodes() * NODE_THREADS) };
-        for (kernel, items) in [nodes, (Kernel::MediumInterpolate, grid.width * grid.height)] {
+        let serial = self.serial(ctx);
+        let nodes = if serial { (Kernel::MediumNodesSerial, grid.nodes()) } else { (Kernel::MediumNodes, grid.nodes() * NODE_THREADS) };
+        let pixels = if serial { (Kernel::MediumInterpolateCells, grid.height * grid.width.div_ceil(grid.step)) } else { (Kernel::MediumInterpolate, grid.width * grid.height) };
+        for (kernel, items) in [nodes, pixels] {
             ctx.dispatch_named(kernel, bind, imm, groups_1d(kernel, items))?;
         }
         Ok(())
