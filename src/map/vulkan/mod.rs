@@ -1499,7 +1499,7 @@ impl GpuRenderer {
 #[serde(rename_all = "lowercase")]
 pub enum MapperDevice {
     /// The Vulkan kernels on a GPU; the CPU reference when the only device is a CPU
-    /// implementation such as lavapipe (slower there than the reference) unless
+    /// implementation such as lavapipe (no faster there than the reference in a whole run) unless
     /// `DUV_VULKAN_DEVICE` names it, or when there is no Vulkan at all (one warning).
     #[default]
     Auto,
@@ -1538,7 +1538,7 @@ impl RenderBackend {
                 match &backend {
                     RenderBackend::Vulkan { ctx, .. } if ctx.info().device_type == "CPU" && !picked => {
                         let why = format!(
-                            "the only Vulkan device, {}, runs on the CPU, where the CPU reference is faster (--mapper vulkan or {} selects it)",
+                            "the only Vulkan device, {}, runs on the CPU, where the CPU reference maps as fast in a whole run (--mapper vulkan or {} selects it)",
                             ctx.info().name,
                             crate::gpu::DEVICE_ENV
                         );
