@@ -465,6 +465,25 @@ fn medium_variation(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(loca
 
 const SEG: u32 = 32u;
 
+// Invocation i's segment: along row `line` (lanes on consecutive rows) or column `line`
+// (lanes on consecutive columns), positions first..end; none past the last.
+struct Segment {
+    valid: bool,
+    line: u32,
+    first: u32,
+    end: u32,
+}
+
+fn segment(i: u32, lines: u32, len: u32) -> Segment {
+    let first = i / lines * SEG;
+    return Segment(i < (len + SEG - 1u) / SEG * lines, i % lines, first, min(first + SEG, len));
+}
+
+// Whether position first + t - 6 (slot t before the first shift) lies in 0..len.
+fn slot_in(first: u32, t: u32, len: u32) -> bool {
+    return first + t >= 6u && first + t - 6u < len;
+}
+
 fn taps() -> array<f32, 11> {
     var g: array<f32, 11>;
     for (var t = 0u; t < 11u; t++) {
@@ -476,24 +495,22 @@ fn taps() -> array<f32, 11> {
 @compute @workgroup_size(64)
 fn ssim_rows_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.width;
-    let h = params.height;
-    let i = gid.x;
-    if (i >= (w + SEG - 1u) / SEG * h) {
+    let seg = segment(gid.x, params.height, w);
+    if (!seg.valid) {
         return;
     }
-    let y = i % h;
-    let x0 = i / h * SEG;
-    let x1 = min(x0 + SEG, w);
-    let row = y * w;
+    let x0 = seg.first;
+    let x1 = seg.end;
+    let row = seg.line * w;
     let g = taps();
     // Slot t: the sources at x - 5 + t once shifted for pixel x.
     var su: array<vec3<f32>, 11>;
     var sv: array<vec3<f32>, 11>;
     for (var t = 1u; t < 11u; t++) {
-        let sx = i32(x0 + t) - 6;
-        if (sx >= 0 && sx < i32(w)) {
-            su[t] = rendered_rgb(row + u32(sx));
-            sv[t] = rgb(3u * (row + u32(sx)));
+        if (slot_in(x0, t, w)) {
+            let sx = x0 + t - 6u;
+            su[t] = rendered_rgb(row + sx);
+            sv[t] = rgb(3u * (row + sx));
         }
     }
     for (var x = x0; x < x1; x++) {
@@ -534,13 +551,13 @@ fn ssim_rows_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
 fn ssim_cols_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.width;
     let h = params.height;
-    let i = gid.x;
-    if (i >= (h + SEG - 1u) / SEG * w) {
+    let seg = segment(gid.x, w, h);
+    if (!seg.valid) {
         return;
     }
-    let x = i % w;
-    let y0 = i / w * SEG;
-    let y1 = min(y0 + SEG, h);
+    let x = seg.line;
+    let y0 = seg.first;
+    let y1 = seg.end;
     let g = taps();
     var rmx: array<vec3<f32>, 11>;
     var rmy: array<vec3<f32>, 11>;
@@ -548,9 +565,9 @@ fn ssim_cols_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
     var ryy: array<vec3<f32>, 11>;
     var rxy: array<vec3<f32>, 11>;
     for (var t = 1u; t < 11u; t++) {
-        let sy = i32(y0 + t) - 6;
-        if (sy >= 0 && sy < i32(h)) {
-            let q = 5u * (u32(sy) * w + x);
+        if (slot_in(y0, t, h)) {
+            let sy = y0 + t - 6u;
+            let q = 5u * (sy * w + x);
             rmx[t] = moments_a[q].xyz;
             rmy[t] = moments_a[q + 1u].xyz;
             rxx[t] = moments_a[q + 2u].xyz;
@@ -622,23 +639,21 @@ fn ssim_sum(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invoca
 @compute @workgroup_size(64)
 fn ssim_back_rows_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.width;
-    let h = params.height;
-    let i = gid.x;
-    if (i >= (w + SEG - 1u) / SEG * h) {
+    let seg = segment(gid.x, params.height, w);
+    if (!seg.valid) {
         return;
     }
-    let y = i % h;
-    let x0 = i / h * SEG;
-    let x1 = min(x0 + SEG, w);
-    let row = y * w;
+    let x0 = seg.first;
+    let x1 = seg.end;
+    let row = seg.line * w;
     let g = taps();
     var r0: array<vec4<f32>, 11>;
     var r1: array<vec4<f32>, 11>;
     var r2: array<vec4<f32>, 11>;
     for (var t = 1u; t < 11u; t++) {
-        let sx = i32(x0 + t) - 6;
-        if (sx >= 0 && sx < i32(w)) {
-            let q = 3u * (row + u32(sx));
+        if (slot_in(x0, t, w)) {
+            let sx = x0 + t - 6u;
+            let q = 3u * (row + sx);
             r0[t] = moments_b[q];
             r1[t] = moments_b[q + 1u];
             r2[t] = moments_b[q + 2u];
@@ -678,21 +693,21 @@ fn ssim_back_rows_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
 fn ssim_back_cols_sliding(@builtin(global_invocation_id) gid: vec3<u32>) {
     let w = params.width;
     let h = params.height;
-    let i = gid.x;
-    if (i >= (h + SEG - 1u) / SEG * w) {
+    let seg = segment(gid.x, w, h);
+    if (!seg.valid) {
         return;
     }
-    let x = i % w;
-    let y0 = i / w * SEG;
-    let y1 = min(y0 + SEG, h);
+    let x = seg.line;
+    let y0 = seg.first;
+    let y1 = seg.end;
     let g = taps();
     var r0: array<vec3<f32>, 11>;
     var r1: array<vec3<f32>, 11>;
     var r2: array<vec3<f32>, 11>;
     for (var t = 1u; t < 11u; t++) {
-        let sy = i32(y0 + t) - 6;
-        if (sy >= 0 && sy < i32(h)) {
-            let q = 3u * (u32(sy) * w + x);
+        if (slot_in(y0, t, h)) {
+            let sy = y0 + t - 6u;
+            let q = 3u * (sy * w + x);
             r0[t] = moments_a[q].xyz;
             r1[t] = moments_a[q + 1u].xyz;
             r2[t] = moments_a[q + 2u].xyz;

@@ -507,17 +507,24 @@ fn wp(i: u32) -> f32 {
     return wparams[i >> 2u][i & 3u];
 }
 
+// Lanes 0..7's `v`, to every lane.
+fn bcast8(v: f32) -> array<f32, 8> {
+    return array<f32, 8>(subgroupBroadcast(v, 0u), subgroupBroadcast(v, 1u), subgroupBroadcast(v, 2u), subgroupBroadcast(v, 3u),
+                         subgroupBroadcast(v, 4u), subgroupBroadcast(v, 5u), subgroupBroadcast(v, 6u), subgroupBroadcast(v, 7u));
+}
+
+// The sum of the eight partial sums of `real::dot`, in its order.
+fn sum8(acc: array<f32, 8>) -> f32 {
+    return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+}
+
 // z + a[c] w_0 + ... + a[c + 7] w_7, added in that order, w_l being lane l's `wv`.
 fn add8(z0: f32, wv: f32, a: ptr<private, array<f32, ROW>>, c: u32) -> f32 {
+    let w = bcast8(wv);
     var z = z0;
-    z += (*a)[c] * subgroupBroadcast(wv, 0u);
-    z += (*a)[c + 1u] * subgroupBroadcast(wv, 1u);
-    z += (*a)[c + 2u] * subgroupBroadcast(wv, 2u);
-    z += (*a)[c + 3u] * subgroupBroadcast(wv, 3u);
-    z += (*a)[c + 4u] * subgroupBroadcast(wv, 4u);
-    z += (*a)[c + 5u] * subgroupBroadcast(wv, 5u);
-    z += (*a)[c + 6u] * subgroupBroadcast(wv, 6u);
-    z += (*a)[c + 7u] * subgroupBroadcast(wv, 7u);
+    for (var l = 0u; l < 8u; l++) {
+        z += (*a)[c + l] * w[l];
+    }
     return z;
 }
 
@@ -618,18 +625,13 @@ fn nodes_backward_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin
     // dz2[t] = (W_heads row t . d_o) s2[t], `dot_head_row`'s order.
     var dz2: array<f32, ROW>;
     for (var t = 0u; t < HIDDEN; t++) {
-        let wv = wp(dims.w_heads + t * CHANNELS + (lane & 7u));
+        let w = bcast8(wp(dims.w_heads + t * CHANNELS + (lane & 7u)));
         var acc: array<f32, 8>;
-        acc[0] = 0.0 + subgroupBroadcast(wv, 0u) * d_o[0];
-        acc[1] = 0.0 + subgroupBroadcast(wv, 1u) * d_o[1];
-        acc[2] = 0.0 + subgroupBroadcast(wv, 2u) * d_o[2];
-        acc[3] = 0.0 + subgroupBroadcast(wv, 3u) * d_o[3];
-        acc[4] = 0.0 + subgroupBroadcast(wv, 4u) * d_o[4];
-        acc[5] = 0.0 + subgroupBroadcast(wv, 5u) * d_o[5];
-        acc[6] = 0.0 + subgroupBroadcast(wv, 6u) * d_o[6];
-        acc[7] = 0.0 + subgroupBroadcast(wv, 7u) * d_o[7];
+        for (var l = 0u; l < 8u; l++) {
+            acc[l] = 0.0 + w[l] * d_o[l];
+        }
         let tail = 0.0 + wp(dims.w_heads + t * CHANNELS + 8u) * d_o[8];
-        dz2[t] = (((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail) * ps2[t];
+        dz2[t] = (sum8(acc) + tail) * ps2[t];
     }
     if (store) {
         records[base] = 1.0;
@@ -652,17 +654,12 @@ fn nodes_backward_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin
             acc[l] = 0.0;
         }
         for (var c = 0u; c < HIDDEN; c += 8u) {
-            let wv = wp(dims.w2 + t * HIDDEN + c + (lane & 7u));
-            acc[0] += subgroupBroadcast(wv, 0u) * dz2[c];
-            acc[1] += subgroupBroadcast(wv, 1u) * dz2[c + 1u];
-            acc[2] += subgroupBroadcast(wv, 2u) * dz2[c + 2u];
-            acc[3] += subgroupBroadcast(wv, 3u) * dz2[c + 3u];
-            acc[4] += subgroupBroadcast(wv, 4u) * dz2[c + 4u];
-            acc[5] += subgroupBroadcast(wv, 5u) * dz2[c + 5u];
-            acc[6] += subgroupBroadcast(wv, 6u) * dz2[c + 6u];
-            acc[7] += subgroupBroadcast(wv, 7u) * dz2[c + 7u];
+            let w = bcast8(wp(dims.w2 + t * HIDDEN + c + (lane & 7u)));
+            for (var l = 0u; l < 8u; l++) {
+                acc[l] += w[l] * dz2[c + l];
+            }
         }
-        let dz1 = (((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + 0.0) * ps1[t];
+        let dz1 = (sum8(acc) + 0.0) * ps1[t];
         if (store) {
             records[dz1o + t] = dz1;
         }
@@ -728,16 +725,11 @@ fn param_grad_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(sub
     }
     for (var n = n0; n < n1; n++) {
         let r = n * dims.record;
-        let av = records[r + a];
+        let av = bcast8(records[r + a]);
         let dv = records[r + d];
-        acc[0] += subgroupBroadcast(av, 0u) * dv;
-        acc[1] += subgroupBroadcast(av, 1u) * dv;
-        acc[2] += subgroupBroadcast(av, 2u) * dv;
-        acc[3] += subgroupBroadcast(av, 3u) * dv;
-        acc[4] += subgroupBroadcast(av, 4u) * dv;
-        acc[5] += subgroupBroadcast(av, 5u) * dv;
-        acc[6] += subgroupBroadcast(av, 6u) * dv;
-        acc[7] += subgroupBroadcast(av, 7u) * dv;
+        for (var l = 0u; l < 8u; l++) {
+            acc[l] += av[l] * dv;
+        }
     }
     if (o < cols) {
         for (var l = 0u; l < 8u; l++) {
