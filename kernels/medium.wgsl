@@ -538,6 +538,21 @@ var<private> ph2: array<f32, ROW>;
 var<private> ps2: array<f32, ROW>;
 var<private> pz: array<f32, CHANNELS>;
 
+// A hidden layer: unit o's sum over the `rows` inputs of `a` in order from its bias, then
+// its softplus into h and the slope (sigmoid) into s.
+fn softplus_layer(w: u32, b: u32, rows: u32, lane: u32, a: ptr<private, array<f32, ROW>>, h: ptr<private, array<f32, ROW>>, s: ptr<private, array<f32, ROW>>) {
+    for (var o = 0u; o < HIDDEN; o++) {
+        var z = wp(b + o);
+        for (var c = 0u; c < rows; c += 8u) {
+            let row = c + (lane & 7u);
+            z = add8(z, select(0.0, wp(w + row * HIDDEN + o), row < rows), a, c);
+        }
+        let v = softplus_sigmoid(z);
+        (*h)[o] = v.x;
+        (*s)[o] = v.y;
+    }
+}
+
 fn forward_serial(n: u32, lane: u32) {
     let dir = node_dir(n);
     for (var i = 0u; i < dims.inputs; i++) {
@@ -546,25 +561,8 @@ fn forward_serial(n: u32, lane: u32) {
     for (var i = dims.inputs; i < ROW; i++) {
         px[i] = 0.0;
     }
-    for (var o = 0u; o < HIDDEN; o++) {
-        var z = wp(dims.b1 + o);
-        for (var c = 0u; c < dims.inputs; c += 8u) {
-            let row = c + (lane & 7u);
-            z = add8(z, select(0.0, wp(dims.w1 + row * HIDDEN + o), row < dims.inputs), &px, c);
-        }
-        let a = softplus_sigmoid(z);
-        ph1[o] = a.x;
-        ps1[o] = a.y;
-    }
-    for (var o = 0u; o < HIDDEN; o++) {
-        var z = wp(dims.b2 + o);
-        for (var c = 0u; c < HIDDEN; c += 8u) {
-            z = add8(z, wp(dims.w2 + (c + (lane & 7u)) * HIDDEN + o), &ph1, c);
-        }
-        let a = softplus_sigmoid(z);
-        ph2[o] = a.x;
-        ps2[o] = a.y;
-    }
+    softplus_layer(dims.w1, dims.b1, dims.inputs, lane, &px, &ph1, &ps1);
+    softplus_layer(dims.w2, dims.b2, HIDDEN, lane, &ph1, &ph2, &ps2);
     for (var k = 0u; k < CHANNELS; k++) {
         var z = wp(dims.b_heads + k);
         for (var c = 0u; c < HIDDEN; c += 8u) {
