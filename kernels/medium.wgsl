@@ -160,6 +160,25 @@ fn dot_hidden_row(t: u32) -> f32 {
     return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + 0.0;
 }
 
+// Offsets of a node record's parts from `base` (the record's first float, its leading 1).
+struct RecordOffsets {
+    x: u32,
+    h1: u32,
+    h2: u32,
+    d_o: u32,
+    dz2: u32,
+    dz1: u32,
+}
+
+fn record_offsets(base: u32) -> RecordOffsets {
+    let x = base + 1u;
+    let h1 = x + dims.inputs;
+    let h2 = h1 + HIDDEN;
+    let d_o = h2 + HIDDEN;
+    let dz2 = d_o + CHANNELS;
+    return RecordOffsets(x, h1, h2, d_o, dz2, dz2 + HIDDEN);
+}
+
 fn node_count() -> u32 {
     return dims.nodes_x * dims.nodes_y;
 }
@@ -369,12 +388,7 @@ fn nodes_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
         return;
     }
     let base = n * dims.record;
-    let xo = base + 1u;
-    let h1o = xo + dims.inputs;
-    let h2o = h1o + HIDDEN;
-    let doo = h2o + HIDDEN;
-    let dz2o = doo + CHANNELS;
-    let dz1o = dz2o + HIDDEN;
+    let r = record_offsets(base);
     var nonzero = false;
     for (var k = 0u; k < CHANNELS; k++) {
         nonzero = nonzero || d_nodes[n * CHANNELS + k] != 0.0;
@@ -397,10 +411,10 @@ fn nodes_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
         records[base] = 1.0;
     }
     for (var i = t; i < dims.inputs; i += HIDDEN) {
-        records[xo + i] = wx[i];
+        records[r.x + i] = wx[i];
     }
-    records[h1o + t] = wh1[t];
-    records[h2o + t] = wh2[t];
+    records[r.h1 + t] = wh1[t];
+    records[r.h2 + t] = wh2[t];
     // Heads: sigmoid' = s (1 - s); softplus' = sigmoid(o).
     if (t < CHANNELS) {
         var slope = 0.0;
@@ -411,14 +425,14 @@ fn nodes_backward(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups)
         }
         let d = d_nodes[n * CHANNELS + t] * slope;
         wd_o[t] = d;
-        records[doo + t] = d;
+        records[r.d_o + t] = d;
     }
     workgroupBarrier();
     let dz2 = dot_head_row(dims.w_heads + t * CHANNELS) * ws2[t];
     wd_z2[t] = dz2;
-    records[dz2o + t] = dz2;
+    records[r.dz2 + t] = dz2;
     workgroupBarrier();
-    records[dz1o + t] = dot_hidden_row(t) * ws1[t];
+    records[r.dz1 + t] = dot_hidden_row(t) * ws1[t];
 }
 
 @compute @workgroup_size(64)
@@ -428,40 +442,35 @@ fn param_grad_partials(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let chunk = gid.y;
-    let xo = 1u;
-    let h1o = xo + dims.inputs;
-    let h2o = h1o + HIDDEN;
-    let doo = h2o + HIDDEN;
-    let dz2o = doo + CHANNELS;
-    let dz1o = dz2o + HIDDEN;
+    let r = record_offsets(0u);
     // Offsets in the node record of the parameter's activation and delta.
     var a = 0u;
     var d = 0u;
     if (p < dims.b1) {
         let q = p - dims.w1;
-        a = xo + q / HIDDEN;
-        d = dz1o + q % HIDDEN;
+        a = r.x + q / HIDDEN;
+        d = r.dz1 + q % HIDDEN;
     } else if (p < dims.w2) {
-        d = dz1o + (p - dims.b1);
+        d = r.dz1 + (p - dims.b1);
     } else if (p < dims.b2) {
         let q = p - dims.w2;
-        a = h1o + q / HIDDEN;
-        d = dz2o + q % HIDDEN;
+        a = r.h1 + q / HIDDEN;
+        d = r.dz2 + q % HIDDEN;
     } else if (p < dims.w_heads) {
-        d = dz2o + (p - dims.b2);
+        d = r.dz2 + (p - dims.b2);
     } else if (p < dims.b_heads) {
         let q = p - dims.w_heads;
-        a = h2o + q / CHANNELS;
-        d = doo + q % CHANNELS;
+        a = r.h2 + q / CHANNELS;
+        d = r.d_o + q % CHANNELS;
     } else {
-        d = doo + (p - dims.b_heads);
+        d = r.d_o + (p - dims.b_heads);
     }
     let n0 = chunk * dims.chunk_nodes;
     let n1 = min(n0 + dims.chunk_nodes, node_count());
     var sum = 0.0;
     for (var n = n0; n < n1; n++) {
-        let r = n * dims.record;
-        sum += records[r + a] * records[r + d];
+        let q = n * dims.record;
+        sum += records[q + a] * records[q + d];
     }
     partials[chunk * dims.len + p] = sum;
 }
@@ -602,12 +611,7 @@ fn nodes_backward_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin
     let store = raw < node_count();
     forward_serial(n, lane);
     let base = n * dims.record;
-    let xo = base + 1u;
-    let h1o = xo + dims.inputs;
-    let h2o = h1o + HIDDEN;
-    let doo = h2o + HIDDEN;
-    let dz2o = doo + CHANNELS;
-    let dz1o = dz2o + HIDDEN;
+    let r = record_offsets(base);
     // d_o, padded to 16 for the broadcasts below.
     var d_o: array<f32, 16>;
     for (var k = 0u; k < CHANNELS; k++) {
@@ -634,15 +638,15 @@ fn nodes_backward_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin
     if (store) {
         records[base] = 1.0;
         for (var i = 0u; i < dims.inputs; i++) {
-            records[xo + i] = px[i];
+            records[r.x + i] = px[i];
         }
         for (var t = 0u; t < HIDDEN; t++) {
-            records[h1o + t] = ph1[t];
-            records[h2o + t] = ph2[t];
-            records[dz2o + t] = dz2[t];
+            records[r.h1 + t] = ph1[t];
+            records[r.h2 + t] = ph2[t];
+            records[r.dz2 + t] = dz2[t];
         }
         for (var k = 0u; k < CHANNELS; k++) {
-            records[doo + k] = d_o[k];
+            records[r.d_o + k] = d_o[k];
         }
     }
     // dz1[t] = (W2 row t . dz2) s1[t], `dot_hidden_row`'s order.
@@ -659,20 +663,20 @@ fn nodes_backward_serial(@builtin(global_invocation_id) gid: vec3<u32>, @builtin
         }
         let dz1 = (sum8(acc) + 0.0) * ps1[t];
         if (store) {
-            records[dz1o + t] = dz1;
+            records[r.dz1 + t] = dz1;
         }
     }
 }
 
 // (rows, activation offset, delta offset, first parameter) of tensor k.
-fn tensor_rows(k: u32, xo: u32, h1o: u32, h2o: u32, doo: u32, dz2o: u32, dz1o: u32) -> vec4<u32> {
+fn tensor_rows(k: u32, r: RecordOffsets) -> vec4<u32> {
     switch k {
-        case 0u: { return vec4<u32>(dims.inputs, xo, dz1o, dims.w1); }
-        case 1u: { return vec4<u32>(1u, 0u, dz1o, dims.b1); }
-        case 2u: { return vec4<u32>(HIDDEN, h1o, dz2o, dims.w2); }
-        case 3u: { return vec4<u32>(1u, 0u, dz2o, dims.b2); }
-        case 4u: { return vec4<u32>(HIDDEN, h2o, doo, dims.w_heads); }
-        default: { return vec4<u32>(1u, 0u, doo, dims.b_heads); }
+        case 0u: { return vec4<u32>(dims.inputs, r.x, r.dz1, dims.w1); }
+        case 1u: { return vec4<u32>(1u, 0u, r.dz1, dims.b1); }
+        case 2u: { return vec4<u32>(HIDDEN, r.h1, r.dz2, dims.w2); }
+        case 3u: { return vec4<u32>(1u, 0u, r.dz2, dims.b2); }
+        case 4u: { return vec4<u32>(HIDDEN, r.h2, r.d_o, dims.w_heads); }
+        default: { return vec4<u32>(1u, 0u, r.d_o, dims.b_heads); }
     }
 }
 
@@ -686,16 +690,11 @@ fn tensor_rows(k: u32, xo: u32, h1o: u32, h2o: u32, doo: u32, dz2o: u32, dz1o: u
 fn param_grad_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(subgroup_invocation_id) lane: u32) {
     let chunk = gid.y;
     var id = gid.x;
-    let xo = 1u;
-    let h1o = xo + dims.inputs;
-    let h2o = h1o + HIDDEN;
-    let doo = h2o + HIDDEN;
-    let dz2o = doo + CHANNELS;
-    let dz1o = dz2o + HIDDEN;
+    let r = record_offsets(0u);
     var tensor = 0u;
     var t = vec4<u32>(0u);
     for (; tensor < 6u; tensor++) {
-        t = tensor_rows(tensor, xo, h1o, h2o, doo, dz2o, dz1o);
+        t = tensor_rows(tensor, r);
         let threads = (t.x + 7u) / 8u * 64u;
         if (id < threads) {
             break;
@@ -722,9 +721,9 @@ fn param_grad_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(sub
         acc[l] = 0.0;
     }
     for (var n = n0; n < n1; n++) {
-        let r = n * dims.record;
-        let av = bcast8(records[r + a]);
-        let dv = records[r + d];
+        let q = n * dims.record;
+        let av = bcast8(records[q + a]);
+        let dv = records[q + d];
         for (var l = 0u; l < 8u; l++) {
             acc[l] += av[l] * dv;
         }
