@@ -68,7 +68,11 @@ fn map_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     if (i >= params.n_values || atomicLoad(&flag[0]) != 0u) {
         return;
     }
-    let k = consts[group_of[i % params.stride]];
+    update(i, consts[group_of[i % params.stride]]);
+}
+
+// Value i's Adam update with its group's constants k (`adam_update`).
+fn update(i: u32, k: GroupConsts) {
     let g = grads[i];
     let m = k.beta1 * m1[i] + k.one_minus_beta1 * g;
     let v = k.beta2 * m2[i] + k.one_minus_beta2 * g * g;
@@ -125,13 +129,7 @@ fn map_step_quads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let last = min(first + QUAD * params.stride, params.n_values);
     var o = 0u;
     for (var i = first; i < last; i++) {
-        let c = k[group[o]];
-        let g = grads[i];
-        let m = c.beta1 * m1[i] + c.one_minus_beta1 * g;
-        let v = c.beta2 * m2[i] + c.one_minus_beta2 * g * g;
-        m1[i] = m;
-        m2[i] = v;
-        values[i] = values[i] - c.step_size * m / (sqrt(v) * c.inv_sqrt_bias2 + c.eps);
+        update(i, k[group[o]]);
         o += 1u;
         if (o == params.stride) {
             o = 0u;
