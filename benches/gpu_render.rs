@@ -12,7 +12,9 @@
 //! Run: `cargo bench --bench gpu_render` (release; `DUV_VULKAN_DEVICE` picks the device);
 //! `cargo bench --bench gpu_render -- --quick`: 320x240 with 20k Gaussians only, 3 runs (a CPU
 //! Vulkan device such as lavapipe takes seconds per backward pass); `-- --gaussians N` runs
-//! that count only.
+//! that count only; `-- --variants` also times the mapper step with each CPU-device kernel
+//! variant switched against the device's default, one at a time; `-- --mapper-only` skips
+//! the bare forward+backward.
 
 #[path = "../tests/common/render_scene.rs"]
 mod render_scene;
@@ -67,6 +69,8 @@ fn main() {
     );
     ctx.arena_reset_to(mark);
     let config = RenderConfig::default();
+    let variants = std::env::args().any(|a| a == "--variants");
+    let mapper_only = std::env::args().any(|a| a == "--mapper-only");
     let sizes: &[(usize, usize)] = if quick { &[(320, 240)] } else { &[(320, 240), (640, 480)] };
     // `--gaussians N`: that count only (with `--quick`: at 320x240).
     let args: Vec<String> = std::env::args().collect();
@@ -77,7 +81,7 @@ fn main() {
         None if quick => &[20_000],
         None => &[20_000, 100_000],
     };
-    for &(w, h) in sizes {
+    for &(w, h) in sizes.iter().filter(|_| !mapper_only) {
         let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
         let cam_from_world = world_from_cam().inverse();
         for &n in counts {
@@ -192,24 +196,76 @@ fn main() {
     drop(ctx);
     for &(w, h) in sizes {
         for &n in counts {
-            mapper_step(w, h, n, runs, board.budgets.gpu_mb);
+            mapper_step(w, h, n, runs, board.budgets.gpu_mb, variants);
         }
+    }
+}
+
+/// A kernel variant of the Vulkan mapper switched against the device's default: the
+/// CPU-device variants on a GPU, the GPU kernels on a CPU device (`--variants`).
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Switch {
+    None,
+    SortSerial,
+    AtomicsPerGaussian,
+    MediumSerial,
+    SlidingSsim,
+    AdamQuads,
+}
+
+impl Switch {
+    const ALL: [Switch; 5] = [Switch::SortSerial, Switch::AtomicsPerGaussian, Switch::MediumSerial, Switch::SlidingSsim, Switch::AdamQuads];
+
+    /// Sets the variant on `r` to the opposite of the device's default (`is_cpu`); returns its label.
+    fn apply(self, r: &mut GpuRenderer, is_cpu: bool) -> String {
+        let on = !is_cpu;
+        let name = match self {
+            Switch::None => return String::new(),
+            Switch::SortSerial => {
+                r.fwd.binning.sort.serial = Some(on);
+                "radix sort by one invocation per block"
+            }
+            Switch::AtomicsPerGaussian => {
+                r.raster_backward.atomics_per_gaussian = Some(on);
+                "backward atomics per Gaussian"
+            }
+            Switch::MediumSerial => {
+                match r.medium.as_mut() {
+                    Some(m) => m.serial = Some(on),
+                    None => return "no medium network on the device".into(),
+                }
+                "medium network by one invocation per node"
+            }
+            Switch::SlidingSsim => {
+                r.loss.sliding_ssim = Some(on);
+                "sliding-window SSIM"
+            }
+            Switch::AdamQuads => {
+                r.adam.quads = Some(on);
+                "Adam by four Gaussians per invocation"
+            }
+        };
+        format!("{name} {}", if on { "on" } else { "off" })
     }
 }
 
 /// Median ms of `Mapper::step_on` on the CPU mapper and on the Vulkan mapper with one and two
 /// pixels per thread in the rasterisers (`GpuOptions::pixel_pairs`), for `n` random Gaussians
 /// at `w x h`, one keyframe (the CPU render of the map, no tracked depth), no densification.
-/// The Vulkan mappers take turns in blocks of steps.
-fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
+/// With `variants`, also the Vulkan mapper with each CPU-device kernel variant switched
+/// against the device's default ([`Switch`]), one at a time.
+fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants: bool) {
     let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
     let mut rng = Rng::new(n as u64);
     let gaussians = random_gaussians(&mut rng, n, n, &cam, &world_from_cam(), (1.0, 10.0), (0.7, 4.0), (-2.0, 3.0));
     let config = MapperConfig { densify_every: 0, intersections_per_gaussian: 16, ..MapperConfig::default() };
     let capacity = MapperCapacity { max_gaussians: n, max_keyframes: 2, width: w, height: h };
-    let variants = [(MapperDevice::Cpu, None), (MapperDevice::Vulkan, Some(false)), (MapperDevice::Vulkan, Some(true))];
+    let mut plan = vec![(MapperDevice::Cpu, None, Switch::None), (MapperDevice::Vulkan, Some(false), Switch::None), (MapperDevice::Vulkan, Some(true), Switch::None)];
+    if variants {
+        plan.extend(Switch::ALL.iter().map(|&s| (MapperDevice::Vulkan, None, s)));
+    }
     let mut mappers = Vec::new();
-    for (device, pairs) in variants {
+    for (device, pairs, switch) in plan {
         let mut m = Mapper::new(config.clone(), capacity).unwrap();
         let options = GpuOptions { pixel_pairs: pairs, ..GpuOptions::with_budget_mb(gpu_mb) };
         let what = m.use_device(device, &options).unwrap();
@@ -217,6 +273,13 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
             println!("mapper step {w}x{h}, {n} Gaussians: no Vulkan mapper ({what})");
             return;
         }
+        let is_cpu = m.gpu().is_some_and(|g| g.info().is_cpu());
+        let label = match (m.gpu().map(|g| g.pixel_pairs()), m.gpu_renderer_mut()) {
+            (Some(pairs), Some(r)) if switch != Switch::None => format!("{}, {}", if pairs { "pixel pairs" } else { "one pixel per thread" }, switch.apply(r, is_cpu)),
+            (Some(true), _) => "pixel pairs".to_string(),
+            (Some(false), _) => "one pixel per thread".to_string(),
+            (None, _) => String::new(),
+        };
         m.set_gaussians(&gaussians).unwrap();
         let render = m.render(&cam, &world_from_cam()).unwrap();
         let image = ImageRgb8 { width: w, height: h, data: render.colour.data.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect() };
@@ -232,16 +295,17 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
         m.add_keyframe(&kf).unwrap();
         m.step_on(0).unwrap();
         m.set_gpu_timestamps(false);
-        mappers.push((m, what, Vec::new()));
+        mappers.push((m, what, label, Vec::new()));
     }
     // The timed steps without timestamp queries, each mapper's back to back (on an H100,
     // alternating steps between the mappers, or between a mapper and the CPU mapper, made each
     // GPU step 0.15-0.35 ms slower: two devices' contexts switching, or a GPU left idle), in
     // two rounds for the Vulkan mappers, so both see the machine early and late.
-    let host_before: Vec<_> = mappers.iter().map(|(m, _, _)| m.gpu().map(|g| g.host_stats())).collect();
-    let rounds = [0..1, 1..3, 1..3];
+    let host_before: Vec<_> = mappers.iter().map(|(m, _, _, _)| m.gpu().map(|g| g.host_stats())).collect();
+    let vulkan = 1..mappers.len();
+    let rounds = [0..1, vulkan.clone(), vulkan];
     for (round, group) in rounds.iter().enumerate() {
-        for (m, _, samples) in &mut mappers[group.clone()] {
+        for (m, _, _, samples) in &mut mappers[group.clone()] {
             let count = if round == 0 { runs } else { runs.div_ceil(2) };
             for _ in 0..count {
                 let t = Instant::now();
@@ -252,7 +316,7 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
     }
     // Then as many with timestamp queries, for the per-kernel tables (and their median, to
     // show what the queries cost).
-    for ((m, _, samples), host_before) in mappers.iter_mut().zip(host_before) {
+    for ((m, _, which, samples), host_before) in mappers.iter_mut().zip(host_before) {
         let timed = samples.len() as u64;
         let host_after = m.gpu().map(|g| g.host_stats());
         let timestamps = m.set_gpu_timestamps(true);
@@ -266,7 +330,6 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
             }
         }
         if let (Some(before), Some(host_before), Some(host_after), Some(gpu)) = (before, host_before, host_after, m.gpu()) {
-            let which = if gpu.pixel_pairs() { "pixel pairs" } else { "one pixel per thread" };
             println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), host side per step: {}", host_after.since(&host_before).describe_per(timed));
             if timestamps {
                 println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), with timestamp queries: {:.2} ms", median_ms(&mut profiled));
@@ -281,19 +344,26 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32) {
             }
         }
     }
-    let times: Vec<(String, f64, usize)> = mappers.iter_mut().map(|(m, what, samples)| (what.clone(), median_ms(samples), m.gaussians().len())).collect();
+    let times: Vec<(String, String, f64, usize)> =
+        mappers.iter_mut().map(|(m, what, label, samples)| (what.clone(), label.clone(), median_ms(samples), m.gaussians().len())).collect();
     let (cpu, one, pairs) = (&times[0], &times[1], &times[2]);
     println!(
         "mapper step {w}x{h}, {n} Gaussians: CPU mapper {:8.2} ms, Vulkan mapper {:8.2} ms, with pixel pairs {:8.2} ms (CPU/Vulkan {:.2}x and {:.2}x, pairs/one {:.3}; {}; {}, {} and {} Gaussians after the steps)",
-        cpu.1,
-        one.1,
-        pairs.1,
-        cpu.1 / one.1,
-        cpu.1 / pairs.1,
-        pairs.1 / one.1,
-        one.0,
         cpu.2,
         one.2,
-        pairs.2
+        pairs.2,
+        cpu.2 / one.2,
+        cpu.2 / pairs.2,
+        pairs.2 / one.2,
+        one.0,
+        cpu.3,
+        one.3,
+        pairs.3
     );
+    // The device's default pixel setting, against which the switched variants ran.
+    if let Some(default) = times[1..3].iter().find(|t| times[3..].first().is_some_and(|v| v.1.starts_with(&t.1))) {
+        for (_, label, ms, _) in &times[3..] {
+            println!("mapper step {w}x{h}, {n} Gaussians, {label}: {ms:8.2} ms ({:.3}x the default, {}: {:.2} ms)", ms / default.2, default.1, default.2);
+        }
+    }
 }

@@ -164,14 +164,21 @@ fn compare(ctx: &mut GpuContext, w: usize, h: usize, config: &LossConfig, with_m
     let mut gpu = GpuLoss::new(ctx, w + 3, h + 2).unwrap();
     let v = upload_view(ctx, &s);
     // The SSIM filters by sliding windows (a CPU device's default) against one pixel per
-    // invocation: the same bits.
+    // invocation: the same bits on a CPU device (lavapipe). On a GPU the driver's compiler may
+    // fuse the two kernels' multiply-adds differently (the H100's did: the last bits of dL/dC
+    // differ), so there each meets the CPU reference's tolerances.
     gpu.sliding_ssim = Some(false);
     let per_pixel = gpu_loss(ctx, &mut gpu, &v, &s, config, with_medium);
     gpu.sliding_ssim = Some(true);
     let (terms, d_colour, d_scalars, d_c_med) = gpu_loss(ctx, &mut gpu, &v, &s, config, with_medium);
-    assert_eq!(terms.total.to_bits(), per_pixel.0.total.to_bits(), "{label}: loss differs between the sliding and per-pixel SSIM filters");
-    assert_eq!(terms.ssim.to_bits(), per_pixel.0.ssim.to_bits(), "{label}: SSIM term differs between the sliding and per-pixel SSIM filters");
-    assert!(d_colour == per_pixel.1, "{label}: dL/dC differs between the sliding and per-pixel SSIM filters");
+    if ctx.info().is_cpu() {
+        assert_eq!(terms.total.to_bits(), per_pixel.0.total.to_bits(), "{label}: loss differs between the sliding and per-pixel SSIM filters");
+        assert_eq!(terms.ssim.to_bits(), per_pixel.0.ssim.to_bits(), "{label}: SSIM term differs between the sliding and per-pixel SSIM filters");
+        assert!(d_colour == per_pixel.1, "{label}: dL/dC differs between the sliding and per-pixel SSIM filters");
+    } else {
+        check_values(&format!("{label} (per-pixel SSIM)"), &per_pixel.0, &cpu_terms);
+        check_grads(&format!("{label} (per-pixel SSIM): dL/dC"), per_pixel.1.iter().copied(), ws.grads().d_color.data.iter().copied());
+    }
     check_values(label, &terms, &cpu_terms);
     let (psnr_gpu, psnr_cpu) = (gpu.last_psnr_db(), psnr_db(&s.colour, &s.target));
     eprintln!("{label}: PSNR GPU {psnr_gpu:.6} dB CPU {psnr_cpu:.6} dB");

@@ -163,10 +163,15 @@ fn check_parity(test: &str, (max_w, max_h): (usize, usize), (w, h): (usize, usiz
         runs.push(check_one(&mut ctx, &mut medium, &fwd, up, &net, (&cam, &pose), &d_planes, (&want, &want_grads)));
         eprintln!("[{test}] {w}x{h} step {step}, {} inputs, serial {serial}: CPU {cpu_ms:.1} ms", net.layout().inputs);
     }
+    // On a CPU device (lavapipe) the two kinds give the same bits. On a GPU each kind met the
+    // CPU reference's tolerances above, but the driver's compiler may fuse the multiply-adds
+    // of the two differently (the H100's did: the last bits differ), so only those hold there.
+    let same_bits = ctx.info().is_cpu();
     for (what, a, b) in [("c_med", &runs[0].planes.c_med, &runs[1].planes.c_med), ("sigma_att", &runs[0].planes.sigma_att, &runs[1].planes.sigma_att), ("sigma_bs", &runs[0].planes.sigma_bs, &runs[1].planes.sigma_bs)] {
-        assert!(bits(&a.data) == bits(&b.data), "forward {what}: the serial node kernels differ from the workgroup per node");
+        eprintln!("[{test}] forward {what}: serial against workgroup per node, max abs difference {:.2e}", max_abs(&a.data, &b.data));
+        assert!(!same_bits || bits(&a.data) == bits(&b.data), "forward {what}: the serial node kernels differ from the workgroup per node");
     }
-    assert!(bits(&runs[0].grads) == bits(&runs[1].grads), "gradient: the serial node kernels differ from the workgroup per node");
+    assert!(!same_bits || bits(&runs[0].grads) == bits(&runs[1].grads), "gradient: the serial node kernels differ from the workgroup per node");
     ctx.arena_reset_to(arena_mark);
 }
 

@@ -605,6 +605,12 @@ impl Mapper {
         self.raster.gpu()
     }
 
+    /// The Vulkan renderer's kernels, to switch between kernel variants (the CPU-device ones
+    /// on a GPU and back: benchmarks, tests); `None` on the CPU reference.
+    pub fn gpu_renderer_mut(&mut self) -> Option<&mut crate::map::vulkan::GpuRenderer> {
+        self.raster.renderer_mut()
+    }
+
     /// Per-kernel timestamp queries on the Vulkan renderer on (the default) or off, so that a
     /// timed loop does not pay for them ([`crate::gpu::GpuContext::set_timestamps`]); returns
     /// whether there are timestamps to take.

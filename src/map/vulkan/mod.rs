@@ -1572,6 +1572,15 @@ impl RenderBackend {
         matches!(self, RenderBackend::Vulkan { .. })
     }
 
+    /// The Vulkan renderer's kernels, to switch between kernel variants (benchmarks, tests);
+    /// `None` on the CPU reference.
+    pub fn renderer_mut(&mut self) -> Option<&mut GpuRenderer> {
+        match self {
+            RenderBackend::Vulkan { renderer, .. } => Some(renderer),
+            RenderBackend::Cpu { .. } => None,
+        }
+    }
+
     /// One line for the operator: the device, or the CPU reference and why.
     pub fn describe(&self) -> String {
         match self {
