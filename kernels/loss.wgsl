@@ -459,7 +459,8 @@ fn medium_variation(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(loca
 // pixels of one row (`*_rows_sliding`: lanes on consecutive rows) or of one column
 // (`*_cols_sliding`: lanes on consecutive columns) and slide the window along it, loading each
 // source once. A tap outside the image holds zeros and adds exactly nothing, so every sum has
-// the same terms in the same order as above: the same bits. `ssim_cols_sliding` leaves each
+// the same terms in the same order as above: the same bits on lavapipe (the H100's compiler
+// gives the last bits of dL/dC otherwise, within tolerance). `ssim_cols_sliding` leaves each
 // pixel's SSIM (its channels' sum) in moments_b[3 p].w; `ssim_sum` adds it up by workgroups
 // of 256 pixels exactly as `ssim_cols` does.
 

@@ -501,7 +501,8 @@ fn param_grad_sum(@builtin(global_invocation_id) gid: vec3<u32>) {
 // uniform buffer (the same `params` range: lavapipe's uniform loads gather without a branch
 // per lane). Every sum keeps the order of the kernels above (zero terms pad a row to a
 // multiple of 8, adding exactly nothing), so `nodes_serial` and `param_grad_blocks` give the
-// same bits as `nodes` and `param_grad_partials`. They need all lanes of a subgroup of at
+// same bits as `nodes` and `param_grad_partials` on lavapipe (the H100's compiler gives the
+// last bits otherwise, within tolerance). They need all lanes of a subgroup of at
 // least 8 and at most 64 lanes active: out-of-range invocations compute a clamped node and
 // do not store.
 
@@ -740,7 +741,7 @@ fn param_grad_blocks(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(sub
 
 // `interpolate` by cells: one invocation per (image row, node cell along x), the cell's
 // pixels of that row in x order, its four nodes loaded once (lanes on consecutive rows). The
-// same weights and sums per pixel as `interpolate`, so the same bits.
+// same weights and sums per pixel as `interpolate`, so the same bits on lavapipe.
 @compute @workgroup_size(64)
 fn interpolate_cells(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>) {
     let t = gid.y * groups.x * 64u + gid.x;

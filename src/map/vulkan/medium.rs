@@ -31,7 +31,8 @@
 //! ([`GpuMedium::serial`]: `medium.nodes_serial`, `nodes_backward_serial`, and
 //! `param_grad_blocks` for the gradient, 8 rows of a tensor at one column per invocation;
 //! `interpolate_cells`, the pixels of one row of a cell per invocation),
-//! which gives the same bits: lavapipe loads buffer values lane by lane, so there one load per
+//! which gives the same bits there (on the H100 the last bits differ, each within the CPU
+//! reference's tolerances): lavapipe loads buffer values lane by lane, so there one load per
 //! lane feeds eight multiply-adds through `subgroupBroadcast` (at 640x480, step 8: nodes 46 ->
 //! 4.1 ms, their backward 97 -> 6.8 ms, the parameter gradient 37 -> 9.9 ms).
 //!
@@ -101,9 +102,10 @@ pub struct GpuMedium {
     /// One invocation per node (`medium.nodes_serial`, `nodes_backward_serial`), the parameter
     /// gradient by blocks of 8 (`param_grad_blocks`) and the interpolation by a row of a cell
     /// (`interpolate_cells`) instead of a workgroup per node, a thread per parameter and one
-    /// per pixel; the same bits. `None`: on a CPU device (lavapipe's buffer loads go lane by lane, and
-    /// one loaded weight serves eight multiply-adds there). Needs subgroups of 8 to 64 lanes
-    /// (ignored otherwise).
+    /// per pixel; the same bits on lavapipe (on the H100 the last bits differ, each within the
+    /// CPU reference's tolerances). `None`: on a CPU device (lavapipe's buffer loads go lane by
+    /// lane, and one loaded weight serves eight multiply-adds there; on the H100 the step took
+    /// 1.19-1.41x with it). Needs subgroups of 8 to 64 lanes (ignored otherwise).
     pub serial: Option<bool>,
 }
 
