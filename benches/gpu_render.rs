@@ -14,7 +14,8 @@
 //! Vulkan device such as lavapipe takes seconds per backward pass); `-- --gaussians N` runs
 //! that count only; `-- --variants` also times the mapper step with each CPU-device kernel
 //! variant switched against the device's default, one at a time; `-- --mapper-only` skips
-//! the bare forward+backward.
+//! the bare forward+backward; `-- --timeline` prints each Vulkan mapper's last timed step
+//! dispatch by dispatch (start, end and the gap before it, from the timestamp queries).
 
 #[path = "../tests/common/render_scene.rs"]
 mod render_scene;
@@ -71,6 +72,7 @@ fn main() {
     let config = RenderConfig::default();
     let variants = std::env::args().any(|a| a == "--variants");
     let mapper_only = std::env::args().any(|a| a == "--mapper-only");
+    let timeline = std::env::args().any(|a| a == "--timeline");
     let sizes: &[(usize, usize)] = if quick { &[(320, 240)] } else { &[(320, 240), (640, 480)] };
     // `--gaussians N`: that count only (with `--quick`: at 320x240).
     let args: Vec<String> = std::env::args().collect();
@@ -196,7 +198,7 @@ fn main() {
     drop(ctx);
     for &(w, h) in sizes {
         for &n in counts {
-            mapper_step(w, h, n, runs, board.budgets.gpu_mb, variants);
+            mapper_step(w, h, n, runs, board.budgets.gpu_mb, variants, timeline);
         }
     }
 }
@@ -254,7 +256,7 @@ impl Switch {
 /// at `w x h`, one keyframe (the CPU render of the map, no tracked depth), no densification.
 /// With `variants`, also the Vulkan mapper with each CPU-device kernel variant switched
 /// against the device's default ([`Switch`]), one at a time.
-fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants: bool) {
+fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants: bool, timeline: bool) {
     let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
     let mut rng = Rng::new(n as u64);
     let gaussians = random_gaussians(&mut rng, n, n, &cam, &world_from_cam(), (1.0, 10.0), (0.7, 4.0), (-2.0, 3.0));
@@ -334,12 +336,28 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
             if timestamps {
                 println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), with timestamp queries: {:.2} ms", median_ms(&mut profiled));
             }
+            let profile = gpu.profile();
+            let kernels_ms: f64 = profile.rows().map(|(k, _, ms)| ms - before.total_ns[k as usize] * 1e-6).sum::<f64>() / runs as f64;
+            let spans = (profile.spans - before.spans).max(1);
+            println!(
+                "Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), on the device: first kernel's start to last one's end {:.3} ms per step ({:.2} stretches), kernels {kernels_ms:.3} ms",
+                (profile.span_ns - before.span_ns) * 1e-6 / runs as f64,
+                spans as f64 / runs as f64
+            );
             println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), per kernel:");
-            for (k, d, ms) in gpu.profile().rows() {
+            for (k, d, ms) in profile.rows() {
                 let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);
                 let ms = ms - ns0 * 1e-6;
                 if d > d0 {
                     println!("    {:<48} {:8.3} ms per step ({} dispatches)", k.name(), ms / runs as f64, (d - d0) / runs as u64);
+                }
+            }
+            if timeline && timestamps {
+                println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), the last step's dispatches (start, end, gap after the previous end, ms):");
+                let mut end_before = 0.0f64;
+                for (k, start, end) in gpu.last_timeline() {
+                    println!("      {:<48} {start:7.3} {end:7.3} {:+7.3}", k.name(), start - end_before);
+                    end_before = end_before.max(end);
                 }
             }
         }

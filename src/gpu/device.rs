@@ -268,11 +268,17 @@ impl HostStats {
 pub struct KernelProfile {
     pub dispatches: [u64; KERNEL_COUNT],
     pub total_ns: [f64; KERNEL_COUNT],
+    /// From the first dispatch's start to the last one's end of every timed stretch of the
+    /// queue (the submissions between two idle points: a mapper step's two), summed: the
+    /// kernels plus the gaps between them (barriers, a submission waiting for the next).
+    pub span_ns: f64,
+    /// The timed stretches in `span_ns`.
+    pub spans: u64,
 }
 
 impl Default for KernelProfile {
     fn default() -> Self {
-        KernelProfile { dispatches: [0; KERNEL_COUNT], total_ns: [0.0; KERNEL_COUNT] }
+        KernelProfile { dispatches: [0; KERNEL_COUNT], total_ns: [0.0; KERNEL_COUNT], span_ns: 0.0, spans: 0 }
     }
 }
 
@@ -351,6 +357,9 @@ pub struct GpuContext {
     recording: bool,
     recorded: usize,
     recorded_kernels: [Kernel; MAX_DISPATCHES],
+    /// The dispatches of the last two timed stretches ([`Self::last_timeline`]): count and
+    /// `(kernel, start, end)` ticks.
+    timeline: Box<[(usize, [(Kernel, u64, u64); MAX_DISPATCHES]); 2]>,
     /// What the commands since the last barrier of the open submission touched.
     hazards: Hazards,
     /// Timestamp queries wanted ([`GpuContext::set_timestamps`]) and, latched at `begin`,
@@ -612,6 +621,7 @@ impl GpuContext {
             timestamps_wanted: true,
             timing: false,
             recorded_kernels: [Kernel::all().next().expect("at least one kernel"); MAX_DISPATCHES],
+            timeline: Box::new([(0, [(Kernel::all().next().expect("at least one kernel"), 0, 0); MAX_DISPATCHES]); 2]),
             timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
             profile: KernelProfile::default(),
             host: std::cell::Cell::new(HostStats::default()),
@@ -1158,6 +1168,16 @@ impl GpuContext {
                     self.profile.dispatches[k] += 1;
                     self.profile.total_ns[k] += ticks as f64 * period as f64;
                 }
+                let first = self.timestamps[..2 * n].iter().step_by(2).min().copied().unwrap_or(0);
+                let last = self.timestamps[..2 * n].iter().skip(1).step_by(2).max().copied().unwrap_or(0);
+                self.profile.span_ns += last.saturating_sub(first) as f64 * period as f64;
+                self.profile.spans += 1;
+                // The last two stretches for `last_timeline` (a mapper step's two).
+                self.timeline.swap(0, 1);
+                for i in 0..n {
+                    self.timeline[1].1[i] = (self.recorded_kernels[i], self.timestamps[2 * i], self.timestamps[2 * i + 1]);
+                }
+                self.timeline[1].0 = n;
             }
         }
         Ok(())
@@ -1441,6 +1461,17 @@ impl GpuContext {
     /// Per-kernel times so far.
     pub fn profile(&self) -> &KernelProfile {
         &self.profile
+    }
+
+    /// The dispatches of the last two timed stretches of the queue (see
+    /// [`KernelProfile::span_ns`]; a mapper step's two submissions) in recording order:
+    /// `(kernel, start ms, end ms)` from the earliest dispatch's start. Empty without
+    /// timestamps.
+    pub fn last_timeline(&self) -> impl Iterator<Item = (Kernel, f64, f64)> + '_ {
+        let entries = || self.timeline.iter().flat_map(|(n, e)| e[..*n].iter());
+        let first = entries().map(|e| e.1).min().unwrap_or(0);
+        let period = self.info.timestamp_period_ns.unwrap_or(0.0) as f64 * 1e-6;
+        entries().map(move |&(k, start, end)| (k, start.wrapping_sub(first) as f64 * period, end.wrapping_sub(first) as f64 * period))
     }
     pub fn reset_profile(&mut self) {
         self.profile = KernelProfile::default();
