@@ -213,13 +213,16 @@ enum Switch {
     MediumSerial,
     SlidingSsim,
     AdamQuads,
+    SpinWait,
+    NoPlanAhead,
 }
 
 impl Switch {
-    const ALL: [Switch; 5] = [Switch::SortSerial, Switch::AtomicsPerGaussian, Switch::MediumSerial, Switch::SlidingSsim, Switch::AdamQuads];
+    const ALL: [Switch; 7] = [Switch::SortSerial, Switch::AtomicsPerGaussian, Switch::MediumSerial, Switch::SlidingSsim, Switch::AdamQuads, Switch::SpinWait, Switch::NoPlanAhead];
 
-    /// Sets the variant on `r` to the opposite of the device's default (`is_cpu`); returns its label.
-    fn apply(self, r: &mut GpuRenderer, is_cpu: bool) -> String {
+    /// Sets the variant on `r` (and `ctx`) to the opposite of the device's default (`is_cpu`;
+    /// the fence waits: on); returns its label. (`NoPlanAhead` is the mapper's: `label` only.)
+    fn apply(self, r: &mut GpuRenderer, ctx: &mut GpuContext, is_cpu: bool) -> String {
         let on = !is_cpu;
         let name = match self {
             Switch::None => return String::new(),
@@ -246,6 +249,11 @@ impl Switch {
                 r.adam.quads = Some(on);
                 "Adam by four Gaussians per invocation"
             }
+            Switch::SpinWait => {
+                ctx.set_spin_wait(true);
+                return "fence waits polled (spin wait)".into();
+            }
+            Switch::NoPlanAhead => return "no geometry submitted ahead".into(),
         };
         format!("{name} {}", if on { "on" } else { "off" })
     }
@@ -255,7 +263,9 @@ impl Switch {
 /// pixels per thread in the rasterisers (`GpuOptions::pixel_pairs`), for `n` random Gaussians
 /// at `w x h`, one keyframe (the CPU render of the map, no tracked depth), no densification.
 /// With `variants`, also the Vulkan mapper with each CPU-device kernel variant switched
-/// against the device's default ([`Switch`]), one at a time.
+/// against the device's default ([`Switch`]), one at a time. Each step is
+/// `step_on_then(0, Some(0))`, as `Mapper::iterate` steps with the keyframe it will draw next:
+/// the Vulkan renderer submits the next step's geometry after each step's Adam.
 fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants: bool, timeline: bool) {
     let cam = camera(w, h, 0.5 * w as f64 / 35f64.to_radians().tan());
     let mut rng = Rng::new(n as u64);
@@ -276,8 +286,9 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
             return;
         }
         let is_cpu = m.gpu().is_some_and(|g| g.info().is_cpu());
+        m.set_plan_ahead(switch != Switch::NoPlanAhead);
         let label = match (m.gpu().map(|g| g.pixel_pairs()), m.gpu_renderer_mut()) {
-            (Some(pairs), Some(r)) if switch != Switch::None => format!("{}, {}", if pairs { "pixel pairs" } else { "one pixel per thread" }, switch.apply(r, is_cpu)),
+            (Some(pairs), Some((r, ctx))) if switch != Switch::None => format!("{}, {}", if pairs { "pixel pairs" } else { "one pixel per thread" }, switch.apply(r, ctx, is_cpu)),
             (Some(true), _) => "pixel pairs".to_string(),
             (Some(false), _) => "one pixel per thread".to_string(),
             (None, _) => String::new(),
@@ -295,7 +306,7 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
             inv_depth_variance: PlaneF32 { width: w, height: h, data: vec![f32::INFINITY; w * h] },
         };
         m.add_keyframe(&kf).unwrap();
-        m.step_on(0).unwrap();
+        m.step_on_then(0, Some(0)).unwrap();
         m.set_gpu_timestamps(false);
         mappers.push((m, what, label, Vec::new()));
     }
@@ -309,9 +320,13 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
     for (round, group) in rounds.iter().enumerate() {
         for (m, _, _, samples) in &mut mappers[group.clone()] {
             let count = if round == 0 { runs } else { runs.div_ceil(2) };
+            // The device's wait for the host counted between this block's steps only.
+            if let Some(g) = m.gpu() {
+                g.forget_idle();
+            }
             for _ in 0..count {
                 let t = Instant::now();
-                m.step_on(0).unwrap();
+                m.step_on_then(0, Some(0)).unwrap();
                 samples.push(t.elapsed());
             }
         }
@@ -321,18 +336,28 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
     for ((m, _, which, samples), host_before) in mappers.iter_mut().zip(host_before) {
         let timed = samples.len() as u64;
         let host_after = m.gpu().map(|g| g.host_stats());
+        // Steps left running (each step's submissions chain into the next) counted before.
+        if let Some((_, ctx)) = m.gpu_renderer_mut() {
+            ctx.finish().unwrap();
+        }
         let timestamps = m.set_gpu_timestamps(true);
         let before = m.gpu().map(|g| g.profile().clone());
         let mut profiled = Vec::new();
         if timestamps {
             for _ in 0..runs {
                 let t = Instant::now();
-                m.step_on(0).unwrap();
+                m.step_on_then(0, Some(0)).unwrap();
                 profiled.push(t.elapsed());
+            }
+            if let Some((_, ctx)) = m.gpu_renderer_mut() {
+                ctx.finish().unwrap();
             }
         }
         if let (Some(before), Some(host_before), Some(host_after), Some(gpu)) = (before, host_before, host_after, m.gpu()) {
             println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), host side per step: {}", host_after.since(&host_before).describe_per(timed));
+            if let Some((submitted, used)) = m.geometry_ahead_counts() {
+                println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), the next step's geometry submitted ahead {submitted} times, used {used} times");
+            }
             if timestamps {
                 println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), with timestamp queries: {:.2} ms", median_ms(&mut profiled));
             }
@@ -353,9 +378,10 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
                 }
             }
             if timeline && timestamps {
-                println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), the last step's dispatches (start, end, gap after the previous end, ms):");
+                println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), the last timed steps' dispatches, at most 120 (start, end, gap after the previous end, ms):");
                 let mut end_before = 0.0f64;
-                for (k, start, end) in gpu.last_timeline() {
+                let count = gpu.last_timeline().count();
+                for (k, start, end) in gpu.last_timeline().skip(count.saturating_sub(120)) {
                     println!("      {:<48} {start:7.3} {end:7.3} {:+7.3}", k.name(), start - end_before);
                     end_before = end_before.max(end);
                 }

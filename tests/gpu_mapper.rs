@@ -126,8 +126,11 @@ fn vulkan_mapper_runs_are_bit_identical() {
     // The third run reaches the arena through a staging buffer (a discrete GPU's path, forced
     // here with 64 KiB chunks): only the host transfers differ, so the map must not.
     let staged = GpuOptions { host_staging: Some(64 << 10), ..options.clone() };
-    for options in [&options, &options, &staged] {
+    // The fourth and fifth runs do not tell the renderer the next step's keyframe
+    // (`Mapper::set_plan_ahead`): no geometry is submitted ahead, and the maps are the same.
+    for (run, options) in [&options, &options, &staged, &options, &staged].into_iter().enumerate() {
         let mut m = mapper_with(MapperDevice::Vulkan, config.clone(), &kfs, 3000, options);
+        m.set_plan_ahead(run < 3);
         // Staged where forced; otherwise whatever the device's memory calls for (mapped on
         // lavapipe, staged on a discrete GPU).
         if options.host_staging.is_some() {
@@ -135,6 +138,15 @@ fn vulkan_mapper_runs_are_bit_identical() {
         }
         for _ in 0..25 {
             m.iterate().unwrap();
+        }
+        // The next step's geometry ran ahead in most steps (not after a densification, nor
+        // when the next keyframe was not the one drawn), and never without the plan.
+        let (submitted, used) = m.geometry_ahead_counts().unwrap();
+        eprintln!("run {run}: geometry submitted ahead {submitted} times, used {used} times of 25 steps");
+        if run < 3 {
+            assert!(used >= 10 && used <= submitted, "geometry ahead: submitted {submitted}, used {used} of 25 steps");
+        } else {
+            assert_eq!((submitted, used), (0, 0));
         }
         // The host's copy of the map is behind the device's until synced.
         assert!(m.host_map_stale(), "steps since the last densification leave the host copy behind");
@@ -149,6 +161,10 @@ fn vulkan_mapper_runs_are_bit_identical() {
     assert!(maps[0].1 == maps[1].1, "two Vulkan runs gave different medium weights");
     assert_eq!(maps[0].2, maps[2].2, "Gaussian counts differ with staged transfers");
     assert!(maps[0].0 == maps[2].0 && maps[0].1 == maps[2].1, "staged host transfers changed the map");
+    for (run, what) in [(3, "mapped"), (4, "staged")] {
+        assert_eq!(maps[0].2, maps[run].2, "Gaussian counts differ without the geometry ahead ({what})");
+        assert!(maps[0].0 == maps[run].0 && maps[0].1 == maps[run].1, "the geometry submitted ahead changed the map ({what} transfers)");
+    }
 }
 
 /// Large Gaussians right in front of the camera, with an intersection buffer of one per

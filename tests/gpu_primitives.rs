@@ -319,6 +319,46 @@ fn a_submission_left_running_is_ordered_before_the_next() {
     for ctx in [mapped, staged] {
         submission_left_running(ctx);
     }
+    let staged = GpuContext::new(&GpuOptions { arena_bytes: 16 << 20, host_staging: Some(1 << 20), ..GpuOptions::with_budget_mb(16) }).unwrap();
+    two_submissions_left_running(staged);
+}
+
+/// Two submissions left running: the first copies `a` into `x` and prefetches `x`, the second
+/// (queued behind it without a wait) copies `b` into `x`, a third waits for the first. The
+/// prefetched read gives the first's copy while a later one may still run; a plain read the
+/// arena after all of them.
+fn two_submissions_left_running(mut ctx: GpuContext) {
+    let n = 4096;
+    let (a, b, c, x) = (ctx.alloc::<u32>("a", n).unwrap(), ctx.alloc::<u32>("b", n).unwrap(), ctx.alloc::<u32>("c", n).unwrap(), ctx.alloc::<u32>("x", n).unwrap());
+    let values = |k: u32| (0..n as u32).map(|i| i * 3 + k).collect::<Vec<u32>>();
+    ctx.write(&a, &values(1)).unwrap();
+    ctx.write(&b, &values(2)).unwrap();
+    ctx.write(&c, &values(3)).unwrap();
+    for round in 0..3 {
+        ctx.begin().unwrap();
+        ctx.copy(a.range(), x.range()).unwrap();
+        ctx.prefetch(x.range()).unwrap();
+        ctx.submit().unwrap();
+        ctx.begin().unwrap();
+        ctx.copy(b.range(), x.range()).unwrap();
+        ctx.submit().unwrap();
+        ctx.begin().unwrap();
+        ctx.copy(c.range(), a.range()).unwrap();
+        ctx.copy(x.range(), c.range()).unwrap();
+        ctx.submit().unwrap();
+        let mut got = vec![0u32; n];
+        ctx.read_prefetched(&x, &mut got).unwrap();
+        assert_eq!(got, values(1), "round {round}: the first submission's copy of x, not the second's");
+        let mut arena = vec![0u32; n];
+        ctx.read(&x, &mut arena).unwrap();
+        assert_eq!(arena, values(2), "round {round}: x after every submission");
+        let mut moved = vec![0u32; n];
+        ctx.read(&a, &mut moved).unwrap();
+        assert_eq!(moved, values(3), "round {round}: the third submission ran after the first");
+        // Reset a and c for the next round (the prefetched copy of x is an older round's).
+        ctx.write(&a, &values(1)).unwrap();
+        ctx.write(&c, &values(3)).unwrap();
+    }
 }
 
 fn submission_left_running(mut ctx: GpuContext) {

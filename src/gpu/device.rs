@@ -195,6 +195,38 @@ impl std::fmt::Display for DeviceInfo {
     }
 }
 
+/// Command buffers and fences: one recording, up to two submissions running.
+const SLOTS: usize = 3;
+
+/// A copy for the host recorded by [`GpuContext::prefetch`].
+#[derive(Clone, Copy, Debug)]
+struct Prefetched {
+    /// src_offset: arena, dst_offset: staging.
+    copy: vk::BufferCopy,
+    /// A later command writes the range: the copy is still what [`GpuContext::read_prefetched`]
+    /// wants (that moment's values), no longer what [`GpuContext::read`] does (the arena's).
+    overwritten: bool,
+}
+
+impl Prefetched {
+    /// Where in the staging buffer arena bytes `start..end` are, if this copy holds them.
+    fn holds(&self, start: u64, end: u64) -> Option<u64> {
+        let c = &self.copy;
+        (c.src_offset <= start && end <= c.src_offset + c.size).then(|| c.dst_offset + (start - c.src_offset))
+    }
+}
+
+/// A submission left running ([`GpuContext::submit`]).
+#[derive(Clone, Copy, Debug)]
+struct Flight {
+    /// Its command buffer and fence (`GpuContext::slots`).
+    slot: usize,
+    /// When it was submitted (host stats).
+    since: Instant,
+    /// The prefetched copies it and the earlier ones made (`GpuContext::prefetched`).
+    prefetch_len: usize,
+}
+
 /// Host-side cost of driving the device, summed since start or [`GpuContext::reset_profile`]:
 /// what the kernel timestamps do not show (submission latency, transfers, host copies).
 #[derive(Clone, Copy, Debug, Default)]
@@ -222,6 +254,12 @@ pub struct HostStats {
     /// the time recorded with no submission running (the device waits for the host then).
     pub record_ns: u64,
     pub record_idle_ns: u64,
+    /// Host time from a wait that left the queue idle ([`GpuContext::submit_and_wait`]) to the
+    /// next kernel submission: all the device waits for the host between submissions (the
+    /// host's own work, recording, transfers), `record_idle_ns` included.
+    pub idle_ns: u64,
+    /// The stretches in `idle_ns`.
+    pub idle_gaps: u64,
 }
 
 impl HostStats {
@@ -240,18 +278,22 @@ impl HostStats {
             barriers: self.barriers - earlier.barriers,
             record_ns: self.record_ns - earlier.record_ns,
             record_idle_ns: self.record_idle_ns - earlier.record_idle_ns,
+            idle_ns: self.idle_ns - earlier.idle_ns,
+            idle_gaps: self.idle_gaps - earlier.idle_gaps,
         }
     }
     /// One line per `per` steps: submissions, reads, writes, their bytes and milliseconds.
     pub fn describe_per(&self, per: u64) -> String {
         let p = per.max(1) as f64;
         format!(
-            "{:.1} submissions ({:.3} ms submit to fence, {:.1} barriers; recorded in {:.3} ms, {:.3} ms of it with none running), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
+            "{:.1} submissions ({:.3} ms submit to fence, {:.1} barriers; recorded in {:.3} ms, {:.3} ms of it with none running; {:.1} times an idle queue's fence to the next submission, {:.3} ms each), {:.1} reads ({:.1} prefetched; {:.2} MB, {:.3} ms), {:.1} writes ({:.2} MB, {:.3} ms)",
             self.submits as f64 / p,
             self.submit_wait_ns as f64 * 1e-6 / p,
             self.barriers as f64 / p,
             self.record_ns as f64 * 1e-6 / p,
             self.record_idle_ns as f64 * 1e-6 / p,
+            self.idle_gaps as f64 / p,
+            self.idle_ns as f64 * 1e-6 / self.idle_gaps.max(1) as f64,
             self.reads as f64 / p,
             self.prefetched_reads as f64 / p,
             self.read_bytes as f64 * 1e-6 / p,
@@ -303,16 +345,21 @@ pub struct GpuContext {
     push_descriptor: ash::khr::push_descriptor::Device,
     queue: vk::Queue,
     command_pool: vk::CommandPool,
-    /// The command buffer and fence being recorded next; their spares belong to a
-    /// submission [`GpuContext::submit`] left running (`in_flight`).
+    /// The command buffer and fence being recorded next (`slots[current]`); the other slots
+    /// belong to submissions [`GpuContext::submit`] left running (`in_flight`) or are free.
     command_buffer: vk::CommandBuffer,
     fence: vk::Fence,
-    spare_command_buffer: vk::CommandBuffer,
-    spare_fence: vk::Fence,
-    /// A submission is running that nothing waited for yet (since when, for the host stats).
-    in_flight: std::cell::Cell<Option<Instant>>,
+    slots: [(vk::CommandBuffer, vk::Fence); SLOTS],
+    current: usize,
+    /// Submissions running that nothing waited for yet, oldest first (at most two: the
+    /// device has the next one queued while the host waits for the older's results).
+    in_flight: std::cell::Cell<[Option<Flight>; SLOTS - 1]>,
     /// When the open recording began and whether a submission was running then (HostStats).
     recording_since: Option<(Instant, bool)>,
+    /// When a wait left the queue idle ([`HostStats::idle_ns`]).
+    idle_since: std::cell::Cell<Option<Instant>>,
+    /// Waits poll the fence instead of sleeping in the driver ([`Self::set_spin_wait`]).
+    spin_wait: bool,
     /// The timestamps of the dispatches recorded so far are not yet in the profile.
     untimed: bool,
     /// Dispatches in submitted command buffers since the queue was last idle at a `begin`, and
@@ -343,8 +390,11 @@ pub struct GpuContext {
     /// `begin` or write.
     prefetch_at: u64,
     prefetch_bytes: u64,
-    prefetched: std::cell::RefCell<Vec<vk::BufferCopy>>,
+    prefetched: std::cell::RefCell<Vec<Prefetched>>,
     prefetch_used: u64,
+    /// The first this many of `prefetched` were made by submissions that finished
+    /// ([`GpuContext::read_prefetched`] serves them while a later one runs).
+    prefetch_done: std::cell::Cell<usize>,
     arena: Arena,
     pipeline_cache: vk::PipelineCache,
     pipelines: Vec<Pipeline>,
@@ -572,10 +622,12 @@ impl GpuContext {
             command_pool: vk::CommandPool::null(),
             command_buffer: vk::CommandBuffer::null(),
             fence: vk::Fence::null(),
-            spare_command_buffer: vk::CommandBuffer::null(),
-            spare_fence: vk::Fence::null(),
-            in_flight: std::cell::Cell::new(None),
+            slots: [(vk::CommandBuffer::null(), vk::Fence::null()); SLOTS],
+            current: 0,
+            in_flight: std::cell::Cell::new([None; SLOTS - 1]),
             recording_since: None,
+            idle_since: std::cell::Cell::new(None),
+            spin_wait: false,
             untimed: false,
             submitted: 0,
             prefetch_submitted: (0, 0),
@@ -595,6 +647,7 @@ impl GpuContext {
             prefetch_bytes: 0,
             prefetched: std::cell::RefCell::new(Vec::with_capacity(MAX_PREFETCHES)),
             prefetch_used: 0,
+            prefetch_done: std::cell::Cell::new(0),
             arena: Arena::new(arena_bytes, 256),
             pipeline_cache: vk::PipelineCache::null(),
             pipelines: Vec::with_capacity(KERNEL_COUNT),
@@ -673,13 +726,15 @@ impl GpuContext {
                 &vk::CommandBufferAllocateInfo::default()
                     .command_pool(self.command_pool)
                     .level(vk::CommandBufferLevel::PRIMARY)
-                    .command_buffer_count(2),
+                    .command_buffer_count(SLOTS as u32),
             )
         }
         .map_err(vk_err("vkAllocateCommandBuffers"))?;
-        (self.command_buffer, self.spare_command_buffer) = (cbs[0], cbs[1]);
-        self.fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?;
-        self.spare_fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?;
+        for (slot, cb) in self.slots.iter_mut().zip(cbs) {
+            *slot = (cb, unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?);
+        }
+        self.current = 0;
+        (self.command_buffer, self.fence) = self.slots[0];
         if timestamps {
             self.query_pool = Some(
                 unsafe {
@@ -939,8 +994,7 @@ impl GpuContext {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let t0 = Instant::now();
         // What the last submission copied for the host of this range is no longer the arena's.
-        let (start, end) = (buf.offset, buf.offset + bytes.len() as u64);
-        self.prefetched.get_mut().retain(|c| c.src_offset + c.size <= start || end <= c.src_offset);
+        self.forget_prefetched(buf.offset, buf.offset + bytes.len() as u64);
         let deferred = self.mapped.is_null() && bytes.len() <= DEFERRED_WRITE_BYTES && (bytes.len() as u64) <= self.deferred_bytes;
         if !deferred {
             // In place or by a transfer: not while a submission may still read the arena. (A
@@ -983,7 +1037,8 @@ impl GpuContext {
         let t0 = Instant::now();
         let len = bytes.len();
         let (start, end) = (buf.offset, buf.offset + len as u64);
-        let copied = self.prefetched.borrow().iter().find(|c| c.src_offset <= start && end <= c.src_offset + c.size).map(|c| c.dst_offset + (start - c.src_offset));
+        // The newest copy of the range (a chain of submissions can hold older ones).
+        let copied = self.prefetched.borrow().iter().rev().find_map(|p| p.holds(start, end).filter(|_| !p.overwritten));
         if let Some(at) = copied {
             unsafe { std::ptr::copy_nonoverlapping(self.staging_mapped.add(at as usize), bytes.as_mut_ptr(), len) };
             let mut h = self.host.get();
@@ -1002,6 +1057,71 @@ impl GpuContext {
         Ok(())
     }
 
+    /// The first `out.len()` elements of `buf` as the newest prefetch of them took them
+    /// ([`Self::prefetch`]), waiting only for the submissions up to the one that made it, not
+    /// for later ones still running (which may write `buf` again: a step's results read while
+    /// the next step's work runs); with no such copy, as [`Self::read`].
+    pub fn read_prefetched<T: Pod>(&self, buf: &GpuBuffer<T>, out: &mut [T]) -> Result<(), GpuError> {
+        self.check_idle("read")?;
+        if out.len() > buf.len {
+            return Err(GpuError::OutOfRange { what: buf.what, requested: out.len(), len: buf.len });
+        }
+        let bytes: &mut [u8] = bytemuck::cast_slice_mut(out);
+        let (start, end) = (buf.offset, buf.offset + bytes.len() as u64);
+        // The newest copy of the range; waited for (only the submissions up to the one that
+        // made it) when it is not done yet.
+        let newest = self.prefetched.borrow().iter().enumerate().rev().find_map(|(i, p)| p.holds(start, end).map(|at| (i, at)));
+        let Some((index, at)) = newest else {
+            return self.read(buf, bytemuck::cast_slice_mut(bytes));
+        };
+        while index >= self.prefetch_done.get() {
+            if !self.wait_oldest()? {
+                // Recorded but not submitted: not a copy yet.
+                return self.read(buf, bytemuck::cast_slice_mut(bytes));
+            }
+        }
+        let t0 = Instant::now();
+        unsafe { std::ptr::copy_nonoverlapping(self.staging_mapped.add(at as usize), bytes.as_mut_ptr(), bytes.len()) };
+        let mut h = self.host.get();
+        h.reads += 1;
+        h.prefetched_reads += 1;
+        h.read_bytes += bytes.len() as u64;
+        h.read_ns += t0.elapsed().as_nanos() as u64;
+        self.host.set(h);
+        Ok(())
+    }
+
+    /// Drops the prefetched copies that overlap arena bytes `start..end` (no longer the
+    /// arena's, or not the newest), keeping the counts of finished and submitted ones right.
+    fn forget_prefetched(&mut self, start: u64, end: u64) {
+        let list = self.prefetched.get_mut();
+        let (mut done, mut submitted) = (self.prefetch_done.get(), self.prefetch_submitted.0);
+        let mut flights = self.in_flight.get();
+        let mut i = 0;
+        while i < list.len() {
+            let c = list[i].copy;
+            if c.src_offset + c.size <= start || end <= c.src_offset {
+                i += 1;
+                continue;
+            }
+            let _ = list.remove(i);
+            if i < done {
+                done -= 1;
+            }
+            if i < submitted {
+                submitted -= 1;
+            }
+            for f in flights.iter_mut().flatten() {
+                if i < f.prefetch_len {
+                    f.prefetch_len -= 1;
+                }
+            }
+        }
+        self.prefetch_done.set(done);
+        self.prefetch_submitted.0 = submitted;
+        self.in_flight.set(flights);
+    }
+
     /// Records the copies of the deferred small writes (in the order written) and forgets them.
     fn record_deferred(&self, cb: vk::CommandBuffer) {
         let mut pending = self.deferred.borrow_mut();
@@ -1015,24 +1135,62 @@ impl GpuContext {
 
     /// The staging tail is free again once the queue is idle and no write waits in it.
     fn release_deferred(&self) {
-        if self.in_flight.get().is_none() && self.deferred.borrow().is_empty() {
+        if self.in_flight.get()[0].is_none() && self.deferred.borrow().is_empty() {
             self.deferred_used.set(0);
         }
     }
 
-    /// Waits for the submission [`Self::submit`] left running, if any.
-    fn wait_in_flight(&self) -> Result<(), GpuError> {
-        let Some(t0) = self.in_flight.get() else { return Ok(()) };
-        let d = &self.device;
-        unsafe {
-            d.wait_for_fences(&[self.spare_fence], true, u64::MAX).map_err(vk_err("vkWaitForFences (submission left running)"))?;
-            d.reset_fences(&[self.spare_fence]).map_err(vk_err("vkResetFences"))?;
+    /// Waits for `fence`: in the driver, or polling it ([`Self::set_spin_wait`]).
+    unsafe fn wait_fence(&self, fence: vk::Fence) -> Result<(), vk::Result> {
+        if self.spin_wait {
+            loop {
+                match unsafe { self.device.get_fence_status(fence) } {
+                    Ok(true) => return Ok(()),
+                    Ok(false) => std::hint::spin_loop(),
+                    Err(e) => return Err(e),
+                }
+            }
         }
-        self.in_flight.set(None);
-        let mut h = self.host.get();
-        h.submit_wait_ns += t0.elapsed().as_nanos() as u64;
-        self.host.set(h);
+        unsafe { self.device.wait_for_fences(&[fence], true, u64::MAX) }
+    }
+
+    /// Leaves the time from the last wait to the next submission out of
+    /// [`HostStats::idle_ns`] (a caller that did other work in between: a benchmark's blocks).
+    pub fn forget_idle(&self) {
+        self.idle_since.set(None);
+    }
+
+    /// Waits poll the fence (`on`) instead of sleeping in the driver (the default): the
+    /// thread spins a core for the whole wait, but sees the fence without the driver's wake-up
+    /// latency. Returns the previous setting.
+    pub fn set_spin_wait(&mut self, on: bool) -> bool {
+        std::mem::replace(&mut self.spin_wait, on)
+    }
+
+    /// Waits for the submissions [`Self::submit`] left running, if any.
+    fn wait_in_flight(&self) -> Result<(), GpuError> {
+        while self.wait_oldest()? {}
         Ok(())
+    }
+
+    /// Waits for the oldest submission left running; `false` when there was none.
+    fn wait_oldest(&self) -> Result<bool, GpuError> {
+        let mut flights = self.in_flight.get();
+        let Some(f) = flights[0] else { return Ok(false) };
+        let d = &self.device;
+        let fence = self.slots[f.slot].1;
+        unsafe {
+            self.wait_fence(fence).map_err(vk_err("vkWaitForFences (submission left running)"))?;
+            d.reset_fences(&[fence]).map_err(vk_err("vkResetFences"))?;
+        }
+        flights.rotate_left(1);
+        flights[SLOTS - 2] = None;
+        self.in_flight.set(flights);
+        self.prefetch_done.set(f.prefetch_len.max(self.prefetch_done.get()));
+        let mut h = self.host.get();
+        h.submit_wait_ns += f.since.elapsed().as_nanos() as u64;
+        self.host.set(h);
+        Ok(true)
     }
 
     /// The deferred small writes to the device now, in a submission of their own.
@@ -1103,7 +1261,15 @@ impl GpuContext {
 
     /// Starts recording a submission.
     pub fn begin(&mut self) -> Result<(), GpuError> {
-        let running = self.in_flight.get().is_some();
+        let mut running = self.in_flight.get()[0].is_some();
+        if running && (2 * self.submitted > MAX_DISPATCHES || 4 * self.prefetch_submitted.1 > 3 * self.prefetch_bytes) {
+            // A chain of submissions, each left running while the next was recorded, has used
+            // half of the timestamp queries (a recording past them all is an error) or three
+            // quarters of the room for copies to the host (past it, reads wait for the
+            // device): this one starts on an idle queue, where they start over.
+            self.wait_in_flight()?;
+            running = false;
+        }
         self.recording_since = Some((Instant::now(), running));
         if !running {
             self.collect_timestamps()?;
@@ -1124,6 +1290,7 @@ impl GpuContext {
             self.recorded = self.submitted;
             let (len, used) = self.prefetch_submitted;
             self.prefetched.get_mut().truncate(len);
+            self.prefetch_done.set(self.prefetch_done.get().min(len));
             self.prefetch_used = used;
             if let (Some(q), true) = (self.query_pool, self.timing) {
                 let first = 2 * self.recorded as u32;
@@ -1136,6 +1303,7 @@ impl GpuContext {
                 unsafe { d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32) };
             }
             self.prefetched.get_mut().clear();
+            self.prefetch_done.set(0);
             self.prefetch_used = 0;
             self.recorded = 0;
             self.submitted = 0;
@@ -1194,6 +1362,19 @@ impl GpuContext {
             self.host.set(h);
         }
         self.hazards.record(accesses);
+        // A copy for the host taken before this command no longer is the arena's where it
+        // writes.
+        for (range, written) in accesses {
+            if *written {
+                let (start, end) = (range.offset, range.offset + range.size);
+                for p in self.prefetched.get_mut().iter_mut() {
+                    let c = &p.copy;
+                    if start < c.src_offset + c.size && c.src_offset < end {
+                        p.overwritten = true;
+                    }
+                }
+            }
+        }
     }
 
     /// Timestamp queries around every dispatch from the next [`Self::begin`] on (`on`, the
@@ -1348,7 +1529,12 @@ impl GpuContext {
             return Err(GpuError::NotRecording { what: "prefetch" });
         }
         let size = range.size.next_multiple_of(4);
-        if !self.mapped.is_null() || size == 0 || self.prefetch_used + size > self.prefetch_bytes || self.prefetched.get_mut().len() == MAX_PREFETCHES {
+        if !self.mapped.is_null() || size == 0 {
+            return Ok(());
+        }
+        if self.prefetch_used + size > self.prefetch_bytes || self.prefetched.get_mut().len() == MAX_PREFETCHES {
+            // No room: a read takes the range from the arena, not from an older copy.
+            self.forget_prefetched(range.offset, range.offset + range.size);
             return Ok(());
         }
         let copy = vk::BufferCopy { src_offset: range.offset, dst_offset: self.prefetch_at + self.prefetch_used, size: range.size };
@@ -1361,7 +1547,7 @@ impl GpuContext {
             d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
         }
         self.prefetch_used += size;
-        self.prefetched.get_mut().push(copy);
+        self.prefetched.get_mut().push(Prefetched { copy, overwritten: false });
         Ok(())
     }
 
@@ -1409,6 +1595,12 @@ impl GpuContext {
                 self.host.set(h);
             }
             d.queue_submit(self.queue, &submit, self.fence).map_err(|result| GpuError::Kernel { kernel: name, call: "vkQueueSubmit", result })?;
+            if let Some(since) = self.idle_since.take() {
+                let mut h = self.host.get();
+                h.idle_ns += since.elapsed().as_nanos() as u64;
+                h.idle_gaps += 1;
+                self.host.set(h);
+            }
             self.submitted = self.recorded;
             self.prefetch_submitted = (self.prefetched.get_mut().len(), self.prefetch_used);
             self.untimed = true;
@@ -1420,18 +1612,26 @@ impl GpuContext {
     }
 
     /// Submits what was recorded and returns without waiting: the device runs it while the
-    /// host records the next submission, which [`Self::begin`] orders after it. Reads, writes
-    /// that are not deferred, and the next `submit` wait for it; [`Self::submit_and_wait`]
-    /// waits for both. One submission runs this way at a time.
+    /// host records the next submission, which [`Self::begin`] orders after it. Reads and
+    /// writes that are not deferred wait for it ([`Self::read_prefetched`] only for the
+    /// submission that made its copy); [`Self::submit_and_wait`] waits for all. Two
+    /// submissions run this way at a time: a third waits for the oldest first, so the device
+    /// has the next one queued behind the one the host waits for.
     pub fn submit(&mut self) -> Result<(), GpuError> {
         if !self.recording {
             return Err(GpuError::NotRecording { what: "submit" });
         }
-        self.wait_in_flight()?;
-        let t0 = self.end_and_submit()?;
-        std::mem::swap(&mut self.command_buffer, &mut self.spare_command_buffer);
-        std::mem::swap(&mut self.fence, &mut self.spare_fence);
-        self.in_flight.set(Some(t0));
+        if self.in_flight.get()[SLOTS - 2].is_some() {
+            self.wait_oldest()?;
+        }
+        let since = self.end_and_submit()?;
+        let mut flights = self.in_flight.get();
+        let flight = Flight { slot: self.current, since, prefetch_len: self.prefetch_submitted.0 };
+        *flights.iter_mut().find(|f| f.is_none()).expect("a free place: the oldest was waited for") = Some(flight);
+        self.in_flight.set(flights);
+        // The next recording takes the slot no running submission holds.
+        self.current = (0..SLOTS).find(|s| flights.iter().flatten().all(|f| f.slot != *s)).expect("one slot more than can run");
+        (self.command_buffer, self.fence) = self.slots[self.current];
         Ok(())
     }
 
@@ -1445,13 +1645,27 @@ impl GpuContext {
         let t0 = self.end_and_submit()?;
         let d = &self.device;
         unsafe {
-            d.wait_for_fences(&[self.fence], true, u64::MAX)
-                .map_err(|result| GpuError::Kernel { kernel: name, call: "vkWaitForFences (last kernel recorded)", result })?;
+            self.wait_fence(self.fence).map_err(|result| GpuError::Kernel { kernel: name, call: "vkWaitForFences (last kernel recorded)", result })?;
             d.reset_fences(&[self.fence]).map_err(vk_err("vkResetFences"))?;
         }
         let mut h = self.host.get();
         h.submit_wait_ns += t0.elapsed().as_nanos() as u64;
         self.host.set(h);
+        self.wait_in_flight()?;
+        self.prefetch_done.set(self.prefetched.get_mut().len());
+        self.idle_since.set(Some(Instant::now()));
+        self.collect_timestamps()?;
+        self.release_deferred();
+        Ok(())
+    }
+
+    /// Waits for every submission left running and adds their dispatch times to the profile
+    /// (a chain of submissions, each left running while the next is recorded, reaches an idle
+    /// queue only now and then).
+    pub fn finish(&mut self) -> Result<(), GpuError> {
+        if self.recording {
+            return Err(GpuError::NotRecording { what: "finish (a recording is open)" });
+        }
         self.wait_in_flight()?;
         self.collect_timestamps()?;
         self.release_deferred();
@@ -1505,8 +1719,11 @@ impl GpuContext {
             if let Some(q) = self.query_pool.take() {
                 d.destroy_query_pool(q, None);
             }
-            d.destroy_fence(self.fence, None);
-            d.destroy_fence(self.spare_fence, None);
+            for &(_, fence) in &self.slots {
+                if fence != vk::Fence::null() {
+                    d.destroy_fence(fence, None);
+                }
+            }
             d.destroy_command_pool(self.command_pool, None);
             d.destroy_device(None);
         }

@@ -48,7 +48,7 @@ impl ScanScratch {
     /// (then the offsets were not written).
     pub fn result(&self, ctx: &GpuContext) -> Result<Result<u64, u64>, GpuError> {
         let mut s = [0u32; 4];
-        ctx.read(&self.status, &mut s)?;
+        ctx.read_prefetched(&self.status, &mut s)?;
         let total = s[1] as u64 | ((s[2] as u64) << 32);
         Ok(if s[0] == 0 { Ok(total) } else { Err(total) })
     }

@@ -469,6 +469,8 @@ pub struct Mapper {
     medium_grads: Vec<f32>,
     medium_ws: MediumWorkspace,
     raster: RenderBackend,
+    /// `iterate` tells the renderer the next step's keyframe ([`Mapper::set_plan_ahead`]).
+    plan_ahead: bool,
     raster_capacity: RasterCapacity,
     loss_ws: LossWorkspace,
     view: ViewBuffers,
@@ -559,6 +561,7 @@ impl Mapper {
             medium,
             medium_adam,
             raster,
+            plan_ahead: true,
             raster_capacity,
             config,
             capacity,
@@ -605,9 +608,10 @@ impl Mapper {
         self.raster.gpu()
     }
 
-    /// The Vulkan renderer's kernels, to switch between kernel variants (the CPU-device ones
-    /// on a GPU and back: benchmarks, tests); `None` on the CPU reference.
-    pub fn gpu_renderer_mut(&mut self) -> Option<&mut crate::map::vulkan::GpuRenderer> {
+    /// The Vulkan renderer's kernels and device, to switch between kernel variants (the
+    /// CPU-device ones on a GPU and back) and device settings: benchmarks, tests; `None` on the
+    /// CPU reference.
+    pub fn gpu_renderer_mut(&mut self) -> Option<(&mut crate::map::vulkan::GpuRenderer, &mut crate::gpu::GpuContext)> {
         self.raster.renderer_mut()
     }
 
@@ -1050,11 +1054,38 @@ impl Mapper {
             return Err(MapperError::NoKeyframes);
         }
         let slot = pick_keyframe(&mut self.rng, self.keyframes.len(), self.config.window, self.config.window_probability);
-        self.step_on(slot)
+        // The keyframe the next call draws if nothing changes meanwhile, so that the Vulkan
+        // renderer can run its geometry while this step finishes (a wrong guess costs nothing
+        // but the overlap).
+        let next = pick_keyframe(&mut self.rng.clone(), self.keyframes.len(), self.config.window, self.config.window_probability);
+        self.step_on_then(slot, Some(next))
+    }
+
+    /// `(submitted, used)`: next-step geometries the Vulkan renderer submitted ahead and the
+    /// forwards that used one ([`Self::step_on_then`]); `None` on the CPU reference.
+    pub fn geometry_ahead_counts(&self) -> Option<(u64, u64)> {
+        self.raster.geometry_ahead_counts()
+    }
+
+    /// Whether [`Self::step_on_then`] (and so [`Self::iterate`]) tells the renderer which
+    /// keyframe the next step is on (on by default); the maps are the same either way. Returns
+    /// the previous setting.
+    pub fn set_plan_ahead(&mut self, on: bool) -> bool {
+        std::mem::replace(&mut self.plan_ahead, on)
     }
 
     /// One optimisation step on keyframe `slot` (oldest first), then densify/prune when due.
     pub fn step_on(&mut self, slot: usize) -> Result<IterationReport, MapperError> {
+        self.step_on_then(slot, None)
+    }
+
+    /// [`Self::step_on`], told that the next step is on keyframe `next`: the Vulkan renderer
+    /// then submits that view's geometry (projection, binning, sort) right after this step's
+    /// Adam, and the device runs it while the host finishes this step
+    /// (`GpuRenderer::plan_next_view`). The next step renders exactly as without the hint; a
+    /// hint that turns out wrong (another keyframe, the map changed) is ignored.
+    pub fn step_on_then(&mut self, slot: usize, next: Option<usize>) -> Result<IterationReport, MapperError> {
+        let next = next.filter(|_| self.plan_ahead);
         let _span = tracing::debug_span!("map.iterate", iteration = self.iteration + 1).entered();
         let count = self.keyframes.len();
         let kf = self.keyframes.get(slot).ok_or(MapperError::NoSuchKeyframe { slot, count })?;
@@ -1075,6 +1106,9 @@ impl Mapper {
             if device_map && self.raster.is_resident() {
                 // The Gaussians' Adam step in the same submission as the loss and backward.
                 self.raster.arm_adam_step(&self.adam)?;
+                if let Some(kf) = next.and_then(|k| self.keyframes.get(k)) {
+                    self.raster.plan_next_view(&kf.kf.camera, &kf.kf.world_from_cam.inverse(), &self.config.render, self.gaussians.len());
+                }
             }
             let kf = &self.keyframes[slot];
             let v = &mut self.view;

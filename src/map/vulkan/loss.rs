@@ -374,10 +374,10 @@ impl GpuLoss {
         let n = w * h;
         let groups = n.div_ceil(WG);
         let mut valid = [0u32; 1];
-        ctx.read(&self.valid_count, &mut valid)?;
+        ctx.read_prefetched(&self.valid_count, &mut valid)?;
         let valid = valid[0] as usize;
         let partials = &mut self.staging_partials[..groups * LOSS_PARTIALS];
-        ctx.read(&self.partials, partials)?;
+        ctx.read_prefetched(&self.partials, partials)?;
         let mut sums = [0.0f64; LOSS_PARTIALS];
         for group in partials.chunks_exact(LOSS_PARTIALS) {
             for (s, &v) in sums.iter_mut().zip(group) {

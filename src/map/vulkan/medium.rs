@@ -337,7 +337,7 @@ impl GpuMedium {
         if out.len() != self.layout.len {
             return Err(MediumError::LengthMismatch { what: "medium parameter gradient", len: out.len(), expected: self.layout.len }.into());
         }
-        ctx.read(&self.grads, out)?;
+        ctx.read_prefetched(&self.grads, out)?;
         Ok(())
     }
 }

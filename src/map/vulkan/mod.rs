@@ -858,6 +858,24 @@ pub struct GpuForwardRenderer {
     pub projection: GpuProjection,
     pub binning: GpuBinning,
     pub raster: GpuRasterForward,
+    /// The view whose geometry (projection, binning, sort, tile ranges) of the device map
+    /// [`Self::submit_geometry_ahead`] submitted; the next deferred forward of the device map
+    /// for the same view skips it. Any other forward, or a change to the device map
+    /// ([`GpuRenderer`] clears it), forgets it.
+    ahead: Option<AheadView>,
+    /// Geometries submitted ahead, and forwards that used one (a benchmark's and a test's
+    /// check that the overlap happens).
+    pub ahead_submitted: u64,
+    pub ahead_used: u64,
+}
+
+/// The view a geometry pass was submitted ahead for ([`GpuForwardRenderer::submit_geometry_ahead`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct AheadView {
+    camera: PinholeCamera,
+    cam_from_world: Se3,
+    config: RenderConfig,
+    n: usize,
 }
 
 impl GpuForwardRenderer {
@@ -868,7 +886,42 @@ impl GpuForwardRenderer {
             projection: GpuProjection::new(ctx, capacity.max_gaussians)?,
             binning: GpuBinning::new(ctx, capacity.max_intersections, grid.num_tiles())?,
             raster: GpuRasterForward::new(ctx, capacity.width * capacity.height)?,
+            ahead: None,
+            ahead_submitted: 0,
+            ahead_used: 0,
         })
+    }
+
+    /// Records and submits, left running ([`GpuContext::submit`]), the geometry of the next
+    /// forward of the device map (in [`GpuProjection::params`], `n` Gaussians) from
+    /// `cam_from_world`: projection, tile counts and their scan, binning, sort and tile
+    /// ranges, so that the device runs it while the host finishes a step. The next
+    /// [`Self::forward_on_device`] of the device map with `defer` and the same view records
+    /// only the medium and the rasterisation after it (the same commands as in one
+    /// submission, so the same results). A tile overflow shows with that forward's count.
+    pub fn submit_geometry_ahead(&mut self, ctx: &mut GpuContext, n: usize, camera: &PinholeCamera, cam_from_world: &Se3, config: &RenderConfig) -> Result<(), VulkanRenderError> {
+        self.ahead = None;
+        if camera.width == 0 || camera.height == 0 || camera.width > self.capacity.width || camera.height > self.capacity.height {
+            return Err(RenderError::CapacityExceeded { what: "image pixels", requested: camera.width * camera.height, capacity: self.capacity.width * self.capacity.height }.into());
+        }
+        if n > self.capacity.max_gaussians {
+            return Err(RenderError::CapacityExceeded { what: "Gaussians", requested: n, capacity: self.capacity.max_gaussians }.into());
+        }
+        let setup = ProjectionSetup::<f32>::new(camera, cam_from_world, config)?;
+        let grid = TileGrid::new(camera.width, camera.height);
+        self.projection.write_setup(ctx, &setup, &grid, n)?;
+        ctx.begin()?;
+        self.projection.record(ctx, n, self.capacity.max_intersections)?;
+        self.binning.record(ctx, &self.projection, &grid, n)?;
+        ctx.submit()?;
+        self.ahead = Some(AheadView { camera: *camera, cam_from_world: *cam_from_world, config: *config, n });
+        self.ahead_submitted += 1;
+        Ok(())
+    }
+
+    /// Forgets a geometry submitted ahead (the device map or its buffers changed).
+    pub fn forget_geometry_ahead(&mut self) {
+        self.ahead = None;
     }
 
     /// Renders `gaussians` seen from `cam_from_world` through `medium` into `out`, as
@@ -962,10 +1015,17 @@ impl GpuForwardRenderer {
             }
         }
 
+        // The geometry submitted ahead for this view, if it is the one wanted.
+        let view = AheadView { camera: *camera, cam_from_world: *cam_from_world, config: *config, n };
+        let ahead = self.ahead.take();
+        let geometry_done = params_on_device && defer && out.is_none() && ahead == Some(view);
+        self.ahead_used += geometry_done as u64;
         if !params_on_device {
             self.projection.upload(ctx, gaussians)?;
         }
-        self.projection.write_setup(ctx, &setup, &grid, n)?;
+        if !geometry_done {
+            self.projection.write_setup(ctx, &setup, &grid, n)?;
+        }
         if let MediumSource::Host(medium) = medium {
             self.raster.upload_medium(ctx, medium)?;
         }
@@ -985,8 +1045,10 @@ impl GpuForwardRenderer {
         // One submission: the intersection count stays on the device (the binning's kernels
         // are dispatched from it); the host reads it afterwards. An overflow renders no
         // intersection and is an error here.
-        self.projection.record(ctx, n, self.capacity.max_intersections)?;
-        self.binning.record(ctx, &self.projection, &grid, n)?;
+        if !geometry_done {
+            self.projection.record(ctx, n, self.capacity.max_intersections)?;
+            self.binning.record(ctx, &self.projection, &grid, n)?;
+        }
         let intrinsics = [camera.fx as f32, camera.fy as f32, camera.cx as f32, camera.cy as f32];
         self.raster.record(ctx, &self.projection.splats, &self.binning, &grid, intrinsics, config.depth_mode)?;
         self.projection.scan.prefetch_result(ctx)?;
@@ -1056,6 +1118,9 @@ pub struct GpuRenderer {
     /// Adam step, whose outcome (`Some(taken)`) waits in `fused_adam` for [`Self::adam_step`].
     adam_armed: bool,
     fused_adam: Option<bool>,
+    /// The view of the next step ([`Self::plan_next_view`]): the next
+    /// [`Self::loss_and_backward`] submits its geometry after the step's Adam.
+    next_view: Option<AheadView>,
     last: Option<GpuForwardState>,
     /// The last forward was deferred: its intersection count is read after the loss's
     /// submission.
@@ -1082,6 +1147,7 @@ impl GpuRenderer {
             params_stale: false,
             adam_armed: false,
             fused_adam: None,
+            next_view: None,
             last: None,
             count_pending: false,
             staging_c_med: vec![0.0; 3 * capacity.width * capacity.height],
@@ -1162,6 +1228,7 @@ impl GpuRenderer {
         }
         validate_gaussians(gaussians)?;
         self.resident = None;
+        self.fwd.forget_geometry_ahead();
         self.fwd.projection.upload(ctx, gaussians)?;
         self.project_backward.upload(ctx, grads)?;
         self.adam.upload_moments(ctx, adam, n)?;
@@ -1204,6 +1271,7 @@ impl GpuRenderer {
     pub fn release(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
         self.sync(ctx, gaussians, grads, adam)?;
         self.resident = None;
+        self.fwd.forget_geometry_ahead();
         self.disarm_adam();
         Ok(())
     }
@@ -1212,12 +1280,22 @@ impl GpuRenderer {
     pub fn drop_resident(&mut self) {
         self.resident = None;
         self.params_stale = false;
+        self.fwd.forget_geometry_ahead();
         self.disarm_adam();
     }
 
     fn disarm_adam(&mut self) {
         self.adam_armed = false;
         self.fused_adam = None;
+    }
+
+    /// The view the step after the next [`Self::loss_and_backward`] renders, if known
+    /// (`Mapper::iterate` draws its keyframe ahead): that call then submits the view's geometry
+    /// after the step's Adam ([`GpuForwardRenderer::submit_geometry_ahead`]; with the Adam step
+    /// armed and the device medium only), and the device runs it while the host finishes the
+    /// step. The next deferred forward of that view skips it; any other is rendered as always.
+    pub fn plan_next_view(&mut self, camera: &PinholeCamera, cam_from_world: &Se3, config: &RenderConfig, n: usize) {
+        self.next_view = Some(AheadView { camera: *camera, cam_from_world: *cam_from_world, config: *config, n });
     }
 
     /// The constants of each group's next step (one group per [`ParamGroup`]).
@@ -1261,6 +1339,8 @@ impl GpuRenderer {
             }
             return Ok(taken);
         }
+        // A step of its own changes the map a geometry submitted ahead projected.
+        self.fwd.forget_geometry_ahead();
         self.write_next_step_constants(ctx, adam)?;
         ctx.begin()?;
         self.adam.record_step(ctx, &self.fwd.projection.params, &self.project_backward.grads, self.fwd.projection.scan.status.range(), n)?;
@@ -1384,7 +1464,15 @@ impl GpuRenderer {
         if let Some((_, gm)) = device_medium.as_ref() {
             gm.prefetch_grads(ctx)?;
         }
-        ctx.submit_and_wait()?;
+        match self.next_view.take() {
+            // The next step's geometry runs on the device while the host reads this step's
+            // results (copied for it in this submission) and finishes the step.
+            Some(v) if fuse_adam && device_medium.is_some() && v.n == n => {
+                ctx.submit()?;
+                self.fwd.submit_geometry_ahead(ctx, n, &v.camera, &v.cam_from_world, &v.config)?;
+            }
+            _ => ctx.submit_and_wait()?,
+        }
         if std::mem::take(&mut self.count_pending) {
             // The deferred forward's count: after an overflow nothing of this step counts
             // (its render had no intersection, Adam did not step).
@@ -1572,11 +1660,27 @@ impl RenderBackend {
         matches!(self, RenderBackend::Vulkan { .. })
     }
 
-    /// The Vulkan renderer's kernels, to switch between kernel variants (benchmarks, tests);
-    /// `None` on the CPU reference.
-    pub fn renderer_mut(&mut self) -> Option<&mut GpuRenderer> {
+    /// Geometries the Vulkan renderer submitted ahead and forwards that used one
+    /// ([`GpuRenderer::plan_next_view`]); `None` on the CPU reference.
+    pub fn geometry_ahead_counts(&self) -> Option<(u64, u64)> {
         match self {
-            RenderBackend::Vulkan { renderer, .. } => Some(renderer),
+            RenderBackend::Vulkan { renderer, .. } => Some((renderer.fwd.ahead_submitted, renderer.fwd.ahead_used)),
+            RenderBackend::Cpu { .. } => None,
+        }
+    }
+
+    /// [`GpuRenderer::plan_next_view`] on the Vulkan renderer; nothing on the CPU reference.
+    pub fn plan_next_view(&mut self, camera: &PinholeCamera, cam_from_world: &Se3, config: &RenderConfig, n: usize) {
+        if let RenderBackend::Vulkan { renderer, .. } = self {
+            renderer.plan_next_view(camera, cam_from_world, config, n);
+        }
+    }
+
+    /// The Vulkan renderer's kernels and device, to switch between kernel variants and
+    /// device settings (benchmarks, tests); `None` on the CPU reference.
+    pub fn renderer_mut(&mut self) -> Option<(&mut GpuRenderer, &mut GpuContext)> {
+        match self {
+            RenderBackend::Vulkan { renderer, ctx } => Some((renderer, ctx)),
             RenderBackend::Cpu { .. } => None,
         }
     }

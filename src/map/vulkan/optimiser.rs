@@ -165,7 +165,7 @@ impl GpuMapAdam {
 
     pub fn step_refused(&self, ctx: &GpuContext) -> Result<bool, GpuError> {
         let mut flag = [0u32];
-        ctx.read(&self.flag, &mut flag)?;
+        ctx.read_prefetched(&self.flag, &mut flag)?;
         Ok(flag[0] != 0)
     }
 }
