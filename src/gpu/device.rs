@@ -198,6 +198,9 @@ impl std::fmt::Display for DeviceInfo {
 /// Command buffers and fences: one recording, up to two submissions running.
 const SLOTS: usize = 3;
 
+/// One timed stretch of the queue: its dispatch count and `(kernel, start, end)` ticks.
+type Stretch = (usize, [(Kernel, u64, u64); MAX_DISPATCHES]);
+
 /// A copy for the host recorded by [`GpuContext::prefetch`].
 #[derive(Clone, Copy, Debug)]
 struct Prefetched {
@@ -409,7 +412,7 @@ pub struct GpuContext {
     recorded_kernels: [Kernel; MAX_DISPATCHES],
     /// The dispatches of the last two timed stretches ([`Self::last_timeline`]): count and
     /// `(kernel, start, end)` ticks.
-    timeline: Box<[(usize, [(Kernel, u64, u64); MAX_DISPATCHES]); 2]>,
+    timeline: Box<[Stretch; 2]>,
     /// What the commands since the last barrier of the open submission touched.
     hazards: Hazards,
     /// Timestamp queries wanted ([`GpuContext::set_timestamps`]) and, latched at `begin`,
