@@ -469,7 +469,7 @@ pub struct Mapper {
     medium_grads: Vec<f32>,
     medium_ws: MediumWorkspace,
     raster: RenderBackend,
-    /// `iterate` tells the renderer the next step's keyframe ([`Mapper::set_plan_ahead`]).
+    /// `step_on_then` tells the renderer the next step's keyframe ([`Mapper::set_plan_ahead`]).
     plan_ahead: bool,
     raster_capacity: RasterCapacity,
     loss_ws: LossWorkspace,

@@ -1173,6 +1173,8 @@ impl GpuRenderer {
     ) -> Result<RenderStats, VulkanRenderError> {
         self.last = None;
         self.count_pending = false;
+        // A plan made before a step that failed is not this step's.
+        self.next_view = None;
         let on_device = self.check_resident(gaussians.len())?;
         let source = match (device_medium, self.medium.as_mut()) {
             (Some(step), Some(gm)) => {
@@ -1552,6 +1554,9 @@ impl GpuRenderer {
         medium_grads: &mut MediumPlanes,
     ) -> Result<(), VulkanRenderError> {
         let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
+        if self.fwd.ahead.is_some() {
+            return Err(RenderError::NoForward { why: "the next step's geometry, submitted ahead, replaced this forward's (plan_next_view)" }.into());
+        }
         let grid = last.grid;
         check_backward_inputs(last.n_gaussians, &grid, gaussians, medium, out, upstream, grads, medium_grads)?;
 
