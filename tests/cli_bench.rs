@@ -38,6 +38,7 @@ fn bench_track_on_a_tiny_survey_writes_json_and_table() {
         assert!((2.5..4.0).contains(&num("path_m")), "{m}");
         assert!(num("ate_percent_of_path") < 5.0, "{m}");
         assert!(num("ause") < num("ause_random"), "{m}");
+        assert!(num("ause_depth") < num("ause_depth_random"), "{m}");
         assert!(num("rss_peak_mib") > 1.0 && num("tracker_heap_peak_mib") > 1.0, "{m}");
         assert_eq!(c["all"].as_array().unwrap().len(), 1);
     }

@@ -3,8 +3,9 @@
 //! on the tracker's own thread pool (as a tracking thread does: `Tracker::run_in_pool`), and
 //! prints and writes (`bench_track.json`, `bench_track.md`) the medians: frames/s, per-stage
 //! milliseconds, frame latency p50/p99/max, frames/s and latency p99/max after the monocular
-//! initialisation (the bootstrap runs once per dive), ATE (m and % of path), AUSE against a
-//! random ordering, peak RSS and the tracker's heap peak.
+//! initialisation (the bootstrap runs once per dive), ATE (m and % of path), AUSE of inverse
+//! depth and of depth (the paper's) against random orderings, peak RSS and the tracker's heap
+//! peak.
 //!
 //! Rendering the sequence and scoring it are outside every timing; the frames are held in
 //! memory for all runs (their bytes are reported beside the RSS, which includes them).
@@ -86,9 +87,15 @@ struct RunMetrics {
     keyframes_inserted: u64,
     loops_closed: u64,
     lost_frames: u64,
-    /// Mean AUSE over the final keyframes (full resolution, MAE of inverse depth), NaN if skipped.
+    /// Mean AUSE over the final keyframes (full resolution, MAE of inverse depth, ranked by the
+    /// inverse-depth variance), NaN if skipped.
     ause: f64,
     ause_random: f64,
+    /// The same on the MAE of depth in metres, as the paper's Table 4, ranked by the depth
+    /// variance the inverse-depth variance implies to first order (`var / rho^4`); pixels with a
+    /// non-positive inverse depth are left out.
+    ause_depth: f64,
+    ause_depth_random: f64,
     /// Peak resident set (VmHWM) during the run, MiB (reset before each run where the kernel allows).
     rss_peak_mib: f64,
     /// Heap peak above what was live before the tracker was built, MiB.
@@ -182,6 +189,8 @@ fn median_metrics(runs: &[RunMetrics]) -> RunMetrics {
         lost_frames: mu(|r| r.lost_frames),
         ause: m(|r| r.ause),
         ause_random: m(|r| r.ause_random),
+        ause_depth: m(|r| r.ause_depth),
+        ause_depth_random: m(|r| r.ause_depth_random),
         rss_peak_mib: m(|r| r.rss_peak_mib),
         tracker_heap_peak_mib: m(|r| r.tracker_heap_peak_mib),
     }
@@ -296,6 +305,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let ev = evaluate_trajectory(gt, &fin.frames, &TrajectoryOptions::default(), "gt", "est").context("scoring the trajectory")?;
     let report = &ev.report;
     let (mut ause_mean, mut ause_random) = (f64::NAN, f64::NAN);
+    let (mut ause_depth_mean, mut ause_depth_random) = (f64::NAN, f64::NAN);
     if with_ause {
         let scale = report.alignment.scale;
         let kfs: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.variance.is_some()).map(|k| (k.id, k.seq)).collect();
@@ -306,29 +316,37 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
         let cam = seq.renderer.camera();
         let mut inv = PlaneF32::new(cam.width, cam.height);
         let mut var = PlaneF32::new(cam.width, cam.height);
-        let (mut sum, mut sum_random, mut count) = (0.0, 0.0, 0usize);
+        // (sum of AUSE, sum of random AUSE, keyframes) for inverse depth and for depth.
+        let (mut inverse_sums, mut depth_sums) = ((0.0, 0.0, 0usize), (0.0, 0.0, 0usize));
+        let add = |sums: &mut (f64, f64, usize), errors: &[f64], unc: &[f64]| -> anyhow::Result<()> {
+            if errors.len() >= 100 {
+                let r = ause(errors, unc, &AuseOptions::default())?;
+                *sums = (sums.0 + r.ause, sums.1 + r.ause_random, sums.2 + 1);
+            }
+            Ok(())
+        };
         for &(id, s) in &kfs {
             tracker.upsample_keyframe(id, &mut inv, &mut var)?;
             let depth = &seq.depth[&s];
-            let (mut errors, mut unc) = (Vec::new(), Vec::new());
+            let (mut errors, mut unc, mut errors_m, mut unc_m) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
             for ((&z, &d), &v) in depth.data.iter().zip(&inv.data).zip(&var.data) {
                 if z > 0.0 && d.is_finite() && v.is_finite() && v < f32::MAX {
-                    errors.push((1.0 / z as f64 - d as f64 / scale).abs());
-                    unc.push(v as f64 / (scale * scale));
+                    let (rho, var_rho) = (d as f64 / scale, v as f64 / (scale * scale));
+                    errors.push((1.0 / z as f64 - rho).abs());
+                    unc.push(var_rho);
+                    let var_m = var_rho / rho.powi(4);
+                    if rho > 0.0 && var_m.is_finite() && var_m > 0.0 {
+                        errors_m.push((z as f64 - 1.0 / rho).abs());
+                        unc_m.push(var_m);
+                    }
                 }
             }
-            if errors.len() < 100 {
-                continue;
-            }
-            let r = ause(&errors, &unc, &AuseOptions::default())?;
-            sum += r.ause;
-            sum_random += r.ause_random;
-            count += 1;
+            add(&mut inverse_sums, &errors, &unc)?;
+            add(&mut depth_sums, &errors_m, &unc_m)?;
         }
-        if count > 0 {
-            ause_mean = sum / count as f64;
-            ause_random = sum_random / count as f64;
-        }
+        let mean = |s: (f64, f64, usize)| if s.2 > 0 { (s.0 / s.2 as f64, s.1 / s.2 as f64) } else { (f64::NAN, f64::NAN) };
+        (ause_mean, ause_random) = mean(inverse_sums);
+        (ause_depth_mean, ause_depth_random) = mean(depth_sums);
     }
     let times = tracker.times();
     let counters = tracker.counters();
@@ -357,6 +375,8 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
         lost_frames: counters.lost_frames,
         ause: ause_mean,
         ause_random,
+        ause_depth: ause_depth_mean,
+        ause_depth_random,
         rss_peak_mib: rss,
         tracker_heap_peak_mib: if duv::core::alloc::is_installed() { heap_peak } else { f64::NAN },
     })
@@ -374,13 +394,13 @@ fn markdown(report: &BenchReport) -> String {
         report.cases.first().map_or(0, |c| c.runs),
         if report.rss_reset_per_run { "peak reset before each run" } else { "peak since process start" }
     );
-    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | init frames | FPS after init | p99 ms after init | max ms after init | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | RSS MiB | frames MiB | tracker heap MiB |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | init frames | FPS after init | p99 ms after init | max ms after init | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | AUSE of depth | AUSE of depth, random | RSS MiB | frames MiB | tracker heap MiB |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for c in &report.cases {
         let m = &c.median;
         let _ = writeln!(
             s,
-            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
+            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
             c.sequence,
             c.width,
             c.height,
@@ -408,6 +428,8 @@ fn markdown(report: &BenchReport) -> String {
             m.lost_frames,
             m.ause,
             m.ause_random,
+            m.ause_depth,
+            m.ause_depth_random,
             m.rss_peak_mib,
             c.frames_mib,
             m.tracker_heap_peak_mib
@@ -452,7 +474,7 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                 for r in 0..args.runs {
                     let m = run_once(&mut seq, &cfg, cap, !args.no_ause, rss_reset).with_context(|| format!("{name} {w}x{h} run {}", r + 1))?;
                     eprintln!(
-                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms; after init ({} frames): {:.1} fps, p99 {:.1} ms, max {:.1} ms; ATE {:.3}% of path, loops {}, AUSE {:.3} (random {:.3})",
+                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms; after init ({} frames): {:.1} fps, p99 {:.1} ms, max {:.1} ms; ATE {:.3}% of path, loops {}, AUSE {:.3} (random {:.3}), of depth {:.3} (random {:.3})",
                         if lc { "on" } else { "off" },
                         r + 1,
                         args.runs,
@@ -466,7 +488,9 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                         m.ate_percent_of_path,
                         m.loops_closed,
                         m.ause,
-                        m.ause_random
+                        m.ause_random,
+                        m.ause_depth,
+                        m.ause_depth_random
                     );
                     all.push(m);
                 }

@@ -28,6 +28,9 @@ impl TrackerCapacity {
     }
 }
 
+/// Most neighbours on each side that `consistency_neighbours` may ask for.
+pub const MAX_CONSISTENCY_NEIGHBOURS: usize = 8;
+
 /// Every parameter of the tracker. Pixel quantities named `_px` are in low-resolution (depth
 /// grid) pixels, as DROID-SLAM measures flow, unless named otherwise.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -226,6 +229,20 @@ pub struct TrackerConfig {
     /// (see `texture_variance` in `track/upsample.rs`: a flat cell's depth is interpolated,
     /// not measured, which the pooled flow weights of Eq. 4 cannot see).
     pub texture_variance: bool,
+    /// Multi-view consistency term of the full-resolution variance: the keyframes up to this
+    /// many before and after a keyframe (in insertion order, each with a variance) give second
+    /// estimates of its depth wherever they see it; the mean squared disagreement, over those
+    /// neighbours and `consistency_radius_cells` around each depth-grid cell, is blended in
+    /// (see `track/consistency.rs`: a bias the flow shares over a region, such as haze on the
+    /// far seabed, is invisible to Eq. 4 but not to another keyframe's depth). 0 disables it;
+    /// at most 8.
+    pub consistency_neighbours: usize,
+    /// Half-width, in depth-grid cells, of the window the disagreement is averaged over.
+    /// At most 8.
+    pub consistency_radius_cells: usize,
+    /// Share of the disagreement in the blended variance, `var^(1 - a) * d2^a`, in [0, 1]
+    /// (0: the term is off).
+    pub consistency_exponent: f32,
     /// Scale Eq. 4 by the window BA's a posteriori variance of unit weight
     /// ([`BaWorkspace::unit_variance`](super::ba::BaWorkspace::unit_variance)): the flow
     /// weights are relative confidences, not inverse pixel variances, so the Hessian alone
@@ -296,6 +313,9 @@ impl Default for TrackerConfig {
             upsample_surface_gap: 0.0,
             border_variance_px: 4.0,
             texture_variance: true,
+            consistency_neighbours: 3,
+            consistency_radius_cells: 1,
+            consistency_exponent: 0.85,
             variance_from_residuals: true,
         }
     }
@@ -382,6 +402,7 @@ impl TrackerConfig {
             ("init_level_start_rms_px", self.init_level_start_rms_px, 1e3),
             ("upsample_surface_gap", self.upsample_surface_gap, 1e3),
             ("border_variance_px", self.border_variance_px, 1e3),
+            ("consistency_exponent", self.consistency_exponent, 1.0),
             ("reloc_min_ncc", self.reloc_min_ncc, 1.0),
             ("loop_min_ncc", self.loop_min_ncc, 1.0),
             ("loop_min_confident_fraction", self.loop_min_confident_fraction, 1.0),
@@ -392,6 +413,12 @@ impl TrackerConfig {
             if !(v.is_finite() && v >= 0.0 && v <= hi) {
                 return bad(field, "out of range");
             }
+        }
+        if self.consistency_neighbours > MAX_CONSISTENCY_NEIGHBOURS {
+            return bad("consistency_neighbours", "at most 8");
+        }
+        if self.consistency_radius_cells > 8 {
+            return bad("consistency_radius_cells", "at most 8");
         }
         if self.prune_flow_px >= self.keyframe_flow_px {
             return bad("prune_flow_px", "must be below keyframe_flow_px");

@@ -7,6 +7,7 @@ use super::flow::{FlowError, FlowEstimator, FlowField, FlowResult, PreparedFrame
 use super::graph::{sim3_relative, sim3_split, EdgeStore, PoseConstraint, PoseGraph};
 use super::keyframes::{block_means, image_health, ncc, thumbnail, Keyframe, KeyframeStore, THUMB_N};
 use super::snapshot::WindowSnapshot;
+use super::consistency::{blend_consistency, consistency_grid, ConsistencyScratch};
 use super::upsample::{border_variance, joint_bilateral, texture_variance, UpsampleParams};
 use crate::core::frame::LUMA_WEIGHTS;
 use crate::core::pose::{se3_exp, se3_log};
@@ -305,6 +306,8 @@ struct State {
     pending: Option<Pending>,
     /// The initial BA's first solution while the second start is tried.
     init_snapshot: WindowSnapshot,
+    /// Workspace of the variance's consistency term (`upsample_keyframe` takes `&self`).
+    consistency: std::sync::Mutex<ConsistencyScratch>,
 }
 
 /// What remains of a keyframe insertion: flow/BA rounds, then loop closure / global BA.
@@ -446,8 +449,11 @@ impl Tracker {
     }
 
     /// Upsamples keyframe `id`'s inverse depth and variance (live, or the one just evicted) to
-    /// the input resolution by joint bilateral upsampling guided by its image. Variance is
-    /// written as infinity-free: pixels without a variance yet get `f32::MAX`.
+    /// the input resolution by joint bilateral upsampling guided by its image, the variance
+    /// with its texture, border and multi-view consistency terms (module docs). Variance is
+    /// written as infinity-free: pixels without a variance yet get `f32::MAX`. The consistency
+    /// term reads the neighbouring keyframes as they are now, so a keyframe upsampled again
+    /// after newer ones arrived can change.
     pub fn upsample_keyframe(&self, id: u64, inv_depth: &mut PlaneF32, variance: &mut PlaneF32) -> Result<(), TrackError> {
         let st = &self.st;
         let slot = st.kfs.slot_of(id).or(st.evicted_slot.filter(|&s| st.kfs.slots[s].id == id)).ok_or(TrackError::NoSuchKeyframe { id })?;
@@ -472,6 +478,14 @@ impl Tracker {
                     texture_variance(variance, &kf.guide, st.factor, (kf.guide_low.width, kf.guide_low.height));
                 }
                 border_variance(variance, st.factor, cfg.border_variance_px);
+                if cfg.consistency_neighbours > 0 && cfg.consistency_exponent > 0.0 {
+                    // A poisoned lock only means another call panicked mid-way: the scratch is
+                    // rewritten from scratch here.
+                    let mut scratch = st.consistency.lock().unwrap_or_else(|e| e.into_inner());
+                    let neighbours = st.consistency_neighbours(kf.id, cfg.consistency_neighbours).map(|s| (st.kfs.slots[s].world_from_cam, &st.kfs.slots[s].inv_depth));
+                    consistency_grid(&st.low, &kf.world_from_cam, &kf.inv_depth, neighbours, cfg.consistency_radius_cells, &mut scratch);
+                    blend_consistency(variance, &scratch.mean, st.factor, cfg.consistency_exponent);
+                }
             } else {
                 joint_bilateral(&kf.guide, &kf.guide_low, st.factor, &params, &kf.inv_depth, inv_depth, None);
                 variance.data.fill(f32::MAX);
@@ -642,6 +656,16 @@ fn scale_translation(pose: &Se3, s: f64) -> Se3 {
 }
 
 impl State {
+    /// Slots of the keyframes with a variance that are up to `n` places before and after
+    /// keyframe `id` in insertion order (ids grow with insertion), itself left out; `id` need
+    /// not be live (the keyframe just evicted).
+    fn consistency_neighbours(&self, id: u64, n: usize) -> impl Iterator<Item = usize> + '_ {
+        let order = &self.kfs.order;
+        let before = order.partition_point(|&s| self.kfs.slots[s].id < id);
+        let after = order.partition_point(|&s| self.kfs.slots[s].id <= id);
+        order[before.saturating_sub(n)..before].iter().chain(&order[after..(after + n).min(order.len())]).copied().filter(|&s| self.kfs.slots[s].has_variance)
+    }
+
     fn new(camera: &PinholeCamera, config: &TrackerConfig, cap: TrackerCapacity) -> Result<Self, TrackError> {
         let mut cfg = config.clone();
         let factor = cfg.resolved_depth_factor(camera.width, camera.height);
@@ -707,6 +731,7 @@ impl State {
             pending_eviction: None,
             pending: None,
             init_snapshot: WindowSnapshot::new(cap.ba_window, init_edges, lw, lh),
+            consistency: std::sync::Mutex::new(ConsistencyScratch::new(lw, lh)),
             flow,
             factor,
             cfg,
