@@ -426,3 +426,25 @@ impl TrackerConfig {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn consistency_settings_out_of_range_are_refused_by_name() {
+        assert!(TrackerConfig::default().validate().is_ok());
+        let off = TrackerConfig { consistency_neighbours: 0, consistency_exponent: 0.0, ..TrackerConfig::default() };
+        assert!(off.validate().is_ok());
+        let cases = [
+            (TrackerConfig { consistency_neighbours: MAX_CONSISTENCY_NEIGHBOURS + 1, ..TrackerConfig::default() }, "consistency_neighbours"),
+            (TrackerConfig { consistency_radius_cells: 9, ..TrackerConfig::default() }, "consistency_radius_cells"),
+            (TrackerConfig { consistency_exponent: 1.5, ..TrackerConfig::default() }, "consistency_exponent"),
+            (TrackerConfig { consistency_exponent: f32::NAN, ..TrackerConfig::default() }, "consistency_exponent"),
+            (TrackerConfig { consistency_exponent: -0.1, ..TrackerConfig::default() }, "consistency_exponent"),
+        ];
+        for (cfg, field) in cases {
+            assert_eq!(cfg.validate().unwrap_err().field, field);
+        }
+    }
+}
