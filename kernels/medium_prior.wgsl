@@ -7,8 +7,8 @@
 
 struct PriorParams {
     n_pixels: u32,
-    // Bit c: channel c has a prior.
-    channels: u32,
+    // The held coefficients of channel c: bit c beta_D, bit 3 + c beta_B, bit 6 + c B_inf.
+    held: u32,
     // 1: sigma_bs is tied to sigma_att (fold its gradient into sigma_att).
     single: u32,
     pad0: u32,
@@ -43,11 +43,15 @@ fn medium_upstream(@builtin(global_invocation_id) gid: vec3<u32>) {
         var gc = grad_c_med[i] + d_c_med[i];
         var ga = grad_sigma_att[i];
         var gb = grad_sigma_bs[i];
-        if ((params.channels & (1u << c)) != 0u) {
+        if ((params.held & (1u << c)) != 0u) {
             let va = max(sigma_att[i], 1e-12);
             ga += params.k * (log(va) - params.ln_beta_d[c]) * params.inv_s2 / va;
+        }
+        if ((params.held & (1u << (3u + c))) != 0u) {
             let vb = max(sigma_bs[i], 1e-12);
             gb += params.k * (log(vb) - params.ln_beta_b[c]) * params.inv_s2 / vb;
+        }
+        if ((params.held & (1u << (6u + c))) != 0u) {
             gc += params.k * (c_med[i] - params.b_inf[c]) * params.inv_sb2;
         }
         if (params.single != 0u) {

@@ -315,7 +315,7 @@ fn medium_upstream_matches_the_prior_and_the_fold() {
     use duv::core::MediumParams;
     use duv::map::mapper::fold_single_coefficient;
     use duv::map::medium::{C_MED, MEDIUM_CHANNELS};
-    use duv::map::medium_estimate::MediumPrior;
+    use duv::map::medium_estimate::{Coefficients, MediumPrior};
     use duv::map::vulkan::medium::{record_medium_upstream, MediumPlaneBuffers};
     let Some(mut ctx) = gpu_common::gpu_or_skip("medium_upstream_matches_the_prior_and_the_fold") else { return };
     let (w, h) = (203, 5);
@@ -326,7 +326,8 @@ fn medium_upstream_matches_the_prior_and_the_fold() {
     let loss_c_med: Vec<f32> = (0..n * 3).map(|_| rng.range(-0.5, 0.5) as f32).collect();
     let prior = MediumPrior {
         medium: MediumParams { beta_d: [0.4, 0.2, 0.1], beta_b: [0.35, 0.25, 0.15], b_inf: [0.1, 0.3, 0.4] },
-        channels: [true, false, true],
+        // Whole, none, and a channel whose beta_D is free.
+        held: [Coefficients::ALL, Coefficients::NONE, Coefficients { beta_d: false, beta_b: true, b_inf: true }],
         weight: 0.3,
         rel_std: 0.1,
         b_inf_std: 0.02,

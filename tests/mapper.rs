@@ -73,12 +73,13 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("map.ckpt");
     m.save_checkpoint(&path).unwrap();
-    // Binary (version 4), in one buffer of the exact size: the file is those bytes.
+    // Binary (version 5), in one buffer of the exact size: the file is those bytes.
     let bytes = m.checkpoint_bytes().unwrap();
     assert_eq!(bytes.capacity(), bytes.len(), "checkpoint buffer sized exactly");
     assert_eq!(std::fs::read(&path).unwrap(), bytes);
-    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 4);
-    // Older files are still read: version 3 is this without the footprints (a count and one
+    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 5);
+    // Older files are still read: version 4 is the same bytes (with no prior yet: its channel
+    // flags are what differs), version 3 is this without the footprints (a count and one
     // f32 per Gaussian), version 2 also without the medium estimate's state (16 bytes here,
     // no prior yet with 3 keyframes).
     let older = |version: u32, cut: usize| {
@@ -91,6 +92,7 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
         Mapper::from_checkpoint_bytes(&b, "older version", duv::map::checkpoint::RestoreOptions::default()).unwrap()
     };
     let footprints = 8 + 4 * m.gaussians().len();
+    assert_eq!(older(4, 0).checkpoint_bytes().unwrap(), bytes);
     assert_eq!(older(3, footprints).gaussians(), m.gaussians());
     assert_eq!(older(2, footprints + 16).gaussians(), m.gaussians());
     let mut r = Mapper::load_checkpoint(&path).unwrap();
@@ -426,6 +428,50 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
     m.step_on(1).unwrap();
     restored.step_on(1).unwrap();
     assert_eq!(m.medium().params(), restored.medium().params());
+}
+
+#[test]
+fn an_estimate_that_determines_some_coefficients_of_a_channel_sets_and_holds_only_those() {
+    use duv::map::medium_estimate::{Coefficients, MediumEstimateConfig};
+    let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
+    (cfg.width, cfg.height, cfg.frames, cfg.vignetting) = (160, 120, 20, 0.0);
+    let r = SimRenderer::new(&cfg).expect("sim");
+    let kfs = sim_keyframes(&r, 5, 8);
+    let cap = MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 };
+    let pose0 = kfs[0].keyframe.world_from_cam;
+    // Gates no beta passes, and gates no B_inf passes. Turbid water from 4 keyframes is
+    // otherwise determined whole (see the test above).
+    let no_beta = MediumEstimateConfig { max_rel_std_error: 0.0, ..MediumEstimateConfig::default() };
+    let no_b_inf = MediumEstimateConfig { max_b_inf_std_error: 0.0, ..MediumEstimateConfig::default() };
+    let mut maps = [(0, no_beta), (4, no_beta), (4, no_b_inf)]
+        .map(|(at, medium_estimate)| Mapper::new(MapperConfig { estimate_medium_at_keyframes: at, medium_estimate, ..MapperConfig::default() }, cap).unwrap());
+    for m in &mut maps {
+        for k in &kfs[..4] {
+            m.add_keyframe(k.keyframe.clone()).unwrap();
+        }
+    }
+    let [generic, m, refused] = &maps;
+    assert!(generic.medium_estimate().is_none() && generic.medium_prior().is_none());
+    // Only B_inf is determined: it is taken and held, the attenuation and backscatter
+    // coefficients stay the generic water's.
+    let e = m.medium_estimate().expect("an estimate at 4 keyframes");
+    let b_inf = Coefficients { beta_d: false, beta_b: false, b_inf: true };
+    assert_eq!((e.accepted, e.determined), ([false; 3], [b_inf; 3]), "{e:?}");
+    let (was, now) = (generic.medium_summary(&pose0), m.medium_summary(&pose0));
+    // A fresh network is uniform in direction to within its random initial weights (under 1 %).
+    let close = |a: f64, b: f64| (a - b).abs() <= 0.02 * b.abs().max(1e-3);
+    for c in 0..3 {
+        assert!(close(now.b_inf[c], e.medium.b_inf[c]) && !close(was.b_inf[c], e.medium.b_inf[c]), "channel {c}: {now:?} vs {:?}", e.medium);
+        assert!(close(now.beta_d[c], was.beta_d[c]) && close(now.beta_b[c], was.beta_b[c]), "channel {c}: {now:?} vs {was:?}");
+    }
+    let prior = m.medium_prior().expect("a prior on what was determined");
+    assert_eq!(prior.held, [b_inf; 3]);
+    assert_eq!(prior.medium.b_inf, e.medium.b_inf);
+    // Without B_inf nothing of a channel is taken, however well its betas are determined.
+    let e = refused.medium_estimate().expect("an estimate at 4 keyframes");
+    assert_eq!(e.determined, [Coefficients::NONE; 3], "{e:?}");
+    assert!(refused.medium_prior().is_none());
+    assert_eq!(refused.medium().params(), generic.medium().params());
 }
 
 #[test]

@@ -406,17 +406,17 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
     if let Some(e) = &metrics.medium_estimate {
         let m = &e.medium;
-        let yes = |a: bool| if a { "yes" } else { "no" };
+        let d = &e.determined;
         println!(
-            "estimate  beta_D {} beta_B {} B_inf {}  ({} depth blocks, {:?} view pairs; used for R G B: {} {} {})",
+            "estimate  beta_D {} beta_B {} B_inf {}  ({} depth blocks, {:?} view pairs; determined for R: {}, G: {}, B: {})",
             f(m.beta_d),
             f(m.beta_b),
             f(m.b_inf),
             e.samples,
             e.attenuation_pairs,
-            yes(e.accepted[0]),
-            yes(e.accepted[1]),
-            yes(e.accepted[2])
+            d[0],
+            d[1],
+            d[2]
         );
     }
     println!("medium    beta_D {} beta_B {} B_inf {}", f(medium.beta_d), f(medium.beta_b), f(medium.b_inf));

@@ -11,7 +11,10 @@
 //! bytes 20..20+n payload
 //! last 8 bytes   FNV-1a 64 checksum of the payload, u64 little endian
 //! ```
-//! Version 4 (written) is version 3 followed by the Gaussians' footprints
+//! Version 5 (written) is version 4 with each channel's flag of the medium prior a bit mask
+//! of the coefficients it holds ([`super::medium_estimate::Coefficients::bits`]: 1 `beta_D`,
+//! 2 `beta_B`, 4 `B_inf`); a version 3 or 4 flag of 1 holds all three.
+//! Version 4 (still read) is version 3 followed by the Gaussians' footprints
 //! ([`super::gaussians::GaussianGrads::fold_footprint`]: what the seeding of a full map
 //! evicts by) as a u64 count and f32 values; older versions restore them as 0.
 //! Version 3 (still read) is version 2 followed by the medium estimate's state (the keyframe count
@@ -39,7 +42,7 @@ use serde::{Deserialize, Serialize};
 use super::gaussians::ParamGroup;
 use super::mapper::{Mapper, MapperCapacity, MapperConfig, MapperError};
 use super::medium::{MediumCheckpoint, MediumNet, MEDIUM_CHECKPOINT_VERSION};
-use super::medium_estimate::MediumPrior;
+use super::medium_estimate::{Coefficients, MediumPrior};
 use crate::core::rng::Rng;
 use crate::core::{ImageRgb8, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3, Timestamp};
 use crate::io::le::LeReader;
@@ -47,8 +50,10 @@ use crate::io::{write_atomic, IoError};
 
 /// File magic.
 pub const CHECKPOINT_MAGIC: &[u8; 8] = b"DUVMAPCK";
-/// Format version this build writes (it reads this and versions 3, 2 and 1).
-pub const CHECKPOINT_VERSION: u32 = 4;
+/// Format version this build writes (it reads this and versions 4, 3, 2 and 1).
+pub const CHECKPOINT_VERSION: u32 = 5;
+/// The binary format whose medium prior holds whole channels.
+const CHECKPOINT_VERSION_CHANNEL_PRIOR: u32 = 4;
 /// The binary format without the Gaussians' footprints.
 const CHECKPOINT_VERSION_NO_FOOTPRINT: u32 = 3;
 /// The binary format without the medium estimate's state.
@@ -126,14 +131,14 @@ struct Payload {
     footprint: Vec<u32>,
 }
 
-/// Number of u64 in a stored [`MediumPrior`]: 3 channel flags, 9 coefficients, weight and two stds.
+/// Number of u64 in a stored [`MediumPrior`]: 3 channel masks, 9 coefficients, weight and two stds.
 const PRIOR_WORDS: usize = 15;
 
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct MediumStateRecord {
     estimate_at: u64,
-    /// Empty (no prior) or [`PRIOR_WORDS`] values: channels as 0/1, then `beta_D`, `beta_B`,
+    /// Empty (no prior) or [`PRIOR_WORDS`] values: per channel the held coefficients' mask, then `beta_D`, `beta_B`,
     /// `B_inf` (R G B each), weight, rel_std, b_inf_std as f64 bits.
     prior: Vec<u64>,
 }
@@ -143,7 +148,7 @@ impl MediumStateRecord {
         let prior = match &m.medium_prior {
             None => Vec::new(),
             Some(p) => {
-                let mut v: Vec<u64> = p.channels.iter().map(|&c| c as u64).collect();
+                let mut v: Vec<u64> = p.held.iter().map(|h| h.bits() as u64).collect();
                 let md = &p.medium;
                 v.extend(md.beta_d.iter().chain(&md.beta_b).chain(&md.b_inf).chain(&[p.weight, p.rel_std, p.b_inf_std]).map(|x| x.to_bits()));
                 v
@@ -151,14 +156,20 @@ impl MediumStateRecord {
         };
         MediumStateRecord { estimate_at: m.medium_estimate_at as u64, prior }
     }
-    fn prior(&self) -> Result<Option<MediumPrior>, String> {
+    fn prior(&self, version: u32) -> Result<Option<MediumPrior>, String> {
+        let held_of = |flag: u64| match (version <= CHECKPOINT_VERSION_CHANNEL_PRIOR, flag) {
+            (true, 0) => Ok(Coefficients::NONE),
+            (true, _) => Ok(Coefficients::ALL),
+            (false, 0..=7) => Ok(Coefficients::from_bits(flag as u32)),
+            (false, _) => Err(format!("medium prior channel flag {flag} is not a mask of 3 coefficients")),
+        };
         match self.prior.len() {
             0 => Ok(None),
             PRIOR_WORDS => {
                 let f = |i: usize| f64::from_bits(self.prior[i]);
                 let three = |i: usize| [f(i), f(i + 1), f(i + 2)];
                 Ok(Some(MediumPrior {
-                    channels: [self.prior[0] != 0, self.prior[1] != 0, self.prior[2] != 0],
+                    held: [held_of(self.prior[0])?, held_of(self.prior[1])?, held_of(self.prior[2])?],
                     medium: MediumParams { beta_d: three(3), beta_b: three(6), b_inf: three(9) },
                     weight: f(12),
                     rel_std: f(13),
@@ -231,7 +242,7 @@ fn put_adam(w: &mut Vec<u8>, g: &super::adam::AdamGroup) {
     put_f32s(w, v);
 }
 
-/// Reads a version 2, 3 or 4 payload; every count is checked against the bytes left before anything
+/// Reads a version 2, 3, 4 or 5 payload; every count is checked against the bytes left before anything
 /// is allocated, so a damaged file cannot ask for more memory than it holds.
 fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
     let mut r = LeReader::new(body);
@@ -401,7 +412,7 @@ impl Mapper {
             return Err(CheckpointError::BadMagic { path: p });
         }
         let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap_or([0; 4]));
-        if ![CHECKPOINT_VERSION, CHECKPOINT_VERSION_NO_FOOTPRINT, CHECKPOINT_VERSION_NO_MEDIUM_STATE, CHECKPOINT_VERSION_JSON].contains(&version) {
+        if ![CHECKPOINT_VERSION, CHECKPOINT_VERSION_CHANNEL_PRIOR, CHECKPOINT_VERSION_NO_FOOTPRINT, CHECKPOINT_VERSION_NO_MEDIUM_STATE, CHECKPOINT_VERSION_JSON].contains(&version) {
             return Err(CheckpointError::UnsupportedVersion { path: p, found: version, expected: CHECKPOINT_VERSION });
         }
         let n = u64::from_le_bytes(bytes[12..20].try_into().unwrap_or([0; 8])) as usize;
@@ -502,7 +513,7 @@ impl Mapper {
         match &payload.medium_state {
             Some(state) => {
                 m.medium_estimate_at = usize::try_from(state.estimate_at).map_err(|e| bad(e.to_string()))?;
-                m.medium_prior = state.prior().map_err(bad)?;
+                m.medium_prior = state.prior(version).map_err(bad)?;
             }
             // An older checkpoint with at least as many keyframes as the first medium estimate
             // needs: its optimised medium is not replaced by a new estimate.
@@ -521,6 +532,25 @@ mod tests {
     fn small() -> Vec<u8> {
         let mut m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 64, max_keyframes: 2, width: 8, height: 6 }).unwrap();
         m.checkpoint_bytes().unwrap()
+    }
+
+    #[test]
+    fn the_medium_prior_holds_coefficients_by_mask_and_older_flags_hold_whole_channels() {
+        let medium = MediumParams { beta_d: [0.4, 0.1, 0.08], beta_b: [0.3, 0.07, 0.05], b_inf: [0.03, 0.2, 0.45] };
+        let held = [Coefficients::ALL, Coefficients::NONE, Coefficients { beta_d: true, beta_b: false, b_inf: true }];
+        let mut m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 64, max_keyframes: 2, width: 8, height: 6 }).unwrap();
+        m.medium_prior = Some(MediumPrior { medium, held, weight: 0.5, rel_std: 0.1, b_inf_std: 0.02 });
+        let record = MediumStateRecord::of(&m);
+        assert_eq!(&record.prior[..3], &[7, 0, 5]);
+        assert_eq!(record.prior(CHECKPOINT_VERSION).unwrap(), m.medium_prior);
+        // Versions 3 and 4 wrote 0/1 per channel: 1 is all three.
+        let mut old = MediumStateRecord { estimate_at: 0, prior: record.prior.clone() };
+        old.prior[..3].copy_from_slice(&[1, 0, 1]);
+        let p = old.prior(CHECKPOINT_VERSION_CHANNEL_PRIOR).unwrap().unwrap();
+        assert_eq!(p.held, [Coefficients::ALL, Coefficients::NONE, Coefficients::ALL]);
+        old.prior[0] = 9;
+        let e = old.prior(CHECKPOINT_VERSION).unwrap_err();
+        assert!(e.contains("flag 9"), "{e}");
     }
 
     #[test]

@@ -26,7 +26,7 @@ use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
 use super::densify::{densify_and_prune, remove_gaussians, remove_where, DensifyParams, DensifyReport, DensifyScratch, Removal};
 use super::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, SH_C0};
 use super::loss::{LossConfig, LossError, LossTerms, LossWorkspace, TargetView};
-use super::medium_estimate::{estimate_medium, MediumEstimate, MediumPrior, MediumEstimateConfig, MediumEstimateError};
+use super::medium_estimate::{estimate_medium, set_coefficients, Coefficients, MediumEstimate, MediumEstimateConfig, MediumEstimateError, MediumPrior};
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
 use super::schedule::pick_keyframe;
@@ -487,7 +487,7 @@ pub struct Mapper {
     intersections_tight: bool,
     /// The newest closed-form medium estimate (some of its channels set the medium).
     medium_estimate: Option<MediumEstimate>,
-    /// The prior from the accepted channels of the estimates so far.
+    /// The prior on the coefficients the estimates so far determined.
     pub(crate) medium_prior: Option<MediumPrior>,
     /// Keyframe count of the next medium estimate; 0 once every channel is set (or off).
     pub(crate) medium_estimate_at: usize,
@@ -816,7 +816,7 @@ impl Mapper {
         if estimate_at > 0 && self.config.optimise_medium && self.keyframes.len() == estimate_at {
             let all = match self.estimate_medium() {
                 Ok(e) => {
-                    tracing::info!(beta_d = ?e.medium.beta_d, beta_b = ?e.medium.beta_b, b_inf = ?e.medium.b_inf, accepted = ?e.accepted, samples = e.samples, pairs = ?e.attenuation_pairs, "map.medium_estimate");
+                    tracing::info!(beta_d = ?e.medium.beta_d, beta_b = ?e.medium.beta_b, b_inf = ?e.medium.b_inf, determined = ?e.determined.map(|d| d.bits()), std_error = ?e.std_error, samples = e.samples, pairs = ?e.attenuation_pairs, "map.medium_estimate");
                     e.accepted.iter().all(|&a| a)
                 }
                 Err(e) => {
@@ -935,18 +935,25 @@ impl Mapper {
         Ok((added, evicted))
     }
 
-    /// The newest closed-form medium estimate, if one was made; its `accepted` channels set the medium.
+    /// The prior that holds the coefficients the estimates determined, once one did.
+    pub fn medium_prior(&self) -> Option<&MediumPrior> {
+        self.medium_prior.as_ref()
+    }
+
+    /// The newest closed-form medium estimate, if one was made; its `determined` coefficients set the medium.
     pub fn medium_estimate(&self) -> Option<&MediumEstimate> {
         self.medium_estimate.as_ref()
     }
 
     /// Estimates the water from the held keyframes ([`super::medium_estimate`]), sets the
-    /// medium network to it (uniform in direction, as a fresh network; moments reset; the
-    /// channels the estimate did not accept, and those an earlier estimate set that this one
-    /// moved by no more than `refine_medium_estimate_min_change`, keep the current medium
-    /// along the first keyframe's axis) and re-derives every Gaussian's base colour for the
-    /// new water. When no channel is taken, or on an error, the medium and map are unchanged
-    /// (the estimate is still kept as [`Self::medium_estimate`]).
+    /// medium network to it (uniform in direction, as a fresh network; moments reset) and
+    /// re-derives every Gaussian's base colour for the new water. Per channel, the
+    /// coefficients the estimate determined are taken ([`MediumEstimate::determined`]) and
+    /// held by the prior; the others keep the current medium along the first keyframe's axis.
+    /// A channel an earlier estimate set changes only when this one determines at least the
+    /// coefficients held so far and determines more or moved one of them by more than
+    /// `refine_medium_estimate_min_change`. When nothing is taken, or on an error, the medium
+    /// and map are unchanged (the estimate is still kept as [`Self::medium_estimate`]).
     pub fn estimate_medium(&mut self) -> Result<MediumEstimate, MapperError> {
         let _span = tracing::info_span!("map.medium_estimate", keyframes = self.keyframes.len()).entered();
         self.release_device_map()?;
@@ -956,28 +963,31 @@ impl Mapper {
         let estimate = estimate_medium(&keyframes, before.beta_d, &self.config.medium_estimate)?;
         self.medium_estimate = Some(estimate.clone());
         // A channel the medium already takes from an earlier estimate changes only when the
-        // new one moved it by more than the configured share.
+        // new one determines at least the coefficients held so far and either determines
+        // more or moved one by more than the configured share.
         let min_change = self.config.refine_medium_estimate_min_change;
-        let adopt: [bool; 3] = std::array::from_fn(|c| {
-            estimate.accepted[c]
-                && match &self.medium_prior {
-                    Some(p) if p.channels[c] => {
-                        let (a, b) = (&p.medium, &estimate.medium);
-                        let moved = |x: f64, y: f64| (y - x).abs() > min_change * x.abs();
-                        moved(a.beta_d[c], b.beta_d[c]) || moved(a.beta_b[c], b.beta_b[c]) || moved(a.b_inf[c], b.b_inf[c])
-                    }
-                    _ => true,
-                }
+        let adopt: [Coefficients; 3] = std::array::from_fn(|c| {
+            let new = estimate.determined[c];
+            let held = self.medium_prior.as_ref().map_or(Coefficients::NONE, |p| p.held[c]);
+            if !new.any() || !new.contains(held) {
+                return Coefficients::NONE;
+            }
+            let Some(p) = self.medium_prior.as_ref().filter(|_| held.any() && new == held) else {
+                return new;
+            };
+            let (a, b) = (&p.medium, &estimate.medium);
+            let moved = |x: f64, y: f64| (y - x).abs() > min_change * x.abs();
+            if (new.beta_d && moved(a.beta_d[c], b.beta_d[c])) || (new.beta_b && moved(a.beta_b[c], b.beta_b[c])) || (new.b_inf && moved(a.b_inf[c], b.b_inf[c])) {
+                new
+            } else {
+                Coefficients::NONE
+            }
         });
-        if !adopt.iter().any(|&a| a) {
+        if !adopt.iter().any(|a| a.any()) {
             return Ok(estimate);
         }
         let mut water = before;
-        for c in (0..3).filter(|&c| adopt[c]) {
-            water.beta_d[c] = estimate.medium.beta_d[c];
-            water.beta_b[c] = estimate.medium.beta_b[c];
-            water.b_inf[c] = estimate.medium.b_inf[c];
-        }
+        set_coefficients(&mut water, &estimate.medium, adopt);
         let mut medium = self.config.medium;
         for c in 0..3 {
             medium.init_c_med[c] = water.b_inf[c].clamp(1e-3, 0.999);
@@ -987,16 +997,14 @@ impl Mapper {
         let old = std::mem::replace(&mut self.medium, MediumNet::new(&medium)?);
         let mut prior = self.medium_prior.unwrap_or(MediumPrior {
             medium: water,
-            channels: [false; 3],
+            held: [Coefficients::NONE; 3],
             weight: self.config.medium_prior_weight,
             rel_std: self.config.medium_prior_rel_std,
             b_inf_std: self.config.medium_prior_b_inf_std,
         });
-        for c in (0..3).filter(|&c| adopt[c]) {
-            prior.channels[c] = true;
-            prior.medium.beta_d[c] = water.beta_d[c];
-            prior.medium.beta_b[c] = water.beta_b[c];
-            prior.medium.b_inf[c] = water.b_inf[c];
+        set_coefficients(&mut prior.medium, &water, adopt);
+        for (c, a) in adopt.iter().enumerate().filter(|(_, a)| a.any()) {
+            prior.held[c] = *a;
         }
         self.medium_prior = Some(prior);
         self.medium_adam.reset_moments();

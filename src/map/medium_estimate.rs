@@ -40,10 +40,14 @@
 //!    the attenuation and its offset the backscatter difference, so all three are determined
 //!    without assuming anything about the albedo, given enough range difference.
 //! 6. **Gate.** The fit's standard errors (Gauss-Newton covariance, scaled up by the square
-//!    root of the pairs per sample, since a sample enters several pairs) decide which channels
-//!    are [`MediumEstimate::accepted`]. In clear water a short sequence sees the backscatter
-//!    only in its nearly linear start, where `B_inf` and `beta_B` trade against each other;
-//!    the gate refuses such a channel instead of handing the mapper a wrong one.
+//!    root of the pairs per sample, since a sample enters several pairs) decide which
+//!    coefficients are [`MediumEstimate::determined`] (a `beta` at the search's bound is not),
+//!    and a channel with all three is [`MediumEstimate::accepted`]. In clear water a short
+//!    sequence sees the green and blue backscatter only in its nearly linear start, where
+//!    `B_inf` and `beta_B` trade against each other, and the red backscatter only once it
+//!    has saturated, where `beta_B` is free; the gate refuses such coefficients instead of
+//!    handing the mapper wrong ones, and takes the channel's others when `B_inf` is among
+//!    them ([`MediumEstimateConfig::per_coefficient`]).
 //!
 //! A channel without enough pairs keeps the configured initial water for `beta_D`; no
 //! sample at all is an error that says what was missing. Everything is f64 and
@@ -87,11 +91,17 @@ pub struct MediumEstimateConfig {
     pub min_direct: f64,
     /// Relative range disagreement beyond which a projected sample counts as occluded.
     pub occlusion_tolerance: f64,
-    /// A channel's fit is used only when the standard errors of `ln beta_D` and `ln beta_B`
-    /// are below this (relative errors)...
+    /// A coefficient of a channel's fit counts as determined only when its standard error is
+    /// below this: `ln beta_D` and `ln beta_B` (relative errors)...
     pub max_rel_std_error: f64,
-    /// ...and the standard error of `B_inf` below this (fraction of full scale).
+    /// ...and `B_inf` below this (fraction of full scale).
     pub max_b_inf_std_error: f64,
+    /// Take each coefficient the fit determined, also from a channel whose other coefficients
+    /// it did not, provided `B_inf` is among them ([`MediumEstimate::determined`]); off, a
+    /// channel is all or nothing. In clear water the red light is gone within metres: its
+    /// attenuation and veiling light are seen, but its backscatter saturates before the
+    /// nearest range and its `beta_B` is free.
+    pub per_coefficient: bool,
     /// Backscatter/attenuation alternations (>= 1).
     pub rounds: usize,
     /// Fewest pairs for a channel's `beta_D`.
@@ -125,6 +135,7 @@ impl Default for MediumEstimateConfig {
             max_pairs: 60_000,
             max_rel_std_error: 0.05,
             max_b_inf_std_error: 0.02,
+            per_coefficient: true,
         }
     }
 }
@@ -169,13 +180,81 @@ impl MediumEstimateConfig {
     }
 }
 
+/// Which coefficients of one colour channel an estimate determined, or a prior holds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct Coefficients {
+    pub beta_d: bool,
+    pub beta_b: bool,
+    pub b_inf: bool,
+}
+
+impl Coefficients {
+    pub const ALL: Coefficients = Coefficients { beta_d: true, beta_b: true, b_inf: true };
+    pub const NONE: Coefficients = Coefficients { beta_d: false, beta_b: false, b_inf: false };
+
+    pub fn all(self) -> bool {
+        self.beta_d && self.beta_b && self.b_inf
+    }
+    pub fn any(self) -> bool {
+        self.beta_d || self.beta_b || self.b_inf
+    }
+    /// Every coefficient `other` has, this has too.
+    pub fn contains(self, other: Coefficients) -> bool {
+        self.bits() & other.bits() == other.bits()
+    }
+    /// Bit 0 `beta_D`, bit 1 `beta_B`, bit 2 `B_inf`.
+    pub fn bits(self) -> u32 {
+        self.beta_d as u32 | (self.beta_b as u32) << 1 | (self.b_inf as u32) << 2
+    }
+    /// The inverse of [`Self::bits`]; higher bits are ignored.
+    pub fn from_bits(bits: u32) -> Coefficients {
+        Coefficients { beta_d: bits & 1 != 0, beta_b: bits & 2 != 0, b_inf: bits & 4 != 0 }
+    }
+}
+
+/// `all`, `none`, or the names joined by `+` (`beta_D+B_inf`).
+impl std::fmt::Display for Coefficients {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.all() {
+            return f.write_str("all");
+        }
+        if !self.any() {
+            return f.write_str("none");
+        }
+        let names = [(self.beta_d, "beta_D"), (self.beta_b, "beta_B"), (self.b_inf, "B_inf")];
+        let on: Vec<&str> = names.iter().filter(|(on, _)| *on).map(|(_, n)| *n).collect();
+        f.write_str(&on.join("+"))
+    }
+}
+
+/// Sets, per channel `c`, the coefficients `which[c]` names of `into` to those of `from`.
+pub fn set_coefficients(into: &mut MediumParams, from: &MediumParams, which: [Coefficients; 3]) {
+    for (c, w) in which.iter().enumerate() {
+        if w.beta_d {
+            into.beta_d[c] = from.beta_d[c];
+        }
+        if w.beta_b {
+            into.beta_b[c] = from.beta_b[c];
+        }
+        if w.b_inf {
+            into.b_inf[c] = from.b_inf[c];
+        }
+    }
+}
+
 /// The estimate and what it rests on.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct MediumEstimate {
-    /// The fitted water (use [`Self::or`]: only the [`Self::accepted`] channels are meant).
+    /// The fitted water (use [`Self::or`]: only the [`Self::accepted`] channels are meant,
+    /// and of the others only the [`Self::determined`] coefficients).
     pub medium: MediumParams,
-    /// Channels R, G, B whose fit converged with standard errors within the config's gates.
+    /// Channels R, G, B whose fit converged with every standard error within the config's gates.
     pub accepted: [bool; 3],
+    /// Per channel, the coefficients whose standard error is within its gate and which are
+    /// not at the search's bound (`beta` of 20 or 3e-4 per metre), when `B_inf` is one of
+    /// them (none otherwise). With [`MediumEstimateConfig::per_coefficient`] off, all of an
+    /// accepted channel's, none of another's.
+    pub determined: [Coefficients; 3],
     /// Depth blocks used.
     pub samples: usize,
     /// Pixels that saw open water (inverse depth 0).
@@ -192,14 +271,10 @@ pub struct MediumEstimate {
 }
 
 impl MediumEstimate {
-    /// The estimate with the channels it did not accept taken from `fallback`.
+    /// The estimate with the coefficients it did not determine taken from `fallback`.
     pub fn or(&self, fallback: &MediumParams) -> MediumParams {
-        let mut m = self.medium;
-        for c in (0..3).filter(|&c| !self.accepted[c]) {
-            m.beta_d[c] = fallback.beta_d[c];
-            m.beta_b[c] = fallback.beta_b[c];
-            m.b_inf[c] = fallback.b_inf[c];
-        }
+        let mut m = *fallback;
+        set_coefficients(&mut m, &self.medium, self.determined);
         m
     }
 }
@@ -502,6 +577,9 @@ fn fit_attenuation(pairs: &[Pair], bs: &Backscatter, c: usize, cfg: &MediumEstim
     ((beta.is_finite()).then_some(beta.max(0.0)), rows.len())
 }
 
+/// Bounds of the two-view fit's `ln beta_B` and `ln beta_D` (3.4e-4 to 20 per metre).
+const LN_BETA_RANGE: (f64, f64) = (-8.0, 3.0);
+
 /// Model of one channel: veiling light, backscatter and attenuation coefficients.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct ChannelModel {
@@ -519,7 +597,8 @@ impl ChannelModel {
         [self.b_inf, self.beta_b.ln(), self.beta_d.ln()]
     }
     fn from_theta(t: [f64; 3]) -> Self {
-        ChannelModel { b_inf: t[0].clamp(0.0, 1.0), beta_b: t[1].clamp(-8.0, 3.0).exp(), beta_d: t[2].clamp(-8.0, 3.0).exp() }
+        let (lo, hi) = LN_BETA_RANGE;
+        ChannelModel { b_inf: t[0].clamp(0.0, 1.0), beta_b: t[1].clamp(lo, hi).exp(), beta_d: t[2].clamp(lo, hi).exp() }
     }
 }
 
@@ -654,9 +733,26 @@ pub fn estimate_medium(keyframes: &[&Keyframe], beta_d_start: [f64; 3], cfg: &Me
     // the standard errors are scaled as if there were one observation per sample.
     let reuse = (pairs.len() as f64 / samples.len() as f64).max(1.0).sqrt();
     let std_error = std_error.map(|s| s.map(|v| v * reuse));
-    let accepted = std_error.map(|s| s[0] < cfg.max_b_inf_std_error && s[1] < cfg.max_rel_std_error && s[2] < cfg.max_rel_std_error);
+    let determined: [Coefficients; 3] = std::array::from_fn(|c| {
+        let (s, theta) = (std_error[c], models[c].theta());
+        let inside = |ln: f64| ln > LN_BETA_RANGE.0 + 1e-6 && ln < LN_BETA_RANGE.1 - 1e-6;
+        let d = Coefficients {
+            b_inf: s[0] < cfg.max_b_inf_std_error,
+            beta_b: s[1] < cfg.max_rel_std_error && inside(theta[1]),
+            beta_d: s[2] < cfg.max_rel_std_error && inside(theta[2]),
+        };
+        // Nothing of a channel whose veiling light is unknown: its attenuation was fitted to
+        // colours with an unknown backscatter removed (turbid blue from 4 tracked keyframes:
+        // `beta_D` 0.25 against 0.75, with a standard error of 2.4 %).
+        if d.all() || (cfg.per_coefficient && d.b_inf) {
+            d
+        } else {
+            Coefficients::NONE
+        }
+    });
     Ok(MediumEstimate {
-        accepted,
+        accepted: determined.map(Coefficients::all),
+        determined,
         medium: MediumParams {
             beta_d: models.map(|m| m.beta_d),
             beta_b: models.map(|m| m.beta_b),
@@ -676,14 +772,14 @@ pub fn estimate_medium(keyframes: &[&Keyframe], beta_d_start: [f64; 3], cfg: &Me
 /// directions of the medium only weakly (in clear water the backscatter is nearly linear in
 /// range, so only `B_inf beta_B` is seen), and without a prior they drift.
 ///
-/// Per pixel of a view and per accepted channel `c`:
+/// Per pixel of a view and per channel `c`, the sum of the terms of the coefficients it holds:
 /// `0.5 [ ((ln sigma_att - ln beta_D) / s)^2 + ((ln sigma_bs - ln beta_B) / s)^2 + ((c_med - B_inf) / s_B)^2 ]`
 /// with `s = rel_std`, `s_B = b_inf_std`; the loss is `weight` times the mean over pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MediumPrior {
     pub medium: MediumParams,
-    /// Channels the prior holds (the estimate's accepted ones).
-    pub channels: [bool; 3],
+    /// Per channel, the coefficients the prior holds (those the estimates determined).
+    pub held: [Coefficients; 3],
     pub weight: f64,
     pub rel_std: f64,
     pub b_inf_std: f64,
@@ -702,16 +798,20 @@ impl MediumPrior {
         let (s2, sb2) = (self.rel_std * self.rel_std, self.b_inf_std * self.b_inf_std);
         let mut loss = 0.0;
         for (px, g) in planes9.chunks_exact(MEDIUM_CHANNELS).zip(grad.chunks_exact_mut(MEDIUM_CHANNELS)) {
-            for c in (0..3).filter(|&c| self.channels[c]) {
-                for (at, target) in [(SIGMA_ATT + c, self.medium.beta_d[c]), (SIGMA_BS + c, self.medium.beta_b[c])] {
-                    let v = px[at].to_f64().max(1e-12);
-                    let e = v.ln() - target.ln();
-                    loss += 0.5 * e * e / s2;
-                    g[at] = g[at] + T::from_f64(k * e / (s2 * v));
+            for (c, held) in self.held.iter().enumerate() {
+                for (at, target, on) in [(SIGMA_ATT + c, self.medium.beta_d[c], held.beta_d), (SIGMA_BS + c, self.medium.beta_b[c], held.beta_b)] {
+                    if on {
+                        let v = px[at].to_f64().max(1e-12);
+                        let e = v.ln() - target.ln();
+                        loss += 0.5 * e * e / s2;
+                        g[at] = g[at] + T::from_f64(k * e / (s2 * v));
+                    }
                 }
-                let e = px[C_MED + c].to_f64() - self.medium.b_inf[c];
-                loss += 0.5 * e * e / sb2;
-                g[C_MED + c] = g[C_MED + c] + T::from_f64(k * e / sb2);
+                if held.b_inf {
+                    let e = px[C_MED + c].to_f64() - self.medium.b_inf[c];
+                    loss += 0.5 * e * e / sb2;
+                    g[C_MED + c] = g[C_MED + c] + T::from_f64(k * e / sb2);
+                }
             }
         }
         k * loss
@@ -737,7 +837,8 @@ mod tests {
     fn the_prior_gradient_matches_central_differences() {
         let prior = MediumPrior {
             medium: MediumParams { beta_d: [0.4, 0.1, 0.08], beta_b: [0.3, 0.07, 0.05], b_inf: [0.03, 0.2, 0.45] },
-            channels: [true, false, true],
+            // Whole, none, and a channel whose beta_B is free.
+            held: [Coefficients::ALL, Coefficients::NONE, Coefficients { beta_d: true, beta_b: false, b_inf: true }],
             weight: 0.7,
             rel_std: 0.1,
             b_inf_std: 0.02,
@@ -757,9 +858,10 @@ mod tests {
             worst = worst.max((fd - grad[i]).abs() / fd.abs().max(1e-3));
         }
         assert!(worst < 1e-6, "worst relative gradient error {worst}");
-        // The green channel is not held: no gradient there.
+        // The green channel is not held, nor blue's beta_B: no gradient there; the rest has one.
         for px in grad.chunks_exact(9) {
-            assert_eq!([px[1], px[4], px[7]], [0.0; 3]);
+            assert_eq!([px[1], px[4], px[7], px[8]], [0.0; 4]);
+            assert!([px[0], px[3], px[6], px[2], px[5]].iter().all(|&g| g != 0.0), "{px:?}");
         }
         // At the prior's own water the loss is zero.
         let at: Vec<f64> = (0..5).flat_map(|_| [0.03, 0.2, 0.45, 0.4, 0.1, 0.08, 0.3, 0.07, 0.05]).collect();
@@ -791,9 +893,26 @@ mod tests {
         let refs: Vec<&Keyframe> = kfs.iter().collect();
         let e = estimate_medium(&refs, [0.3, 0.15, 0.1], &MediumEstimateConfig::default()).unwrap();
         assert!(!e.accepted[1] && !e.accepted[2], "{e:?}");
+        // Their backscatter's B_inf-beta_B trade-off leaves beta_B undetermined.
+        assert!(!e.determined[1].beta_b && !e.determined[2].beta_b, "{e:?}");
+        assert!(e.determined.iter().all(|d| d.b_inf || !d.any()), "nothing without B_inf: {e:?}");
         let fallback = MediumParams { beta_d: [9.0; 3], beta_b: [8.0; 3], b_inf: [0.7; 3] };
         let kept = e.or(&fallback);
-        assert_eq!((kept.beta_d[2], kept.beta_b[2], kept.b_inf[2]), (9.0, 8.0, 0.7));
+        for c in 0..3 {
+            let d = e.determined[c];
+            assert_eq!(kept.beta_d[c], if d.beta_d { e.medium.beta_d[c] } else { 9.0 });
+            assert_eq!(kept.beta_b[c], if d.beta_b { e.medium.beta_b[c] } else { 8.0 });
+            assert_eq!(kept.b_inf[c], if d.b_inf { e.medium.b_inf[c] } else { 0.7 });
+        }
+        assert_eq!(Coefficients { beta_d: true, beta_b: false, b_inf: true }.to_string(), "beta_D+B_inf");
+        assert_eq!((Coefficients::ALL.to_string(), Coefficients::NONE.to_string()), ("all".into(), "none".into()));
+        // A channel at a time: the same fit, nothing of a channel short of all three.
+        let whole = MediumEstimateConfig { per_coefficient: false, ..MediumEstimateConfig::default() };
+        let w = estimate_medium(&refs, [0.3, 0.15, 0.1], &whole).unwrap();
+        assert_eq!((w.medium, w.accepted), (e.medium, e.accepted));
+        for c in 0..3 {
+            assert_eq!(w.determined[c], if e.accepted[c] { Coefficients::ALL } else { Coefficients::NONE });
+        }
         let (kfs, _) = generated(WaterPreset::Clear, 40.0, 40);
         let refs: Vec<&Keyframe> = kfs.iter().collect();
         let e = estimate_medium(&refs, [0.3, 0.15, 0.1], &MediumEstimateConfig::default()).unwrap();

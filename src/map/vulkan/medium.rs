@@ -401,7 +401,10 @@ pub fn record_medium_upstream(ctx: &mut GpuContext, bufs: &MediumPlaneBuffers, p
     w[0] = pixels as u32;
     w[2] = single_coefficient as u32;
     if let Some(p) = prior.filter(|p| p.weight != 0.0) {
-        w[1] = (0..3).filter(|&c| p.channels[c]).fold(0, |m, c| m | 1 << c);
+        w[1] = (0..3).fold(0, |m, c| {
+            let h = p.held[c];
+            m | (h.beta_d as u32) << c | (h.beta_b as u32) << (3 + c) | (h.b_inf as u32) << (6 + c)
+        });
         let f = |v: f64| (v as f32).to_bits();
         w[4] = f(p.weight / pixels as f64);
         w[5] = f(1.0 / (p.rel_std * p.rel_std));
