@@ -384,15 +384,21 @@ fn mapping_stage_spends_its_budget_and_exports() {
     }
 }
 
+/// A generated 160x120 turbid survey without vignetting, a keyframe every 5 frames, and a
+/// mapper capacity for it (20k Gaussians, 8 keyframes).
+fn small_turbid_survey(frames: usize) -> (SimRenderer, Vec<SimKeyframe>, MapperCapacity) {
+    let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
+    (cfg.width, cfg.height, cfg.frames, cfg.vignetting) = (160, 120, frames, 0.0);
+    let r = SimRenderer::new(&cfg).expect("sim");
+    let kfs = sim_keyframes(&r, 5, 8);
+    (r, kfs, MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 })
+}
+
 #[test]
 fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there() {
-    let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
-    (cfg.width, cfg.height, cfg.frames, cfg.vignetting) = (160, 120, 20, 0.0);
-    let r = SimRenderer::new(&cfg).expect("sim");
+    let (r, kfs, cap) = small_turbid_survey(20);
     let truth = *r.medium();
-    let kfs = sim_keyframes(&r, 5, 8);
     assert_eq!(kfs.len(), 4);
-    let cap = MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 };
     let pose0 = kfs[0].keyframe.world_from_cam;
     let mut maps = Vec::new();
     for at in [0, 4] {
@@ -433,11 +439,7 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
 #[test]
 fn an_estimate_that_determines_some_coefficients_of_a_channel_sets_and_holds_only_those() {
     use duv::map::medium_estimate::{Coefficients, MediumEstimateConfig};
-    let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
-    (cfg.width, cfg.height, cfg.frames, cfg.vignetting) = (160, 120, 20, 0.0);
-    let r = SimRenderer::new(&cfg).expect("sim");
-    let kfs = sim_keyframes(&r, 5, 8);
-    let cap = MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 };
+    let (_r, kfs, cap) = small_turbid_survey(20);
     let pose0 = kfs[0].keyframe.world_from_cam;
     // Gates no beta passes, and gates no B_inf passes. Turbid water from 4 keyframes is
     // otherwise determined whole (see the test above).
@@ -672,12 +674,8 @@ fn a_config_file_may_set_one_field_of_a_section_and_keep_the_other_defaults() {
 
 #[test]
 fn the_medium_estimate_is_made_again_with_more_keyframes_until_the_configured_count() {
-    let mut cfg = SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey);
-    (cfg.width, cfg.height, cfg.frames, cfg.vignetting) = (160, 120, 40, 0.0);
-    let r = SimRenderer::new(&cfg).expect("sim");
-    let kfs = sim_keyframes(&r, 5, 8);
+    let (_r, kfs, cap) = small_turbid_survey(40);
     assert_eq!(kfs.len(), 8);
-    let cap = MapperCapacity { max_gaussians: 20_000, max_keyframes: 8, width: 160, height: 120 };
     // (refine until, min change): the estimate's depth blocks at 4 and 8 keyframes, and
     // whether the medium network changed when the eighth keyframe came in.
     let mut runs = Vec::new();
