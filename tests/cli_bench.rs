@@ -70,8 +70,12 @@ fn bench_map_with_tracked_poses_maps_the_trackers_keyframes() {
     // The error tail: most seedable pixels within 5 %, the 90th percentile above the median.
     assert!(num(t, "seedable_over_5pct") < 0.3 && num(t, "p90_rel_error") > num(t, "median_rel_error"), "{t}");
     assert!(num(run, "mean_psnr_db") > 24.0, "{run}");
+    // Views between the keyframes, which the map was not optimised on, scored too.
+    let h = &run["heldout"];
+    assert!(num(h, "views") >= 1.0 && num(h, "views") < num(t, "keyframes"), "{h}");
+    assert!(num(h, "mean_psnr_db") > 20.0 && num(h, "mean_ssim") > 0.5, "{h}");
     let gaussians = run["gaussians_over_time"].as_array().unwrap().last().unwrap()[1].as_u64().unwrap();
     assert!(gaussians > 2000, "{gaussians} Gaussians");
     let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
-    assert!(md.contains("Tracked clear:") && md.contains("the tracker's keyframes"), "{md}");
+    assert!(md.contains("Tracked clear:") && md.contains("the tracker's keyframes") && md.contains("held-out PSNR"), "{md}");
 }

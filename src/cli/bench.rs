@@ -11,7 +11,7 @@ pub struct BenchArgs {
 enum BenchStage {
     /// Tracking: FPS, per-stage ms, frame latency, ATE with and without loop closure, AUSE, memory.
     Track(super::bench_track::BenchTrackArgs),
-    /// Mapping figures on generated sequences: PSNR/SSIM, recovered medium, ablation, ms/iteration, Gaussians over time.
+    /// Mapping figures on generated sequences: PSNR/SSIM (keyframes and held-out views), recovered medium, ablation, ms/iteration, Gaussians over time.
     Map(super::bench_map::BenchMapArgs),
     /// Soak test: a recorded log replayed in a loop through the whole pipeline for minutes; host RSS growth after warm-up.
     Replay(super::bench_replay::BenchReplayArgs),

@@ -7,7 +7,9 @@
 //! mean metres, as they do for the generator's keyframes.
 //!
 //! Per water (default clear and turbid) and per variant: keyframe PSNR/SSIM of the render
-//! against the input, PSNR of the restored image against the water-free view, the recovered
+//! against the input, PSNR of the restored image against the water-free view, the same on
+//! the frames halfway between consecutive keyframes (views the map was not optimised on,
+//! rendered from their true poses), the recovered
 //! `beta_D`/`beta_B`/`B_inf` along the first keyframe's axis against the generator's
 //! `medium.json`, ms per iteration and the Gaussian count over time. Variants (the paper's
 //! Tables 5-6): `full`, `no_medium` (medium fixed at ~zero: plain 3DGS), `one_coefficient`
@@ -31,7 +33,7 @@ use duv::map::pose_refine::PoseRefineConfig;
 use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
 use duv::sim::keyframes::SimKeyframe;
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv::sim::{SimConfig, SimFrame, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::config::board::Board;
 use duv::core::{Keyframe, PlaneF32};
 use duv::eval::{evaluate_trajectory, TrajectoryOptions};
@@ -256,6 +258,9 @@ struct RunResult {
     mean_psnr_db: f64,
     mean_ssim: f64,
     mean_restored_psnr_db: f64,
+    /// The same scores on the frames halfway between consecutive keyframes, which the map
+    /// was not optimised on, rendered from their true poses ([`heldout_frames`]).
+    heldout: Option<HeldOut>,
     medium: MediumParams,
     medium_truth: MediumParams,
     /// |recovered - truth| / truth, rows beta_D, beta_B, B_inf; columns R G B.
@@ -272,6 +277,27 @@ struct RunResult {
     /// the first's, as mapped and at the end (they differ with --refine-poses-every).
     pose_error_in: (f64, f64),
     pose_error_out: (f64, f64),
+}
+
+/// Scores of the held-out views.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+struct HeldOut {
+    views: usize,
+    mean_psnr_db: f64,
+    mean_ssim: f64,
+    mean_restored_psnr_db: f64,
+}
+
+/// The generated frames halfway between consecutive keyframes that are at least two frames
+/// apart: views of the same survey the map never optimised on. Their true poses are in the
+/// map's frame (tracked keyframes are moved into it by the Sim(3) alignment).
+fn heldout_frames(renderer: &SimRenderer, kfs: &[SimKeyframe]) -> Vec<SimFrame> {
+    kfs.windows(2)
+        .filter_map(|w| {
+            let (a, b) = (w[0].keyframe.index as usize, w[1].keyframe.index as usize);
+            (b >= a + 2 && b < renderer.len()).then(|| renderer.render((a + b) / 2))
+        })
+        .collect()
 }
 
 const VARIANTS: [&str; 5] = ["full", "no_medium", "one_coefficient", "no_mahalanobis", "no_kl"];
@@ -344,6 +370,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             }
         };
         anyhow::ensure!(!kfs.is_empty(), "no keyframes (with --poses tracked: the tracker kept none with depth; more --frames?)");
+        let heldout = heldout_frames(&renderer, &kfs);
         let variants: Vec<&str> = VARIANTS
             .iter()
             .copied()
@@ -433,6 +460,15 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 write_rgb8(&dir.join(format!("{:06}.png", s.keyframe.index)), &render_panel(&s.keyframe.image, out))?;
             }
             let n = kfs.len() as f64;
+            let (mut hp, mut hs, mut hr) = (0.0, 0.0, 0.0);
+            for f in &heldout {
+                let out = mapper.render(&kfs[0].keyframe.camera, &f.world_from_cam)?;
+                hp += psnr(&out.colour, &f.rgb.to_rgb_f32())?;
+                hs += ssim(&out.colour, &f.rgb.to_rgb_f32(), SsimConvention::Skimage)?;
+                hr += psnr(&out.restored, &f.clear.to_rgb_f32())?;
+            }
+            let m = heldout.len() as f64;
+            let heldout_metrics = (!heldout.is_empty()).then_some(HeldOut { views: heldout.len(), mean_psnr_db: hp / m, mean_ssim: hs / m, mean_restored_psnr_db: hr / m });
             let medium = mapper.medium_summary(&kfs[0].keyframe.world_from_cam);
             let r = RunResult {
                 water: water_name(water).into(),
@@ -442,6 +478,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 mean_psnr_db: p_sum / n,
                 mean_ssim: s_sum / n,
                 mean_restored_psnr_db: r_sum / n,
+                heldout: heldout_metrics,
                 medium,
                 medium_truth: truth,
                 medium_rel_error: medium.rel_error(&truth),
@@ -471,6 +508,9 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 r.ms_per_iteration,
                 mapper.gaussians().len()
             );
+            if let Some(h) = &r.heldout {
+                println!("{:8} {:16} held-out views ({}): PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB", r.water, r.variant, h.views, h.mean_psnr_db, h.mean_ssim, h.mean_restored_psnr_db);
+            }
             if let Some(g) = mapper.gpu() {
                 println!(
                     "{:8} {:16} GPU arena peak {:.1} MiB of {} MiB; per-kernel GPU ms per iteration:",
@@ -512,17 +552,18 @@ fn write_reports(a: &BenchMapArgs, init_stride_px: usize, results: &[RunResult])
         a.max_gaussians,
         init_stride_px
     );
-    md.push_str("| water | variant | PSNR dB | SSIM | restored PSNR dB | beta_D rel.err | beta_B rel.err | B_inf rel.err | ms/it | Gaussians |\n|---|---|---|---|---|---|---|---|---|---|\n");
+    md.push_str("| water | variant | PSNR dB | SSIM | restored PSNR dB | held-out PSNR dB / SSIM (restored) | beta_D rel.err | beta_B rel.err | B_inf rel.err | ms/it | Gaussians |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
     let f = |v: [f64; 3]| format!("{:.2} {:.2} {:.2}", v[0], v[1], v[2]);
     for r in results {
         let _ = writeln!(
             md,
-            "| {} | {} | {:.2} | {:.4} | {:.2} | {} | {} | {} | {:.1} | {} |",
+            "| {} | {} | {:.2} | {:.4} | {:.2} | {} | {} | {} | {} | {:.1} | {} |",
             r.water,
             r.variant,
             r.mean_psnr_db,
             r.mean_ssim,
             r.mean_restored_psnr_db,
+            r.heldout.map_or("-".into(), |h| format!("{:.2} / {:.4} ({:.2}), {} views", h.mean_psnr_db, h.mean_ssim, h.mean_restored_psnr_db, h.views)),
             f(r.medium_rel_error[0]),
             f(r.medium_rel_error[1]),
             f(r.medium_rel_error[2]),
