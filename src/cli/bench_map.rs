@@ -9,7 +9,8 @@
 //! Per water (default clear and turbid) and per variant: keyframe PSNR/SSIM of the render
 //! against the input, PSNR of the restored image against the water-free view, the same on
 //! the frames halfway between consecutive keyframes (views the map was not optimised on,
-//! rendered from their true poses), the recovered
+//! rendered from the tracker's poses for them with `--poses tracked`, else the true ones),
+//! the recovered
 //! `beta_D`/`beta_B`/`B_inf` along the first keyframe's axis against the generator's
 //! `medium.json`, ms per iteration and the Gaussian count over time. Variants (the paper's
 //! Tables 5-6): `full`, `no_medium` (medium fixed at ~zero: plain 3DGS), `one_coefficient`
@@ -35,7 +36,7 @@ use duv::sim::keyframes::sim_keyframes;
 use duv::sim::keyframes::SimKeyframe;
 use duv::sim::{SimConfig, SimFrame, SimRenderer, TrajectoryKind, WaterPreset};
 use duv::config::board::Board;
-use duv::core::{Keyframe, PlaneF32};
+use duv::core::{Keyframe, PlaneF32, Se3};
 use duv::eval::{evaluate_trajectory, TrajectoryOptions};
 use duv::track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
 
@@ -162,10 +163,14 @@ impl TrackedSummary {
     }
 }
 
+/// The tracker's keyframes in the ground-truth frame, its summary, and every frame's final
+/// tracked pose in that frame (by frame index).
+type Tracked = (Vec<SimKeyframe>, TrackedSummary, Vec<Se3>);
+
 /// Tracks every frame of `renderer` and returns the final keyframes that still have depth
 /// maps, in the ground-truth frame: poses through the ATE's Sim(3) `gt_from_est`, inverse
 /// depth divided by its scale and variance by its square.
-fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCapacity, seed_max_rel_std: f64) -> anyhow::Result<(Vec<SimKeyframe>, TrackedSummary)> {
+fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCapacity, seed_max_rel_std: f64) -> anyhow::Result<Tracked> {
     let frames = super::bench_track::render_frames(renderer);
     let mut tracker = Tracker::new(renderer.camera(), cfg, cap)?;
     let mut recorder = TrajectoryRecorder::new();
@@ -181,6 +186,8 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
     let ev = evaluate_trajectory(gt, &fin.frames, &TrajectoryOptions::default(), "ground truth", "tracked").context("aligning the tracked trajectory")?;
     let align = ev.gt_from_est;
     let scale = ev.report.alignment.scale;
+    anyhow::ensure!(fin.frames.len() == frames.len(), "the tracker returned {} poses for {} frames", fin.frames.len(), frames.len());
+    let frame_poses: Vec<Se3> = fin.frames.iter().map(|f| duv::core::pose::sim3_apply_to_pose(&align, &f.world_from_cam)).collect();
     let cam = *renderer.camera();
     let mut out = Vec::new();
     let (mut with_truth, mut rel_errors, mut rel_stds) = (0usize, Vec::new(), Vec::new());
@@ -246,7 +253,7 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
         seedable_over_5pct,
         p90_rel_error,
     };
-    Ok((out, summary))
+    Ok((out, summary, frame_poses))
 }
 
 #[derive(serde::Serialize)]
@@ -259,7 +266,7 @@ struct RunResult {
     mean_ssim: f64,
     mean_restored_psnr_db: f64,
     /// The same scores on the frames halfway between consecutive keyframes, which the map
-    /// was not optimised on, rendered from their true poses ([`heldout_frames`]).
+    /// was not optimised on ([`heldout_frames`]).
     heldout: Option<HeldOut>,
     medium: MediumParams,
     medium_truth: MediumParams,
@@ -289,13 +296,23 @@ struct HeldOut {
 }
 
 /// The generated frames halfway between consecutive keyframes that are at least two frames
-/// apart: views of the same survey the map never optimised on. Their true poses are in the
-/// map's frame (tracked keyframes are moved into it by the Sim(3) alignment).
-fn heldout_frames(renderer: &SimRenderer, kfs: &[SimKeyframe]) -> Vec<SimFrame> {
+/// apart, views of the same survey the map never optimised on, each with the pose it is
+/// rendered from: the tracker's (`tracked_poses`, by frame index, in the map's frame), as the
+/// keyframes are mapped at theirs, else the true one.
+fn heldout_frames(renderer: &SimRenderer, kfs: &[SimKeyframe], tracked_poses: Option<&[Se3]>) -> Vec<(SimFrame, Se3)> {
     kfs.windows(2)
         .filter_map(|w| {
             let (a, b) = (w[0].keyframe.index as usize, w[1].keyframe.index as usize);
-            (b >= a + 2 && b < renderer.len()).then(|| renderer.render((a + b) / 2))
+            let i = (a + b) / 2;
+            if b < a + 2 || b >= renderer.len() {
+                return None;
+            }
+            let f = renderer.render(i);
+            let pose = match tracked_poses {
+                Some(p) => *p.get(i)?,
+                None => f.world_from_cam,
+            };
+            Some((f, pose))
         })
         .collect()
 }
@@ -361,16 +378,16 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         let renderer = SimRenderer::new(&cfg).context("building the generated sequence")?;
         let truth = *renderer.medium();
         let renderer_poses = renderer.poses().to_vec();
-        let (kfs, tracked) = match &tracker {
-            None => (sim_keyframes(&renderer, a.every, usize::MAX), None),
+        let (kfs, tracked, frame_poses) = match &tracker {
+            None => (sim_keyframes(&renderer, a.every, usize::MAX), None, None),
             Some((tcfg, cap)) => {
-                let (k, t) = tracked_keyframes(&renderer, tcfg, *cap, base.init_max_rel_std).with_context(|| format!("tracking the {} survey", water_name(water)))?;
+                let (k, t, poses) = tracked_keyframes(&renderer, tcfg, *cap, base.init_max_rel_std).with_context(|| format!("tracking the {} survey", water_name(water)))?;
                 println!("{:8} tracked: {}", water_name(water), t.describe());
-                (k, Some(t))
+                (k, Some(t), Some(poses))
             }
         };
         anyhow::ensure!(!kfs.is_empty(), "no keyframes (with --poses tracked: the tracker kept none with depth; more --frames?)");
-        let heldout = heldout_frames(&renderer, &kfs);
+        let heldout = heldout_frames(&renderer, &kfs, frame_poses.as_deref());
         let variants: Vec<&str> = VARIANTS
             .iter()
             .copied()
@@ -461,8 +478,8 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             }
             let n = kfs.len() as f64;
             let (mut hp, mut hs, mut hr) = (0.0, 0.0, 0.0);
-            for f in &heldout {
-                let out = mapper.render(&kfs[0].keyframe.camera, &f.world_from_cam)?;
+            for (f, pose) in &heldout {
+                let out = mapper.render(&kfs[0].keyframe.camera, pose)?;
                 hp += psnr(&out.colour, &f.rgb.to_rgb_f32())?;
                 hs += ssim(&out.colour, &f.rgb.to_rgb_f32(), SsimConvention::Skimage)?;
                 hr += psnr(&out.restored, &f.clear.to_rgb_f32())?;
