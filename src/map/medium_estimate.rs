@@ -248,7 +248,7 @@ pub struct MediumEstimate {
     /// The fitted water (use [`Self::or`]: only the [`Self::accepted`] channels are meant,
     /// and of the others only the [`Self::determined`] coefficients).
     pub medium: MediumParams,
-    /// Channels R, G, B whose fit converged with every standard error within the config's gates.
+    /// Channels R, G, B with all three coefficients [`Self::determined`].
     pub accepted: [bool; 3],
     /// Per channel, the coefficients whose standard error is within its gate and which are
     /// not at the search's bound (`beta` of 20 or 3e-4 per metre), when `B_inf` is one of
