@@ -44,6 +44,28 @@ fn bench_track_on_a_tiny_survey_writes_json_and_table() {
     }
 }
 
+/// `duv bench map --novel-altitude-m`: the map scored on views of the survey flown lower,
+/// at the held-out frames; refused with tracked poses.
+#[test]
+fn bench_map_scores_views_from_another_altitude_with_true_poses_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["bench", "map", "--frames", "20", "--width", "160", "--height", "120", "--iterations", "30", "--waters", "turbid", "--ablation-water", "turbid"];
+    run_ok(&[&args[..], &["--only", "full", "--mapper", "cpu", "--novel-altitude-m", "1.5"]].concat(), dir.path());
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
+    let run = &json[0];
+    let num = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {v}"));
+    // Keyframes at frames 0, 5, 10 and 15: views at frames 2, 7 and 12.
+    let (held, novel) = (&run["heldout"], &run["novel_altitude"]);
+    assert_eq!((num(held, "views"), novel[0].as_f64()), (3.0, Some(1.5)), "{run}");
+    assert_eq!(num(&novel[1], "views"), 3.0, "{run}");
+    assert!(num(&novel[1], "mean_psnr_db") > 15.0 && num(&novel[1], "mean_psnr_db") < num(run, "mean_psnr_db"), "{run}");
+    let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(md.contains("views from 1.5 m altitude (3)"), "{md}");
+    let out = duv().args(["bench", "map", "--poses", "tracked", "--novel-altitude-m", "1.5", "--frames", "10", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--novel-altitude-m needs --poses gt"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
 #[test]
 fn bench_track_rejects_an_unknown_sequence() {
     let res = duv().args(["bench", "track", "--sequences", "reef", "--runs", "1"]).output().unwrap();
