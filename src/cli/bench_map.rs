@@ -418,8 +418,8 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         let novel: Vec<(SimFrame, Se3)> = match a.novel_altitude_m {
             None => Vec::new(),
             Some(altitude_m) => {
-                let higher = SimRenderer::new(&SimConfig { altitude_m, ..cfg.clone() }).context("--novel-altitude-m: building the survey at that altitude")?;
-                heldout_frames(&higher, &kfs, None)
+                let flown = SimRenderer::new(&SimConfig { altitude_m, ..cfg.clone() }).context("--novel-altitude-m: building the survey at that altitude")?;
+                heldout_frames(&flown, &kfs, None)
             }
         };
         let variants: Vec<&str> = VARIANTS
