@@ -79,3 +79,26 @@ fn a_missing_file_is_named_once_in_the_error() {
     assert!(line.contains("boards/no-such-board.toml"), "{line}");
     assert_eq!(line.matches("No such file or directory").count(), 1, "{line}");
 }
+
+/// `duv sim --altitude-swing`: the yo-yo profile reaches `sim.json` and the ground truth
+/// climbs and descends by the swing over one period.
+#[test]
+fn sim_flies_a_yo_yo_altitude_profile() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["sim", "--frames", "21", "--width", "32", "--height", "24", "--max-range", "6", "--wobble-scale", "0", "--no-progress"];
+    let out = duv().args(args).args(["--altitude-swing", "0.4", "--altitude-period", "2", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let sim: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("sim.json")).unwrap()).unwrap();
+    let cfg = &sim["config"];
+    assert_eq!((cfg["altitude_swing_m"].as_f64(), cfg["altitude_period_s"].as_f64()), (Some(0.4), Some(2.0)), "{sim}");
+    // TUM ground truth: `t tx ty tz qx qy qz qw`; frames 5 and 15 are the top and the bottom
+    // of the cycle (the seabed under the first lane is smooth, so z follows the swing).
+    let gt = std::fs::read_to_string(dir.path().join("groundtruth.txt")).unwrap();
+    let z: Vec<f64> = gt.lines().filter(|l| !l.starts_with('#') && !l.trim().is_empty()).map(|l| l.split_whitespace().nth(3).unwrap().parse().unwrap()).collect();
+    assert_eq!(z.len(), 21);
+    assert!(((z[5] - z[15]) - 0.8).abs() < 0.1, "top {} bottom {}", z[5], z[15]);
+    let bad = duv().args(args).args(["--altitude-swing", "2.5", "--out"]).arg(dir.path().join("bad")).output().unwrap();
+    assert!(!bad.status.success());
+    let stderr = String::from_utf8_lossy(&bad.stderr);
+    assert!(stderr.contains("altitude_swing_m = 2.5") && !stderr.contains("panicked"), "{stderr}");
+}

@@ -66,6 +66,25 @@ fn bench_map_scores_views_from_another_altitude_with_true_poses_only() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("--novel-altitude-m needs --poses gt"), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// `duv bench map --altitude-swing-m`: the survey flown with a yo-yo altitude profile is
+/// mapped and recorded as such; a swing that would take the camera below 0.3 m is named.
+#[test]
+fn bench_map_flies_the_survey_yo_yo_and_names_a_bad_swing() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = ["bench", "map", "--frames", "20", "--width", "160", "--height", "120", "--iterations", "30", "--waters", "turbid", "--ablation-water", "turbid", "--only", "full", "--mapper", "cpu"];
+    run_ok(&[&args[..], &["--altitude-swing-m", "0.6", "--altitude-period-s", "4"]].concat(), dir.path());
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
+    let run = &json[0];
+    assert_eq!((run["altitude_swing_m"].as_f64(), run["altitude_period_s"].as_f64()), (Some(0.6), Some(4.0)), "{run}");
+    assert!(run["mean_psnr_db"].as_f64().unwrap() > 20.0, "{run}");
+    let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+    assert!(md.contains("altitude 2 m +- 0.6 m (yo-yo, 4 s period)"), "{md}");
+    let out = duv().args(args).args(["--altitude-swing-m", "1.8", "--out"]).arg(dir.path()).output().unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("altitude_swing_m = 1.8") && stderr.contains("0.3 m"), "{stderr}");
+}
+
 #[test]
 fn bench_track_rejects_an_unknown_sequence() {
     let res = duv().args(["bench", "track", "--sequences", "reef", "--runs", "1"]).output().unwrap();

@@ -249,6 +249,36 @@ fn trajectories_keep_altitude_and_the_loop_closes() {
 }
 
 #[test]
+fn yo_yo_altitude_swings_by_the_set_amount_and_keeps_the_plan() {
+    // One 10 s cycle of +-0.6 m about 2 m; the planar path and the camera angles are the
+    // constant-altitude survey's.
+    let flat = SimConfig { frames: 101, width: 32, height: 24, max_range_m: 6.0, ..SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey) };
+    let yoyo = SimConfig { altitude_swing_m: 0.6, altitude_period_s: 10.0, ..flat.clone() };
+    let (a, b) = (SimRenderer::new(&flat).unwrap(), SimRenderer::new(&yoyo).unwrap());
+    let alt: Vec<f64> = (0..b.len()).map(|i| b.altitude_m(i).unwrap() - a.altitude_m(i).unwrap()).collect();
+    // Quarter and three-quarter cycle: highest and lowest.
+    assert!((alt[25] - 0.6).abs() < 1e-9 && (alt[75] + 0.6).abs() < 1e-9, "{} {}", alt[25], alt[75]);
+    assert!(alt[0].abs() < 1e-9 && alt[50].abs() < 1e-9 && alt[100].abs() < 1e-9);
+    for i in 0..b.len() {
+        let (pa, pb) = (a.pose(i).world_from_cam, b.pose(i).world_from_cam);
+        let d = pb.translation.vector - pa.translation.vector;
+        assert!(d.x.abs() < 1e-12 && d.y.abs() < 1e-12, "frame {i}: the plan moved");
+        assert!(pa.rotation.angle_to(&pb.rotation) < 1e-12, "frame {i}: the camera turned");
+    }
+    // The images see the seabed from other ranges: at the top of the climb the median depth
+    // is larger than flat's, at the bottom smaller (the 6 m max range trims the far end).
+    let median_depth = |r: &SimRenderer, i: usize| {
+        let mut d: Vec<f32> = r.render(i).depth_m.data.iter().copied().filter(|d| *d > 0.0).collect();
+        d.sort_by(f32::total_cmp);
+        d[d.len() / 2]
+    };
+    let (d_flat, d_up) = (median_depth(&a, 25), median_depth(&b, 25));
+    assert!(d_up > d_flat * 1.12, "median depth at the top {d_up} m vs flat {d_flat} m");
+    let (d_flat, d_down) = (median_depth(&a, 75), median_depth(&b, 75));
+    assert!(d_down < d_flat * 0.85, "median depth at the bottom {d_down} m vs flat {d_flat} m");
+}
+
+#[test]
 fn bad_input_is_a_clear_error_not_a_panic() {
     let base = small(WaterPreset::Coastal, TrajectoryKind::Survey, 2);
     let dir = tempfile::tempdir().unwrap();
@@ -259,6 +289,7 @@ fn bad_input_is_a_clear_error_not_a_panic() {
         (SimConfig { fps: 0.0, ..base.clone() }, "fps"),
         (SimConfig { fps: -10.0, ..base.clone() }, "fps"),
         (SimConfig { altitude_m: f64::INFINITY, ..base.clone() }, "altitude_m"),
+        (SimConfig { altitude_swing_m: 2.0, ..base.clone() }, "altitude_swing_m"),
     ];
     for (cfg, field) in cases {
         let e = write_sequence(&cfg, &dir.path().join("never"), false).unwrap_err();

@@ -124,6 +124,14 @@ pub struct BenchMapArgs {
     /// leaves the roll about the path open).
     #[arg(long, value_name = "M")]
     novel_altitude_m: Option<f64>,
+    /// Fly the generated survey with a yo-yo altitude profile (as `duv sim --altitude-swing`):
+    /// the altitude swings this far above and below 2 m, so the map sees the seabed from
+    /// different ranges (metres; 0 = constant altitude).
+    #[arg(long, value_name = "M", default_value_t = 0.0)]
+    altitude_swing_m: f64,
+    /// Period of the yo-yo altitude profile, seconds.
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    altitude_period_s: f64,
 }
 
 /// How the tracker did on a sequence whose keyframes were mapped (--poses tracked).
@@ -267,6 +275,9 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
 struct RunResult {
     water: String,
     variant: String,
+    /// The generated survey's yo-yo altitude swing and period (`--altitude-swing-m`; 0 = flat).
+    altitude_swing_m: f64,
+    altitude_period_s: f64,
     keyframes: usize,
     iterations: u64,
     mean_psnr_db: f64,
@@ -402,6 +413,8 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         cfg.width = a.width;
         cfg.height = a.height;
         cfg.vignetting = a.vignetting;
+        cfg.altitude_swing_m = a.altitude_swing_m;
+        cfg.altitude_period_s = a.altitude_period_s;
         let renderer = SimRenderer::new(&cfg).context("building the generated sequence")?;
         let truth = *renderer.medium();
         let renderer_poses = renderer.poses().to_vec();
@@ -418,7 +431,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         let novel: Vec<(SimFrame, Se3)> = match a.novel_altitude_m {
             None => Vec::new(),
             Some(altitude_m) => {
-                let flown = SimRenderer::new(&SimConfig { altitude_m, ..cfg.clone() }).context("--novel-altitude-m: building the survey at that altitude")?;
+                let flown = SimRenderer::new(&SimConfig { altitude_m, altitude_swing_m: 0.0, ..cfg.clone() }).context("--novel-altitude-m: building the survey at that altitude")?;
                 heldout_frames(&flown, &kfs, None)
             }
         };
@@ -517,6 +530,8 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             let r = RunResult {
                 water: water_name(water).into(),
                 variant: variant.into(),
+                altitude_swing_m: cfg.altitude_swing_m,
+                altitude_period_s: cfg.altitude_period_s,
                 keyframes: kfs.len(),
                 iterations: mapper.iteration(),
                 mean_psnr_db: p_sum / n,
@@ -585,10 +600,15 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
 fn write_reports(a: &BenchMapArgs, init_stride_px: usize, results: &[RunResult]) -> anyhow::Result<()> {
     write_atomic(&a.out.join("report.json"), serde_json::to_string_pretty(results)?.as_bytes())?;
     let mut md = format!(
-        "# duv bench map\n\n{}x{}, {} frames, {}, {}, cap {} Gaussians, seeded every {} px.\n\n",
+        "# duv bench map\n\n{}x{}, {} frames, {}, {}, {}, cap {} Gaussians, seeded every {} px.\n\n",
         a.width,
         a.height,
         a.frames,
+        if a.altitude_swing_m > 0.0 {
+            format!("altitude 2 m +- {} m (yo-yo, {} s period)", a.altitude_swing_m, a.altitude_period_s)
+        } else {
+            "altitude 2 m".into()
+        },
         match a.poses {
             PoseSource::Gt => format!("every {}th a keyframe (ground-truth poses and depth)", a.every),
             PoseSource::Tracked => "the tracker's keyframes, poses and depth (aligned to the ground truth by Sim(3))".into(),

@@ -37,6 +37,13 @@ pub struct SimArgs {
     /// Camera altitude above the large-scale seabed in metres [default: 2].
     #[arg(long)]
     altitude: Option<f64>,
+    /// Yo-yo altitude profile: the altitude swings this far above and below --altitude, metres
+    /// (one sine cycle every --altitude-period seconds) [default: 0, constant altitude].
+    #[arg(long)]
+    altitude_swing: Option<f64>,
+    /// Period of the yo-yo altitude profile in seconds [default: 20].
+    #[arg(long)]
+    altitude_period: Option<f64>,
     /// Camera pitch below the horizontal in degrees [default: 40, hover 35].
     #[arg(long)]
     pitch_deg: Option<f64>,
@@ -86,6 +93,12 @@ impl SimArgs {
         }
         if let Some(v) = self.altitude {
             cfg.altitude_m = v;
+        }
+        if let Some(v) = self.altitude_swing {
+            cfg.altitude_swing_m = v;
+        }
+        if let Some(v) = self.altitude_period {
+            cfg.altitude_period_s = v;
         }
         if let Some(v) = self.pitch_deg {
             cfg.pitch_down_deg = v;

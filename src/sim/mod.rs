@@ -110,6 +110,15 @@ pub struct SimConfig {
     pub speed_mps: f64,
     /// Nominal altitude of the camera above the large-scale seabed, metres.
     pub altitude_m: f64,
+    /// Yo-yo altitude profile: the altitude swings this far above and below `altitude_m`
+    /// (metres; 0 = constant altitude), `altitude_m + swing sin(2 pi t / period)`, so the
+    /// seabed is seen from different ranges along the way (as on an AUV that climbs and
+    /// descends over the survey, or a diver's camera).
+    #[serde(default)]
+    pub altitude_swing_m: f64,
+    /// Period of the yo-yo altitude profile, seconds.
+    #[serde(default = "default_altitude_period_s")]
+    pub altitude_period_s: f64,
     /// Camera pitch below the horizontal, degrees (forward-looking camera tilted down).
     pub pitch_down_deg: f64,
     pub wobble: Wobble,
@@ -153,6 +162,8 @@ impl SimConfig {
             hfov_deg: 70.0,
             speed_mps,
             altitude_m: 2.0,
+            altitude_swing_m: 0.0,
+            altitude_period_s: default_altitude_period_s(),
             pitch_down_deg,
             wobble: Wobble::DEFAULT,
             lamps: false,
@@ -217,6 +228,12 @@ impl SimConfig {
         if !finite_in(self.altitude_m, 0.3, 20.0) {
             return bad("altitude_m", self.altitude_m, "an altitude in [0.3, 20] m");
         }
+        if !finite_in(self.altitude_swing_m, 0.0, 10.0) || self.altitude_m - self.altitude_swing_m < 0.3 {
+            return bad("altitude_swing_m", self.altitude_swing_m, "a swing in [0, 10] m that keeps the lowest altitude (altitude_m - swing) at 0.3 m or more");
+        }
+        if !finite_in(self.altitude_period_s, 1.0, 10_000.0) {
+            return bad("altitude_period_s", self.altitude_period_s, "a period in [1, 10000] s");
+        }
         if !finite_in(self.pitch_down_deg, 0.0, 90.0) {
             return bad("pitch_down_deg", self.pitch_down_deg, "a pitch in [0, 90] degrees below the horizontal");
         }
@@ -254,6 +271,10 @@ impl SimConfig {
 }
 
 const MAX_FRAMES: usize = 1_000_000;
+
+fn default_altitude_period_s() -> f64 {
+    20.0
+}
 const MAX_SIDE: usize = 16_384;
 
 /// Errors of the `sim` module.
@@ -294,6 +315,9 @@ mod tests {
             (SimConfig { vignetting: 1.5, ..base.clone() }, "vignetting"),
             (SimConfig { noise_sigma: -0.1, ..base.clone() }, "noise_sigma"),
             (SimConfig { wobble: Wobble { heave_m: f64::NAN, ..Wobble::DEFAULT }, ..base.clone() }, "wobble.heave_m"),
+            (SimConfig { altitude_swing_m: 1.8, ..base.clone() }, "altitude_swing_m"),
+            (SimConfig { altitude_swing_m: -0.1, ..base.clone() }, "altitude_swing_m"),
+            (SimConfig { altitude_period_s: 0.0, ..base.clone() }, "altitude_period_s"),
         ];
         for (cfg, field) in cases {
             let e = cfg.validate().unwrap_err();
@@ -312,5 +336,11 @@ mod tests {
         let back: SimConfig = serde_json::from_str(&text).unwrap();
         assert_eq!(back, cfg);
         assert!(text.contains("\"water\":\"clear\"") && text.contains("\"trajectory\":\"loop\""), "{text}");
+        // A sim.json written before the yo-yo profile existed reads as a flat survey.
+        let mut old: serde_json::Value = serde_json::from_str(&text).unwrap();
+        old.as_object_mut().unwrap().retain(|k, _| !k.starts_with("altitude_swing") && !k.starts_with("altitude_period"));
+        let back: SimConfig = serde_json::from_value(old).unwrap();
+        assert_eq!((back.altitude_swing_m, back.altitude_period_s), (0.0, 20.0));
+        back.validate().unwrap();
     }
 }

@@ -231,8 +231,8 @@ pub fn camera_rotation(yaw: f64, pitch: f64, roll: f64, pitch_down: f64) -> Unit
     UnitQuaternion::from_rotation_matrix(&(world_from_body * body_from_cam))
 }
 
-/// Full 6-DoF poses, one per frame: the planar plan at `altitude_m` above `ground_ref(x, y)`
-/// (the smooth large-scale seabed height) plus the wobble.
+/// Full 6-DoF poses, one per frame: the planar plan at `altitude_m` (plus the yo-yo swing)
+/// above `ground_ref(x, y)` (the smooth large-scale seabed height) plus the wobble.
 pub fn poses(cfg: &SimConfig, plan: &PlanarPlan, ground_ref: impl Fn(f64, f64) -> f64) -> Vec<StampedPose> {
     let phases = WobblePhases::new(cfg.seed);
     let pitch_down = cfg.pitch_down_deg.to_radians();
@@ -242,7 +242,8 @@ pub fn poses(cfg: &SimConfig, plan: &PlanarPlan, ground_ref: impl Fn(f64, f64) -
         .map(|(i, s)| {
             let t = i as f64 / cfg.fps;
             let (roll, pitch, yaw, heave) = phases.sample(&cfg.wobble, t);
-            let z = ground_ref(s.x, s.y) + cfg.altitude_m + heave;
+            let swing = cfg.altitude_swing_m * (TAU * t / cfg.altitude_period_s).sin();
+            let z = ground_ref(s.x, s.y) + cfg.altitude_m + swing + heave;
             let rotation = camera_rotation(s.heading + yaw, pitch, roll, pitch_down);
             StampedPose { t_ns: timestamp(i, cfg.fps), world_from_cam: Se3::from_parts(Translation3::new(s.x, s.y, z), rotation) }
         })
