@@ -32,6 +32,7 @@ use duv::gpu::GpuOptions;
 use duv::map::vulkan::MapperDevice;
 use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv::map::pose_refine::PoseRefineConfig;
+use duv::map::render::DepthMode;
 use duv::map::stage::render_panel;
 use duv::sim::keyframes::sim_keyframes;
 use duv::sim::keyframes::SimKeyframe;
@@ -283,6 +284,8 @@ struct RunResult {
     mean_psnr_db: f64,
     mean_ssim: f64,
     mean_restored_psnr_db: f64,
+    /// The keyframes' rendered depth against the true depth.
+    depth: DepthScore,
     /// The same scores on the frames halfway between consecutive keyframes, which the map
     /// was not optimised on ([`heldout_frames`]).
     heldout: Option<HeldOut>,
@@ -304,6 +307,51 @@ struct RunResult {
     /// the first's, as mapped and at the end (they differ with --refine-poses-every).
     pose_error_in: (f64, f64),
     pose_error_out: (f64, f64),
+}
+
+/// The rendered depth (Eq. 11) of the keyframes against the generator's true depth, over the
+/// pixels where the true ray hit the scene.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+struct DepthScore {
+    /// Share of those pixels the map covers (rendered alpha >= 0.5).
+    coverage: f64,
+    /// Median of `|z - z_true| / z_true` over the covered pixels.
+    median_rel_error: f64,
+    /// Share of the covered pixels within 5 % of the true depth.
+    within_5pct: f64,
+}
+
+/// [`DepthScore`] of one view, as (covered pixels, pixels with truth), relative errors pushed
+/// onto `errors`. `depth` is in the mapper's [`DepthMode`].
+fn depth_errors(depth: &PlaneF32, alpha: &PlaneF32, true_z_m: &PlaneF32, mode: DepthMode, errors: &mut Vec<f64>) -> (usize, usize) {
+    let (mut covered, mut truth) = (0, 0);
+    for ((&d, &a), &z_true) in depth.data.iter().zip(&alpha.data).zip(&true_z_m.data) {
+        if !(z_true > 0.0 && z_true.is_finite()) {
+            continue;
+        }
+        truth += 1;
+        let z = match mode {
+            DepthMode::InverseDepth => 1.0 / d as f64,
+            DepthMode::Depth => d as f64,
+        };
+        if a >= 0.5 && d > 0.0 && z.is_finite() {
+            covered += 1;
+            errors.push((z - z_true as f64).abs() / z_true as f64);
+        }
+    }
+    (covered, truth)
+}
+
+fn depth_score(errors: &mut [f64], covered: usize, truth: usize) -> DepthScore {
+    if errors.is_empty() {
+        return DepthScore::default();
+    }
+    errors.sort_by(f64::total_cmp);
+    DepthScore {
+        coverage: covered as f64 / truth.max(1) as f64,
+        median_rel_error: errors[errors.len() / 2],
+        within_5pct: errors.iter().filter(|e| **e <= 0.05).count() as f64 / errors.len() as f64,
+    }
 }
 
 /// Scores of the held-out views.
@@ -428,6 +476,9 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         };
         anyhow::ensure!(!kfs.is_empty(), "no keyframes (with --poses tracked: the tracker kept none with depth; more --frames?)");
         let heldout = heldout_frames(&renderer, &kfs, frame_poses.as_deref());
+        // The true depth (z, metres; 0 where the ray hit nothing) of each keyframe's view from
+        // the pose it is mapped at (the tracker's, aligned, with --poses tracked).
+        let true_depth: Vec<PlaneF32> = kfs.iter().map(|s| renderer.depth_at(&s.keyframe.world_from_cam)).collect();
         let novel: Vec<(SimFrame, Se3)> = match a.novel_altitude_m {
             None => Vec::new(),
             Some(altitude_m) => {
@@ -515,8 +566,12 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             let dir = a.out.join(format!("{}-{variant}", water_name(water)));
             std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
             let (mut p_sum, mut s_sum, mut r_sum) = (0.0, 0.0, 0.0);
+            let (mut depth_errs, mut covered, mut with_truth) = (Vec::new(), 0, 0);
+            let depth_mode = mapper.config().render.depth_mode;
             for (slot, s) in kfs.iter().enumerate() {
                 let out = mapper.render_keyframe(slot)?;
+                let (c, t) = depth_errors(&out.depth, &out.alpha, &true_depth[slot], depth_mode, &mut depth_errs);
+                (covered, with_truth) = (covered + c, with_truth + t);
                 let input = s.keyframe.image.to_rgb_f32();
                 p_sum += psnr(&out.colour, &input)?;
                 s_sum += ssim(&out.colour, &input, SsimConvention::Skimage)?;
@@ -537,6 +592,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 mean_psnr_db: p_sum / n,
                 mean_ssim: s_sum / n,
                 mean_restored_psnr_db: r_sum / n,
+                depth: depth_score(&mut depth_errs, covered, with_truth),
                 heldout: heldout_metrics,
                 novel_altitude: novel_metrics.map(|m| (a.novel_altitude_m.unwrap_or(f64::NAN), m)),
                 medium,
@@ -567,6 +623,14 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 r.iterations,
                 r.ms_per_iteration,
                 mapper.gaussians().len()
+            );
+            println!(
+                "{:8} {:16} rendered depth: {:.1} % within 5 % of the truth, median rel.err {:.4}, coverage {:.1} %",
+                r.water,
+                r.variant,
+                100.0 * r.depth.within_5pct,
+                r.depth.median_rel_error,
+                100.0 * r.depth.coverage
             );
             if let Some(h) = &r.heldout {
                 println!("{:8} {:16} held-out views ({}): PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB", r.water, r.variant, h.views, h.mean_psnr_db, h.mean_ssim, h.mean_restored_psnr_db);
@@ -620,18 +684,21 @@ fn write_reports(a: &BenchMapArgs, init_stride_px: usize, results: &[RunResult])
         a.max_gaussians,
         init_stride_px
     );
-    md.push_str("| water | variant | PSNR dB | SSIM | restored PSNR dB | held-out PSNR dB / SSIM (restored) | beta_D rel.err | beta_B rel.err | B_inf rel.err | ms/it | Gaussians |\n|---|---|---|---|---|---|---|---|---|---|---|\n");
+    md.push_str("| water | variant | PSNR dB | SSIM | restored PSNR dB | held-out PSNR dB / SSIM (restored) | depth within 5 % (median rel.err, coverage) | beta_D rel.err | beta_B rel.err | B_inf rel.err | ms/it | Gaussians |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     let f = |v: [f64; 3]| format!("{:.2} {:.2} {:.2}", v[0], v[1], v[2]);
     for r in results {
         let _ = writeln!(
             md,
-            "| {} | {} | {:.2} | {:.4} | {:.2} | {} | {} | {} | {} | {:.1} | {} |",
+            "| {} | {} | {:.2} | {:.4} | {:.2} | {} | {:.3} ({:.4}, {:.3}) | {} | {} | {} | {:.1} | {} |",
             r.water,
             r.variant,
             r.mean_psnr_db,
             r.mean_ssim,
             r.mean_restored_psnr_db,
             r.heldout.map_or("-".into(), |h| format!("{:.2} / {:.4} ({:.2}), {} views", h.mean_psnr_db, h.mean_ssim, h.mean_restored_psnr_db, h.views)),
+            r.depth.within_5pct,
+            r.depth.median_rel_error,
+            r.depth.coverage,
             f(r.medium_rel_error[0]),
             f(r.medium_rel_error[1]),
             f(r.medium_rel_error[2]),

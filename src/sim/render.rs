@@ -151,6 +151,26 @@ impl SimRenderer {
         [(albedo[0] * irradiance[0]).clamp(0.0, 1.0), (albedo[1] * irradiance[1]).clamp(0.0, 1.0), (albedo[2] * irradiance[2]).clamp(0.0, 1.0)]
     }
 
+    /// True depth along the optical axis (metres; 0 where the ray hits nothing within the max
+    /// range) seen from any pose of this camera: the truth for a view rendered from an
+    /// estimated pose.
+    pub fn depth_at(&self, world_from_cam: &Se3) -> PlaneF32 {
+        let rotation = world_from_cam.rotation.to_rotation_matrix();
+        let origin = world_from_cam.translation.vector;
+        let (w, h) = (self.cfg.width, self.cfg.height);
+        let pixel_angle = 1.0 / self.camera.fx;
+        let mut depth = vec![0f32; w * h];
+        depth.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+            for (u, d) in row.iter_mut().enumerate() {
+                let ray_in_cam = &self.rays_in_cam[v * w + u];
+                if let Some(hit) = self.scene.intersect(&origin, &(rotation * ray_in_cam), self.cfg.max_range_m, pixel_angle) {
+                    *d = (hit.t * ray_in_cam.z) as f32;
+                }
+            }
+        });
+        PlaneF32 { width: w, height: h, data: depth }
+    }
+
     /// Renders frame `i`. Panics if `i >= len()`.
     pub fn render(&self, i: usize) -> SimFrame {
         let pose = self.poses[i];
