@@ -27,7 +27,8 @@
 struct LossParams {
     width: u32,
     height: u32,
-    pad0: u32,
+    // 1: the KL's spread is one-sided (LossConfig::kl_one_sided)
+    kl_one_sided: u32,
     pad1: u32,
     // photometric_weight (1 - lambda)
     l1_weight: f32,
@@ -187,9 +188,11 @@ fn loss_pixels(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_inv
             if (params.kl_weight > 0.0) {
                 let gk = params.kl_weight / f32(valid);
                 let v = max(s.y, 0.0) + params.kl_floor;
-                kl = 0.5 * (log(t.y / v) + (v + r * r) / t.y - 1.0);
+                let narrower = params.kl_one_sided != 0u && v < t.y;
+                let v_eff = select(v, t.y, narrower);
+                kl = 0.5 * (log(t.y / v_eff) + (v_eff + r * r) / t.y - 1.0);
                 dd += gk * r / t.y;
-                if (s.y >= 0.0) {
+                if (s.y >= 0.0 && !narrower) {
                     dv += gk * 0.5 * (1.0 / t.y - 1.0 / v);
                 }
             }

@@ -210,6 +210,7 @@ fn loss_kernels_match_total_loss() {
     // Every weight on and larger, so each term's gradient matters in the comparison.
     let strong = LossConfig { mahalanobis_weight: 0.5, kl_weight: 0.3, smoothness_weight: 0.7, accuracy_weight: 0.2, medium_variation_weight: 0.4, accuracy_beta: 0.6, ..LossConfig::default() };
     compare(&mut ctx, 61, 37, &strong, true, "strong weights 61x37");
+    compare(&mut ctx, 61, 37, &LossConfig { kl_one_sided: true, ..strong }, true, "one-sided KL 61x37");
 }
 
 #[test]

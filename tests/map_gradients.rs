@@ -116,6 +116,7 @@ fn only(term: &str) -> LossConfig {
         "photometric" => LossConfig { photometric_weight: 1.0, ..none },
         "mahalanobis" => LossConfig { mahalanobis_weight: 1.0, ..none },
         "kl" => LossConfig { kl_weight: 1.0, ..none },
+        "kl_one_sided" => LossConfig { kl_weight: 1.0, kl_one_sided: true, ..none },
         "smoothness" => LossConfig { smoothness_weight: 1.0, ..none },
         "accuracy" => LossConfig { accuracy_weight: 1.0, ..none },
         "medium_variation" => LossConfig { medium_variation_weight: 1.0, ..none },
@@ -128,7 +129,7 @@ fn loss_gradients_match_central_differences() {
     let base = Scene::new(11);
     let mut ws = LossWorkspace::<f64>::new(W + 4, H + 2);
     let mut worst = 0.0f64;
-    for term in ["l1", "ssim", "photometric", "mahalanobis", "kl", "smoothness", "accuracy", "medium_variation", "all"] {
+    for term in ["l1", "ssim", "photometric", "mahalanobis", "kl", "kl_one_sided", "smoothness", "accuracy", "medium_variation", "all"] {
         let config = only(term);
         base.loss(&mut ws, &config);
         let g = ws.grads().clone();

@@ -41,6 +41,14 @@
 //! bounded `1/(2 V')` remains. Minimising over `V` pulls the rendered spread to `var_t`.
 //! `v_floor` ([`LossConfig::kl_variance_floor`]) keeps the log finite.
 //!
+//! **One-sided spread** ([`LossConfig::kl_one_sided`]): the tracker's variance is its
+//! uncertainty about where the surface is, not a spread of the surface along the ray. Pulling
+//! `V` up to `var_t` smears a sharp surface over the tracker's uncertainty (measured: on the
+//! tracked yo-yo survey it cost 1-2 dB and depth accuracy; README, mapping figures). With the
+//! option, the variance part is taken at `V* = max(V', var_t)`: a rendered spread wider than
+//! `var_t` is pulled in as before, a narrower one is left alone (then `KL = r^2 / (2 var_t)`,
+//! and `dKL/dV = 0`). The value and its derivative are continuous at `V' = var_t`.
+//!
 //! # Depth smoothness (`L_RGB-c`)
 //! The paper only names a "cross-channel depth consistency". Deriving a depth per colour
 //! channel from the attenuation model needs the unattenuated radiance, which is itself a model
@@ -166,6 +174,9 @@ pub struct LossConfig {
     pub kl_weight: f64,
     /// Floor added to the rendered depth variance in the KL term, (depth unit)^2, > 0.
     pub kl_variance_floor: f64,
+    /// The KL term pulls the rendered depth spread in to the tracker's variance but not up to
+    /// it (module doc, "One-sided spread"); false: the two-sided KL of Eq. 12.
+    pub kl_one_sided: bool,
     /// Tracked depth variances above this, (depth unit)^2, mark the pixel invalid.
     pub max_track_variance: f64,
     /// Weight of the edge-aware depth smoothness (our `L_RGB-c`).
@@ -192,6 +203,7 @@ impl Default for LossConfig {
             mahalanobis_weight: 0.01,
             kl_weight: 0.01,
             kl_variance_floor: 1e-6,
+            kl_one_sided: false,
             max_track_variance: 1e4,
             smoothness_weight: 0.1,
             smoothness_edge_gamma: 10.0,
@@ -423,6 +435,7 @@ impl<T: Real> LossWorkspace<T> {
         track_variance: &Image<T, 1>,
         max_track_variance: f64,
         variance_floor: f64,
+        one_sided: bool,
         weight: T,
         d_depth: &mut Image<T, 1>,
         d_depth_variance: &mut Image<T, 1>,
@@ -438,7 +451,7 @@ impl<T: Real> LossWorkspace<T> {
         check_like("depth variance gradient", d_depth_variance, "rendered depth", depth)?;
         let track = Track { depth: track_depth, variance: track_variance, max_variance: T::from_f64(max_track_variance) };
         let floor = T::from_f64(variance_floor);
-        Ok(kl_term(depth, depth_variance, &track, floor, weight, d_depth, d_depth_variance, &mut self.row_sums[..h], &mut self.row_counts[..h]))
+        Ok(kl_term(depth, depth_variance, &track, floor, one_sided, weight, d_depth, d_depth_variance, &mut self.row_sums[..h], &mut self.row_counts[..h]))
     }
 
     /// Edge-aware depth smoothness (our `L_RGB-c`) guided by `image`; adds `weight * dL/dD`.
@@ -521,6 +534,7 @@ pub fn total_loss<T: Real>(ws: &mut LossWorkspace<T>, config: &LossConfig, rende
             rendered.depth_variance,
             &track,
             T::from_f64(cfg.kl_variance_floor),
+            cfg.kl_one_sided,
             T::from_f64(cfg.kl_weight),
             &mut g.d_depth,
             &mut g.d_depth_variance,
@@ -784,6 +798,7 @@ fn kl_term<T: Real>(
     depth_variance: &Image<T, 1>,
     track: &Track<T>,
     floor: T,
+    one_sided: bool,
     weight: T,
     d_depth: &mut Image<T, 1>,
     d_variance: &mut Image<T, 1>,
@@ -804,10 +819,13 @@ fn kl_term<T: Real>(
             if let Some((dt, var_t)) = track.get(i) {
                 let v_raw = depth_variance.data[i];
                 let v = v_raw.max(T::ZERO) + floor;
+                // One-sided: a spread narrower than the tracker's variance is taken as equal.
+                let narrower = one_sided && v < var_t;
+                let v_eff = if narrower { var_t } else { v };
                 let r = depth.data[i] - dt;
-                s += (half * ((var_t / v).ln() + (v + r * r) / var_t - T::ONE)).to_f64();
+                s += (half * ((var_t / v_eff).ln() + (v_eff + r * r) / var_t - T::ONE)).to_f64();
                 *dd += g * r / var_t;
-                if v_raw >= T::ZERO {
+                if v_raw >= T::ZERO && !narrower {
                     *dv += g * half * (T::ONE / var_t - T::ONE / v);
                 }
             }
@@ -986,11 +1004,39 @@ mod tests {
             let tv_one = plane(3, 1, |i| if i == k { tv.data[i] } else { f64::NAN });
             let mut ws = LossWorkspace::<f64>::new(3, 1);
             let (mut dd, mut dv) = (Image::new(3, 1), Image::new(3, 1));
-            let (value, valid) = ws.kl(&depth, &var, &td, &tv_one, 1e4, floor, 1.0, &mut dd, &mut dv).unwrap();
+            let (value, valid) = ws.kl(&depth, &var, &td, &tv_one, 1e4, floor, false, 1.0, &mut dd, &mut dv).unwrap();
             assert_eq!(valid, 1);
             let numeric = kl_numeric(m1, v1, m2, v2);
             assert!((value - numeric).abs() < 1e-8 * numeric.max(1.0), "{k}: {value} vs {numeric}");
         }
+    }
+
+    #[test]
+    fn one_sided_kl_leaves_a_narrower_spread_alone_and_pulls_a_wider_one_in() {
+        // Pixel 0: rendered spread 1e-4 under the tracked 4e-3; pixel 1: 1e-2 over it.
+        let floor = 1e-6;
+        let depth = plane(2, 1, |_| 0.5);
+        let var = plane(2, 1, |i| [1e-4, 1e-2][i] - floor);
+        let td = plane(2, 1, |_| 0.45);
+        let tv = plane(2, 1, |_| 4e-3);
+        let run = |one_sided: bool, k: usize| {
+            let tv_one = plane(2, 1, |i| if i == k { tv.data[i] } else { f64::NAN });
+            let mut ws = LossWorkspace::<f64>::new(2, 1);
+            let (mut dd, mut dv) = (Image::new(2, 1), Image::new(2, 1));
+            let (value, _) = ws.kl(&depth, &var, &td, &tv_one, 1e4, floor, one_sided, 1.0, &mut dd, &mut dv).unwrap();
+            (value, dd.data[k], dv.data[k])
+        };
+        let r2 = 0.05f64 * 0.05;
+        let (v_n, dd_n, dv_n) = run(true, 0);
+        assert!((v_n - r2 / (2.0 * 4e-3)).abs() < 1e-12, "narrower: the Mahalanobis half, {v_n}");
+        assert_eq!(dv_n, 0.0, "a narrower spread is not pushed up");
+        let (v_two, dd_two, dv_two) = run(false, 0);
+        assert!(v_two > v_n && dv_two < 0.0, "two-sided: pushed up ({v_two}, {dv_two})");
+        assert_eq!(dd_n, dd_two);
+        // Wider: the same as the two-sided KL, pulled in.
+        let (a, b) = (run(true, 1), run(false, 1));
+        assert_eq!(a, b);
+        assert!(a.2 > 0.0);
     }
 
     #[test]

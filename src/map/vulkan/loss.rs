@@ -50,7 +50,7 @@ fn loss_params(config: &LossConfig, width: usize, height: usize) -> [u32; PARAM_
     [
         width as u32,
         height as u32,
-        0,
+        config.kl_one_sided as u32,
         0,
         f(config.photometric_weight * (1.0 - config.ssim_lambda)),
         f(config.photometric_weight * config.ssim_lambda),
