@@ -77,6 +77,10 @@ fn bench_map_flies_the_survey_yo_yo_and_names_a_bad_swing() {
     let run = &json[0];
     assert_eq!((run["altitude_swing_m"].as_f64(), run["altitude_period_s"].as_f64()), (Some(0.6), Some(4.0)), "{run}");
     assert!(run["mean_psnr_db"].as_f64().unwrap() > 20.0, "{run}");
+    // The rendered depth of a map seeded from true depth: nearly all of it within 5 %.
+    let depth = &run["depth"];
+    let num = |k: &str| depth[k].as_f64().unwrap_or_else(|| panic!("{k} missing: {depth}"));
+    assert!(num("coverage") > 0.9 && num("within_5pct") > 0.8 && num("median_rel_error") < 0.02, "{depth}");
     let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
     assert!(md.contains("altitude 2 m +- 0.6 m (yo-yo, 4 s period)"), "{md}");
     let out = duv().args(args).args(["--altitude-swing-m", "1.8", "--out"]).arg(dir.path()).output().unwrap();

@@ -11,13 +11,14 @@
 //! the frames halfway between consecutive keyframes (views the map was not optimised on,
 //! rendered from the tracker's poses for them with `--poses tracked`, else the true ones;
 //! with `--novel-altitude-m`, also from those frames' positions flown at another altitude),
-//! the recovered
+//! the keyframes' rendered depth against the true depth of their views, the recovered
 //! `beta_D`/`beta_B`/`B_inf` along the first keyframe's axis against the generator's
 //! `medium.json`, ms per iteration and the Gaussian count over time. Variants (the paper's
 //! Tables 5-6): `full`, `no_medium` (medium fixed at ~zero: plain 3DGS), `one_coefficient`
 //! (`sigma_bs = sigma_att`), `no_mahalanobis`, `no_kl`. The ablation runs on `--ablation-water`
 //! only; the other waters run `full` and `no_medium`. Writes `report.json` and `report.md` and
-//! the render panels of every run into `--out`.
+//! the render panels of every run into `--out`. `--altitude-swing-m` flies the survey with a
+//! yo-yo altitude profile, so the map sees the seabed from several ranges per direction.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;

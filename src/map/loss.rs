@@ -42,12 +42,13 @@
 //! `v_floor` ([`LossConfig::kl_variance_floor`]) keeps the log finite.
 //!
 //! **One-sided spread** ([`LossConfig::kl_one_sided`]): the tracker's variance is its
-//! uncertainty about where the surface is, not a spread of the surface along the ray. Pulling
-//! `V` up to `var_t` smears a sharp surface over the tracker's uncertainty (measured: on the
-//! tracked yo-yo survey it cost 1-2 dB and depth accuracy; README, mapping figures). With the
-//! option, the variance part is taken at `V* = max(V', var_t)`: a rendered spread wider than
-//! `var_t` is pulled in as before, a narrower one is left alone (then `KL = r^2 / (2 var_t)`,
-//! and `dKL/dV = 0`). The value and its derivative are continuous at `V' = var_t`.
+//! uncertainty about where the surface is, not a spread of the surface along the ray, and
+//! pulling `V` up to `var_t` spreads a sharp surface over that uncertainty. With the option,
+//! the variance part is taken at `V* = max(V', var_t)`: a rendered spread wider than `var_t`
+//! is pulled in as before, a narrower one is left alone (then `KL = r^2 / (2 var_t)`, and
+//! `dKL/dV = 0`). The value and its derivative are continuous at `V' = var_t`. Measured on the
+//! generated surveys it moved PSNR by -0.16 to +0.21 dB and the share of rendered depth within
+//! 5 % of the truth by up to +1.9 points (README, mapping figures), so it is off by default.
 //!
 //! # Depth smoothness (`L_RGB-c`)
 //! The paper only names a "cross-channel depth consistency". Deriving a depth per colour
