@@ -272,6 +272,8 @@ fn yo_yo_altitude_swings_by_the_set_amount_and_keeps_the_plan() {
         d.sort_by(f32::total_cmp);
         d[d.len() / 2]
     };
+    // The depth alone, without shading, is the rendered frame's.
+    assert_eq!(b.depth_at(&b.pose(25).world_from_cam).data, b.render(25).depth_m.data);
     let (d_flat, d_up) = (median_depth(&a, 25), median_depth(&b, 25));
     assert!(d_up > d_flat * 1.12, "median depth at the top {d_up} m vs flat {d_flat} m");
     let (d_flat, d_down) = (median_depth(&a, 75), median_depth(&b, 75));

@@ -11,7 +11,7 @@
 //! the frames halfway between consecutive keyframes (views the map was not optimised on,
 //! rendered from the tracker's poses for them with `--poses tracked`, else the true ones;
 //! with `--novel-altitude-m`, also from those frames' positions flown at another altitude),
-//! the keyframes' rendered depth against the true depth of their views, the recovered
+//! the keyframes' rendered depth against the true depth of their images, the recovered
 //! `beta_D`/`beta_B`/`B_inf` along the first keyframe's axis against the generator's
 //! `medium.json`, ms per iteration and the Gaussian count over time. Variants (the paper's
 //! Tables 5-6): `full`, `no_medium` (medium fixed at ~zero: plain 3DGS), `one_coefficient`
@@ -310,8 +310,8 @@ struct RunResult {
     pose_error_out: (f64, f64),
 }
 
-/// The rendered depth (Eq. 11) of the keyframes against the generator's true depth, over the
-/// pixels where the true ray hit the scene.
+/// The rendered depth (Eq. 11) of the keyframes, each from the pose it is mapped at, against
+/// the true depth of the keyframe's image, over the pixels where the true ray hit the scene.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 struct DepthScore {
     /// Share of those pixels the map covers (rendered alpha >= 0.5).
@@ -477,9 +477,10 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         };
         anyhow::ensure!(!kfs.is_empty(), "no keyframes (with --poses tracked: the tracker kept none with depth; more --frames?)");
         let heldout = heldout_frames(&renderer, &kfs, frame_poses.as_deref());
-        // The true depth (z, metres; 0 where the ray hit nothing) of each keyframe's view from
-        // the pose it is mapped at (the tracker's, aligned, with --poses tracked).
-        let true_depth: Vec<PlaneF32> = kfs.iter().map(|s| renderer.depth_at(&s.keyframe.world_from_cam)).collect();
+        // The true depth (z, metres; 0 where the ray hit nothing) of each keyframe's image,
+        // from the pose it was taken at. Not from the tracker's aligned pose: the alignment
+        // leaves the roll about the path open, and the map is rendered in the tracker's frame.
+        let true_depth: Vec<PlaneF32> = kfs.iter().map(|s| renderer.depth_at(&renderer.pose(s.keyframe.index as usize).world_from_cam)).collect();
         let novel: Vec<(SimFrame, Se3)> = match a.novel_altitude_m {
             None => Vec::new(),
             Some(altitude_m) => {

@@ -47,8 +47,9 @@
 //! the variance part is taken at `V* = max(V', var_t)`: a rendered spread wider than `var_t`
 //! is pulled in as before, a narrower one is left alone (then `KL = r^2 / (2 var_t)`, and
 //! `dKL/dV = 0`). The value and its derivative are continuous at `V' = var_t`. Measured on the
-//! generated surveys it moved PSNR by -0.16 to +0.21 dB and the share of rendered depth within
-//! 5 % of the truth by up to +1.9 points (README, mapping figures), so it is off by default.
+//! generated surveys it moved PSNR by -0.16 to +0.21 dB and the share of tracked maps' rendered
+//! depth within 5 % of the truth by +1.8 and +2.4 points (README, mapping figures); it is off
+//! by default until measured on more surveys.
 //!
 //! # Depth smoothness (`L_RGB-c`)
 //! The paper only names a "cross-channel depth consistency". Deriving a depth per colour

@@ -152,8 +152,8 @@ impl SimRenderer {
     }
 
     /// True depth along the optical axis (metres; 0 where the ray hits nothing within the max
-    /// range) seen from any pose of this camera: the truth for a view rendered from an
-    /// estimated pose.
+    /// range) seen from any pose of this camera, without shading the image (`render(i)`'s
+    /// `depth_m` for frame `i`'s pose).
     pub fn depth_at(&self, world_from_cam: &Se3) -> PlaneF32 {
         let rotation = world_from_cam.rotation.to_rotation_matrix();
         let origin = world_from_cam.translation.vector;
