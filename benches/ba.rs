@@ -11,9 +11,9 @@ mod ba_scene;
 use std::time::{Duration, Instant};
 
 use ba_scene::{perturb, Scene};
-use duv::core::rng::Rng;
-use duv::core::{Image, PlaneF32, Se3};
-use duv::track::ba::{BaCapacity, BaConfig, BaWorkspace};
+use duv_core::rng::Rng;
+use duv_core::{Image, PlaneF32, Se3};
+use duv_track::ba::{BaCapacity, BaConfig, BaWorkspace};
 
 const RUNS: usize = 15;
 

@@ -2,8 +2,8 @@
 //! several runs of each pixel-format conversion (YUYV, GREY, RGB24, BayerRG8 into a reused
 //! image; MJPEG of a 38 kB 4:2:2 frame through zune-jpeg) and the frame rate it alone allows.
 
-use duv::camera::pixel::{bayer_rg8_to_rgb8, grey_to_gray8, mjpeg_to_rgb8, rgb24_to_rgb8, yuyv_to_rgb8};
-use duv::core::{ImageGray8, ImageRgb8};
+use duv_camera::pixel::{bayer_rg8_to_rgb8, grey_to_gray8, mjpeg_to_rgb8, rgb24_to_rgb8, yuyv_to_rgb8};
+use duv_core::{ImageGray8, ImageRgb8};
 use std::time::Instant;
 
 const MJPEG_640X480: &[u8] = include_bytes!("../tests/fixtures/camera/seabed_640x480.jpg");

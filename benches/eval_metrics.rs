@@ -1,8 +1,8 @@
 //! Image metrics at 640x480: `cargo bench --bench eval_metrics`. Prints the median of several
 //! runs of PSNR and SSIM (both conventions) on RGB and grey images.
 
-use duv::core::{ImageRgbF32, PlaneF32};
-use duv::eval::{psnr, ssim, SsimConvention};
+use duv_core::{ImageRgbF32, PlaneF32};
+use duv_eval::{psnr, ssim, SsimConvention};
 use std::time::Instant;
 
 fn median_ms(runs: usize, mut f: impl FnMut()) -> f64 {

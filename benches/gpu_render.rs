@@ -23,15 +23,15 @@ mod render_scene;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use duv::config::Board;
-use duv::core::rng::Rng;
-use duv::gpu::{GpuContext, GpuOptions, Kernel};
-use duv::map::gaussians::GaussianGrads;
-use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
-use duv::core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
-use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
-use duv::map::medium::{MediumConfig, MediumNet};
-use duv::map::vulkan::{GpuRenderer, MapperDevice, VulkanRenderError};
+use duv_core::config::Board;
+use duv_core::rng::Rng;
+use duv_gpu::{GpuContext, GpuOptions, Kernel};
+use duv_map::gaussians::GaussianGrads;
+use duv_map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
+use duv_core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
+use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv_map::medium::{MediumConfig, MediumNet};
+use duv_map::vulkan::{GpuRenderer, MapperDevice, VulkanRenderError};
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
 const RUNS: usize = 7;

@@ -6,10 +6,10 @@
 
 use std::time::{Duration, Instant};
 
-use duv::core::rng::Rng;
-use duv::core::{Image, PinholeCamera, Se3};
-use duv::map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
-use duv::map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace, MEDIUM_CHANNELS};
+use duv_core::rng::Rng;
+use duv_core::{Image, PinholeCamera, Se3};
+use duv_map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
+use duv_map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace, MEDIUM_CHANNELS};
 
 const RUNS: usize = 15;
 const W: usize = 320;

@@ -11,9 +11,9 @@ mod render_scene;
 
 use std::time::Instant;
 
-use duv::core::rng::Rng;
-use duv::core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
-use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv_core::rng::Rng;
+use duv_core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
+use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use render_scene::{camera, random_gaussians, world_from_cam};
 
 const RUNS: usize = 7;

@@ -13,9 +13,9 @@ use std::collections::BTreeMap;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use duv::core::rng::Rng;
-use duv::map::gaussians::GaussianGrads;
-use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
+use duv_core::rng::Rng;
+use duv_map::gaussians::GaussianGrads;
+use duv_map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 use tracing::span;
 use tracing_subscriber::layer::{Context, SubscriberExt};

@@ -8,12 +8,12 @@
 //! FINEST restricts the run to one finest level. With one thread the mean CPU time per edge of
 //! the worker (Linux `schedstat`) is printed too: on a shared machine it is the steadier figure.
 
-use duv::core::ImageRgbF32;
-use duv::track::flow::synth::{self, Water};
-use duv::track::flow::{FlowConfig, FlowEstimator, FlowField};
+use duv_core::ImageRgbF32;
+use duv_track::flow::synth::{self, Water};
+use duv_track::flow::{FlowConfig, FlowEstimator, FlowField};
 use std::time::Instant;
 
-fn views(w: usize, h: usize) -> (duv::core::PlaneF32, duv::core::PlaneF32) {
+fn views(w: usize, h: usize) -> (duv_core::PlaneF32, duv_core::PlaneF32) {
     let margin = w / 8;
     let canvas: ImageRgbF32 = synth::radiance(w + 2 * margin, h + 2 * margin, 1);
     // Motion of about 2 % of the width plus a small rotation.

@@ -5,8 +5,8 @@
 //! cargo run --release --example flow_bias -- clear|coastal|turbid [GAP_FRAMES] [SEED_GAIN] [SCENE_SEED]
 //! ```
 //! A negative SEED_GAIN runs unseeded; `ROWS=1` prints the gain, weight and error of every row.
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::flow::{FlowConfig, FlowEstimator};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_track::flow::{FlowConfig, FlowEstimator};
 use nalgebra::Vector3;
 
 fn main() {
@@ -31,7 +31,7 @@ fn main() {
         let rel = fb.world_from_cam.inv_mul(&fa.world_from_cam);
         let (pw, ph) = est.pooled_size();
         // Seed: the true flow times `seed_gain` (a scale error of the BA estimate).
-        let mut seed = duv::track::flow::FlowField::zeros(pw, ph, 8);
+        let mut seed = duv_track::flow::FlowField::zeros(pw, ph, 8);
         for y in 0..ph {
             for x in 0..pw {
                 let (u, v) = (x * 8 + 4, y * 8 + 4);

@@ -7,7 +7,7 @@
 //! ```text
 //! cargo run --release --example sim_range_brightness -- [clear|coastal|turbid] [FRAME,FRAME,...]
 //! ```
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 
 const FINER: usize = 4;
 const RANGE_EDGES_M: [f32; 8] = [0.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 40.0];

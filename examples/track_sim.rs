@@ -8,7 +8,7 @@
 #[path = "../tests/common/track_sim.rs"]
 mod track_sim;
 
-use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
+use duv_sim::{SimRenderer, TrajectoryKind, WaterPreset};
 use std::time::Instant;
 
 fn main() {
@@ -60,7 +60,7 @@ fn main() {
         // Scale of every live keyframe after each insertion (true depth x estimated inverse depth).
         let f = cfg.resolved_depth_factor(w, h);
         let gt_depth: Vec<_> = (0..frames).map(|i| renderer.render(i).depth_m).collect();
-        let mut tracker = duv::track::Tracker::new(renderer.camera(), &cfg, track_sim::capacity(threads)).unwrap();
+        let mut tracker = duv_track::Tracker::new(renderer.camera(), &cfg, track_sim::capacity(threads)).unwrap();
         for fr in &images {
             let out = tracker.track(fr).unwrap();
             if out.new_keyframe.is_none() {
@@ -114,22 +114,22 @@ fn main() {
         }
         println!("{line}");
         let states: String = r.outputs.iter().map(|o| match o.state {
-            duv::track::TrackingState::Tracking => if o.new_keyframe.is_some() { 'K' } else { '.' },
-            duv::track::TrackingState::Initializing => 'i',
-            duv::track::TrackingState::Relocalised => 'R',
-            duv::track::TrackingState::Lost(_) => 'L',
+            duv_track::TrackingState::Tracking => if o.new_keyframe.is_some() { 'K' } else { '.' },
+            duv_track::TrackingState::Initializing => 'i',
+            duv_track::TrackingState::Relocalised => 'R',
+            duv_track::TrackingState::Lost(_) => 'L',
         }).collect();
         println!("{states}");
     }
     if a.iter().any(|s| s == "ause") {
         // AUSE at the depth grid (no upsampling) and at full resolution, scale from the alignment.
-        let ev = duv::eval::trajectory::evaluate_trajectory(&renderer.poses()[..frames], &r.trajectory.frames, &Default::default(), "gt", "est").unwrap();
+        let ev = duv_eval::trajectory::evaluate_trajectory(&renderer.poses()[..frames], &r.trajectory.frames, &Default::default(), "gt", "est").unwrap();
         let scale = ev.report.alignment.scale;
         let f = r.tracker.depth_factor();
-        let opts = duv::eval::AuseOptions::default();
+        let opts = duv_eval::AuseOptions::default();
         let (mut low_sum, mut full_sum, mut rnd_sum, mut n) = (0.0, 0.0, 0.0, 0);
-        let mut inv = duv::core::PlaneF32::new(w, h);
-        let mut var = duv::core::PlaneF32::new(w, h);
+        let mut inv = duv_core::PlaneF32::new(w, h);
+        let mut var = duv_core::PlaneF32::new(w, h);
         for k in r.tracker.keyframes() {
             let Some(v) = k.variance else { continue };
             let gt = renderer.render(k.seq as usize).depth_m;
@@ -143,7 +143,7 @@ fn main() {
                     }
                 }
             }
-            let Ok(lo) = duv::eval::ause::ause(&e, &u, &opts) else { continue };
+            let Ok(lo) = duv_eval::ause::ause(&e, &u, &opts) else { continue };
             r.tracker.upsample_keyframe(k.id, &mut inv, &mut var).unwrap();
             let (mut e2, mut u2) = (Vec::new(), Vec::new());
             for ((&z, &d), &vv) in gt.data.iter().zip(&inv.data).zip(&var.data) {
@@ -152,7 +152,7 @@ fn main() {
                     u2.push(vv as f64);
                 }
             }
-            let Ok(fu) = duv::eval::ause::ause(&e2, &u2, &opts) else { continue };
+            let Ok(fu) = duv_eval::ause::ause(&e2, &u2, &opts) else { continue };
             low_sum += lo.ause;
             full_sum += fu.ause;
             rnd_sum += fu.ause_random;

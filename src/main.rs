@@ -7,7 +7,7 @@ use clap::{Parser, Subcommand};
 /// Counts allocations and live/peak heap bytes: the host-memory budget in the health
 /// telemetry, and the peak `duv bench` reports.
 #[global_allocator]
-static GLOBAL: duv::core::alloc::CountingAllocator = duv::core::alloc::CountingAllocator;
+static GLOBAL: duv_core::alloc::CountingAllocator = duv_core::alloc::CountingAllocator;
 
 /// Dense underwater visual SLAM: monocular tracking with depth uncertainty and a
 /// Gaussian-splat map of the seabed with the water modelled.
@@ -62,7 +62,7 @@ fn main() -> std::process::ExitCode {
     // The onboard commands page their fixed stores in when they are made (see
     // `prefault_large_allocations`): resident memory is flat from start-up.
     if matches!(cli.command, Command::Run(_) | Command::Replay(_) | Command::Demo(_)) {
-        duv::core::alloc::prefault_large_allocations(true);
+        duv_core::alloc::prefault_large_allocations(true);
     }
     let result = match cli.command {
         Command::Demo(a) => cli::demo::run(a),

@@ -1,6 +1,6 @@
 //! The counting allocator itself: counts, scopes, and live / peak bytes.
 
-use duv::core::alloc::{self, CountScope, CountingAllocator};
+use duv_core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;

@@ -1,4 +1,4 @@
-//! Bundle adjustment (`duv::track::ba`): analytic Jacobians against central differences, the
+//! Bundle adjustment (`duv_track::ba`): analytic Jacobians against central differences, the
 //! Schur solve and the covariance (Eq. 3-4) against dense solves of the full system built
 //! explicitly, the variance of unit weight against the known flow noise, convergence on a
 //! synthetic scene with and without outliers, motion-only BA, and the error variants of bad
@@ -8,10 +8,10 @@
 mod ba_scene;
 
 use ba_scene::{perturb, Scene};
-use duv::core::pose::se3_exp;
-use duv::core::rng::Rng;
-use duv::core::{Image, PinholeCamera, PlaneF32, RadTan, Se3};
-use duv::track::ba::{
+use duv_core::pose::se3_exp;
+use duv_core::rng::Rng;
+use duv_core::{Image, PinholeCamera, PlaneF32, RadTan, Se3};
+use duv_track::ba::{
     huber_weight, reproject, solve_motion_only, BaCapacity, BaConfig, BaError, BaWorkspace, Capacity, MotionOnlyObservation, Termination,
 };
 use nalgebra::{DMatrix, DVector, Vector2, Vector6};

@@ -7,10 +7,10 @@
 mod ba_scene;
 
 use ba_scene::{perturb, Scene};
-use duv::core::rng::Rng;
-use duv::core::{Image, PlaneF32, Se3};
-use duv::track::ba::{solve_motion_only, BaCapacity, BaConfig, BaWorkspace, MotionOnlyObservation};
-use duv::core::alloc::{self, CountingAllocator};
+use duv_core::rng::Rng;
+use duv_core::{Image, PlaneF32, Se3};
+use duv_track::ba::{solve_motion_only, BaCapacity, BaConfig, BaWorkspace, MotionOnlyObservation};
+use duv_core::alloc::{self, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;

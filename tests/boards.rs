@@ -1,7 +1,7 @@
 //! Every board profile in `boards/` parses, validates, and gives the capacities its comments
 //! promise; broken variants of a real board are refused with messages that name the key.
 
-use duv::config::{Board, BoardError};
+use duv_core::config::{Board, BoardError};
 use std::path::{Path, PathBuf};
 
 fn boards_dir() -> PathBuf {
@@ -77,7 +77,7 @@ fn host_plan_counts_the_mapper_keyframes() {
     for f in Board::files_in(&boards_dir()).unwrap() {
         let b = Board::load(&f).unwrap();
         let (w, h) = (b.camera.width as usize, b.camera.height as usize);
-        let plan = duv::pipeline::budget::plan(&b, w, h).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
+        let plan = duv_pipeline::budget::plan(&b, w, h).unwrap_or_else(|e| panic!("{}: {e}", f.display()));
         assert_eq!(plan.map_keyframe_bytes, b.budgets.map_keyframes as usize * w * h * 27, "{}", f.display());
         assert!(plan.total_bytes > plan.map_keyframe_bytes + plan.keyframe_store_bytes, "{}", f.display());
         assert!(plan.headroom_bytes() > 0, "{}", f.display());
@@ -87,7 +87,7 @@ fn host_plan_counts_the_mapper_keyframes() {
     let line = text.lines().find(|l| l.starts_with("map_keyframes =")).unwrap();
     let greedy = Board::parse(&path, &text.replace(line, "map_keyframes = 512")).unwrap();
     // 512 keyframes of 640x480 at 27 bytes a pixel: 4050 MiB, over the 3072 MiB host budget.
-    let err = duv::pipeline::budget::plan(&greedy, 640, 480).unwrap_err().to_string();
+    let err = duv_pipeline::budget::plan(&greedy, 640, 480).unwrap_err().to_string();
     assert!(err.contains("mapper keyframes 512 x 7.91 MiB = 4050.0 MiB"), "{err}");
     assert!(err.contains("budgets.host_mb = 3072"), "{err}");
 }

@@ -16,12 +16,12 @@
 
 #![cfg(feature = "aravis")]
 
-use duv::camera::aravis::AravisSource;
-use duv::camera::live::LiveSpec;
-use duv::camera::{CameraError, FrameSource, SourceStats};
-use duv::config::board::{Board, PixelFormat};
-use duv::core::{Frame, FrameImage};
-use duv::core::alloc::{count_allocations_on_this_thread, is_installed, CountingAllocator};
+use duv_camera::aravis::AravisSource;
+use duv_camera::live::LiveSpec;
+use duv_camera::{CameraError, FrameSource, SourceStats};
+use duv_core::config::board::{Board, PixelFormat};
+use duv_core::{Frame, FrameImage};
+use duv_core::alloc::{count_allocations_on_this_thread, is_installed, CountingAllocator};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};

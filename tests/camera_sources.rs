@@ -4,12 +4,12 @@
 //! frames at the board's size and frame rate with ground truth, paced in real time; the raw
 //! pixel conversions do not allocate once their image has its size.
 
-use duv::camera::pixel::{bayer_rg8_to_rgb8, grey_to_gray8, rgb24_to_rgb8, yuyv_to_rgb8};
-use duv::camera::{open_source, CameraError, SourceStats};
-use duv::config::board::Board;
-use duv::core::alloc::{count_allocations_on_this_thread, is_installed, CountingAllocator};
-use duv::core::{FrameImage, ImageGray8, ImageRgb8, Timestamp};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_camera::pixel::{bayer_rg8_to_rgb8, grey_to_gray8, rgb24_to_rgb8, yuyv_to_rgb8};
+use duv_camera::{open_source, CameraError, SourceStats};
+use duv_core::config::board::Board;
+use duv_core::alloc::{count_allocations_on_this_thread, is_installed, CountingAllocator};
+use duv_core::{FrameImage, ImageGray8, ImageRgb8, Timestamp};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use std::path::Path;
 use std::time::Instant;
 
@@ -149,7 +149,7 @@ fn dataset_specs_open_through_open_source() {
     std::fs::write(dir.path().join("calibration.txt"), "10 10 4 3 8 6\n").unwrap();
     for k in 0..3u8 {
         let img = ImageRgb8::filled(8, 6, [k * 10, 1, 2]);
-        duv::io::png_io::write_rgb8(&dir.path().join(format!("img{k}.png")), &img).unwrap();
+        duv_core::io::png_io::write_rgb8(&dir.path().join(format!("img{k}.png")), &img).unwrap();
     }
     let mut src = open_source(&format!("folder:{},fps=5", dir.path().display()), &board()).unwrap();
     assert_eq!(src.camera().width, 8);

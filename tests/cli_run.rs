@@ -3,12 +3,12 @@
 //! finished run, from its keyframe folder and from its MCAP log (whole, truncated, without
 //! keyframes); and clear errors for bad sources.
 
-use duv::core::MediumParams;
-use duv::io::keyframes::read_keyframe_folder;
-use duv::io::pfm::read_pfm;
-use duv::io::png_io::read_image;
-use duv::map::mapper::Mapper;
-use duv::map::ply::read_ply;
+use duv_core::MediumParams;
+use duv_core::io::keyframes::read_keyframe_folder;
+use duv_core::io::pfm::read_pfm;
+use duv_core::io::png_io::read_image;
+use duv_map::mapper::Mapper;
+use duv_map::ply::read_ply;
 use std::process::Command;
 
 fn duv() -> Command {
@@ -44,7 +44,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     assert!(stderr.contains("mapper renders with "), "the renderer is named: {stderr}");
 
     let traj = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
-    let poses = duv::io::tum::read_trajectory(&out.join("trajectory.txt")).unwrap();
+    let poses = duv_core::io::tum::read_trajectory(&out.join("trajectory.txt")).unwrap();
     assert_eq!(poses.len(), frames, "{traj}");
     let kf_text = std::fs::read_to_string(out.join("keyframes.txt")).unwrap();
     let kf_lines: Vec<&str> = kf_text.lines().filter(|l| !l.starts_with('#')).collect();
@@ -89,10 +89,10 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     // The log's map checkpoints refer to the keyframes' own log messages instead of embedding
     // their pixels; with the log's keyframes the newest one restores the same map as the
     // newest checkpoint file, and refinement can continue from it.
-    let from_log = duv::log::read_log_keyframes(&out, duv::log::ReadLimits::default()).unwrap();
+    let from_log = duv_log::read_log_keyframes(&out, duv_log::ReadLimits::default()).unwrap();
     let logged_map = from_log.newest_map.clone().expect("a map checkpoint in the log");
-    let (_, file_ckpt) = duv::pipeline::CheckpointStore::new(out.join("checkpoints"), 3).load_newest().expect("a checkpoint file");
-    let options = duv::map::checkpoint::RestoreOptions { keyframes: &from_log.keyframes, capacity: None };
+    let (_, file_ckpt) = duv_pipeline::CheckpointStore::new(out.join("checkpoints"), 3).load_newest().expect("a checkpoint file");
+    let options = duv_map::checkpoint::RestoreOptions { keyframes: &from_log.keyframes, capacity: None };
     let onboard = Mapper::from_checkpoint_bytes(&logged_map.bytes, "logged", options).unwrap();
     let on_disk = Mapper::from_checkpoint_bytes(&file_ckpt, "file", Default::default()).unwrap();
     // The logged checkpoint is smaller by at least every keyframe's RGB pixels.
@@ -151,7 +151,7 @@ fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
         .unwrap();
     assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
     let seg = out.join("log/segment-000000.mcap");
-    let summary = duv::log::inspect_log(&out.join("log"), duv::log::ReadLimits::default()).unwrap();
+    let summary = duv_log::inspect_log(&out.join("log"), duv_log::ReadLimits::default()).unwrap();
     let logged = summary.topics["/keyframe/pose"].messages as usize;
     assert!(logged >= 3, "{logged} keyframes logged");
     let refine_with = |flag: &str, from: &std::path::Path, to: &str| {
@@ -177,9 +177,9 @@ fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
 
     // The same keyframes as a keyframe folder refine to the same map (the folder's text poses
     // round to f64 printing, and the mapper's parallel sums are not ordered: 1e-4 dB measured).
-    let logged_kfs = duv::log::read_log_keyframes(&out, duv::log::ReadLimits::default()).unwrap().keyframes;
+    let logged_kfs = duv_log::read_log_keyframes(&out, duv_log::ReadLimits::default()).unwrap().keyframes;
     let folder = dir.path().join("as-folder");
-    duv::io::keyframes::write_keyframe_folder(&folder, &logged_kfs).unwrap();
+    duv_core::io::keyframes::write_keyframe_folder(&folder, &logged_kfs).unwrap();
     let (ok, stdout, stderr) = refine_with("--keyframes", &folder, "from-folder");
     assert!(ok, "stdout:\n{stdout}\nstderr:\n{stderr}");
     let f = metrics("from-folder");
@@ -198,7 +198,7 @@ fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
     let cut_file = cut.join("segment-000000.mcap");
     let kept = (50..100).find_map(|pct| {
         std::fs::write(&cut_file, &bytes[..bytes.len() * pct / 100]).unwrap();
-        let n = duv::log::read_log_keyframes(&cut, duv::log::ReadLimits::default()).map_or(0, |k| k.keyframes.len());
+        let n = duv_log::read_log_keyframes(&cut, duv_log::ReadLimits::default()).map_or(0, |k| k.keyframes.len());
         (n >= 1 && n < logged).then_some(n)
     });
     let kept = kept.expect("a cut that keeps some but not all keyframes");

@@ -3,13 +3,13 @@
 //! the file (and line), never a panic; a TUM-layout dataset written with the io writers reads
 //! back exactly; the `duv dataset` command summarises and checks.
 
-use duv::camera::dataset::npy::write_npy_f32;
-use duv::camera::dataset::{open_dataset, DatasetKind, DepthFormat};
-use duv::camera::{CameraError, FrameSource};
-use duv::core::pose::se3_from_tum;
-use duv::core::{FrameImage, ImageGray16, ImageGray8, ImageRgb8, PlaneF32, StampedPose, Timestamp};
-use duv::io::png_io::{write_gray16, write_gray8, write_rgb8};
-use duv::io::tum::{format_trajectory, write_trajectory};
+use duv_camera::dataset::npy::write_npy_f32;
+use duv_camera::dataset::{open_dataset, DatasetKind, DepthFormat};
+use duv_camera::{CameraError, FrameSource};
+use duv_core::pose::se3_from_tum;
+use duv_core::{FrameImage, ImageGray16, ImageGray8, ImageRgb8, PlaneF32, StampedPose, Timestamp};
+use duv_core::io::png_io::{write_gray16, write_gray8, write_rgb8};
+use duv_core::io::tum::{format_trajectory, write_trajectory};
 use nalgebra::{Point3, Vector3};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -134,7 +134,7 @@ fn tum_round_trip_through_the_io_writers_is_exact() {
         k += 1;
     }
     assert_eq!(k, 3);
-    let raw = duv::io::png_io::read_gray16(&d.depth.as_ref().unwrap().frames[1].path).unwrap();
+    let raw = duv_core::io::png_io::read_gray16(&d.depth.as_ref().unwrap().frames[1].path).unwrap();
     assert_eq!(raw, depth_image());
 }
 

@@ -1,10 +1,10 @@
 //! `duv eval` end to end on a small generated run: dataset folder, run folder, image pairs and
 //! depth maps in, report files out; and the errors bad input gets.
 
-use duv::core::pose::{se3_exp, sim3_apply_to_pose, sim3_from_parts};
-use duv::core::rng::Rng;
-use duv::core::{ImageGray16, ImageRgb8, PlaneF32, StampedPose, Timestamp};
-use duv::io::{pfm, png_io, tum};
+use duv_core::pose::{se3_exp, sim3_apply_to_pose, sim3_from_parts};
+use duv_core::rng::Rng;
+use duv_core::{ImageGray16, ImageRgb8, PlaneF32, StampedPose, Timestamp};
+use duv_core::io::{pfm, png_io, tum};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector6};
 use std::path::Path;
 use std::process::{Command, Output};
@@ -114,7 +114,7 @@ fn full_evaluation_writes_report_and_figures() {
         assert!(root.join("out").join(f).is_file(), "{f}");
     }
     // The report reads back into the library type.
-    let back: duv::eval::Report = serde_json::from_value(json).unwrap();
+    let back: duv_eval::Report = serde_json::from_value(json).unwrap();
     assert_eq!(back.images.unwrap().per_image[0].psnr_db, f64::INFINITY);
 }
 

@@ -1,10 +1,10 @@
 //! The evaluator against the reference tools: ATE/RPE against evo on the TUM trajectories
 //! in ../shared/data/trajectories, PSNR/SSIM against scikit-image and scipy.
 
-use duv::core::{ImageRgbF32, PlaneF32, StampedPose};
-use duv::eval::trajectory::{evaluate_trajectory, TrajectoryEvaluation, TrajectoryOptions};
-use duv::eval::{psnr, ssim, Alignment, SsimConvention};
-use duv::io::tum::read_trajectory;
+use duv_core::{ImageRgbF32, PlaneF32, StampedPose};
+use duv_eval::trajectory::{evaluate_trajectory, TrajectoryEvaluation, TrajectoryOptions};
+use duv_eval::{psnr, ssim, Alignment, SsimConvention};
+use duv_core::io::tum::read_trajectory;
 use std::path::Path;
 
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/trajectories");
@@ -128,7 +128,7 @@ fn pattern_b(x: i64, y: i64, c: i64) -> i64 {
     (pattern_a(x, y, c) + noise + block).clamp(0, 255)
 }
 
-fn images<const C: usize>(w: usize, h: usize) -> (duv::core::Image<f32, C>, duv::core::Image<f32, C>) {
+fn images<const C: usize>(w: usize, h: usize) -> (duv_core::Image<f32, C>, duv_core::Image<f32, C>) {
     let make = |f: fn(i64, i64, i64) -> i64| {
         let mut data = Vec::with_capacity(w * h * C);
         for y in 0..h {
@@ -138,7 +138,7 @@ fn images<const C: usize>(w: usize, h: usize) -> (duv::core::Image<f32, C>, duv:
                 }
             }
         }
-        duv::core::Image::<f32, C>::from_vec(w, h, data).unwrap()
+        duv_core::Image::<f32, C>::from_vec(w, h, data).unwrap()
     };
     (make(pattern_a), make(pattern_b))
 }

@@ -4,10 +4,10 @@
 //! Rayon's injector queue allocates a block every 63 calls made from outside a pool, so the
 //! tracker runs the flow inside its pool, as this test does (see the `track::flow` docs).
 
-use duv::core::PlaneF32;
-use duv::track::flow::synth::{self, Water};
-use duv::track::flow::{FeatureKind, FlowConfig, FlowEstimator, FlowField};
-use duv::core::alloc::{self, CountScope, CountingAllocator};
+use duv_core::PlaneF32;
+use duv_track::flow::synth::{self, Water};
+use duv_track::flow::{FeatureKind, FlowConfig, FlowEstimator, FlowField};
+use duv_core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;

@@ -10,13 +10,13 @@
 
 mod gpu_common;
 
-use duv::core::rng::Rng;
-use duv::gpu::{GpuBuffer, GpuContext, GpuError};
-use duv::map::adam::{retain_strided, AdamGroup, AdamGroupConfig};
-use duv::map::densify::{densify_and_prune, DensifyParams, DensifyScratch};
-use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
-use duv::map::render::sigmoid;
-use duv::map::vulkan::compact::{from_order_key, GpuCompaction, PruneInputs, PruneThresholds, MAX_GROUPS_X};
+use duv_core::rng::Rng;
+use duv_gpu::{GpuBuffer, GpuContext, GpuError};
+use duv_map::adam::{retain_strided, AdamGroup, AdamGroupConfig};
+use duv_map::densify::{densify_and_prune, DensifyParams, DensifyScratch};
+use duv_map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
+use duv_map::render::sigmoid;
+use duv_map::vulkan::compact::{from_order_key, GpuCompaction, PruneInputs, PruneThresholds, MAX_GROUPS_X};
 
 /// Gaussians of the main cases: 13 full workgroups and 7 more (6.5 scan blocks).
 const N: usize = 256 * 13 + 7;

@@ -6,14 +6,14 @@
 
 mod gpu_common;
 
-use duv::core::rng::Rng;
-use duv::core::Image;
-use duv::gpu::{GpuBuffer, GpuContext};
-use duv::map::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
-use duv::map::mapper::psnr_db;
-use duv::map::medium::{MediumPlanes, C_MED, MEDIUM_CHANNELS};
-use duv::map::vulkan::loss::{GpuLoss, LossBuffers};
-use duv::map::vulkan::VulkanRenderError;
+use duv_core::rng::Rng;
+use duv_core::Image;
+use duv_gpu::{GpuBuffer, GpuContext};
+use duv_map::loss::{total_loss, LossConfig, LossError, LossTerms, LossWorkspace, RenderedView, TargetView};
+use duv_map::mapper::psnr_db;
+use duv_map::medium::{MediumPlanes, C_MED, MEDIUM_CHANNELS};
+use duv_map::vulkan::loss::{GpuLoss, LossBuffers};
+use duv_map::vulkan::VulkanRenderError;
 
 /// Loss values: `|gpu - cpu| <= tol * max(|cpu|, 1e-6)` (f32 workgroup sums against f64 row
 /// sums; the GPU's exp/log are not correctly rounded).
@@ -279,7 +279,7 @@ fn loss_kernels_refuse_bad_input() {
 /// least recently used slot is refilled, and an unkeyed upload never leaves a reusable key.
 #[test]
 fn keyed_targets_are_kept_on_the_device() {
-    use duv::map::vulkan::loss::TargetKey;
+    use duv_map::vulkan::loss::TargetKey;
     let Some(mut ctx) = gpu_common::gpu_or_skip("keyed_targets_are_kept_on_the_device") else { return };
     let (w, h) = (45, 29);
     let mark = ctx.arena_used_bytes();

@@ -8,16 +8,16 @@ mod gpu_common;
 #[path = "common/render_scene.rs"]
 mod render_scene;
 
-use duv::core::rng::Rng;
-use duv::gpu::{BindingKind, Kernel};
-use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
-use duv::map::render::{
+use duv_core::rng::Rng;
+use duv_gpu::{BindingKind, Kernel};
+use duv_map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
+use duv_map::render::{
     emit_intersections, isect_key_bits, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
     sort_histogram_len, tile_ranges, DepthMode, ProjectedSplat, ProjectionSetup, RasterCapacity, RasterInputs, RasterWorkspace, RenderConfig, RenderError, RenderOutput, TileGrid, TileRect,
     project_backward, rasterize_backward, rasterize_forward, reduce_isect_grads, MediumPlanes, SplatGrad,
 };
-use duv::map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
-use duv::map::vulkan::{
+use duv_map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
+use duv_map::vulkan::{
     record_adam_step, RenderBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
     splat_floats, SETUP_WORDS, SPLAT_FLOATS,
 };
@@ -90,7 +90,7 @@ fn kernel_table_matches_the_host_layouts() {
     assert_eq!(sort.immediate_bytes, 16);
     assert_eq!(Kernel::PrefixSumScanAdd.info().immediate_bytes, 16);
     for k in [Kernel::RadixSortScatterSerial, Kernel::RadixSortHistogramSerial] {
-        assert_eq!(k.info().workgroup_size, [duv::gpu::ops::SERIAL_SCATTER_BLOCKS as u32, 1, 1], "{}: blocks per workgroup", k.name());
+        assert_eq!(k.info().workgroup_size, [duv_gpu::ops::SERIAL_SCATTER_BLOCKS as u32, 1, 1], "{}: blocks per workgroup", k.name());
     }
     assert_eq!(PARAMS_PER_GAUSSIAN, 23, "params layout of project_forward.wgsl");
     for k in Kernel::all() {
@@ -232,7 +232,7 @@ fn binning_sort_and_tile_ranges_match_the_cpu_stages() {
     ctx.begin().unwrap();
     bin.record(&mut ctx, &proj, &grid, n).unwrap();
     ctx.submit_and_wait().unwrap();
-    let read_u32 = |ctx: &duv::gpu::GpuContext, b: &duv::gpu::GpuBuffer<u32>, len: usize| {
+    let read_u32 = |ctx: &duv_gpu::GpuContext, b: &duv_gpu::GpuBuffer<u32>, len: usize| {
         let mut v = vec![0u32; len];
         ctx.read(b, &mut v).unwrap();
         v
@@ -870,7 +870,7 @@ fn no_vulkan_device_falls_back_to_the_cpu_reference_and_other_errors_do_not() {
     // Pure policy: no device needed.
     let (w, h) = (48, 32);
     let capacity = RasterCapacity { width: w, height: h, max_gaussians: 100, max_intersections: 1000 };
-    let unavailable = Err(duv::gpu::GpuError::NoDevice { seen: String::new() });
+    let unavailable = Err(duv_gpu::GpuError::NoDevice { seen: String::new() });
     let mut backend = RenderBackend::from_open_result(unavailable, capacity).unwrap();
     assert!(!backend.is_vulkan());
     let cam = camera(w, h, 40.0);
@@ -883,9 +883,9 @@ fn no_vulkan_device_falls_back_to_the_cpu_reference_and_other_errors_do_not() {
     RasterWorkspace::new(capacity).unwrap().forward(&g, &cam, &world_from_cam.inverse(), &medium, &RenderConfig::default(), &mut b).unwrap();
     assert_eq!(a, b, "the fallback is the CPU reference");
     // A device that exists but was asked for wrongly is an error, not a silent fallback.
-    let wrong = Err(duv::gpu::GpuError::NoMatchingDevice { env: duv::gpu::DEVICE_ENV, wanted: "nope".into(), seen: "0: llvmpipe".into() });
+    let wrong = Err(duv_gpu::GpuError::NoMatchingDevice { env: duv_gpu::DEVICE_ENV, wanted: "nope".into(), seen: "0: llvmpipe".into() });
     match RenderBackend::from_open_result(wrong, capacity) {
-        Err(VulkanRenderError::Gpu(duv::gpu::GpuError::NoMatchingDevice { wanted, .. })) => assert_eq!(wanted, "nope"),
+        Err(VulkanRenderError::Gpu(duv_gpu::GpuError::NoMatchingDevice { wanted, .. })) => assert_eq!(wanted, "nope"),
         other => panic!("expected NoMatchingDevice, got {}", if other.is_ok() { "a backend".to_string() } else { "another error".into() }),
     }
 }

@@ -4,12 +4,12 @@
 //! lavapipe in CI; no Vulkan device fails these tests (the mapper would fall back to the CPU,
 //! which they check for).
 
-use duv::gpu::GpuOptions;
-use duv::map::gaussians::{GaussianParam, Gaussians, ParamGroup};
-use duv::map::mapper::{psnr_db, Mapper, MapperCapacity, MapperConfig};
-use duv::map::vulkan::MapperDevice;
-use duv::sim::keyframes::{sim_keyframes, SimKeyframe};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_gpu::GpuOptions;
+use duv_map::gaussians::{GaussianParam, Gaussians, ParamGroup};
+use duv_map::mapper::{psnr_db, Mapper, MapperCapacity, MapperConfig};
+use duv_map::vulkan::MapperDevice;
+use duv_sim::keyframes::{sim_keyframes, SimKeyframe};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 
 const W: usize = 96;
 const H: usize = 72;
@@ -212,9 +212,9 @@ fn tile_overflow_prunes_instead_of_failing_on_both_renderers() {
 /// it was asked for, with the same map.
 #[test]
 fn restored_mapping_stage_keeps_the_vulkan_renderer() {
-    use duv::map::stage::{MappingBudget, MappingStage};
-    use duv::pipeline::mapping::StageMapping;
-    use duv::pipeline::MapStage;
+    use duv_map::stage::{MappingBudget, MappingStage};
+    use duv_pipeline::mapping::StageMapping;
+    use duv_pipeline::MapStage;
     let kfs = sequence(WaterPreset::Coastal);
     let dir = tempfile::tempdir().unwrap();
     let budget = MappingBudget { iterations_per_keyframe: 3, millis_per_keyframe: 0 };

@@ -8,15 +8,15 @@ mod gpu_common;
 
 use std::time::Instant;
 
-use duv::core::pose::so3_exp;
-use duv::core::rng::Rng;
-use duv::core::{PinholeCamera, RadTan, Se3};
-use duv::gpu::{GpuContext, GpuError};
-use duv::map::mapper::{nine_from_planes, planes_from_nine};
-use duv::map::medium::{MediumConfig, MediumError, MediumLayout, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace};
-use duv::map::render::MediumPlanes;
-use duv::map::vulkan::medium::{GpuMedium, GpuMediumError};
-use duv::map::vulkan::GpuRasterForward;
+use duv_core::pose::so3_exp;
+use duv_core::rng::Rng;
+use duv_core::{PinholeCamera, RadTan, Se3};
+use duv_gpu::{GpuContext, GpuError};
+use duv_map::mapper::{nine_from_planes, planes_from_nine};
+use duv_map::medium::{MediumConfig, MediumError, MediumLayout, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace};
+use duv_map::render::MediumPlanes;
+use duv_map::vulkan::medium::{GpuMedium, GpuMediumError};
+use duv_map::vulkan::GpuRasterForward;
 use nalgebra::{Translation3, Vector3};
 
 /// Forward planes: max `|gpu - cpu|` (the outputs are O(1); the GPU's sin, cos, exp and log
@@ -94,7 +94,7 @@ fn gpu_run(
     ctx: &mut GpuContext,
     medium: &mut GpuMedium,
     fwd: &GpuRasterForward,
-    upstream: [&duv::gpu::GpuBuffer<f32>; 3],
+    upstream: [&duv_gpu::GpuBuffer<f32>; 3],
     net: &MediumNet,
     cam: &PinholeCamera,
     pose: &Se3,
@@ -181,7 +181,7 @@ fn check_one(
     ctx: &mut GpuContext,
     medium: &mut GpuMedium,
     fwd: &GpuRasterForward,
-    up: [&duv::gpu::GpuBuffer<f32>; 3],
+    up: [&duv_gpu::GpuBuffer<f32>; 3],
     net: &MediumNet,
     (cam, pose): (&PinholeCamera, &Se3),
     d_planes: &MediumPlanes,
@@ -312,11 +312,11 @@ fn bad_input_is_an_error_not_a_panic() {
 /// `fold_single_coefficient`; with and without the fold, with a prior on two channels.
 #[test]
 fn medium_upstream_matches_the_prior_and_the_fold() {
-    use duv::core::MediumParams;
-    use duv::map::mapper::fold_single_coefficient;
-    use duv::map::medium::{C_MED, MEDIUM_CHANNELS};
-    use duv::map::medium_estimate::{Coefficients, MediumPrior};
-    use duv::map::vulkan::medium::{record_medium_upstream, MediumPlaneBuffers};
+    use duv_core::MediumParams;
+    use duv_map::mapper::fold_single_coefficient;
+    use duv_map::medium::{C_MED, MEDIUM_CHANNELS};
+    use duv_map::medium_estimate::{Coefficients, MediumPrior};
+    use duv_map::vulkan::medium::{record_medium_upstream, MediumPlaneBuffers};
     let Some(mut ctx) = gpu_common::gpu_or_skip("medium_upstream_matches_the_prior_and_the_fold") else { return };
     let (w, h) = (203, 5);
     let n = w * h;

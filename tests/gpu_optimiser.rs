@@ -6,10 +6,10 @@
 
 mod gpu_common;
 
-use duv::core::rng::Rng;
-use duv::map::adam::{AdamGroup, AdamGroupConfig};
-use duv::map::gaussians::{ParamGroup, PARAMS_PER_GAUSSIAN};
-use duv::map::vulkan::optimiser::GpuMapAdam;
+use duv_core::rng::Rng;
+use duv_map::adam::{AdamGroup, AdamGroupConfig};
+use duv_map::gaussians::{ParamGroup, PARAMS_PER_GAUSSIAN};
+use duv_map::vulkan::optimiser::GpuMapAdam;
 
 /// Parameters and moments: `|gpu - cpu| <= tol * max(1e-3, |cpu|)` (the device may fuse
 /// multiply-adds and its sqrt is not correctly rounded; the same tolerance as `adam_step`).
@@ -43,7 +43,7 @@ fn map_adam_matches_adam_group_per_group() {
 
 /// Three steps and the refusals with `GpuMapAdam::quads` set to `quads`; returns the
 /// parameters after the three steps.
-fn check_map_adam(ctx: &mut duv::gpu::GpuContext, quads: bool) -> Vec<f32> {
+fn check_map_adam(ctx: &mut duv_gpu::GpuContext, quads: bool) -> Vec<f32> {
     // 256 * 5 + 11 Gaussians: 23 values each, 1291 * 23 values, the last workgroup partial
     // (and the last invocation of four Gaussians three short).
     let n = 256 * 5 + 11;

@@ -4,12 +4,12 @@
 
 mod gpu_common;
 
-use duv::core::rng::Rng;
-use duv::gpu::{GpuBuffer, GpuContext, GpuError, GpuOptions};
-use duv::gpu::ops::{
+use duv_core::rng::Rng;
+use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuOptions};
+use duv_gpu::ops::{
     ballot_walk, record_ballot_walk, record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, BALLOT_WALK_END, BALLOT_WALK_WORDS, SCAN_BLOCK, SORT_BLOCK,
 };
-use duv::map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
+use duv_map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
 
 /// Sizes crossing the 512-element scan block and (300 007 > 512 * 512) the one-workgroup
 /// scan of the block sums, which then loops over more than one chunk.
@@ -137,7 +137,7 @@ fn splat_like_keys(rng: &mut Rng, n: usize, tiles: u64) -> Vec<u64> {
 /// sort of the pairs. Returns the sorted keys and values as read.
 fn sort_on_device_like_a_stable_sort(
     ctx: &mut GpuContext,
-    bufs: (&duv::gpu::GpuBuffer<u64>, &duv::gpu::GpuBuffer<u32>, &SortScratch),
+    bufs: (&duv_gpu::GpuBuffer<u64>, &duv_gpu::GpuBuffer<u32>, &SortScratch),
     keys: &[u64],
     values: &[u32],
     key_bits: u32,
@@ -458,7 +458,7 @@ fn device_choice_and_pipeline_cache_on_disk() {
     // A dispatch with the wrong number of buffers names the kernel.
     let b = small.alloc::<u32>("b", 16).unwrap();
     small.begin().unwrap();
-    let err = small.dispatch(duv::gpu::Kernel::RadixSortScan, &[b.range(), b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
+    let err = small.dispatch(duv_gpu::Kernel::RadixSortScan, &[b.range(), b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
     assert!(err.to_string().contains("radix_sort.scan"), "{err}");
     small.submit_and_wait().unwrap();
 }

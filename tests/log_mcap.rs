@@ -3,15 +3,15 @@
 //! corruption, oversized records against the memory budget, inspect, JPEG-logged frames
 //! (size against raw, decode PSNR, replay, the Python reader).
 
-use duv::core::alloc::{peak_bytes, reset_peak_bytes, CountingAllocator};
-use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
-use duv::log::reader::ReadLimits;
-use duv::log::recover::{is_finished, recover_segment};
-use duv::log::schema::{decode_frame, PoseRecord};
-use duv::camera::FrameSource;
-use duv::log::{inspect_log, list_segments, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogError, LogItem, SegmentWriter, Topic};
-use duv::replay::McapSource;
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_core::alloc::{peak_bytes, reset_peak_bytes, CountingAllocator};
+use duv_core::{Frame, FrameImage, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+use duv_log::reader::ReadLimits;
+use duv_log::recover::{is_finished, recover_segment};
+use duv_log::schema::{decode_frame, PoseRecord};
+use duv_camera::FrameSource;
+use duv_log::{inspect_log, list_segments, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogError, LogItem, SegmentWriter, Topic};
+use duv_log::replay::McapSource;
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::{Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -43,7 +43,7 @@ fn camera() -> PinholeCamera {
 
 fn keyframe(index: u64, t_ns: i64) -> Keyframe {
     let mut f = frame(index, t_ns);
-    let FrameImage::Rgb8(image) = std::mem::replace(&mut f.image, FrameImage::Gray8(duv::core::ImageGray8::new(1, 1))) else { unreachable!() };
+    let FrameImage::Rgb8(image) = std::mem::replace(&mut f.image, FrameImage::Gray8(duv_core::ImageGray8::new(1, 1))) else { unreachable!() };
     Keyframe {
         index,
         t_ns: Timestamp::from_ns(t_ns),
@@ -89,7 +89,7 @@ fn write_log(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64) -
     v
 }
 
-fn topic_counts(path: &Path) -> (BTreeMap<String, u64>, duv::log::ReadOutcome) {
+fn topic_counts(path: &Path) -> (BTreeMap<String, u64>, duv_log::ReadOutcome) {
     let mut counts = BTreeMap::new();
     let outcome = read_segment(path, ReadLimits::default(), |m| *counts.entry(m.channel.topic.clone()).or_insert(0) += 1).unwrap();
     (counts, outcome)
@@ -267,7 +267,7 @@ fn an_oversized_record_is_refused_without_allocating_it() {
     std::fs::write(&p, &bytes).unwrap();
     let limits = ReadLimits { max_record_bytes: 1 << 20 };
     reset_peak_bytes();
-    let before = duv::core::alloc::live_bytes();
+    let before = duv_core::alloc::live_bytes();
     let outcome = read_segment(&p, limits, |_| {}).unwrap();
     let grew = peak_bytes().saturating_sub(before);
     let d = outcome.damage.expect("an oversized record is damage");
@@ -341,7 +341,7 @@ fn jpeg_frames_are_compressed_images_that_decode_replay_and_shrink_the_log() {
         let t0 = std::time::Instant::now();
         let mut bytes = 0;
         for f in &frames {
-            duv::log::schema::encode_jpeg(&f.image, q, &mut buf).unwrap();
+            duv_log::schema::encode_jpeg(&f.image, q, &mut buf).unwrap();
             bytes += buf.len();
         }
         eprintln!("jpeg q{q}: {} bytes per frame, {:.1} ms per frame to encode", bytes / frames.len(), t0.elapsed().as_secs_f64() * 1e3 / frames.len() as f64);

@@ -4,12 +4,12 @@
 //! Image sizes are odd and prime-ish (23x17, 11x17) so that no pass lines up with the SSIM
 //! window, the medium's row bands or any other block size.
 
-use duv::core::rng::Rng;
-use duv::core::{Image, PinholeCamera, Se3};
-use duv::eval::image::{ssim as eval_ssim, SsimConvention};
-use duv::map::adam::{AdamGroup, AdamGroupConfig};
-use duv::map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
-use duv::map::medium::{MediumConfig, MediumGrid, MediumNet, MediumPlanes, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
+use duv_core::rng::Rng;
+use duv_core::{Image, PinholeCamera, Se3};
+use duv_eval::image::{ssim as eval_ssim, SsimConvention};
+use duv_map::adam::{AdamGroup, AdamGroupConfig};
+use duv_map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
+use duv_map::medium::{MediumConfig, MediumGrid, MediumNet, MediumPlanes, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
 /// Largest accepted relative error on a non-negligible gradient component.
@@ -302,8 +302,8 @@ fn medium_mlp_fits_a_constant_water_in_a_few_hundred_steps() {
 
 #[test]
 fn ssim_window_is_the_evaluators() {
-    let ours = duv::map::loss::ssim_kernel();
-    let theirs = duv::eval::image::gaussian_kernel();
+    let ours = duv_map::loss::ssim_kernel();
+    let theirs = duv_eval::image::gaussian_kernel();
     assert_eq!(ours, theirs);
 }
 

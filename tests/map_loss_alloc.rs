@@ -7,12 +7,12 @@
 //! by its start handler) as well as the calling thread; counting is armed only inside the pool
 //! job, after warm-up, so the one-off job injection into the pool is not counted.
 
-use duv::core::rng::Rng;
-use duv::core::{Image, PinholeCamera, Se3};
-use duv::map::adam::{AdamGroup, AdamGroupConfig};
-use duv::map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
-use duv::map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace};
-use duv::core::alloc::{self, CountScope, CountingAllocator};
+use duv_core::rng::Rng;
+use duv_core::{Image, PinholeCamera, Se3};
+use duv_map::adam::{AdamGroup, AdamGroupConfig};
+use duv_map::loss::{total_loss, LossConfig, LossWorkspace, RenderedView, TargetView};
+use duv_map::medium::{MediumConfig, MediumNet, MediumPlanes, MediumWorkspace};
+use duv_core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;

@@ -1,9 +1,9 @@
 //! Mapping stage: optimisation on generated keyframes, medium recovery, density control,
 //! checkpoint and PLY round trips. CI-sized (64x48 images, hundreds of Gaussians).
 
-use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
-use duv::sim::keyframes::{sim_keyframes, SimKeyframe};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv_sim::keyframes::{sim_keyframes, SimKeyframe};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 
 fn tiny_sequence(water: WaterPreset, frames: usize) -> (SimRenderer, Vec<SimKeyframe>) {
     let mut cfg = SimConfig::preset(water, TrajectoryKind::Survey);
@@ -35,7 +35,7 @@ fn mapping_raises_keyframe_psnr() {
         for i in 0..n {
             let img = m.keyframe(i).unwrap().image.to_rgb_f32();
             let out = m.render_keyframe(i).unwrap();
-            s += duv::map::mapper::psnr_db(&out.colour, &img);
+            s += duv_map::mapper::psnr_db(&out.colour, &img);
         }
         s / n as f64
     };
@@ -87,9 +87,9 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
         b[8..12].copy_from_slice(&version.to_le_bytes());
         let n = (b.len() - 20) as u64;
         b[12..20].copy_from_slice(&n.to_le_bytes());
-        let sum = duv::map::checkpoint::fnv1a64(&b[20..]);
+        let sum = duv_map::checkpoint::fnv1a64(&b[20..]);
         b.extend_from_slice(&sum.to_le_bytes());
-        Mapper::from_checkpoint_bytes(&b, "older version", duv::map::checkpoint::RestoreOptions::default()).unwrap()
+        Mapper::from_checkpoint_bytes(&b, "older version", duv_map::checkpoint::RestoreOptions::default()).unwrap()
     };
     let footprints = 8 + 4 * m.gaussians().len();
     assert_eq!(older(4, 0).checkpoint_bytes().unwrap(), bytes);
@@ -125,7 +125,7 @@ fn checkpoint_restore_renders_identically_and_continues_identically() {
 
 #[test]
 fn a_checkpoint_that_references_its_keyframes_restores_with_them_and_names_a_missing_one() {
-    use duv::map::checkpoint::{KeyframePixels, RestoreOptions};
+    use duv_map::checkpoint::{KeyframePixels, RestoreOptions};
     let (mut m, kfs) = small_mapper(MapperConfig::default(), 2000);
     for _ in 0..6 {
         m.iterate().unwrap();
@@ -184,7 +184,7 @@ fn hard_cap_holds_under_aggressive_densification() {
         let r = m.iterate().unwrap();
         assert!(m.gaussians().len() <= cap, "len {} > capacity {cap}", m.gaussians().len());
         assert_eq!(m.gaussians().capacity(), cap, "no buffer grows");
-        for g in duv::map::gaussians::ParamGroup::ALL {
+        for g in duv_map::gaussians::ParamGroup::ALL {
             assert_eq!(m.adam_group(g).len(), m.gaussians().len(), "Adam group {} aligned", g.name());
             assert_eq!(m.adam_group(g).capacity(), cap);
         }
@@ -212,7 +212,7 @@ fn a_full_map_makes_room_for_a_new_keyframes_surface() {
         }
         let added: Vec<usize> = kfs[1..].iter().map(|k| m.add_keyframe(k.keyframe.clone()).unwrap()).collect();
         assert!(m.gaussians().len() <= cap);
-        for g in duv::map::gaussians::ParamGroup::ALL {
+        for g in duv_map::gaussians::ParamGroup::ALL {
             assert_eq!(m.adam_group(g).len(), m.gaussians().len(), "Adam group {} aligned", g.name());
         }
         (first, added, m.gaussians().len())
@@ -230,7 +230,7 @@ fn a_full_map_makes_room_for_a_new_keyframes_surface() {
 
 #[test]
 fn prune_keeps_adam_moments_aligned() {
-    use duv::map::gaussians::ParamGroup;
+    use duv_map::gaussians::ParamGroup;
     let config = MapperConfig { densify_every: 0, densify_grad_threshold: 1e9, prune_min_opacity: 0.8, ..MapperConfig::default() };
     let (mut m, _) = small_mapper(config, 2000);
     for _ in 0..6 {
@@ -266,10 +266,10 @@ fn prune_keeps_adam_moments_aligned() {
 /// uniform medium; with the Gaussians fixed, the medium network alone is fitted to the image.
 #[test]
 fn recovers_known_medium_from_a_tilted_plane() {
-    use duv::core::rng::Rng;
-    use duv::core::{ImageRgbF32, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
-    use duv::map::gaussians::{GaussianParam, Gaussians, SH_C0};
-    use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderOutput};
+    use duv_core::rng::Rng;
+    use duv_core::{ImageRgbF32, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+    use duv_map::gaussians::{GaussianParam, Gaussians, SH_C0};
+    use duv_map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderOutput};
     let (w, h) = (32usize, 24usize);
     let camera = PinholeCamera::new(27.0, 27.0, 15.5, 11.5, w, h).unwrap();
     let mut g = Gaussians::with_capacity(w * h);
@@ -321,7 +321,7 @@ fn recovers_known_medium_from_a_tilted_plane() {
 
 #[test]
 fn keyframe_folder_round_trip() {
-    use duv::io::keyframes::{read_keyframe_folder, write_keyframe_folder};
+    use duv_core::io::keyframes::{read_keyframe_folder, write_keyframe_folder};
     let (_r, kfs) = tiny_sequence(WaterPreset::Clear, 8);
     let kfs: Vec<_> = kfs.into_iter().map(|k| k.keyframe).collect();
     let dir = std::env::temp_dir().join(format!("duv_kfdir_{}", std::process::id()));
@@ -342,7 +342,7 @@ fn keyframe_folder_round_trip() {
 
 #[test]
 fn mapping_stage_spends_its_budget_and_exports() {
-    use duv::map::stage::{MappingBudget, MappingStage};
+    use duv_map::stage::{MappingBudget, MappingStage};
     let (_r, kfs) = tiny_sequence(WaterPreset::Turbid, 16);
     assert!(kfs.len() >= 3);
     let budget = MappingBudget { iterations_per_keyframe: 3, millis_per_keyframe: 0 };
@@ -370,7 +370,7 @@ fn mapping_stage_spends_its_budget_and_exports() {
     // The exports: PLY, checkpoint, medium.json with the generator's keys, one panel per keyframe.
     let dir = tempfile::tempdir().unwrap();
     stage.export(dir.path()).unwrap();
-    let ply = duv::map::ply::read_ply(&dir.path().join("map.ply"), 600).unwrap();
+    let ply = duv_map::ply::read_ply(&dir.path().join("map.ply"), 600).unwrap();
     assert_eq!(ply.len(), stage.mapper().gaussians().len());
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("medium.json")).unwrap()).unwrap();
     for key in ["beta_D", "beta_B", "B_inf"] {
@@ -379,7 +379,7 @@ fn mapping_stage_spends_its_budget_and_exports() {
     let restored = MappingStage::from_checkpoint(&dir.path().join("map.ckpt"), budget).unwrap();
     assert_eq!(restored.mapper().gaussians().len(), ply.len());
     for k in &kfs {
-        let panel = duv::io::png_io::read_image(&dir.path().join("renders").join(format!("{:06}.png", k.keyframe.index))).unwrap();
+        let panel = duv_core::io::png_io::read_image(&dir.path().join("renders").join(format!("{:06}.png", k.keyframe.index))).unwrap();
         assert_eq!((panel.width(), panel.height()), (5 * 64, 48));
     }
 }
@@ -407,7 +407,7 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
             m.add_keyframe(k.keyframe.clone()).unwrap();
         }
         let img = m.keyframe(0).unwrap().image.to_rgb_f32();
-        let psnr = duv::map::mapper::psnr_db(&m.render_keyframe(0).unwrap().colour, &img);
+        let psnr = duv_map::mapper::psnr_db(&m.render_keyframe(0).unwrap().colour, &img);
         let err = m.medium_summary(&pose0).worst_rel_error(&truth);
         eprintln!("estimate at {at}: first render {psnr:.2} dB, worst medium error {err:.3}");
         maps.push((m, psnr, err));
@@ -430,7 +430,7 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
     // The prior and the estimate schedule are part of the checkpoint: a restored map takes
     // the same next step, medium included.
     let bytes = m.checkpoint_bytes().unwrap();
-    let mut restored = Mapper::from_checkpoint_bytes(&bytes, "in memory", duv::map::checkpoint::RestoreOptions::default()).unwrap();
+    let mut restored = Mapper::from_checkpoint_bytes(&bytes, "in memory", duv_map::checkpoint::RestoreOptions::default()).unwrap();
     m.step_on(1).unwrap();
     restored.step_on(1).unwrap();
     assert_eq!(m.medium().params(), restored.medium().params());
@@ -438,7 +438,7 @@ fn the_medium_starts_from_the_closed_form_estimate_and_the_prior_keeps_it_there(
 
 #[test]
 fn an_estimate_that_determines_some_coefficients_of_a_channel_sets_and_holds_only_those() {
-    use duv::map::medium_estimate::{Coefficients, MediumEstimateConfig};
+    use duv_map::medium_estimate::{Coefficients, MediumEstimateConfig};
     let (_r, kfs, cap) = small_turbid_survey(20);
     let pose0 = kfs[0].keyframe.world_from_cam;
     // Gates no beta passes, and gates no B_inf passes. Turbid water from 4 keyframes is
@@ -557,7 +557,7 @@ fn a_new_keyframe_carves_the_gaussians_floating_in_front_of_what_it_measured() {
             *v = (0.1 * d) * (0.1 * d);
         }
         let added = m.add_keyframe(&second).unwrap();
-        for g in duv::map::gaussians::ParamGroup::ALL {
+        for g in duv_map::gaussians::ParamGroup::ALL {
             assert_eq!(m.adam_group(g).len(), m.gaussians().len(), "Adam group {} aligned", g.name());
         }
         let carved = first + added - m.gaussians().len();
@@ -574,7 +574,7 @@ fn a_new_keyframe_carves_the_gaussians_floating_in_front_of_what_it_measured() {
 
 #[test]
 fn seeding_and_carving_settings_out_of_range_are_refused_by_name() {
-    use duv::map::mapper::MapperError;
+    use duv_map::mapper::MapperError;
     for (config, field) in [
         (MapperConfig { carve_in_front_factor: 0.9, ..MapperConfig::default() }, "carve_in_front_factor"),
         (MapperConfig { carve_in_front_factor: f64::NAN, ..MapperConfig::default() }, "carve_in_front_factor"),
@@ -594,7 +594,7 @@ fn seeding_and_carving_settings_out_of_range_are_refused_by_name() {
 /// refinement of every keyframe but the first each 30 iterations: mean pose error (m, deg)
 /// against the truth and mean keyframe PSNR at the end.
 fn map_with_perturbed_poses(refine: bool) -> ((f64, f64), (f64, f64), f64) {
-    use duv::map::pose_refine::PoseRefineConfig;
+    use duv_map::pose_refine::PoseRefineConfig;
     let mut cfg = SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Survey);
     cfg.width = 160;
     cfg.height = 120;
@@ -602,7 +602,7 @@ fn map_with_perturbed_poses(refine: bool) -> ((f64, f64), (f64, f64), f64) {
     cfg.vignetting = 0.0;
     let r = SimRenderer::new(&cfg).expect("sim");
     let kfs = sim_keyframes(&r, 4, 8);
-    let truth: Vec<duv::core::Se3> = kfs.iter().map(|k| k.keyframe.world_from_cam).collect();
+    let truth: Vec<duv_core::Se3> = kfs.iter().map(|k| k.keyframe.world_from_cam).collect();
     let mut m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 20000, max_keyframes: 8, width: 160, height: 120 }).unwrap();
     let mut input = Vec::new();
     for (i, k) in kfs.iter().enumerate() {
@@ -611,7 +611,7 @@ fn map_with_perturbed_poses(refine: bool) -> ((f64, f64), (f64, f64), f64) {
             let a = i as f64 * 2.1;
             let t = nalgebra::Vector3::new(a.cos(), a.sin(), 0.3 * (3.0 * a).cos()).normalize() * 0.03;
             let axis = nalgebra::Vector3::new((1.7 * a).sin(), (1.3 * a).cos(), 0.5).normalize();
-            kf.world_from_cam = duv::core::Se3::from_parts(nalgebra::Translation3::from(kf.world_from_cam.translation.vector + t), nalgebra::UnitQuaternion::from_scaled_axis(axis * 0.5f64.to_radians()) * kf.world_from_cam.rotation);
+            kf.world_from_cam = duv_core::Se3::from_parts(nalgebra::Translation3::from(kf.world_from_cam.translation.vector + t), nalgebra::UnitQuaternion::from_scaled_axis(axis * 0.5f64.to_radians()) * kf.world_from_cam.rotation);
         }
         input.push(kf.world_from_cam);
         m.add_keyframe(kf).unwrap();
@@ -621,7 +621,7 @@ fn map_with_perturbed_poses(refine: bool) -> ((f64, f64), (f64, f64), f64) {
         for (s, t) in truth.iter().enumerate() {
             let p = m.keyframe(s).unwrap().world_from_cam;
             et += (p.translation.vector - t.translation.vector).norm();
-            er += duv::core::pose::rotation_angle(&t.inv_mul(&p).rotation).to_degrees();
+            er += duv_core::pose::rotation_angle(&t.inv_mul(&p).rotation).to_degrees();
         }
         (et / truth.len() as f64, er / truth.len() as f64)
     };
@@ -639,7 +639,7 @@ fn map_with_perturbed_poses(refine: bool) -> ((f64, f64), (f64, f64), f64) {
     let mut psnr = 0.0;
     for s in 0..m.keyframe_count() {
         let img = m.keyframe(s).unwrap().image.to_rgb_f32();
-        psnr += duv::map::mapper::psnr_db(&m.render_keyframe(s).unwrap().colour, &img);
+        psnr += duv_map::mapper::psnr_db(&m.render_keyframe(s).unwrap().colour, &img);
     }
     (before, error(&m), psnr / m.keyframe_count() as f64)
 }

@@ -13,12 +13,12 @@
 #[path = "common/track_sim.rs"]
 mod track_sim;
 
-use duv::camera::{CameraError, FrameSource};
-use duv::config::board::Board;
-use duv::core::alloc::CountingAllocator;
-use duv::core::{Frame, FrameImage, PinholeCamera};
-use duv::pipeline::{self, NoMapping, PipelineConfig, StageAllocations};
-use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
+use duv_camera::{CameraError, FrameSource};
+use duv_core::config::board::Board;
+use duv_core::alloc::CountingAllocator;
+use duv_core::{Frame, FrameImage, PinholeCamera};
+use duv_pipeline::{self as pipeline, NoMapping, PipelineConfig, StageAllocations};
+use duv_sim::{SimRenderer, TrajectoryKind, WaterPreset};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -80,7 +80,7 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
     // not per frame, and kept out of the counted window here.
     pcfg.checkpoint_interval = Duration::from_secs(3600);
     let cap = track_sim::capacity(2);
-    let tracker = duv::track::Tracker::new(&camera, &track_sim::small_tracker_config(), cap).unwrap();
+    let tracker = duv_track::Tracker::new(&camera, &track_sim::small_tracker_config(), cap).unwrap();
     let delivered = Arc::new(AtomicU64::new(0));
     let source = CopyingSource { camera, frames, next: 0, delivered: delivered.clone() };
     let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -124,8 +124,8 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
 /// does; the real boards log JPEG.)
 #[test]
 fn the_log_writer_allocates_nothing_per_frame_once_warm_for_raw_and_jpeg_frames() {
-    use duv::core::alloc::count_allocations_on_this_thread;
-    use duv::log::{FrameEncoding, LogConfig, LogItem, SegmentWriter};
+    use duv_core::alloc::count_allocations_on_this_thread;
+    use duv_log::{FrameEncoding, LogConfig, LogItem, SegmentWriter};
     let cfg = track_sim::sim_config(WaterPreset::Turbid, TrajectoryKind::Survey, 24, 160, 120, 0.3);
     let frames: Vec<Arc<Frame>> = track_sim::render_all(&SimRenderer::new(&cfg).unwrap()).into_iter().map(Arc::new).collect();
     for encoding in [FrameEncoding::Raw, FrameEncoding::Jpeg { quality: 90 }, FrameEncoding::Jpeg { quality: 75 }] {

@@ -1,4 +1,4 @@
-//! The splatting renderer with the underwater medium (`duv::map::render`): hand-computed
+//! The splatting renderer with the underwater medium (`duv_map::render`): hand-computed
 //! projections and blends, the closed-form image formation model, the tiled f32 pipeline
 //! against the untiled f64 reference, the GPU-shaped building blocks (prefix sum, radix sort,
 //! tile ranges, overflow) against plain algorithms, input validation, and gradient checks of
@@ -9,11 +9,11 @@
 #[path = "common/render_scene.rs"]
 mod render_scene;
 
-use duv::core::rng::Rng;
-use duv::core::{PinholeCamera, RadTan, Se3};
-use duv::map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
-use duv::map::render::reference::{medium_f64, render_reference, ReferenceView};
-use duv::map::render::{
+use duv_core::rng::Rng;
+use duv_core::{PinholeCamera, RadTan, Se3};
+use duv_map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
+use duv_map::render::reference::{medium_f64, render_reference, ReferenceView};
+use duv_map::render::{
     backprop_pixel, bits_for, blend_pixel, isect_key, isect_key_bits, key_tile, DEPTH_KEY_BITS, exclusive_scan, project_splat, project_splat_backward, radix_sort_pairs, scan_blocks, sigmoid,
     sort_histogram_len, tile_ranges, DepthMode, MediumPlanes, PixelForward, PixelMedium, PixelRay, PixelState, PixelUpstream,
     ProjectedSplat, ProjectionSetup, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput, RenderUpstream, SplatGrad, TileGrid,

@@ -12,11 +12,11 @@
 #[path = "common/render_scene.rs"]
 mod render_scene;
 
-use duv::core::rng::Rng;
-use duv::map::gaussians::GaussianGrads;
-use duv::map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
+use duv_core::rng::Rng;
+use duv_map::gaussians::GaussianGrads;
+use duv_map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
-use duv::core::alloc::{self, CountScope, CountingAllocator};
+use duv_core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;

@@ -3,12 +3,12 @@
 //! full, the crash harness (kill -9 at >= 20 random points, resume each time), and a kill
 //! during the tracker's initialisation.
 
-use duv::core::Se3;
-use duv::log::reader::ReadLimits;
-use duv::log::recover::is_finished;
-use duv::log::schema::decode_pose;
-use duv::log::{inspect_log, list_segments, read_segment, Topic};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_core::Se3;
+use duv_log::reader::ReadLimits;
+use duv_log::recover::is_finished;
+use duv_log::schema::decode_pose;
+use duv_log::{inspect_log, list_segments, read_segment, Topic};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::Vector3;
 use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
@@ -77,7 +77,7 @@ fn logged_poses(log_dir: &Path) -> BTreeMap<u64, Se3> {
 /// Per-frame position error (m) of `est` (seq -> pose) after one Sim(3) alignment to `gt`.
 fn aligned_errors(est: &BTreeMap<u64, Se3>, gt: &[Vector3<f64>]) -> BTreeMap<u64, f64> {
     let (src, dst): (Vec<_>, Vec<_>) = est.iter().filter(|(s, _)| (**s as usize) < gt.len()).map(|(s, p)| (p.translation.vector, gt[*s as usize])).unzip();
-    let a = duv::eval::umeyama(&src, &dst, true).unwrap();
+    let a = duv_eval::umeyama(&src, &dst, true).unwrap();
     est.iter().filter(|(s, _)| (**s as usize) < gt.len()).map(|(s, p)| (*s, (a.transform_point(&p.translation.vector.into()).coords - gt[*s as usize]).norm())).collect()
 }
 
@@ -103,7 +103,7 @@ fn read_trajectory(p: &Path) -> BTreeMap<u64, Se3> {
         .enumerate()
         .map(|(i, l)| {
             let v: Vec<f64> = l.split_whitespace().skip(1).map(|x| x.parse().unwrap()).collect();
-            (i as u64, duv::core::pose::se3_from_tum([v[0], v[1], v[2], v[3], v[4], v[5], v[6]]).unwrap())
+            (i as u64, duv_core::pose::se3_from_tum([v[0], v[1], v[2], v[3], v[4], v[5], v[6]]).unwrap())
         })
         .collect()
 }

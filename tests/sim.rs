@@ -2,10 +2,10 @@
 //! folder layout, exact depth, the water image formation model, AUV-like trajectories, and
 //! clear errors on bad input. CI-sized: small images, few frames, short max range.
 
-use duv::core::{MediumParams, Timestamp};
-use duv::io::{png_io, tum};
-use duv::sim::writer::{depth_to_u16, SimManifest};
-use duv::sim::{write_sequence, SimConfig, SimError, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_core::{MediumParams, Timestamp};
+use duv_core::io::{png_io, tum};
+use duv_sim::writer::{depth_to_u16, SimManifest};
+use duv_sim::{write_sequence, SimConfig, SimError, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::{Point3, Vector2};
 use std::path::Path;
 

@@ -10,10 +10,10 @@
 #[path = "common/track_sim.rs"]
 mod track_sim;
 
-use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
-use duv::eval::umeyama;
-use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{LostReason, SeedKeyframe, TrackError, Tracker, TrackerSeed, TrackingState};
+use duv_core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
+use duv_eval::umeyama;
+use duv_sim::{SimRenderer, TrajectoryKind, WaterPreset};
+use duv_track::{LostReason, SeedKeyframe, TrackError, Tracker, TrackerSeed, TrackingState};
 use nalgebra::Vector3;
 use track_sim::{capacity, render_all, run, sim_config, small_tracker_config};
 
@@ -64,7 +64,7 @@ fn survey_ate_is_within_bound() {
 #[test]
 fn periodic_global_ba_runs_and_keeps_the_survey_accurate() {
     let (renderer, frames) = survey(80);
-    let cfg = duv::track::TrackerConfig { global_ba_period: 2, global_iterations: 3, defer_rounds: false, ..small_tracker_config() };
+    let cfg = duv_track::TrackerConfig { global_ba_period: 2, global_iterations: 3, defer_rounds: false, ..small_tracker_config() };
     let r = run(&renderer, &frames, &cfg, capacity(2));
     assert!(r.tracker.counters().global_bas >= 1, "{:?}", r.tracker.counters());
     assert!(r.ate_percent < SURVEY_ATE_PERCENT, "survey ATE with global BA {:.3} %", r.ate_percent);
@@ -75,7 +75,7 @@ fn loop_closure_detects_the_loop_and_lowers_ate() {
     let renderer = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
     let frames = render_all(&renderer);
     let with = run(&renderer, &frames, &small_tracker_config(), capacity(2));
-    let cfg_without = duv::track::TrackerConfig { loop_closure: false, ..small_tracker_config() };
+    let cfg_without = duv_track::TrackerConfig { loop_closure: false, ..small_tracker_config() };
     let without = run(&renderer, &frames, &cfg_without, capacity(2));
     let loop_edges: Vec<_> = with.tracker.edges().filter(|e| e.2).collect();
     assert!(!loop_edges.is_empty(), "no loop edge");
@@ -120,7 +120,7 @@ fn turbid_initialisation_keeps_the_level_start_and_does_not_bend() {
     assert!(bend < TURBID_INIT_BEND_DEG, "bend {bend:.2} deg");
     assert!(r.ate_percent < TURBID_INIT_ATE_PERCENT, "turbid ATE {:.3} % of {:.2} m", r.ate_percent, r.path_m);
     // The collected start alone, for comparison: the bend the level start removes.
-    let cfg = duv::track::TrackerConfig { init_level_start: false, ..small_tracker_config() };
+    let cfg = duv_track::TrackerConfig { init_level_start: false, ..small_tracker_config() };
     let collected = run(&renderer, &frames, &cfg, capacity(2));
     let collected_bend = keyframe_bend_deg(&collected.tracker, &renderer);
     println!("collected start: ATE {:.3} %, bend {collected_bend:.2} deg", collected.ate_percent);
@@ -136,7 +136,7 @@ fn turbid_initialisation_keeps_the_level_start_and_does_not_bend() {
 fn stages_falling_behind_fast_motion_do_not_drift_the_map() {
     let renderer = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
     let frames = render_all(&renderer);
-    let cfg = duv::track::TrackerConfig { stages_per_frame: 1, ..small_tracker_config() };
+    let cfg = duv_track::TrackerConfig { stages_per_frame: 1, ..small_tracker_config() };
     let r = run(&renderer, &frames, &cfg, capacity(2));
     assert!(r.tracker.counters().keyframes_inserted >= 40, "{:?}", r.tracker.counters());
     assert!(r.ate_percent < LOOP_ATE_PERCENT, "loop ATE with one stage per frame {:.3} %", r.ate_percent);
@@ -213,7 +213,7 @@ fn bad_frames_are_lost_then_tracking_recovers_and_the_map_is_untouched() {
     assert!(tracker.keyframes().all(|k| !bad.contains(&(k.seq as usize))));
     assert!(tracker.counters().lost_frames >= bad.len() as u64);
     // The whole run is still accurate (bad frames interpolated).
-    let mut rec = duv::track::TrajectoryRecorder::new();
+    let mut rec = duv_track::TrajectoryRecorder::new();
     let mut tracker2 = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
     for f in &frames {
         rec.record(&tracker2.track(f).unwrap());
@@ -238,7 +238,7 @@ fn wrong_frame_size_is_an_error_not_a_panic() {
 /// yet); the newest `count` of the rest, oldest first, with their frame seq.
 fn logged_keyframes(tracker: &Tracker, frames: &[Frame], lag: usize, count: usize) -> Vec<(u64, Keyframe)> {
     let cam = *tracker.camera();
-    let views: Vec<(u64, u64, duv::core::Timestamp, duv::core::Se3)> = tracker.keyframes().map(|k| (k.id, k.seq, k.t_ns, k.world_from_cam)).collect();
+    let views: Vec<(u64, u64, duv_core::Timestamp, duv_core::Se3)> = tracker.keyframes().map(|k| (k.id, k.seq, k.t_ns, k.world_from_cam)).collect();
     let logged = &views[..views.len().saturating_sub(lag)];
     logged[logged.len().saturating_sub(count)..]
         .iter()
@@ -252,7 +252,7 @@ fn logged_keyframes(tracker: &Tracker, frames: &[Frame], lag: usize, count: usiz
 }
 
 /// Positions of `poses` (seq, pose) and of the ground truth at the same frames.
-fn positions(poses: &[(u64, duv::core::Se3)], gt: &[duv::core::StampedPose]) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+fn positions(poses: &[(u64, duv_core::Se3)], gt: &[duv_core::StampedPose]) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
     poses.iter().map(|(s, p)| (p.translation.vector, gt[*s as usize].world_from_cam.translation.vector)).unzip()
 }
 
@@ -304,8 +304,8 @@ fn a_seeded_tracker_continues_in_the_recorded_frame_and_scale() {
     let (pb, gb) = positions(&b_poses, gt);
     let (sa, sb) = (umeyama(&pa, &ga, true).unwrap().scaling(), umeyama(&pb, &gb, true).unwrap().scaling());
     // And as close to the truth: ATE of the whole run, the seeded continuation after STOP.
-    let combined: Vec<(u64, duv::core::Se3)> = a_poses[..=STOP].iter().copied().chain(b_poses.iter().copied()).collect();
-    let ate = |poses: &[(u64, duv::core::Se3)]| {
+    let combined: Vec<(u64, duv_core::Se3)> = a_poses[..=STOP].iter().copied().chain(b_poses.iter().copied()).collect();
+    let ate = |poses: &[(u64, duv_core::Se3)]| {
         let (p, g) = positions(poses, gt);
         let s = umeyama(&p, &g, true).unwrap();
         (p.iter().zip(&g).map(|(p, g)| (s.transform_point(&(*p).into()).coords - g).norm_squared()).sum::<f64>() / p.len() as f64).sqrt()
@@ -357,8 +357,8 @@ fn seeding_with_bad_keyframes_is_an_error_and_changes_nothing() {
 /// ordering of the same errors, against the true depth; inverse depth scaled into metres by
 /// the trajectory's Sim(3) alignment.
 fn keyframe_ause(r: &track_sim::RunResult, renderer: &SimRenderer) -> (f64, f64, usize) {
-    use duv::eval::trajectory::{evaluate_trajectory, TrajectoryOptions};
-    use duv::eval::{ause, AuseOptions};
+    use duv_eval::trajectory::{evaluate_trajectory, TrajectoryOptions};
+    use duv_eval::{ause, AuseOptions};
     let ev = evaluate_trajectory(&renderer.poses()[..r.trajectory.frames.len()], &r.trajectory.frames, &TrajectoryOptions::default(), "gt", "est").unwrap();
     let scale = ev.report.alignment.scale;
     let cam = *renderer.camera();
@@ -391,7 +391,7 @@ fn the_consistency_term_ranks_turbid_depth_errors_better_and_leaves_tracking_alo
     let renderer = SimRenderer::new(&sim_config(WaterPreset::Turbid, TrajectoryKind::Survey, 100, 320, 240, 0.5)).unwrap();
     let frames = render_all(&renderer);
     let on = run(&renderer, &frames, &small_tracker_config(), capacity(1));
-    let off_cfg = duv::track::TrackerConfig { consistency_neighbours: 0, ..small_tracker_config() };
+    let off_cfg = duv_track::TrackerConfig { consistency_neighbours: 0, ..small_tracker_config() };
     let off = run(&renderer, &frames, &off_cfg, capacity(1));
     assert!(on.trajectory.frames.iter().zip(&off.trajectory.frames).all(|(a, b)| a.world_from_cam == b.world_from_cam));
     let (a_on, random, n) = keyframe_ause(&on, &renderer);

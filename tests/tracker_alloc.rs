@@ -13,10 +13,10 @@
 #[path = "common/track_sim.rs"]
 mod track_sim;
 
-use duv::core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
-use duv::sim::{SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{SeedKeyframe, TrackOutput, Tracker, TrackerCapacity, TrackerSeed, TrackingState};
-use duv::core::alloc::{self, CountScope, CountingAllocator};
+use duv_core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
+use duv_sim::{SimRenderer, TrajectoryKind, WaterPreset};
+use duv_track::{SeedKeyframe, TrackOutput, Tracker, TrackerCapacity, TrackerSeed, TrackingState};
+use duv_core::alloc::{self, CountScope, CountingAllocator};
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;

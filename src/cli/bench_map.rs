@@ -1,5 +1,5 @@
 //! `duv bench map`: the mapping figures of issue 4 on generated sequences, with ground-truth
-//! poses and depth (the generator's keyframes, `duv::sim::keyframes`) or, with `--poses
+//! poses and depth (the generator's keyframes, `duv_sim::keyframes`) or, with `--poses
 //! tracked`, with the tracker's: the sequence is tracked first and its final keyframes (poses
 //! after the last BA, inverse depth and variance upsampled as `duv run` writes them) are
 //! mapped, moved into the ground-truth frame by the Sim(3) of the trajectory's ATE alignment so
@@ -25,23 +25,23 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use duv::core::MediumParams;
-use duv::eval::image::{psnr, ssim, SsimConvention};
-use duv::io::png_io::write_rgb8;
-use duv::io::write_atomic;
-use duv::gpu::GpuOptions;
-use duv::map::vulkan::MapperDevice;
-use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
-use duv::map::pose_refine::PoseRefineConfig;
-use duv::map::render::DepthMode;
-use duv::map::stage::render_panel;
-use duv::sim::keyframes::sim_keyframes;
-use duv::sim::keyframes::SimKeyframe;
-use duv::sim::{SimConfig, SimFrame, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::config::board::Board;
-use duv::core::{Keyframe, PlaneF32, Se3};
-use duv::eval::{evaluate_trajectory, TrajectoryOptions};
-use duv::track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
+use duv_core::MediumParams;
+use duv_eval::image::{psnr, ssim, SsimConvention};
+use duv_core::io::png_io::write_rgb8;
+use duv_core::io::write_atomic;
+use duv_gpu::GpuOptions;
+use duv_map::vulkan::MapperDevice;
+use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv_map::pose_refine::PoseRefineConfig;
+use duv_map::render::DepthMode;
+use duv_map::stage::render_panel;
+use duv_sim::keyframes::sim_keyframes;
+use duv_sim::keyframes::SimKeyframe;
+use duv_sim::{SimConfig, SimFrame, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_core::config::board::Board;
+use duv_core::{Keyframe, PlaneF32, Se3};
+use duv_eval::{evaluate_trajectory, TrajectoryOptions};
+use duv_track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
 
 /// Where the mapped keyframes' poses and depth come from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -204,7 +204,7 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
     let align = ev.gt_from_est;
     let scale = ev.report.alignment.scale;
     anyhow::ensure!(fin.frames.len() == frames.len(), "the tracker returned {} poses for {} frames", fin.frames.len(), frames.len());
-    let frame_poses: Vec<Se3> = fin.frames.iter().map(|f| duv::core::pose::sim3_apply_to_pose(&align, &f.world_from_cam)).collect();
+    let frame_poses: Vec<Se3> = fin.frames.iter().map(|f| duv_core::pose::sim3_apply_to_pose(&align, &f.world_from_cam)).collect();
     let cam = *renderer.camera();
     let mut out = Vec::new();
     let (mut with_truth, mut rel_errors, mut rel_stds) = (0usize, Vec::new(), Vec::new());
@@ -239,7 +239,7 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
                 index: k.seq,
                 t_ns: k.t_ns,
                 image: f.rgb,
-                world_from_cam: duv::core::pose::sim3_apply_to_pose(&align, &k.world_from_cam),
+                world_from_cam: duv_core::pose::sim3_apply_to_pose(&align, &k.world_from_cam),
                 camera: cam,
                 inv_depth,
                 inv_depth_variance,
@@ -388,7 +388,7 @@ fn heldout_frames(renderer: &SimRenderer, kfs: &[SimKeyframe], tracked_poses: Op
 
 /// Mean PSNR/SSIM of the renders from each view's pose against its image, and of the
 /// restored render against its water-free image; `None` without views.
-fn score_views(mapper: &mut Mapper, camera: &duv::core::PinholeCamera, views: &[(SimFrame, Se3)]) -> anyhow::Result<Option<HeldOut>> {
+fn score_views(mapper: &mut Mapper, camera: &duv_core::PinholeCamera, views: &[(SimFrame, Se3)]) -> anyhow::Result<Option<HeldOut>> {
     let (mut p, mut s, mut r) = (0.0, 0.0, 0.0);
     for (f, pose) in views {
         let out = mapper.render(camera, pose)?;
@@ -432,7 +432,7 @@ fn water_name(w: WaterPreset) -> &'static str {
 
 pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
     let mut base: MapperConfig = match &a.config {
-        Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+        Some(p) => toml::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
         None => MapperConfig::default(),
     };
     if let Some(stride) = a.init_stride_px {
@@ -446,7 +446,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
         PoseSource::Gt => None,
         PoseSource::Tracked => {
             let cfg = match &a.tracker_config {
-                Some(p) => toml::from_str::<TrackerConfig>(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+                Some(p) => toml::from_str::<TrackerConfig>(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
                 None => TrackerConfig::default(),
             };
             Some((cfg, TrackerCapacity::from_board(&Board::load(&a.board)?)))
@@ -550,14 +550,14 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             // Relative to the first keyframe (the held one): the Sim(3) of the tracked
             // trajectory aligns positions, and on a straight survey leaves the roll about the
             // path open.
-            let pose_error = |pose: &dyn Fn(usize) -> duv::core::Se3| {
+            let pose_error = |pose: &dyn Fn(usize) -> duv_core::Se3| {
                 let (mut et, mut er) = (0.0, 0.0);
                 let (t0, p0) = (renderer_poses[kfs[0].keyframe.index as usize].world_from_cam, pose(0));
                 for (slot, s) in kfs.iter().enumerate().skip(1) {
                     let t = t0.inv_mul(&renderer_poses[s.keyframe.index as usize].world_from_cam);
                     let p = p0.inv_mul(&pose(slot));
                     et += (p.translation.vector - t.translation.vector).norm();
-                    er += duv::core::pose::rotation_angle(&t.inv_mul(&p).rotation).to_degrees();
+                    er += duv_core::pose::rotation_angle(&t.inv_mul(&p).rotation).to_degrees();
                 }
                 let n = (kfs.len() - 1).max(1) as f64;
                 (et / n, er / n)

@@ -87,7 +87,7 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
     anyhow::ensure!(args.warm_up_s >= 0.0 && args.warm_up_s < args.minutes * 60.0, "--warm-up-s must be in [0, minutes * 60)");
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     // As `duv run` on the vehicle: large stores paged in when made.
-    duv::core::alloc::prefault_large_allocations(true);
+    duv_core::alloc::prefault_large_allocations(true);
     let log = match &args.log {
         Some(l) => l.clone(),
         None => {
@@ -123,7 +123,7 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
             let t0 = Instant::now();
             let mut samples: Vec<(f64, f64, f64)> = Vec::with_capacity(4096);
             while !stop.load(Ordering::Relaxed) {
-                let heap_mib = duv::core::alloc::live_bytes() as f64 / (1u64 << 20) as f64;
+                let heap_mib = duv_core::alloc::live_bytes() as f64 / (1u64 << 20) as f64;
                 samples.push((t0.elapsed().as_secs_f64(), proc_status_mib("VmRSS:"), heap_mib));
                 let next = Duration::from_secs(samples.len() as u64);
                 while !stop.load(Ordering::Relaxed) && t0.elapsed() < next {
@@ -152,7 +152,7 @@ pub fn run(args: BenchReplayArgs) -> anyhow::Result<()> {
     let heap: Vec<(f64, f64)> = samples.iter().filter(|s| s.0 <= loop_s).map(|s| (s.0, s.2)).collect();
     let (rss_start_mib, rss_end_mib, rss_growth_percent) = growth(&in_loop, args.warm_up_s);
     let (heap_start_mib, heap_end_mib, heap_growth_percent) =
-        if duv::core::alloc::is_installed() { growth(&heap, args.warm_up_s) } else { (f64::NAN, f64::NAN, f64::NAN) };
+        if duv_core::alloc::is_installed() { growth(&heap, args.warm_up_s) } else { (f64::NAN, f64::NAN, f64::NAN) };
     let report = ReplayReport {
         log: log.display().to_string(),
         board: args.board.display().to_string(),

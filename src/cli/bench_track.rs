@@ -1,5 +1,5 @@
 //! `duv bench track`: the tracking benchmark of issue 3. Generates survey, loop and turbid
-//! sequences in memory (`duv::sim`), tracks each `--runs` times with and without loop closure
+//! sequences in memory (`duv_sim`), tracks each `--runs` times with and without loop closure
 //! on the tracker's own thread pool (as a tracking thread does: `Tracker::run_in_pool`), and
 //! prints and writes (`bench_track.json`, `bench_track.md`) the medians: frames/s, per-stage
 //! milliseconds, frame latency p50/p99/max, frames/s and latency p99/max after the monocular
@@ -11,11 +11,11 @@
 //! memory for all runs (their bytes are reported beside the RSS, which includes them).
 
 use anyhow::Context;
-use duv::config::board::Board;
-use duv::core::{Frame, FrameImage, PlaneF32};
-use duv::eval::{ause, evaluate_trajectory, AuseOptions, TrajectoryOptions};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
+use duv_core::config::board::Board;
+use duv_core::{Frame, FrameImage, PlaneF32};
+use duv_eval::{ause, evaluate_trajectory, AuseOptions, TrajectoryOptions};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_track::{Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::HashMap;
@@ -269,8 +269,8 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     if rss_reset {
         reset_rss_peak();
     }
-    duv::core::alloc::reset_peak_bytes();
-    let live0 = duv::core::alloc::live_bytes();
+    duv_core::alloc::reset_peak_bytes();
+    let live0 = duv_core::alloc::live_bytes();
     let mut tracker = Tracker::new(seq.renderer.camera(), cfg, cap)?;
     let mut recorder = TrajectoryRecorder::new();
     let mut latencies: Vec<Duration> = Vec::with_capacity(n);
@@ -298,7 +298,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let mut steady: Vec<Duration> = latencies.get(init_frames + 1..).unwrap_or(&[]).to_vec();
     steady.sort();
     let cpu_ns = process_cpu_ns() - cpu0;
-    let heap_peak = duv::core::alloc::peak_bytes().saturating_sub(live0) as f64 / MIB;
+    let heap_peak = duv_core::alloc::peak_bytes().saturating_sub(live0) as f64 / MIB;
     let rss = rss_peak_mib();
     let fin = recorder.finish(&tracker);
     let gt = &seq.renderer.poses()[..n];
@@ -378,7 +378,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
         ause_depth: ause_depth_mean,
         ause_depth_random,
         rss_peak_mib: rss,
-        tracker_heap_peak_mib: if duv::core::alloc::is_installed() { heap_peak } else { f64::NAN },
+        tracker_heap_peak_mib: if duv_core::alloc::is_installed() { heap_peak } else { f64::NAN },
     })
 }
 
@@ -520,8 +520,8 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
     print!("{md}");
     std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
     let json = serde_json::to_string_pretty(&report)?;
-    duv::io::write_atomic(&args.out.join("bench_track.json"), json.as_bytes())?;
-    duv::io::write_atomic(&args.out.join("bench_track.md"), md.as_bytes())?;
+    duv_core::io::write_atomic(&args.out.join("bench_track.json"), json.as_bytes())?;
+    duv_core::io::write_atomic(&args.out.join("bench_track.md"), md.as_bytes())?;
     eprintln!("wrote {} and bench_track.md", args.out.join("bench_track.json").display());
     Ok(())
 }

@@ -1,8 +1,8 @@
 //! `duv board`: validate board profiles and show what they allow.
 
 use anyhow::Context;
-use duv::config::board::FrameLogEncoding;
-use duv::config::Board;
+use duv_core::config::board::FrameLogEncoding;
+use duv_core::config::Board;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]

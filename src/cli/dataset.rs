@@ -2,8 +2,8 @@
 //! `--check`, decode every image (and depth map) and report the ones that fail.
 
 use anyhow::Context;
-use duv::camera::dataset::{open_dataset, Dataset, DepthFormat};
-use duv::camera::{CameraError, FrameSource};
+use duv_camera::dataset::{open_dataset, Dataset, DepthFormat};
+use duv_camera::{CameraError, FrameSource};
 
 #[derive(clap::Args)]
 pub struct DatasetArgs {
@@ -68,7 +68,7 @@ fn summary(d: &Dataset) -> String {
         None => s.push_str("medium        unknown\n"),
     }
     if let Some(t) = &d.body_from_cam {
-        let v = duv::core::pose::se3_to_tum(t);
+        let v = duv_core::pose::se3_to_tum(t);
         let _ = writeln!(s, "body_from_cam t [{:.6}, {:.6}, {:.6}] q(xyzw) [{:.6}, {:.6}, {:.6}, {:.6}]", v[0], v[1], v[2], v[3], v[4], v[5], v[6]);
     }
     s

@@ -3,11 +3,11 @@
 //! what exists of the pipeline on it, prints the metrics table and writes the outputs.
 
 use anyhow::Context;
-use duv::camera::dataset::open_dataset;
-use duv::camera::FrameSource;
-use duv::eval::image::{psnr, ssim, SsimConvention};
-use duv::io::png_io::read_image;
-use duv::sim::{write_sequence, SimConfig, TrajectoryKind, WaterPreset};
+use duv_camera::dataset::open_dataset;
+use duv_camera::FrameSource;
+use duv_eval::image::{psnr, ssim, SsimConvention};
+use duv_core::io::png_io::read_image;
+use duv_sim::{write_sequence, SimConfig, TrajectoryKind, WaterPreset};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 

@@ -3,11 +3,11 @@
 
 use anyhow::Context;
 use clap::ValueEnum;
-use duv::eval::load::{ground_truth_file, load_depth_inputs, load_image_pairs};
-use duv::eval::report::{AuseInput, ImagePair};
-use duv::eval::trajectory::TrajectoryOptions;
-use duv::eval::{build_report, write_report, Alignment, AuseOptions, EvalInputs, EvalOptions, SsimConvention};
-use duv::io::tum::read_trajectory;
+use duv_eval::load::{ground_truth_file, load_depth_inputs, load_image_pairs};
+use duv_eval::report::{AuseInput, ImagePair};
+use duv_eval::trajectory::TrajectoryOptions;
+use duv_eval::{build_report, write_report, Alignment, AuseOptions, EvalInputs, EvalOptions, SsimConvention};
+use duv_core::io::tum::read_trajectory;
 use std::path::PathBuf;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]

@@ -1,7 +1,7 @@
 //! `duv inspect LOG`: topics, counts, time span, gaps and recovered segments of a log folder
 //! (or one `.mcap` file).
 
-use duv::log::{inspect_log, ReadLimits};
+use duv_log::{inspect_log, ReadLimits};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]

@@ -39,7 +39,7 @@ mod tests {
     #[test]
     fn error_line_prints_each_cause_once() {
         let io = std::io::Error::new(std::io::ErrorKind::NotFound, "No such file or directory (os error 2)");
-        let e = anyhow::Error::new(duv::io::IoError::file(std::path::Path::new("boards/x.toml"), io)).context("loading the board");
+        let e = anyhow::Error::new(duv_core::io::IoError::file(std::path::Path::new("boards/x.toml"), io)).context("loading the board");
         assert_eq!(error_line(&e), "loading the board: boards/x.toml: No such file or directory (os error 2)");
         let plain = anyhow::anyhow!("inner").context("outer");
         assert_eq!(error_line(&plain), "outer: inner");

@@ -1,6 +1,6 @@
 //! `duv refine`: offshore map refinement from a keyframe folder (the layout is documented in
-//! `duv::io::keyframes`), from the keyframes in a run's MCAP log (`--mcap`, read by
-//! `duv::log::keyframes`: image, pose, inverse depth and variance of every logged keyframe, up
+//! `duv_core::io::keyframes`), from the keyframes in a run's MCAP log (`--mcap`, read by
+//! `duv_log::keyframes`: image, pose, inverse depth and variance of every logged keyframe, up
 //! to any damage; `--from-logged-map` continues the onboard map from the log's newest map
 //! checkpoint), or from generated keyframes with ground-truth poses and depth
 //! (`--sim WATER`) so that mapping is evaluated without the tracker.
@@ -14,21 +14,21 @@
 use std::path::PathBuf;
 
 use anyhow::Context;
-use duv::core::{ImageRgb8, Keyframe, MediumParams};
-use duv::eval::image::{psnr, ssim, SsimConvention};
-use duv::io::keyframes::read_keyframe_folder;
-use duv::io::png_io::write_rgb8;
-use duv::io::write_atomic;
-use duv::log::{read_log_keyframes, LoggedMap, ReadLimits};
-use duv::gpu::GpuOptions;
-use duv::map::vulkan::MapperDevice;
-use duv::map::checkpoint::{RestoreOptions, CHECKPOINT_MAGIC};
-use duv::map::mapper::{Mapper, MapperCapacity, MapperConfig};
-use duv::map::ply::write_ply;
-use duv::map::pose_refine::PoseRefineConfig;
-use duv::map::stage::render_panel;
-use duv::sim::keyframes::sim_keyframes;
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_core::{ImageRgb8, Keyframe, MediumParams};
+use duv_eval::image::{psnr, ssim, SsimConvention};
+use duv_core::io::keyframes::read_keyframe_folder;
+use duv_core::io::png_io::write_rgb8;
+use duv_core::io::write_atomic;
+use duv_log::{read_log_keyframes, LoggedMap, ReadLimits};
+use duv_gpu::GpuOptions;
+use duv_map::vulkan::MapperDevice;
+use duv_map::checkpoint::{RestoreOptions, CHECKPOINT_MAGIC};
+use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
+use duv_map::ply::write_ply;
+use duv_map::pose_refine::PoseRefineConfig;
+use duv_map::stage::render_panel;
+use duv_sim::keyframes::sim_keyframes;
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 
 #[derive(clap::Args)]
 pub struct RefineArgs {
@@ -149,9 +149,9 @@ fn unit_vector(index: u64, salt: u64) -> nalgebra::Vector3<f64> {
 }
 
 /// Position (m) and rotation (deg) difference of two poses.
-fn pose_difference(a: &duv::core::Se3, b: &duv::core::Se3) -> (f64, f64) {
+fn pose_difference(a: &duv_core::Se3, b: &duv_core::Se3) -> (f64, f64) {
     let d = a.inv_mul(b);
-    ((a.translation.vector - b.translation.vector).norm(), duv::core::pose::rotation_angle(&d.rotation).to_degrees())
+    ((a.translation.vector - b.translation.vector).norm(), duv_core::pose::rotation_angle(&d.rotation).to_degrees())
 }
 
 #[derive(serde::Serialize)]
@@ -176,7 +176,7 @@ struct Metrics {
     mean_restored_psnr_db: Option<f64>,
     medium: MediumParams,
     /// The newest closed-form estimate of the medium (`MapperConfig::estimate_medium_at_keyframes`, `refine_medium_estimate_until_keyframes`).
-    medium_estimate: Option<duv::map::medium_estimate::MediumEstimate>,
+    medium_estimate: Option<duv_map::medium_estimate::MediumEstimate>,
     medium_truth: Option<MediumParams>,
     /// Relative error of each recovered coefficient, in the order beta_D, beta_B, B_inf (R G B each).
     medium_rel_error: Option<[[f64; 3]; 3]>,
@@ -256,7 +256,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         };
         let n = k.len();
         let truth = match &a.medium_truth {
-            Some(p) => Some(serde_json::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?),
+            Some(p) => Some(serde_json::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?),
             None => None,
         };
         (k, vec![None; n], truth)
@@ -264,22 +264,22 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     anyhow::ensure!(!keyframes.is_empty(), "no keyframes");
     let (perturb_m, perturb_deg) = (a.perturb_poses_m.unwrap_or(0.0), a.perturb_poses_deg.unwrap_or(0.0));
     anyhow::ensure!(perturb_m.is_finite() && perturb_m >= 0.0 && perturb_deg.is_finite() && perturb_deg >= 0.0, "--perturb-poses-m and --perturb-poses-deg must be finite and >= 0");
-    let true_poses: Option<Vec<duv::core::Se3>> = a.sim.map(|_| keyframes.iter().map(|k| k.world_from_cam).collect());
+    let true_poses: Option<Vec<duv_core::Se3>> = a.sim.map(|_| keyframes.iter().map(|k| k.world_from_cam).collect());
     for kf in keyframes.iter_mut().skip(1) {
         if perturb_m > 0.0 || perturb_deg > 0.0 {
             let t = unit_vector(kf.index, 1) * perturb_m;
             let r = nalgebra::UnitQuaternion::from_scaled_axis(unit_vector(kf.index, 2) * perturb_deg.to_radians());
-            kf.world_from_cam = duv::core::Se3::from_parts(nalgebra::Translation3::from(kf.world_from_cam.translation.vector + t), r * kf.world_from_cam.rotation);
+            kf.world_from_cam = duv_core::Se3::from_parts(nalgebra::Translation3::from(kf.world_from_cam.translation.vector + t), r * kf.world_from_cam.rotation);
         }
     }
-    let input_poses: Vec<(u64, duv::core::Se3)> = keyframes.iter().map(|k| (k.index, k.world_from_cam)).collect();
+    let input_poses: Vec<(u64, duv_core::Se3)> = keyframes.iter().map(|k| (k.index, k.world_from_cam)).collect();
     let pose_config: PoseRefineConfig = match &a.pose_config {
-        Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+        Some(p) => toml::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
         None => PoseRefineConfig::default(),
     };
     pose_config.validate().context("--pose-config")?;
     let mut config: MapperConfig = match &a.config {
-        Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+        Some(p) => toml::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
         None => MapperConfig::default(),
     };
     config.init_stride_px = a.init_stride_px as usize;
@@ -368,10 +368,10 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         let (pose_shift_m, pose_shift_deg) = pose_difference(&input_pose, &kf.world_from_cam);
         let truth_pose = true_poses.as_ref().and_then(|t| keyframes.iter().position(|k| k.index == kf.index).map(|i| t[i]));
         let err = truth_pose.map(|t| pose_difference(&t, &kf.world_from_cam));
-        final_poses.push(duv::core::StampedPose { t_ns: kf.t_ns, world_from_cam: kf.world_from_cam });
+        final_poses.push(duv_core::StampedPose { t_ns: kf.t_ns, world_from_cam: kf.world_from_cam });
         per_kf.push(KeyframeMetrics { index: kf.index, psnr_db: p, ssim: s, restored_psnr_db: restored_psnr, pose_shift_m, pose_shift_deg, pose_error_m: err.map(|e| e.0), pose_error_deg: err.map(|e| e.1) });
     }
-    duv::io::tum::write_trajectory(&a.out.join("poses.txt"), &final_poses)?;
+    duv_core::io::tum::write_trajectory(&a.out.join("poses.txt"), &final_poses)?;
     let n = per_kf.len() as f64;
     let mean_error = |e: Vec<(f64, f64)>| (!e.is_empty()).then(|| (e.iter().map(|v| v.0).sum::<f64>() / e.len() as f64, e.iter().map(|v| v.1).sum::<f64>() / e.len() as f64));
     let pose_error_before = true_poses.as_ref().and_then(|t| mean_error(t.iter().zip(&input_poses).map(|(t, p)| pose_difference(t, &p.1)).collect()));

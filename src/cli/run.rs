@@ -4,24 +4,24 @@
 //! uncertainty).
 
 use anyhow::Context;
-use duv::camera::dataset::{open_dataset, Dataset, DATASET_KINDS};
-use duv::config::board::Board;
-use duv::core::pose::se3_to_tum;
-use duv::core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
-use duv::eval::report::AuseInput;
-use duv::eval::{build_report, write_report, EvalInputs, EvalOptions};
-use duv::io::pfm::write_pfm;
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::camera::{open_source, CameraError, FrameSource};
-use duv::log::ReadLimits;
-use duv::gpu::GpuOptions;
-use duv::map::mapper::{MapperCapacity, MapperConfig};
-use duv::map::vulkan::MapperDevice;
-use duv::map::stage::{MappingBudget, MappingStage};
-use duv::pipeline::mapping::StageMapping;
-use duv::pipeline::{resume, MapStage, NoMapping, PipelineConfig};
-use duv::replay::McapSource;
-use duv::track::{KeyframeView, Tracker, TrackerCapacity, TrackerConfig};
+use duv_camera::dataset::{open_dataset, Dataset, DATASET_KINDS};
+use duv_core::config::board::Board;
+use duv_core::pose::se3_to_tum;
+use duv_core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
+use duv_eval::report::AuseInput;
+use duv_eval::{build_report, write_report, EvalInputs, EvalOptions};
+use duv_core::io::pfm::write_pfm;
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_camera::{open_source, CameraError, FrameSource};
+use duv_log::ReadLimits;
+use duv_gpu::GpuOptions;
+use duv_map::mapper::{MapperCapacity, MapperConfig};
+use duv_map::vulkan::MapperDevice;
+use duv_map::stage::{MappingBudget, MappingStage};
+use duv_pipeline::mapping::StageMapping;
+use duv_pipeline::{resume, MapStage, NoMapping, PipelineConfig};
+use duv_log::replay::McapSource;
+use duv_track::{KeyframeView, Tracker, TrackerCapacity, TrackerConfig};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -114,7 +114,7 @@ pub struct RunArgs {
 /// Where frames come from, with what ground truth.
 enum Source {
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
-    Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv::core::camera::UndistortMap, ImageRgb8)> },
+    Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
     Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>> },
     /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
     Live { source: Box<dyn FrameSource>, next: usize, count: usize },
@@ -365,7 +365,7 @@ fn write_keyframe_maps(tracker: &Tracker, id: u64, dir: &Path, inv: &mut PlaneF3
     Ok(())
 }
 
-fn tum_line(t_ns: duv::core::Timestamp, pose: &duv::core::Se3) -> String {
+fn tum_line(t_ns: duv_core::Timestamp, pose: &duv_core::Se3) -> String {
     let v = se3_to_tum(pose);
     format!("{:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}", t_ns.as_secs_f64(), v[0], v[1], v[2], v[3], v[4], v[5], v[6])
 }
@@ -395,7 +395,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // it, reload the map checkpoint, relocalise, and continue in a new segment.
     let log_dir = args.out.join("log");
     if args.no_resume {
-        anyhow::ensure!(duv::log::list_segments(&log_dir)?.is_empty(), "--no-resume: {} already holds a log; choose another --out", log_dir.display());
+        anyhow::ensure!(duv_log::list_segments(&log_dir)?.is_empty(), "--no-resume: {} already holds a log; choose another --out", log_dir.display());
     }
     let mut resume_state = if args.no_resume { None } else { resume::prepare(&args.out, ReadLimits::default(), &resume_options(&board))? };
     let start = match &resume_state {
@@ -404,7 +404,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     };
     let source = Source::open(&args, &board, start)?;
     let camera = source.camera();
-    let plan = duv::pipeline::budget::plan(&board, camera.width, camera.height)?;
+    let plan = duv_pipeline::budget::plan(&board, camera.width, camera.height)?;
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
     let kf_dir = args.out.join("keyframes");
     std::fs::create_dir_all(&kf_dir).with_context(|| format!("creating {}", kf_dir.display()))?;
@@ -433,12 +433,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));
     pcfg.log.metadata.push(("duv.run".into(), one("source", args.source.clone())));
     let c = camera;
-    duv::io::write_atomic(&args.out.join("calibration.txt"), format!("{} {} {} {} {} {}\n", c.fx, c.fy, c.cx, c.cy, c.width, c.height).as_bytes())?;
+    duv_core::io::write_atomic(&args.out.join("calibration.txt"), format!("{} {} {} {} {} {}\n", c.fx, c.fy, c.cx, c.cy, c.width, c.height).as_bytes())?;
     let mut map: Box<dyn MapStage> = if args.no_map {
         Box::new(NoMapping::default())
     } else {
         let map_config: MapperConfig = match &args.map_config {
-            Some(p) => toml::from_str(&duv::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
+            Some(p) => toml::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
             None => MapperConfig::default(),
         };
         let budget = MappingBudget { iterations_per_keyframe: args.map_iterations, ..MappingBudget::default() };
@@ -498,13 +498,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         }
     }
     let stop = Arc::new(AtomicBool::new(false));
-    duv::pipeline::stop_on_signals(&stop)?;
+    duv_pipeline::stop_on_signals(&stop)?;
     let total = source.len();
     let run_source = RunSource { inner: source, camera, spec: args.source.clone() };
     if !args.no_progress {
         eprintln!("tracking {} frames...", if total == usize::MAX { "all".to_string() } else { total.saturating_sub(start).to_string() });
     }
-    let result = duv::pipeline::run(run_source, tracker, map, &pcfg, retrack, stop)?;
+    let result = duv_pipeline::run(run_source, tracker, map, &pcfg, retrack, stop)?;
     let source = result.source.inner;
     let tracker = result.tracker;
     let recorder = result.recorder;
@@ -561,13 +561,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if let Some(a) = &pcfg.world_from_tracker {
         // Resumed: express everything in the recorded map frame.
         for f in &mut fin.frames {
-            f.world_from_cam = duv::core::pose::sim3_apply_to_pose(a, &f.world_from_cam);
+            f.world_from_cam = duv_core::pose::sim3_apply_to_pose(a, &f.world_from_cam);
         }
         for k in &mut fin.keyframes {
-            k.world_from_cam = duv::core::pose::sim3_apply_to_pose(a, &k.world_from_cam);
+            k.world_from_cam = duv_core::pose::sim3_apply_to_pose(a, &k.world_from_cam);
         }
     }
-    duv::io::tum::write_trajectory(&args.out.join("trajectory.txt"), &fin.frames)?;
+    duv_core::io::tum::write_trajectory(&args.out.join("trajectory.txt"), &fin.frames)?;
     let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
     for k in &fin.keyframes {
         // With mapping on, the keyframe folder lists the keyframes mapping received (their
@@ -577,7 +577,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         }
         let _ = writeln!(kf_text, "{} {}", k.id, tum_line(k.t_ns, &k.world_from_cam));
     }
-    duv::io::write_atomic(&args.out.join("keyframes.txt"), kf_text.as_bytes())?;
+    duv_core::io::write_atomic(&args.out.join("keyframes.txt"), kf_text.as_bytes())?;
     let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
     for &(id, _) in &live {
         write_keyframe_maps(&tracker, id, &kf_dir, &mut inv, &mut var)?;
@@ -586,9 +586,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     for ((f, s), dt) in recorder.frames().iter().zip(&fin.states).zip(&latencies) {
         let _ = writeln!(states_text, "{} {:.9} {} {:.3}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"), dt.as_secs_f64() * 1e3);
     }
-    duv::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
+    duv_core::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
     // The map: final keyframe poses, a last optimisation, the exports.
-    let final_poses: Vec<(u64, duv::core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
+    let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
     // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
     // and the report still follow.
     match map.finish(&final_poses, &args.out) {

@@ -2,7 +2,7 @@
 //! the water-free images, the medium and the config).
 
 use anyhow::Context;
-use duv::sim::{write_sequence, SimConfig, TrajectoryKind, WaterPreset};
+use duv_sim::{write_sequence, SimConfig, TrajectoryKind, WaterPreset};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]

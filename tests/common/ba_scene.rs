@@ -4,9 +4,9 @@
 //! outliers (weight 0 where the point leaves the target view, as a flow front end would).
 #![allow(dead_code)]
 
-use duv::core::pose::{se3_exp, so3_exp};
-use duv::core::rng::Rng;
-use duv::core::{Image, PinholeCamera, PlaneF32, Se3};
+use duv_core::pose::{se3_exp, so3_exp};
+use duv_core::rng::Rng;
+use duv_core::{Image, PinholeCamera, PlaneF32, Se3};
 use nalgebra::{Point3, Translation3, Vector2, Vector3, Vector6};
 
 /// Distance of the base plane from the first camera, metres.

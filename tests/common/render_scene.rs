@@ -2,11 +2,11 @@
 //! `tests/render_alloc.rs` and `benches/render.rs`.
 #![allow(dead_code)]
 
-use duv::core::pose::so3_exp;
-use duv::core::rng::Rng;
-use duv::core::{PinholeCamera, Se3};
-use duv::map::gaussians::{GaussianParam, Gaussians, SH_C0};
-use duv::map::render::{MediumPlanes, RenderUpstream};
+use duv_core::pose::so3_exp;
+use duv_core::rng::Rng;
+use duv_core::{PinholeCamera, Se3};
+use duv_map::gaussians::{GaussianParam, Gaussians, SH_C0};
+use duv_map::render::{MediumPlanes, RenderUpstream};
 use nalgebra::{Point3, Translation3, Vector3};
 
 /// A camera with the principal point at the image centre.

@@ -2,10 +2,10 @@
 //! `tests/tracker.rs`, `tests/tracker_alloc.rs` and `examples/track_sim.rs`.
 #![allow(dead_code)]
 
-use duv::core::{Frame, FrameImage, StampedPose};
-use duv::eval::trajectory::{evaluate_trajectory, TrajectoryOptions};
-use duv::sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv::track::{FinalTrajectory, TrackOutput, Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
+use duv_core::{Frame, FrameImage, StampedPose};
+use duv_eval::trajectory::{evaluate_trajectory, TrajectoryOptions};
+use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_track::{FinalTrajectory, TrackOutput, Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
 
 /// A CI-sized sequence: `frames` frames of `width x height` at 10 fps.
 pub fn sim_config(water: WaterPreset, trajectory: TrajectoryKind, frames: usize, width: usize, height: usize, speed_mps: f64) -> SimConfig {

@@ -5,8 +5,8 @@
 
 use std::path::Path;
 
-use duv::config::Board;
-use duv::gpu::{GpuContext, GpuOptions};
+use duv_core::config::Board;
+use duv_gpu::{GpuContext, GpuOptions};
 
 /// The device, or `None` (after a loud message) when no Vulkan device exists and `CI` is
 /// unset. Any other failure (a kernel that does not build, the arena) fails the test.

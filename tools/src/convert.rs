@@ -4,9 +4,9 @@
 //! Distorted images (and depth maps) are undistorted, and the undistorted intrinsics written.
 
 use anyhow::{bail, Context};
-use duv::camera::dataset::{format_calibration, open_dataset, Dataset};
-use duv::core::{ImageGray16, ImageRgb8, PlaneF32};
-use duv::io::png_io::{write_gray16, write_rgb8};
+use duv_camera::dataset::{format_calibration, open_dataset, Dataset};
+use duv_core::{ImageGray16, ImageRgb8, PlaneF32};
+use duv_core::io::png_io::{write_gray16, write_rgb8};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -112,7 +112,7 @@ pub fn convert(dataset: &Dataset, out: &Path, progress: &mut dyn FnMut(usize)) -
         report.depth_maps = track.frames.len();
     }
     if let Some(gt) = &dataset.ground_truth {
-        duv::io::tum::write_trajectory(&out.join("groundtruth.txt"), gt)?;
+        duv_core::io::tum::write_trajectory(&out.join("groundtruth.txt"), gt)?;
         report.ground_truth_poses = gt.len();
     }
     write_text(&out.join("calibration.txt"), &format_calibration(&camera.undistorted()))?;
@@ -178,8 +178,8 @@ fn quantise_depth(metres: &PlaneF32) -> (ImageGray16, usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use duv::camera::dataset::npy::write_npy_f32;
-    use duv::core::{FrameImage, ImageGray8};
+    use duv_camera::dataset::npy::write_npy_f32;
+    use duv_core::{FrameImage, ImageGray8};
     use nalgebra::Vector3;
 
     const W: usize = 16;
@@ -199,7 +199,7 @@ mod tests {
         let mut gt = String::from("#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z []\n");
         for k in 0..3 {
             let t = T0 + k as i64 * 50_000_000;
-            duv::io::png_io::write_gray8(&cam.join(format!("data/{t}.png")), &grey(k)).unwrap();
+            duv_core::io::png_io::write_gray8(&cam.join(format!("data/{t}.png")), &grey(k)).unwrap();
             writeln!(csv, "{t},{t}.png").unwrap();
             writeln!(gt, "{t},{},0.5,-1,0.9800665778,0,0,0.1986693308", 0.2 * k as f64).unwrap();
         }
@@ -279,7 +279,7 @@ mod tests {
         std::fs::create_dir_all(root.join("image_left")).unwrap();
         std::fs::create_dir_all(root.join("depth_left")).unwrap();
         for k in 0..2 {
-            duv::io::png_io::write_rgb8(&root.join(format!("image_left/{k:06}_left.png")), &grey(k).to_rgb8()).unwrap();
+            duv_core::io::png_io::write_rgb8(&root.join(format!("image_left/{k:06}_left.png")), &grey(k).to_rgb8()).unwrap();
             let mut depth = PlaneF32 { width: W, height: H, data: (0..W * H).map(|i| 0.5 + i as f32 * 0.01).collect() };
             depth.data[0] = f32::NAN;
             depth.data[1] = 20.0;

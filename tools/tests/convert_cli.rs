@@ -12,9 +12,9 @@ fn converts_a_folder_and_reports() {
     let dir = tempfile::tempdir().unwrap();
     let src = dir.path().join("src");
     std::fs::create_dir(&src).unwrap();
-    let img = duv::core::ImageRgb8 { width: 4, height: 3, data: (0..36).collect() };
+    let img = duv_core::ImageRgb8 { width: 4, height: 3, data: (0..36).collect() };
     for name in ["0.100000", "0.200000"] {
-        duv::io::png_io::write_rgb8(&src.join(format!("{name}.png")), &img).unwrap();
+        duv_core::io::png_io::write_rgb8(&src.join(format!("{name}.png")), &img).unwrap();
     }
     std::fs::write(src.join("calibration.txt"), "3 3 1.5 1 4 3\n").unwrap();
     let out = dir.path().join("out");
@@ -25,8 +25,8 @@ fn converts_a_folder_and_reports() {
     let rgb_txt = std::fs::read_to_string(out.join("rgb.txt")).unwrap();
     assert!(rgb_txt.contains("0.100000000 rgb/0.100000000.png"), "{rgb_txt}");
     assert!(out.join("calibration.txt").is_file() && !out.join("groundtruth.txt").exists());
-    let back = duv::camera::dataset::open_dataset(&format!("tum:{}", out.display())).unwrap();
-    assert_eq!(back.load_frame(1).unwrap().image, duv::core::FrameImage::Rgb8(img));
+    let back = duv_camera::dataset::open_dataset(&format!("tum:{}", out.display())).unwrap();
+    assert_eq!(back.load_frame(1).unwrap().image, duv_core::FrameImage::Rgb8(img));
 
     let o = tools(&["convert", "--source", "folder:/definitely/not/here", "--out", &dir.path().join("x").display().to_string()]);
     assert!(!o.status.success());

@@ -1,0 +1,489 @@
+//! Dataset folder readers (TUM, EuRoC, TartanAir, plain folder) behind one [`Dataset`] type.
+//!
+//! A dataset is opened from a spec `KIND:DIR[,OPTION=VALUE]...` (see [`open_dataset`]). Opening
+//! reads every list, calibration and ground-truth file and checks that every image it names
+//! exists; images themselves are decoded lazily, one per [`FrameSource::next_frame`] of a
+//! [`DatasetSource`]. Every pose is `world_from_cam` with the camera x right, y down, z forward,
+//! whatever convention the dataset stores.
+
+mod calib;
+mod euroc;
+mod folder;
+pub mod npy;
+mod tartanair;
+mod tum;
+
+pub use calib::{format_calibration, parse_calibration, read_calibration, read_medium};
+pub use folder::FOLDER_DEFAULT_FPS;
+pub use tartanair::{ned_to_cam, TARTANAIR_DEFAULT_FPS};
+
+use super::{CameraError, FrameSource};
+use duv_core::{Frame, MediumParams, PinholeCamera, PlaneF32, Se3, StampedPose, Timestamp};
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// Which reader opened a dataset.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DatasetKind {
+    /// TUM RGB-D layout (`rgb.txt`, `depth.txt`, `groundtruth.txt`), as our generator writes it.
+    Tum,
+    /// EuRoC / ASL folder format (`mav0/cam0/data.csv`, `sensor.yaml`).
+    Euroc,
+    /// TartanAir sequence (`image_left/`, `pose_left.txt` in NED).
+    TartanAir,
+    /// A plain folder of PNG images with a calibration file.
+    Folder,
+}
+
+/// The kinds a spec may name, for error messages.
+pub const DATASET_KINDS: &str = "tum, euroc, tartanair, folder";
+
+impl DatasetKind {
+    /// The spec prefix of this kind (`tum`, `euroc`, `tartanair`, `folder`).
+    pub fn name(self) -> &'static str {
+        match self {
+            DatasetKind::Tum => "tum",
+            DatasetKind::Euroc => "euroc",
+            DatasetKind::TartanAir => "tartanair",
+            DatasetKind::Folder => "folder",
+        }
+    }
+
+    fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "tum" => Some(DatasetKind::Tum),
+            "euroc" => Some(DatasetKind::Euroc),
+            "tartanair" => Some(DatasetKind::TartanAir),
+            "folder" => Some(DatasetKind::Folder),
+            _ => None,
+        }
+    }
+
+    /// The options a spec of this kind accepts.
+    fn options(self) -> &'static [&'static str] {
+        match self {
+            DatasetKind::Tum => &["calib", "depth_scale"],
+            DatasetKind::Euroc => &["cam"],
+            DatasetKind::TartanAir => &["calib", "fps"],
+            DatasetKind::Folder => &["calib", "fps"],
+        }
+    }
+}
+
+impl fmt::Display for DatasetKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// One image (or depth map) of a dataset: its time stamp and the full path of its file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DatasetFrame {
+    pub t_ns: Timestamp,
+    pub path: PathBuf,
+}
+
+/// How the depth files of a dataset encode metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum DepthFormat {
+    /// 16-bit grey PNG holding `metres * units_per_metre` (TUM: 5000); 0 means no depth.
+    PngU16 { units_per_metre: f64 },
+    /// `.npy` little-endian float32 2-D array in metres (TartanAir).
+    NpyF32Metres,
+}
+
+/// The depth maps of a dataset and their encoding.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthTrack {
+    pub frames: Vec<DatasetFrame>,
+    pub format: DepthFormat,
+}
+
+/// Default TUM depth scale: PNG value per metre.
+pub const TUM_DEPTH_UNITS_PER_METRE: f64 = 5000.0;
+/// Largest time difference at which [`Dataset::load_depth_for_frame`] pairs a depth map with
+/// an image (the TUM `associate.py` default, 20 ms).
+pub const DEPTH_ASSOCIATION_MAX_DT_NS: i64 = 20_000_000;
+
+/// An opened dataset folder: everything but the pixels.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Dataset {
+    pub kind: DatasetKind,
+    /// The folder the spec named.
+    pub root: PathBuf,
+    /// Model of the images as stored (with distortion where the dataset has it).
+    pub camera: PinholeCamera,
+    /// Images in time order, time stamps strictly increasing.
+    pub frames: Vec<DatasetFrame>,
+    pub depth: Option<DepthTrack>,
+    /// `world_from_cam` poses, camera x right / y down / z forward.
+    pub ground_truth: Option<Vec<StampedPose>>,
+    /// Water parameters from `medium.json`, where the dataset has one.
+    pub medium: Option<MediumParams>,
+    /// Camera-to-body extrinsics (EuRoC `T_BS`), where the dataset has them.
+    pub body_from_cam: Option<Se3>,
+}
+
+/// A parsed spec `KIND:DIR[,OPTION=VALUE]...`; see [`open_dataset`] for the syntax.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DatasetSpec {
+    pub kind: DatasetKind,
+    pub dir: PathBuf,
+    /// `calib=FILE`: calibration file in our `calibration.txt` format.
+    pub calib: Option<PathBuf>,
+    /// `fps=F`: frame rate used to time-stamp frames as `i / F`.
+    pub fps: Option<f64>,
+    /// `depth_scale=F`: TUM depth PNG value per metre.
+    pub depth_scale: Option<f64>,
+    /// `cam=NAME`: EuRoC camera folder under `mav0/`.
+    pub cam: Option<String>,
+}
+
+impl DatasetSpec {
+    /// Parses a spec; an unknown kind is [`CameraError::UnknownSource`], a bad directory or
+    /// option [`CameraError::BadSpec`].
+    pub fn parse(spec: &str) -> Result<Self, CameraError> {
+        let unknown = || CameraError::UnknownSource { spec: spec.to_string(), kinds: DATASET_KINDS };
+        let (kind_name, rest) = spec.split_once(':').ok_or_else(unknown)?;
+        let kind = DatasetKind::from_name(kind_name.trim()).ok_or_else(unknown)?;
+        let bad = |problem: String| CameraError::BadSpec { spec: spec.to_string(), problem };
+        let mut parts = rest.split(',');
+        let dir = parts.next().unwrap_or("").trim();
+        if dir.is_empty() {
+            return Err(bad("no directory after the kind".into()));
+        }
+        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None };
+        let mut seen: Vec<&str> = Vec::new();
+        for part in parts {
+            let (key, value) = part
+                .split_once('=')
+                .map(|(k, v)| (k.trim(), v.trim()))
+                .ok_or_else(|| bad(format!("option {part:?} is not KEY=VALUE")))?;
+            if !kind.options().contains(&key) {
+                let accepted = kind.options().join(", ");
+                return Err(bad(format!("unknown option {key:?} for {kind} (accepted: {accepted})")));
+            }
+            if seen.contains(&key) {
+                return Err(bad(format!("option {key:?} given twice")));
+            }
+            seen.push(key);
+            if value.is_empty() {
+                return Err(bad(format!("option {key:?} has no value")));
+            }
+            let positive = |what: &str| -> Result<f64, CameraError> {
+                match value.parse::<f64>() {
+                    Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+                    _ => Err(bad(format!("{what}={value:?} is not a positive number"))),
+                }
+            };
+            match key {
+                "calib" => out.calib = Some(PathBuf::from(value)),
+                "fps" => out.fps = Some(positive("fps")?),
+                "depth_scale" => out.depth_scale = Some(positive("depth_scale")?),
+                "cam" => {
+                    if value.contains(['/', '\\']) || value == ".." || value == "." {
+                        return Err(bad(format!("cam={value:?} must be a folder name such as cam0")));
+                    }
+                    out.cam = Some(value.to_string());
+                }
+                other => return Err(bad(format!("unknown option {other:?}"))),
+            }
+        }
+        if !out.dir.is_dir() {
+            return Err(bad(format!("{} is not a directory", out.dir.display())));
+        }
+        Ok(out)
+    }
+}
+
+/// Opens a dataset from a spec `KIND:DIR[,OPTION=VALUE]...`.
+///
+/// Kinds and their options (options are comma-separated after the directory, so `DIR` cannot
+/// contain a comma; an option a kind does not take, or one given twice, is an error; relative
+/// paths are relative to the working directory):
+///
+/// - `tum:DIR[,calib=FILE][,depth_scale=F]`: `DIR/rgb.txt` (required), `DIR/depth.txt`,
+///   `DIR/groundtruth.txt`, `DIR/medium.json` (optional), calibration from `calib=FILE` or else
+///   `DIR/calibration.txt` (required: one line `fx fy cx cy width height`, optionally followed by
+///   `k1 k2 p1 p2 k3`). Depth PNGs hold metres x `depth_scale` (default 5000).
+/// - `euroc:DIR[,cam=NAME]`: `DIR/mav0/NAME/` (or `DIR/NAME/` when `DIR` is the `mav0` folder),
+///   `NAME` default `cam0`: `data.csv`, `data/`, `sensor.yaml`; ground truth from
+///   `mav0/state_groundtruth_estimate0/data.csv` when present, as camera poses
+///   `world_from_body * T_BS`.
+/// - `tartanair:DIR[,calib=FILE][,fps=F]`: `DIR/image_left/NNNNNN_left.png`, `DIR/pose_left.txt`
+///   (NED, converted to camera axes), `DIR/depth_left/NNNNNN_left_depth.npy` when present;
+///   camera fx = fy = 320, cx = 320, cy = 240, 640x480 unless `calib=FILE` or
+///   `DIR/calibration.txt` says otherwise; time stamps `i / fps`, fps default 10.
+/// - `folder:DIR[,calib=FILE][,fps=F]`: every `*.png` in `DIR`, calibration from `calib=FILE` or
+///   `DIR/calibration.txt` (required). Time stamps from the file stems when every stem is a
+///   19-digit integer (nanoseconds) or every stem is a decimal number with a point (seconds),
+///   frames then ordered by time; otherwise, or when `fps=F` is given, frames are ordered by
+///   name and stamped `i / fps` (default 10). `DIR/groundtruth.txt` (TUM) and
+///   `DIR/medium.json` are read when present.
+pub fn open_dataset(spec: &str) -> Result<Dataset, CameraError> {
+    open_spec(&DatasetSpec::parse(spec)?)
+}
+
+/// Opens a dataset from a parsed spec.
+pub fn open_spec(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
+    let dataset = match spec.kind {
+        DatasetKind::Tum => tum::open(spec),
+        DatasetKind::Euroc => euroc::open(spec),
+        DatasetKind::TartanAir => tartanair::open(spec),
+        DatasetKind::Folder => folder::open(spec),
+    }?;
+    tracing::debug!(
+        depth = dataset.depth.is_some(),
+        ground_truth = dataset.ground_truth.is_some(),
+        "opened {}",
+        dataset.describe()
+    );
+    Ok(dataset)
+}
+
+impl Dataset {
+    /// One line: kind, folder, frame count and image size.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} dataset {} ({} frames, {}x{})",
+            self.kind,
+            self.root.display(),
+            self.frames.len(),
+            self.camera.width,
+            self.camera.height
+        )
+    }
+
+    /// Decodes frame `index` (its position in [`Dataset::frames`], also its `seq`). The error
+    /// is [`CameraError::BadFrame`] naming the file.
+    pub fn load_frame(&self, index: usize) -> Result<Frame, CameraError> {
+        let f = &self.frames[index];
+        let wrap = |e: CameraError| CameraError::BadFrame { index, path: f.path.clone(), source: Box::new(e) };
+        let image = duv_core::io::png_io::read_image(&f.path).map_err(|e| wrap(e.into()))?;
+        self.check_size(&f.path, image.width(), image.height()).map_err(wrap)?;
+        Ok(Frame { t_ns: f.t_ns, seq: index as u64, image })
+    }
+
+    fn check_size(&self, path: &Path, width: usize, height: usize) -> Result<(), CameraError> {
+        if width != self.camera.width || height != self.camera.height {
+            return Err(CameraError::ImageSize {
+                path: path.to_path_buf(),
+                width,
+                height,
+                expected_width: self.camera.width,
+                expected_height: self.camera.height,
+            });
+        }
+        Ok(())
+    }
+
+    /// Loads depth map `depth_index` (its position in the depth track) in metres; 0 marks
+    /// pixels without depth (zero, negative or non-finite values in the file).
+    pub fn load_depth(&self, depth_index: usize) -> Result<PlaneF32, CameraError> {
+        let track = self.depth.as_ref().ok_or_else(|| CameraError::NoDepth { root: self.root.clone() })?;
+        let f = &track.frames[depth_index];
+        let plane = match track.format {
+            DepthFormat::PngU16 { units_per_metre } => {
+                let raw = duv_core::io::png_io::read_gray16(&f.path)?;
+                let scale = 1.0 / units_per_metre;
+                let data = raw.data.iter().map(|&v| if v == 0 { 0.0 } else { (v as f64 * scale) as f32 }).collect();
+                PlaneF32 { width: raw.width, height: raw.height, data }
+            }
+            DepthFormat::NpyF32Metres => {
+                let mut plane = npy::read_npy_f32(&f.path)?;
+                for v in &mut plane.data {
+                    if !(v.is_finite() && *v > 0.0) {
+                        *v = 0.0;
+                    }
+                }
+                plane
+            }
+        };
+        self.check_size(&f.path, plane.width, plane.height)?;
+        Ok(plane)
+    }
+
+    /// The depth map nearest in time to `t_ns`, if one lies within `max_dt_ns`.
+    pub fn depth_index_for(&self, t_ns: Timestamp, max_dt_ns: i64) -> Option<usize> {
+        let frames = &self.depth.as_ref()?.frames;
+        let i = frames.partition_point(|f| f.t_ns < t_ns);
+        [i.checked_sub(1), (i < frames.len()).then_some(i)]
+            .into_iter()
+            .flatten()
+            .map(|k| (k, (frames[k].t_ns.t_ns() - t_ns.t_ns()).abs()))
+            .filter(|&(_, dt)| dt <= max_dt_ns)
+            .min_by_key(|&(_, dt)| dt)
+            .map(|(k, _)| k)
+    }
+
+    /// The depth map (metres, 0 = invalid) paired with frame `frame_index`: the nearest in time
+    /// within [`DEPTH_ASSOCIATION_MAX_DT_NS`]. `Ok(None)` when the dataset has no depth or none
+    /// is close enough.
+    pub fn load_depth_for_frame(&self, frame_index: usize) -> Result<Option<PlaneF32>, CameraError> {
+        match self.depth_index_for(self.frames[frame_index].t_ns, DEPTH_ASSOCIATION_MAX_DT_NS) {
+            Some(k) => self.load_depth(k).map(Some),
+            None => Ok(None),
+        }
+    }
+
+    /// A frame source over this dataset, starting at the first frame.
+    pub fn into_source(self) -> DatasetSource {
+        DatasetSource::new(self)
+    }
+}
+
+/// A [`Dataset`] as a [`FrameSource`]: decodes one image per `next_frame`. A frame that fails
+/// is returned as an error and skipped; the next call continues with the following frame.
+/// `Frame::seq` is the frame's index in the dataset, so skipped frames leave gaps.
+#[derive(Debug)]
+pub struct DatasetSource {
+    dataset: Dataset,
+    next_index: usize,
+}
+
+impl DatasetSource {
+    pub fn new(dataset: Dataset) -> Self {
+        DatasetSource { dataset, next_index: 0 }
+    }
+    pub fn dataset(&self) -> &Dataset {
+        &self.dataset
+    }
+    /// Frames not yet delivered.
+    pub fn remaining(&self) -> usize {
+        self.dataset.frames.len() - self.next_index
+    }
+}
+
+impl FrameSource for DatasetSource {
+    fn camera(&self) -> &PinholeCamera {
+        &self.dataset.camera
+    }
+
+    fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
+        if self.next_index >= self.dataset.frames.len() {
+            return Ok(None);
+        }
+        let index = self.next_index;
+        self.next_index += 1;
+        let frame = self.dataset.load_frame(index)?;
+        tracing::trace!(seq = frame.seq, t_ns = frame.t_ns.t_ns(), "dataset frame");
+        Ok(Some(frame))
+    }
+
+    fn describe(&self) -> String {
+        self.dataset.describe()
+    }
+}
+
+// ---- helpers shared by the readers ----
+
+/// Time stamp of frame `i` at `fps` frames per second, to the nearest nanosecond.
+fn time_at_fps(i: usize, fps: f64) -> Timestamp {
+    Timestamp::from_ns((i as f64 * 1e9 / fps).round() as i64)
+}
+
+/// Errors unless `t_ns` is after the previous time stamp.
+fn check_increasing(list: &Path, line: usize, prev: Option<Timestamp>, t_ns: Timestamp) -> Result<(), CameraError> {
+    match prev {
+        Some(p) if t_ns <= p => {
+            Err(duv_core::io::IoError::parse(list, line, format!("time stamp {t_ns} is not after the previous one ({p})")).into())
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Errors unless `path` (named on line `line` of `list`) is an existing file.
+fn check_exists(list: &Path, line: usize, path: &Path) -> Result<(), CameraError> {
+    if path.is_file() {
+        Ok(())
+    } else {
+        Err(CameraError::MissingFile { list: list.to_path_buf(), line, missing: path.to_path_buf() })
+    }
+}
+
+/// The calibration a spec asks for (`calib=FILE`) or else `default_path`; `None` when neither
+/// the option is given nor the default file exists.
+fn optional_calibration(spec: &DatasetSpec, default_path: &Path) -> Result<Option<PinholeCamera>, CameraError> {
+    match &spec.calib {
+        Some(p) => read_calibration(p).map(Some),
+        None if default_path.exists() => read_calibration(default_path).map(Some),
+        None => Ok(None),
+    }
+}
+
+/// Like [`optional_calibration`], but a missing file is an error naming the file looked for.
+fn required_calibration(spec: &DatasetSpec, default_path: &Path) -> Result<PinholeCamera, CameraError> {
+    optional_calibration(spec, default_path)?.ok_or_else(|| CameraError::MissingCalibration {
+        path: default_path.to_path_buf(),
+        hint: "write one line `fx fy cx cy width height` there, or add calib=FILE to the source spec",
+    })
+}
+
+/// `medium.json` in `dir`, when present.
+fn optional_medium(dir: &Path) -> Result<Option<MediumParams>, CameraError> {
+    let path = dir.join("medium.json");
+    if path.exists() {
+        read_medium(&path).map(Some)
+    } else {
+        Ok(None)
+    }
+}
+
+/// A TUM trajectory file, when present.
+fn optional_trajectory(path: &Path) -> Result<Option<Vec<StampedPose>>, CameraError> {
+    if path.exists() {
+        Ok(Some(duv_core::io::tum::read_trajectory(path)?))
+    } else {
+        Ok(None)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spec_parsing() {
+        let dir = tempfile::tempdir().unwrap();
+        let d = dir.path().display().to_string();
+        let s = DatasetSpec::parse(&format!("folder:{d},fps=30,calib=cal.txt")).unwrap();
+        assert_eq!(s.kind, DatasetKind::Folder);
+        assert_eq!(s.fps, Some(30.0));
+        assert_eq!(s.calib, Some(PathBuf::from("cal.txt")));
+        assert!(matches!(DatasetSpec::parse(&format!("kitti:{d}")), Err(CameraError::UnknownSource { .. })));
+        assert!(matches!(DatasetSpec::parse(&d), Err(CameraError::UnknownSource { .. })));
+        for bad in [
+            format!("tum:{d},fps=10"),
+            format!("folder:{d},fps=0"),
+            format!("folder:{d},fps=10,fps=20"),
+            format!("folder:{d},fps"),
+            format!("euroc:{d},cam=../x"),
+            "tum:".to_string(),
+            format!("tum:{d}/nope"),
+        ] {
+            let e = DatasetSpec::parse(&bad).unwrap_err();
+            assert!(matches!(e, CameraError::BadSpec { .. }), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn depth_association_picks_nearest_within_limit() {
+        let cam = PinholeCamera::new(1.0, 1.0, 0.0, 0.0, 2, 2).unwrap();
+        let f = |t| DatasetFrame { t_ns: Timestamp(t), path: PathBuf::new() };
+        let ds = Dataset {
+            kind: DatasetKind::Tum,
+            root: PathBuf::new(),
+            camera: cam,
+            frames: vec![],
+            depth: Some(DepthTrack { frames: vec![f(0), f(100), f(200)], format: DepthFormat::NpyF32Metres }),
+            ground_truth: None,
+            medium: None,
+            body_from_cam: None,
+        };
+        assert_eq!(ds.depth_index_for(Timestamp(140), 50), Some(1));
+        assert_eq!(ds.depth_index_for(Timestamp(160), 50), Some(2));
+        assert_eq!(ds.depth_index_for(Timestamp(-10), 50), Some(0));
+        assert_eq!(ds.depth_index_for(Timestamp(300), 50), None);
+        assert_eq!(ds.depth_index_for(Timestamp(250), 50), Some(2));
+    }
+}

@@ -1,0 +1,97 @@
+//! The MCAP black box: everything the vehicle saw and decided, in files that open in Foxglove
+//! and survive a power cut.
+//!
+//! - [`schema`]: topics and their Foxglove schemas (`foxglove.RawImage`, or
+//!   `foxglove.CompressedImage` for input frames when the board asks for JPEG,
+//!   `foxglove.CameraCalibration`, `foxglove.PoseInFrame`, `foxglove.FrameTransform`,
+//!   `foxglove.PointCloud`) and the JSON schemas of our own records (`duv.TrackingState`,
+//!   `duv.Health`); [`LogItem`] is what the other stages hand to the log.
+//! - [`jpeg`]: baseline JPEG encoding of input frames for boards that log JPEG, allocation-free.
+//! - [`chunked`]: our MCAP writer (chunked, indexed, allocation-free once warm);
+//!   [`writer`]: segment files, a chunk closed and fsynced at least every
+//!   [`LogConfig::chunk_interval`], rotation by size and age, disk errors that stop logging
+//!   cleanly instead of failing the run.
+//! - [`reader`]: a streaming reader with a record-size limit that reads a damaged file up to
+//!   the damage; [`recover`] re-indexes an unfinished segment into a valid file;
+//!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
+//!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
+//!   logged for a resume (`/slam/window`).
+//!
+//! The log never imports another stage: what it writes arrives as plain `core` types.
+
+pub mod chunked;
+pub mod inspect;
+pub mod jpeg;
+pub mod keyframes;
+pub mod reader;
+pub mod recover;
+pub mod replay;
+pub mod schema;
+pub mod window;
+pub mod writer;
+
+pub use inspect::{inspect_log, LogSummary};
+pub use keyframes::{log_files, read_log_keyframes, LogKeyframes, LoggedMap};
+pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
+pub use recover::{recover_folder, RecoveryReport};
+pub use schema::{FrameEncoding, LogItem, PoseRecord, Topic};
+pub use window::{TrackerWindow, WindowKeyframe};
+pub use writer::{LogConfig, LogStats, SegmentWriter};
+
+use std::path::PathBuf;
+
+/// File name prefix and extension of log segments: `segment-NNNNNN.mcap`.
+pub const SEGMENT_PREFIX: &str = "segment-";
+pub const SEGMENT_EXT: &str = "mcap";
+
+/// Errors of the `log` module.
+#[derive(Debug, thiserror::Error)]
+pub enum LogError {
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error("{path}: MCAP: {source}")]
+    Mcap { path: PathBuf, source: mcap::McapError },
+    /// Writing failed (disk full, device gone): logging stopped, nothing before it was lost.
+    #[error("{path}: write failed after {bytes_written} bytes, logging stopped: {problem}")]
+    WriteFailed { path: PathBuf, bytes_written: u64, problem: String },
+    /// A record claims more bytes than the reader allows (damage or a hostile file).
+    #[error("{path}: record at byte {offset} is larger than the limit of {limit} bytes")]
+    RecordTooLarge { path: PathBuf, offset: u64, limit: usize },
+    #[error("{path}: not a duv log: {problem}")]
+    NotALog { path: PathBuf, problem: String },
+    #[error("{what}: cannot encode: {problem}")]
+    Encode { what: &'static str, problem: String },
+    /// A log without one complete keyframe (`duv refine --mcap`).
+    #[error("{path}: no keyframes in the log ({segments} segment(s) read; a keyframe is a /keyframe/image, /keyframe/inv_depth, /keyframe/variance and /keyframe/pose message of one index){why}")]
+    NoKeyframes { path: PathBuf, segments: usize, why: String },
+    #[error("{path}: message {topic} at {log_time_ns} ns: cannot decode: {problem}")]
+    Decode { path: PathBuf, topic: String, log_time_ns: u64, problem: String },
+}
+
+/// Segment file name for `index`.
+pub fn segment_name(index: u32) -> String {
+    format!("{SEGMENT_PREFIX}{index:06}.{SEGMENT_EXT}")
+}
+
+/// The segment index of a file name, `None` for other files.
+pub fn segment_index(name: &str) -> Option<u32> {
+    name.strip_prefix(SEGMENT_PREFIX)?.strip_suffix(".mcap")?.parse().ok()
+}
+
+/// The segments in `dir`, sorted by index.
+pub fn list_segments(dir: &std::path::Path) -> Result<Vec<(u32, PathBuf)>, LogError> {
+    let rd = match std::fs::read_dir(dir) {
+        Ok(rd) => rd,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(source) => return Err(LogError::Io { path: dir.to_path_buf(), source }),
+    };
+    let mut v = Vec::new();
+    for e in rd.flatten() {
+        let name = e.file_name();
+        if let Some(i) = name.to_str().and_then(segment_index) {
+            v.push((i, e.path()));
+        }
+    }
+    v.sort();
+    Ok(v)
+}

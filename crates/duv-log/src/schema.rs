@@ -1,0 +1,769 @@
+//! Topics, their schemas, and the encoding of [`LogItem`]s into MCAP messages.
+//!
+//! Images, calibration, poses, transforms and point clouds use the Foxglove protobuf schemas
+//! from the `foxglove` crate, so a log opens in Foxglove with the camera, the trajectory and the
+//! Gaussian centres visible. Our own records (tracking state, health) are JSON with a JSON
+//! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
+
+use super::window::TrackerWindow;
+use super::jpeg::{JpegEncoder, JpegError};
+use super::LogError;
+use duv_core::{Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+use foxglove::messages as fg;
+use foxglove::Encode;
+use nalgebra::{Quaternion, Translation3, UnitQuaternion};
+use serde::{Deserialize, Serialize};
+
+/// Frame id of the world (the tracker's map frame).
+pub const WORLD_FRAME: &str = "world";
+/// Frame id of the camera.
+pub const CAMERA_FRAME: &str = "camera";
+
+/// Every topic the log writes. `sequence` in the MCAP message header is the frame `seq` for
+/// per-frame topics and the keyframe id for keyframe topics.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Topic {
+    CameraImage,
+    CameraCalibration,
+    Pose,
+    Transform,
+    State,
+    KeyframeImage,
+    KeyframeInvDepth,
+    KeyframeVariance,
+    KeyframePose,
+    MapGaussians,
+    MapCheckpoint,
+    Health,
+    TrackerWindow,
+}
+
+pub const ALL_TOPICS: [Topic; 13] = [
+    Topic::CameraImage,
+    Topic::CameraCalibration,
+    Topic::Pose,
+    Topic::Transform,
+    Topic::State,
+    Topic::KeyframeImage,
+    Topic::KeyframeInvDepth,
+    Topic::KeyframeVariance,
+    Topic::KeyframePose,
+    Topic::MapGaussians,
+    Topic::MapCheckpoint,
+    Topic::Health,
+    Topic::TrackerWindow,
+];
+
+/// Schema of a topic: name, schema encoding, schema bytes, message encoding.
+pub struct TopicSchema {
+    pub name: String,
+    pub encoding: String,
+    pub data: Vec<u8>,
+    pub message_encoding: String,
+}
+
+const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"}}}"#;
+const HEALTH_SCHEMA: &str = r#"{"title":"duv.Health","type":"object","description":"once a second: queue depths and drops, per-stage latency, budget headroom, host memory"}"#;
+
+fn foxglove_schema<T: Encode>() -> TopicSchema {
+    let s = T::get_schema().expect("foxglove messages carry their schema");
+    TopicSchema { name: s.name, encoding: s.encoding, data: s.data.into_owned(), message_encoding: T::get_message_encoding() }
+}
+
+fn json_schema(name: &str, schema: &str) -> TopicSchema {
+    TopicSchema { name: name.into(), encoding: "jsonschema".into(), data: schema.as_bytes().to_vec(), message_encoding: "json".into() }
+}
+
+/// How input frames are stored on [`Topic::CameraImage`] (the board's `[log] frame_encoding`).
+/// Keyframe images are always raw: refinement reads them back and must get what mapping got.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FrameEncoding {
+    /// `foxglove.RawImage`, `rgb8` or `mono8`: lossless, 3 bytes per RGB pixel.
+    #[default]
+    Raw,
+    /// `foxglove.CompressedImage`, format `jpeg`, at this quality (1..=100; below 90 the
+    /// chroma is subsampled 4:2:0, from 90 on it is kept at full resolution).
+    Jpeg { quality: u8 },
+}
+
+/// Lowest and highest JPEG quality [`FrameEncoding::Jpeg`] accepts.
+pub const JPEG_QUALITY_RANGE: std::ops::RangeInclusive<u8> = 1..=100;
+
+impl Topic {
+    pub fn name(self) -> &'static str {
+        match self {
+            Topic::CameraImage => "/camera/image",
+            Topic::CameraCalibration => "/camera/calibration",
+            Topic::Pose => "/slam/pose",
+            Topic::Transform => "/tf",
+            Topic::State => "/slam/state",
+            Topic::KeyframeImage => "/keyframe/image",
+            Topic::KeyframeInvDepth => "/keyframe/inv_depth",
+            Topic::KeyframeVariance => "/keyframe/variance",
+            Topic::KeyframePose => "/keyframe/pose",
+            Topic::MapGaussians => "/map/gaussians",
+            Topic::MapCheckpoint => "/map/checkpoint",
+            Topic::Health => "/health",
+            Topic::TrackerWindow => "/slam/window",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Topic> {
+        ALL_TOPICS.into_iter().find(|t| t.name() == name)
+    }
+
+    /// The schema; `None` for the schemaless channels (map checkpoint, tracker window).
+    pub fn schema(self) -> Option<TopicSchema> {
+        Some(match self {
+            Topic::CameraImage | Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance => foxglove_schema::<fg::RawImage>(),
+            Topic::CameraCalibration => foxglove_schema::<fg::CameraCalibration>(),
+            Topic::Pose | Topic::KeyframePose => foxglove_schema::<fg::PoseInFrame>(),
+            Topic::Transform => foxglove_schema::<fg::FrameTransform>(),
+            Topic::MapGaussians => foxglove_schema::<fg::PointCloud>(),
+            Topic::State => json_schema("duv.TrackingState", STATE_SCHEMA),
+            Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
+            Topic::MapCheckpoint | Topic::TrackerWindow => return None,
+        })
+    }
+
+    /// The schema of the topic as a writer with `frames` writes it: `/camera/image` is
+    /// `foxglove.CompressedImage` when frames are JPEG, [`Topic::schema`] otherwise.
+    pub fn schema_for(self, frames: FrameEncoding) -> Option<TopicSchema> {
+        match (self, frames) {
+            (Topic::CameraImage, FrameEncoding::Jpeg { .. }) => Some(foxglove_schema::<fg::CompressedImage>()),
+            _ => self.schema(),
+        }
+    }
+
+    /// Message encoding of a schemaless topic.
+    pub fn schemaless_encoding(self) -> &'static str {
+        match self {
+            Topic::TrackerWindow => super::window::WINDOW_ENCODING,
+            _ => "duv.map_checkpoint",
+        }
+    }
+
+    /// Index into per-topic tables.
+    pub fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// A pose with its tracking state, as the tracker reported it live.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseRecord {
+    pub t_ns: Timestamp,
+    pub seq: u64,
+    pub world_from_cam: Se3,
+    /// Short state name (`tracking`, `lost (black frame)`, ...).
+    pub state: &'static str,
+    /// Whether the pose was measured (tracking or relocalised).
+    pub tracked: bool,
+    /// The keyframe the pose was measured against.
+    pub keyframe: Option<u64>,
+    /// Id of the keyframe this frame became.
+    pub new_keyframe: Option<u64>,
+    pub loop_closed: bool,
+}
+
+/// The JSON body of a `/slam/state` message.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StateMessage {
+    pub seq: u64,
+    pub t_ns: i64,
+    pub state: String,
+    pub tracked: bool,
+    pub keyframe: Option<u64>,
+    pub new_keyframe: Option<u64>,
+    pub loop_closed: bool,
+}
+
+/// What the other stages hand to the log writer.
+#[derive(Clone, Debug)]
+pub enum LogItem {
+    /// An input frame, as delivered by the source (shared with tracking, not copied).
+    Frame(std::sync::Arc<Frame>),
+    Calibration { t_ns: Timestamp, camera: PinholeCamera },
+    Pose(PoseRecord),
+    Keyframe(std::sync::Arc<Keyframe>),
+    /// A map checkpoint: the mapper's bytes and the Gaussian centres (world frame) for display.
+    Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8> },
+    /// A health record, already JSON.
+    Health { t_ns: Timestamp, json: String },
+    /// The tracker's newest keyframes (what a resume seeds a tracker with).
+    Window(std::sync::Arc<TrackerWindow>),
+}
+
+impl LogItem {
+    /// Bytes this item holds (what the byte-bounded log queue counts).
+    pub fn approx_bytes(&self) -> usize {
+        let base = std::mem::size_of::<LogItem>();
+        base + match self {
+            LogItem::Frame(f) => match &f.image {
+                FrameImage::Rgb8(i) => i.data.len(),
+                FrameImage::Gray8(i) => i.data.len(),
+            },
+            LogItem::Calibration { .. } | LogItem::Pose(_) => 0,
+            LogItem::Keyframe(k) => k.image.data.len() + 4 * (k.inv_depth.data.len() + k.inv_depth_variance.data.len()),
+            LogItem::Map { centres_in_world, checkpoint, .. } => 12 * centres_in_world.len() + checkpoint.len(),
+            LogItem::Health { json, .. } => json.len(),
+            LogItem::Window(w) => w.encoded_len(),
+        }
+    }
+
+    pub fn t_ns(&self) -> Timestamp {
+        match self {
+            LogItem::Frame(f) => f.t_ns,
+            LogItem::Calibration { t_ns, .. } | LogItem::Map { t_ns, .. } | LogItem::Health { t_ns, .. } => *t_ns,
+            LogItem::Pose(p) => p.t_ns,
+            LogItem::Keyframe(k) => k.t_ns,
+            LogItem::Window(w) => w.t_ns,
+        }
+    }
+}
+
+/// Foxglove time stamp of `t_ns` (negative times clamp to 0).
+pub fn fg_time(t_ns: Timestamp) -> fg::Timestamp {
+    let ns = t_ns.t_ns().max(0) as u64;
+    fg::Timestamp::new((ns / 1_000_000_000).min(u32::MAX as u64) as u32, (ns % 1_000_000_000) as u32)
+}
+
+fn fg_pose(p: &Se3) -> fg::Pose {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    fg::Pose {
+        position: Some(fg::Vector3 { x: t.x, y: t.y, z: t.z }),
+        orientation: Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w }),
+    }
+}
+
+/// The pose a `foxglove.Pose` holds; `None` when a part is missing or not finite.
+pub fn se3_from_fg(p: &fg::Pose) -> Option<Se3> {
+    let t = p.position.as_ref()?;
+    let q = p.orientation.as_ref()?;
+    let v = [t.x, t.y, t.z, q.x, q.y, q.z, q.w];
+    if v.iter().any(|x| !x.is_finite()) || (q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) < 1e-12 {
+        return None;
+    }
+    Some(Se3::from_parts(Translation3::new(t.x, t.y, t.z), UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z))))
+}
+
+fn encode<T: Encode>(msg: &T, what: &'static str, out: &mut Vec<u8>) -> Result<(), LogError> {
+    out.clear();
+    msg.encode(out).map_err(|e| LogError::Encode { what, problem: e.to_string() })
+}
+
+/// Messages whose strings are set once, so that encoding one allocates nothing: only their
+/// numbers change from item to item.
+struct Templates {
+    image: fg::RawImage,
+    compressed: fg::CompressedImage,
+    pose: fg::PoseInFrame,
+    transform: fg::FrameTransform,
+    /// The JPEG encoder for the board's quality (its tables, built once).
+    jpeg: Option<JpegEncoder>,
+}
+
+impl std::fmt::Debug for Templates {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Templates").field("jpeg_quality", &self.jpeg.as_ref().map(|e| e.quality())).finish_non_exhaustive()
+    }
+}
+
+impl Default for Templates {
+    fn default() -> Self {
+        Templates {
+            image: fg::RawImage { frame_id: CAMERA_FRAME.into(), encoding: String::with_capacity(8), ..Default::default() },
+            compressed: fg::CompressedImage { frame_id: CAMERA_FRAME.into(), format: "jpeg".into(), ..Default::default() },
+            pose: fg::PoseInFrame { frame_id: WORLD_FRAME.into(), ..Default::default() },
+            transform: fg::FrameTransform { parent_frame_id: WORLD_FRAME.into(), child_frame_id: CAMERA_FRAME.into(), ..Default::default() },
+            jpeg: None,
+        }
+    }
+}
+
+/// Pixel data of a `foxglove.RawImage`: bytes, or f32 samples written little endian.
+enum Pixels<'a> {
+    Bytes(&'a [u8]),
+    F32(&'a [f32]),
+}
+
+/// Encodes a `foxglove.RawImage` into `out` without building the message's `data` (a copy of
+/// every pixel): the other fields through the template, then field 6 (`data`, length
+/// delimited) appended from `pixels`. Protobuf readers take fields in any order.
+#[allow(clippy::too_many_arguments)]
+fn encode_raw_image(tpl: &mut fg::RawImage, t_ns: Timestamp, width: usize, height: usize, encoding: &str, step: usize, pixels: Pixels<'_>, what: &'static str, out: &mut Vec<u8>) -> Result<(), LogError> {
+    tpl.timestamp = Some(fg_time(t_ns));
+    tpl.width = width as u32;
+    tpl.height = height as u32;
+    tpl.encoding.clear();
+    tpl.encoding.push_str(encoding);
+    tpl.step = step as u32;
+    encode(&*tpl, what, out)?;
+    match pixels {
+        Pixels::Bytes(b) => append_bytes_field(6, b, out),
+        Pixels::F32(v) => {
+            field_header(6, 4 * v.len(), out);
+            for x in v {
+                out.extend_from_slice(&x.to_le_bytes());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The JSON body of `/slam/state`, borrowed ([`StateMessage`] is what readers get back).
+#[derive(Serialize)]
+struct StateRef<'a> {
+    seq: u64,
+    t_ns: i64,
+    state: &'a str,
+    tracked: bool,
+    keyframe: Option<u64>,
+    new_keyframe: Option<u64>,
+    loop_closed: bool,
+}
+
+/// One encoded MCAP message: topic, header sequence, log time, body in the caller's buffer.
+pub struct Encoded {
+    pub topic: Topic,
+    pub sequence: u32,
+    pub log_time_ns: u64,
+}
+
+/// Encodes [`LogItem`]s into MCAP message bodies, with the buffers it reuses from item to item
+/// (the message body and the JPEG stream) and the frame encoding.
+#[derive(Debug, Default)]
+pub struct ItemEncoder {
+    frames: FrameEncoding,
+    scratch: Vec<u8>,
+    jpeg: Vec<u8>,
+    templates: Templates,
+}
+
+impl ItemEncoder {
+    pub fn new(frames: FrameEncoding) -> Self {
+        ItemEncoder { frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default() }
+    }
+
+    pub fn frame_encoding(&self) -> FrameEncoding {
+        self.frames
+    }
+
+    /// Encodes `item` into one or more messages; `emit` gets each with its body.
+    pub fn encode(&mut self, item: &LogItem, emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+        encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates, emit)
+    }
+}
+
+/// Compresses `image` into `out` (cleared first; its capacity is reused) with a one-off
+/// encoder; the log keeps one per quality ([`ItemEncoder`]).
+pub fn encode_jpeg(image: &FrameImage, quality: u8, out: &mut Vec<u8>) -> Result<(), LogError> {
+    let problem = |e: JpegError| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() };
+    let encoder = JpegEncoder::new(quality).map_err(problem)?;
+    encode_jpeg_with(&encoder, image, out)
+}
+
+fn encode_jpeg_with(encoder: &JpegEncoder, image: &FrameImage, out: &mut Vec<u8>) -> Result<(), LogError> {
+    let problem = |e: JpegError| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() };
+    match image {
+        FrameImage::Rgb8(i) => encoder.encode(&i.data, i.width, i.height, 3, out),
+        FrameImage::Gray8(i) => encoder.encode(&i.data, i.width, i.height, 1, out),
+    }
+    .map_err(problem)
+}
+
+/// Appends the key and length of protobuf field `field` (length delimited, `len` bytes).
+fn field_header(field: u32, len: usize, out: &mut Vec<u8>) {
+    out.push(((field << 3) | 2) as u8);
+    let mut v = len as u64;
+    while v >= 0x80 {
+        out.push((v as u8 & 0x7f) | 0x80);
+        v >>= 7;
+    }
+    out.push(v as u8);
+}
+
+/// Appends protobuf field `field` (length delimited) holding `bytes` to `out`.
+fn append_bytes_field(field: u32, bytes: &[u8], out: &mut Vec<u8>) {
+    field_header(field, bytes.len(), out);
+    out.extend_from_slice(bytes);
+}
+
+fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, tpl: &mut Templates, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+    let log_time_ns = item.t_ns().t_ns().max(0) as u64;
+    match item {
+        LogItem::Frame(f) => {
+            match frames {
+                FrameEncoding::Raw => match &f.image {
+                    FrameImage::Rgb8(i) => encode_raw_image(&mut tpl.image, f.t_ns, i.width, i.height, "rgb8", i.width * 3, Pixels::Bytes(&i.data), "frame", scratch)?,
+                    FrameImage::Gray8(i) => encode_raw_image(&mut tpl.image, f.t_ns, i.width, i.height, "mono8", i.width, Pixels::Bytes(&i.data), "frame", scratch)?,
+                },
+                FrameEncoding::Jpeg { quality } => {
+                    if tpl.jpeg.as_ref().is_none_or(|e| e.quality() != quality) {
+                        let e = JpegEncoder::new(quality).map_err(|e| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() })?;
+                        tpl.jpeg = Some(e);
+                    }
+                    encode_jpeg_with(tpl.jpeg.as_ref().expect("set above"), &f.image, jpeg)?;
+                    // The template's fields, then `data` (field 2) appended from the JPEG buffer.
+                    tpl.compressed.timestamp = Some(fg_time(f.t_ns));
+                    encode(&tpl.compressed, "frame", scratch)?;
+                    append_bytes_field(2, jpeg, scratch);
+                }
+            }
+            emit(Encoded { topic: Topic::CameraImage, sequence: f.seq as u32, log_time_ns }, scratch)
+        }
+        LogItem::Calibration { t_ns, camera } => {
+            let (fx, fy, cx, cy) = (camera.fx, camera.fy, camera.cx, camera.cy);
+            let (model, d) = match &camera.distortion {
+                Some(rt) => ("plumb_bob".to_string(), vec![rt.k1, rt.k2, rt.p1, rt.p2, rt.k3]),
+                None => (String::new(), Vec::new()),
+            };
+            let msg = fg::CameraCalibration {
+                timestamp: Some(fg_time(*t_ns)),
+                frame_id: CAMERA_FRAME.into(),
+                width: camera.width as u32,
+                height: camera.height as u32,
+                distortion_model: model,
+                d,
+                k: vec![fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+                r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+                p: vec![fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+            };
+            encode(&msg, "calibration", scratch)?;
+            emit(Encoded { topic: Topic::CameraCalibration, sequence: 0, log_time_ns }, scratch)
+        }
+        LogItem::Pose(p) => {
+            let sequence = p.seq as u32;
+            tpl.pose.timestamp = Some(fg_time(p.t_ns));
+            tpl.pose.pose = Some(fg_pose(&p.world_from_cam));
+            encode(&tpl.pose, "pose", scratch)?;
+            emit(Encoded { topic: Topic::Pose, sequence, log_time_ns }, scratch)?;
+            let t = p.world_from_cam.translation.vector;
+            let q = p.world_from_cam.rotation.quaternion();
+            tpl.transform.timestamp = Some(fg_time(p.t_ns));
+            tpl.transform.translation = Some(fg::Vector3 { x: t.x, y: t.y, z: t.z });
+            tpl.transform.rotation = Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w });
+            encode(&tpl.transform, "transform", scratch)?;
+            emit(Encoded { topic: Topic::Transform, sequence, log_time_ns }, scratch)?;
+            let state = StateRef {
+                seq: p.seq,
+                t_ns: p.t_ns.t_ns(),
+                state: p.state,
+                tracked: p.tracked,
+                keyframe: p.keyframe,
+                new_keyframe: p.new_keyframe,
+                loop_closed: p.loop_closed,
+            };
+            scratch.clear();
+            serde_json::to_writer(&mut *scratch, &state).map_err(|e| LogError::Encode { what: "state", problem: e.to_string() })?;
+            emit(Encoded { topic: Topic::State, sequence, log_time_ns }, scratch)
+        }
+        LogItem::Keyframe(k) => {
+            let sequence = k.index as u32;
+            let (w, h) = (k.image.width, k.image.height);
+            encode_raw_image(&mut tpl.image, k.t_ns, w, h, "rgb8", w * 3, Pixels::Bytes(&k.image.data), "keyframe image", scratch)?;
+            emit(Encoded { topic: Topic::KeyframeImage, sequence, log_time_ns }, scratch)?;
+            let (dw, dh) = (k.inv_depth.width, k.inv_depth.height);
+            encode_raw_image(&mut tpl.image, k.t_ns, dw, dh, "32FC1", dw * 4, Pixels::F32(&k.inv_depth.data), "keyframe inverse depth", scratch)?;
+            emit(Encoded { topic: Topic::KeyframeInvDepth, sequence, log_time_ns }, scratch)?;
+            let (vw, vh) = (k.inv_depth_variance.width, k.inv_depth_variance.height);
+            encode_raw_image(&mut tpl.image, k.t_ns, vw, vh, "32FC1", vw * 4, Pixels::F32(&k.inv_depth_variance.data), "keyframe variance", scratch)?;
+            emit(Encoded { topic: Topic::KeyframeVariance, sequence, log_time_ns }, scratch)?;
+            tpl.pose.timestamp = Some(fg_time(k.t_ns));
+            tpl.pose.pose = Some(fg_pose(&k.world_from_cam));
+            encode(&tpl.pose, "keyframe pose", scratch)?;
+            emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
+        }
+        LogItem::Map { t_ns, centres_in_world, checkpoint } => {
+            let mut data = Vec::with_capacity(centres_in_world.len() * 12);
+            for c in centres_in_world {
+                for v in c {
+                    data.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+            let field = |name: &str, offset: u32| fg::PackedElementField { name: name.into(), offset, r#type: fg::packed_element_field::NumericType::Float32 as i32 };
+            let msg = fg::PointCloud {
+                timestamp: Some(fg_time(*t_ns)),
+                frame_id: WORLD_FRAME.into(),
+                pose: Some(fg_pose(&Se3::identity())),
+                point_stride: 12,
+                fields: vec![field("x", 0), field("y", 4), field("z", 8)],
+                data: data.into(),
+            };
+            encode(&msg, "map point cloud", scratch)?;
+            emit(Encoded { topic: Topic::MapGaussians, sequence: 0, log_time_ns }, scratch)?;
+            emit(Encoded { topic: Topic::MapCheckpoint, sequence: 0, log_time_ns }, checkpoint)
+        }
+        LogItem::Health { json, .. } => emit(Encoded { topic: Topic::Health, sequence: 0, log_time_ns }, json.as_bytes()),
+        LogItem::Window(w) => {
+            w.encode(scratch).map_err(|problem| LogError::Encode { what: "tracker window", problem })?;
+            emit(Encoded { topic: Topic::TrackerWindow, sequence: w.seq as u32, log_time_ns }, scratch)
+        }
+    }
+}
+
+/// The wire type of field 2 of a protobuf message: `foxglove.RawImage` has its `width` there
+/// (fixed32, wire type 5), `foxglove.CompressedImage` its `data` (length-delimited, wire type
+/// 2). `None` when the field is absent or the bytes are not protobuf.
+fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
+    fn varint(d: &mut &[u8]) -> Option<u64> {
+        let mut v = 0u64;
+        for shift in (0..64).step_by(7) {
+            let (&b, rest) = d.split_first()?;
+            *d = rest;
+            v |= u64::from(b & 0x7f) << shift;
+            if b & 0x80 == 0 {
+                return Some(v);
+            }
+        }
+        None
+    }
+    while !data.is_empty() {
+        let key = varint(&mut data)?;
+        let wire = (key & 7) as u8;
+        if key >> 3 == 2 {
+            return Some(wire);
+        }
+        let skip = match wire {
+            0 => {
+                varint(&mut data)?;
+                0
+            }
+            1 => 8,
+            2 => usize::try_from(varint(&mut data)?).ok()?,
+            5 => 4,
+            _ => return None,
+        };
+        data = data.get(skip..)?;
+    }
+    None
+}
+
+/// Decodes a logged frame: a `foxglove.RawImage` (`rgb8` or `mono8`) or a
+/// `foxglove.CompressedImage` in format `jpeg` (colour or grey), whichever the message is.
+pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+    if field2_wire_type(data) == Some(2) {
+        return decode_jpeg_frame(data, seq, log_time_ns);
+    }
+    use foxglove::Decode;
+    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    let t_ns = timestamp_or(img.timestamp, log_time_ns);
+    let image = match img.encoding.as_str() {
+        "rgb8" => {
+            if img.step as usize != w * 3 {
+                return Err(format!("rgb8 step {} for width {w}", img.step));
+            }
+            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| format!("{} bytes for a {w}x{h} rgb8 image", img.data.len()))?)
+        }
+        "mono8" => {
+            if img.step as usize != w {
+                return Err(format!("mono8 step {} for width {w}", img.step));
+            }
+            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| format!("{} bytes for a {w}x{h} mono8 image", img.data.len()))?)
+        }
+        other => return Err(format!("unsupported image encoding {other:?}")),
+    };
+    Ok(Frame { t_ns, seq, image })
+}
+
+fn timestamp_or(t: Option<fg::Timestamp>, log_time_ns: u64) -> Timestamp {
+    match t {
+        Some(t) => Timestamp::from_ns(t.sec() as i64 * 1_000_000_000 + t.nsec() as i64),
+        None => Timestamp::from_ns(log_time_ns as i64),
+    }
+}
+
+/// Decodes a `foxglove.CompressedImage` holding a JPEG into a frame: grey JPEGs give grey
+/// frames, colour ones RGB.
+fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+    use foxglove::Decode;
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let img = fg::CompressedImage::decode(data).map_err(|e| e.to_string())?;
+    if !img.format.eq_ignore_ascii_case("jpeg") && !img.format.eq_ignore_ascii_case("jpg") {
+        return Err(format!("unsupported compressed image format {:?} (this build reads jpeg)", img.format));
+    }
+    let t_ns = timestamp_or(img.timestamp, log_time_ns);
+    let mut probe = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], DecoderOptions::new_safe());
+    probe.decode_headers().map_err(|e| format!("jpeg: {e:?}"))?;
+    let grey = probe.get_input_colorspace() == Some(ColorSpace::Luma);
+    let (w, h) = probe.dimensions().ok_or("jpeg: no dimensions")?;
+    let out = if grey { ColorSpace::Luma } else { ColorSpace::RGB };
+    // Strict: a damaged stream is an error, not a frame with a grey lower half.
+    let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(out).set_strict_mode(true);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], options);
+    let pixels = decoder.decode().map_err(|e| format!("jpeg: {e:?}"))?;
+    let image = if grey {
+        FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} grey"))?)
+    } else {
+        FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} rgb"))?)
+    };
+    Ok(Frame { t_ns, seq, image })
+}
+
+/// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
+/// and variance are logged) into a plane.
+pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, String> {
+    use foxglove::Decode;
+    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    if img.encoding != "32FC1" {
+        return Err(format!("encoding {:?}, expected \"32FC1\"", img.encoding));
+    }
+    if img.step as usize != w * 4 || img.data.len() != w * h * 4 {
+        return Err(format!("{} bytes with step {} for a {w}x{h} 32FC1 image", img.data.len(), img.step));
+    }
+    let data = img.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    PlaneF32::from_vec(w, h, data).ok_or_else(|| format!("{w}x{h} 32FC1 size mismatch"))
+}
+
+/// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
+/// holds undistorted frames).
+pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, String> {
+    use foxglove::Decode;
+    let c = fg::CameraCalibration::decode(data).map_err(|e| e.to_string())?;
+    if c.k.len() != 9 {
+        return Err(format!("K has {} entries, expected 9", c.k.len()));
+    }
+    PinholeCamera::new(c.k[0], c.k[4], c.k[2], c.k[5], c.width as usize, c.height as usize).map_err(|e| e.to_string())
+}
+
+/// Decodes a `foxglove.PoseInFrame`.
+pub fn decode_pose(data: &[u8]) -> Result<Se3, String> {
+    use foxglove::Decode;
+    let p = fg::PoseInFrame::decode(data).map_err(|e| e.to_string())?;
+    p.pose.as_ref().and_then(se3_from_fg).ok_or_else(|| "pose missing or not finite".to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use duv_core::ImageRgb8;
+
+    #[test]
+    fn frame_and_pose_round_trip() {
+        let mut img = ImageRgb8::new(5, 3);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = (i * 7 % 251) as u8;
+        }
+        let frame = Frame { t_ns: Timestamp::from_ns(1_500_000_123), seq: 42, image: FrameImage::Rgb8(img) };
+        let mut enc = ItemEncoder::new(FrameEncoding::Raw);
+        let mut got = Vec::new();
+        enc.encode(&LogItem::Frame(std::sync::Arc::new(frame.clone())), |e, b| {
+            got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.len(), 1);
+        assert_eq!((got[0].0, got[0].1, got[0].2), (Topic::CameraImage, 42, 1_500_000_123));
+        assert_eq!(decode_frame(&got[0].3, 42, 0).unwrap(), frame);
+
+        let pose = Se3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
+        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false };
+        got.clear();
+        enc.encode(&LogItem::Pose(rec), |e, b| {
+            got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), vec![Topic::Pose, Topic::Transform, Topic::State]);
+        let back = decode_pose(&got[0].3).unwrap();
+        assert!((back.translation.vector - pose.translation.vector).norm() < 1e-12);
+        assert!(back.rotation.angle_to(&pose.rotation) < 1e-12);
+        let state: StateMessage = serde_json::from_slice(&got[2].3).unwrap();
+        assert_eq!((state.seq, state.state.as_str(), state.keyframe), (3, "tracking", Some(1)));
+        assert_eq!(Topic::from_name("/slam/pose"), Some(Topic::Pose));
+        assert_eq!(Topic::CameraImage.schema().unwrap().name, "foxglove.RawImage");
+        assert_eq!(Topic::Pose.schema().unwrap().name, "foxglove.PoseInFrame");
+        assert_eq!(Topic::Transform.schema().unwrap().name, "foxglove.FrameTransform");
+        assert_eq!(Topic::MapGaussians.schema().unwrap().name, "foxglove.PointCloud");
+        assert_eq!(Topic::CameraCalibration.schema().unwrap().encoding, "protobuf");
+    }
+
+    /// A smooth test image (JPEG's case: gradients and a few edges, like a seabed).
+    fn smooth(w: usize, h: usize) -> ImageRgb8 {
+        let mut img = ImageRgb8::new(w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let v = [(x * 255 / w) as u8, (y * 255 / h) as u8, if (x / 8 + y / 8) % 2 == 0 { 60 } else { 190 }];
+                img.set_pixel(x, y, v);
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn jpeg_frames_round_trip_colour_and_grey() {
+        let mut enc = ItemEncoder::new(FrameEncoding::Jpeg { quality: 90 });
+        let rgb = smooth(37, 23); // not a multiple of the 8x8 / 16x16 MCU
+        let grey = duv_core::ImageGray8::from_vec(37, 23, rgb.data.iter().step_by(3).copied().collect()).unwrap();
+        for image in [FrameImage::Rgb8(rgb.clone()), FrameImage::Gray8(grey)] {
+            let frame = Frame { t_ns: Timestamp::from_ns(2_000_000_007), seq: 9, image };
+            let mut body = Vec::new();
+            enc.encode(&LogItem::Frame(std::sync::Arc::new(frame.clone())), |e, b| {
+                assert_eq!((e.topic, e.sequence, e.log_time_ns), (Topic::CameraImage, 9, 2_000_000_007));
+                body = b.to_vec();
+                Ok(())
+            })
+            .unwrap();
+            assert_eq!(field2_wire_type(&body), Some(2), "CompressedImage carries its data in field 2");
+            let back = decode_frame(&body, 9, 0).unwrap();
+            assert_eq!((back.t_ns, back.seq), (frame.t_ns, 9));
+            let (a, b): (&[u8], &[u8]) = match (&frame.image, &back.image) {
+                (FrameImage::Rgb8(a), FrameImage::Rgb8(b)) => (&a.data, &b.data),
+                (FrameImage::Gray8(a), FrameImage::Gray8(b)) => (&a.data, &b.data),
+                _ => panic!("colour kind changed"),
+            };
+            let mse = a.iter().zip(b).map(|(&x, &y)| (x as f64 - y as f64).powi(2)).sum::<f64>() / a.len() as f64;
+            let psnr = 10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10();
+            assert!(psnr > 30.0, "quality 90: PSNR {psnr:.1} dB");
+        }
+        assert_eq!(Topic::CameraImage.schema_for(FrameEncoding::Jpeg { quality: 90 }).unwrap().name, "foxglove.CompressedImage");
+        assert_eq!(Topic::CameraImage.schema_for(FrameEncoding::Raw).unwrap().name, "foxglove.RawImage");
+        assert_eq!(Topic::KeyframeImage.schema_for(FrameEncoding::Jpeg { quality: 90 }).unwrap().name, "foxglove.RawImage");
+    }
+
+    #[test]
+    fn bad_jpeg_input_is_an_error_not_a_panic() {
+        let img = FrameImage::Rgb8(smooth(16, 16));
+        let e = encode_jpeg(&img, 0, &mut Vec::new()).unwrap_err();
+        assert!(e.to_string().contains("quality 0"), "{e}");
+        // A CompressedImage whose JPEG is cut short, and one in another format.
+        let mut out = Vec::new();
+        encode_jpeg(&img, 80, &mut out).unwrap();
+        for (data, format, want) in [(out[..out.len() / 2].to_vec(), "jpeg", "jpeg"), (out.clone(), "png", "format \"png\"")] {
+            let msg = fg::CompressedImage { timestamp: None, frame_id: String::new(), data: data.into(), format: format.into() };
+            let mut body = Vec::new();
+            msg.encode(&mut body).unwrap();
+            let e = decode_frame(&body, 0, 0).unwrap_err();
+            assert!(e.contains(want), "{e}");
+        }
+        assert!(decode_frame(&[0xff, 0xff, 0xff], 0, 0).is_err());
+    }
+
+    #[test]
+    fn keyframe_planes_round_trip_and_bad_planes_are_errors() {
+        let camera = PinholeCamera::new(50.0, 50.0, 2.0, 1.5, 4, 3).unwrap();
+        let mut inv = duv_core::PlaneF32::new(4, 3);
+        let mut var = duv_core::PlaneF32::new(4, 3);
+        for (i, (d, v)) in inv.data.iter_mut().zip(var.data.iter_mut()).enumerate() {
+            *d = 0.25 + i as f32 * 0.01;
+            *v = if i == 5 { f32::MAX } else { 1e-4 * i as f32 };
+        }
+        let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
+        let (mut scratch, mut jpeg) = (Vec::new(), Vec::new());
+        let mut got = Vec::new();
+        encode_item(&LogItem::Keyframe(std::sync::Arc::new(kf)), FrameEncoding::Raw, &mut scratch, &mut jpeg, &mut Templates::default(), |e, b| {
+            got.push((e.topic, e.sequence, b.to_vec()));
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), vec![(Topic::KeyframeImage, 9), (Topic::KeyframeInvDepth, 9), (Topic::KeyframeVariance, 9), (Topic::KeyframePose, 9)]);
+        assert_eq!(decode_plane_f32(&got[1].2).unwrap(), inv);
+        assert_eq!(decode_plane_f32(&got[2].2).unwrap(), var);
+        let err = decode_plane_f32(&got[0].2).unwrap_err();
+        assert!(err.contains("rgb8"), "{err}");
+    }
+}

@@ -1,0 +1,268 @@
+//! The mapping stage as the pipeline drives it: keyframes in (image, `world_from_cam`, inverse
+//! depth, variance, the plain [`Keyframe`] of `core/`), a bounded optimisation after each one,
+//! and the exports.
+//!
+//! * [`MappingStage::on_keyframe`] stores the keyframe in the [`Mapper`] (seeding Gaussians
+//!   from its confident depth) and then optimises for [`MappingBudget::iterations_per_keyframe`]
+//!   iterations or until [`MappingBudget::millis_per_keyframe`] has passed, whichever comes
+//!   first: the onboard mapping thread calls it once per keyframe it pops from the
+//!   tracking -> mapping queue, so the time budget bounds how far mapping can fall behind.
+//! * [`MappingStage::optimise`] runs more iterations (the idle time of the mapping thread, or the
+//!   end of a run); [`MappingStage::set_keyframe_pose`] takes a corrected pose from tracking
+//!   (after a loop closure or a global BA).
+//! * [`MappingStage::export`] writes `map.ply` (3DGS layout), `map.ckpt` (the full mapper
+//!   checkpoint), `medium.json` (the medium along the newest keyframe's optical axis, the
+//!   generator's keys `beta_D`, `beta_B`, `B_inf`) and `renders/NNNNNN.png`, one panel per
+//!   stored keyframe: input | render | restored | depth | uncertainty.
+//!
+//! Every buffer is sized by [`MapperCapacity`], which [`MapperCapacity::from_board`] takes from
+//! the board (`max_gaussians`, `max_keyframes`) and the camera.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+
+use super::checkpoint::CheckpointError;
+use super::mapper::{IterationReport, Mapper, MapperCapacity, MapperConfig, MapperError};
+use super::ply::write_ply;
+use super::render::RenderOutput;
+use duv_core::config::Board;
+use duv_core::{ImageRgb8, Keyframe, MediumParams, PlaneF32, Se3};
+use duv_core::io::png_io::write_rgb8;
+use duv_core::io::{write_atomic, IoError};
+
+/// Why the mapping stage failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StageError {
+    #[error("mapper: {0}")]
+    Mapper(#[from] MapperError),
+    #[error("checkpoint: {0}")]
+    Checkpoint(#[from] CheckpointError),
+    #[error("{0}")]
+    Io(#[from] IoError),
+    #[error("creating {path}: {source}")]
+    CreateDir { path: String, source: std::io::Error },
+    #[error("medium.json: {0}")]
+    Json(String),
+    #[error("mapping budget: {field} = {value} {why}")]
+    InvalidBudget { field: &'static str, value: f64, why: &'static str },
+}
+
+/// How much optimisation each keyframe buys. Defaults live in [`MappingBudget::default`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MappingBudget {
+    /// Iterations after each new keyframe (at most).
+    pub iterations_per_keyframe: u64,
+    /// Wall-time limit of the optimisation after each keyframe, ms; 0 = no limit.
+    pub millis_per_keyframe: u64,
+}
+
+impl Default for MappingBudget {
+    fn default() -> Self {
+        MappingBudget { iterations_per_keyframe: 30, millis_per_keyframe: 0 }
+    }
+}
+
+/// What one call of [`MappingStage::on_keyframe`] or [`MappingStage::optimise`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct MappingStep {
+    /// Gaussians seeded from the new keyframe (0 for `optimise`).
+    pub added: usize,
+    /// Iterations run.
+    pub iterations: u64,
+    /// The last iteration's report, if any ran.
+    pub last: Option<IterationReport>,
+    /// Wall time of the call.
+    pub elapsed: Duration,
+}
+
+impl MapperCapacity {
+    /// The board's caps (`budgets.max_gaussians`, `budgets.map_keyframes`) for keyframes of
+    /// `width x height` pixels.
+    pub fn from_board(board: &Board, width: usize, height: usize) -> Self {
+        MapperCapacity { max_gaussians: board.budgets.max_gaussians as usize, max_keyframes: board.budgets.map_keyframes as usize, width, height }
+    }
+}
+
+/// The mapping stage: a [`Mapper`] with a per-keyframe budget and the exports.
+pub struct MappingStage {
+    mapper: Mapper,
+    budget: MappingBudget,
+    /// (iteration, Gaussians) after every keyframe and every `optimise` call, capacity fixed.
+    history: Vec<(u64, usize)>,
+    history_cap: usize,
+}
+
+impl MappingStage {
+    /// An empty map sized by `capacity`.
+    pub fn new(config: MapperConfig, capacity: MapperCapacity, budget: MappingBudget) -> Result<Self, StageError> {
+        if budget.iterations_per_keyframe > 1_000_000 {
+            return Err(StageError::InvalidBudget { field: "iterations_per_keyframe", value: budget.iterations_per_keyframe as f64, why: "must be at most 1e6" });
+        }
+        let mapper = Mapper::new(config, capacity)?;
+        // One entry per keyframe and per optimise call: 4 per keyframe of capacity is plenty;
+        // past it the history keeps every other entry.
+        let history_cap = 4 * capacity.max_keyframes.max(16);
+        Ok(MappingStage { mapper, budget, history: Vec::with_capacity(history_cap), history_cap })
+    }
+
+    /// A stage restored from a map checkpoint (`map.ckpt`).
+    pub fn from_checkpoint(path: &Path, budget: MappingBudget) -> Result<Self, StageError> {
+        let mapper = Mapper::load_checkpoint(path)?;
+        let history_cap = 4 * mapper.capacity().max_keyframes.max(16);
+        Ok(MappingStage { mapper, budget, history: Vec::with_capacity(history_cap), history_cap })
+    }
+
+    pub fn mapper(&self) -> &Mapper {
+        &self.mapper
+    }
+    pub fn mapper_mut(&mut self) -> &mut Mapper {
+        &mut self.mapper
+    }
+    pub fn budget(&self) -> MappingBudget {
+        self.budget
+    }
+    /// (iteration, Gaussian count) after each keyframe and each `optimise` call.
+    pub fn gaussians_over_time(&self) -> &[(u64, usize)] {
+        &self.history
+    }
+
+    fn record(&mut self) {
+        if self.history.len() == self.history_cap {
+            // Halve the resolution instead of growing.
+            let mut k = 0;
+            for i in (0..self.history.len()).step_by(2) {
+                self.history[k] = self.history[i];
+                k += 1;
+            }
+            self.history.truncate(k);
+        }
+        self.history.push((self.mapper.iteration(), self.mapper.gaussians().len()));
+    }
+
+    /// Takes a keyframe from tracking and optimises within the budget.
+    pub fn on_keyframe(&mut self, keyframe: impl std::borrow::Borrow<Keyframe>) -> Result<MappingStep, StageError> {
+        let keyframe: &Keyframe = keyframe.borrow();
+        let _span = tracing::debug_span!("map.keyframe", index = keyframe.index).entered();
+        let start = Instant::now();
+        let added = self.mapper.add_keyframe(keyframe)?;
+        let limit = (self.budget.millis_per_keyframe > 0).then(|| Duration::from_millis(self.budget.millis_per_keyframe));
+        let mut step = self.run(self.budget.iterations_per_keyframe, limit, start)?;
+        step.added = added;
+        Ok(step)
+    }
+
+    /// Runs up to `iterations` more iterations, stopping early after `time_limit`.
+    pub fn optimise(&mut self, iterations: u64, time_limit: Option<Duration>) -> Result<MappingStep, StageError> {
+        self.run(iterations, time_limit, Instant::now())
+    }
+
+    fn run(&mut self, iterations: u64, limit: Option<Duration>, start: Instant) -> Result<MappingStep, StageError> {
+        let mut last = None;
+        let mut done = 0;
+        while done < iterations {
+            if limit.is_some_and(|l| start.elapsed() >= l) {
+                break;
+            }
+            last = Some(self.mapper.iterate()?);
+            done += 1;
+        }
+        self.record();
+        Ok(MappingStep { added: 0, iterations: done, last, elapsed: start.elapsed() })
+    }
+
+    /// Replaces the pose of stored keyframe `index` (a correction from tracking); false when
+    /// no such keyframe is stored.
+    pub fn set_keyframe_pose(&mut self, index: u64, world_from_cam: Se3) -> Result<bool, StageError> {
+        Ok(self.mapper.set_keyframe_pose(index, world_from_cam)?)
+    }
+
+    /// The medium along the optical axis of the newest keyframe (identity pose without one).
+    pub fn medium_summary(&self) -> MediumParams {
+        let n = self.mapper.keyframe_count();
+        let pose = n.checked_sub(1).and_then(|s| self.mapper.keyframe(s)).map_or_else(Se3::identity, |k| k.world_from_cam);
+        self.mapper.medium_summary(&pose)
+    }
+
+    /// Writes `map.ply`, `map.ckpt`, `medium.json` and `renders/` into `dir` (created).
+    pub fn export(&mut self, dir: &Path) -> Result<(), StageError> {
+        let _span = tracing::debug_span!("map.export").entered();
+        let renders = dir.join("renders");
+        std::fs::create_dir_all(&renders).map_err(|source| StageError::CreateDir { path: renders.display().to_string(), source })?;
+        // The device map's values (Vulkan) come to the host first.
+        self.mapper.sync_from_device()?;
+        write_ply(&dir.join("map.ply"), self.mapper.gaussians())?;
+        self.mapper.save_checkpoint(&dir.join("map.ckpt"))?;
+        let medium = self.medium_summary();
+        let json = serde_json::to_string_pretty(&medium).map_err(|e| StageError::Json(e.to_string()))?;
+        write_atomic(&dir.join("medium.json"), json.as_bytes())?;
+        for slot in 0..self.mapper.keyframe_count() {
+            let Some(kf) = self.mapper.keyframe(slot) else { continue };
+            let (index, image) = (kf.index, kf.image.clone());
+            let out = self.mapper.render_keyframe(slot)?;
+            write_rgb8(&renders.join(format!("{index:06}.png")), &render_panel(&image, out))?;
+        }
+        Ok(())
+    }
+}
+
+/// A grey image of `plane` scaled to its range over the pixels where `valid > 0.5` (black
+/// elsewhere).
+pub fn gray_panel(plane: &PlaneF32, valid: &PlaneF32) -> ImageRgb8 {
+    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+    for (&v, &a) in plane.data.iter().zip(&valid.data) {
+        if a > 0.5 && v.is_finite() {
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    let mut out = ImageRgb8::new(plane.width, plane.height);
+    for (i, (&v, &a)) in plane.data.iter().zip(&valid.data).enumerate() {
+        let g = if a > 0.5 && lo.is_finite() && v.is_finite() { (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 };
+        out.data[i * 3..i * 3 + 3].fill(g);
+    }
+    out
+}
+
+/// Images of the same size side by side.
+pub fn hconcat(panels: &[&ImageRgb8]) -> ImageRgb8 {
+    let (w, h) = (panels[0].width, panels[0].height);
+    let mut out = ImageRgb8::new(w * panels.len(), h);
+    for (k, p) in panels.iter().enumerate() {
+        for y in 0..h {
+            let dst = (y * out.width + k * w) * 3;
+            out.data[dst..dst + w * 3].copy_from_slice(p.row(y));
+        }
+    }
+    out
+}
+
+/// The render panel of a keyframe: input | render | restored | depth | uncertainty (the
+/// rendered depth's standard deviation), depth and uncertainty scaled to their range where
+/// the map covers the pixel.
+pub fn render_panel(input: &ImageRgb8, out: &RenderOutput) -> ImageRgb8 {
+    let std = PlaneF32 { width: out.depth_var.width, height: out.depth_var.height, data: out.depth_var.data.iter().map(|v| v.max(0.0).sqrt()).collect() };
+    hconcat(&[input, &out.colour.to_rgb8(), &out.restored.to_rgb8(), &gray_panel(&out.depth, &out.alpha), &gray_panel(&std, &out.alpha)])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn history_stays_within_its_capacity() {
+        let cap = MapperCapacity { max_gaussians: 10, max_keyframes: 1, width: 8, height: 8 };
+        let mut s = MappingStage::new(MapperConfig::default(), cap, MappingBudget::default()).unwrap();
+        for _ in 0..200 {
+            s.record();
+        }
+        assert!(s.history.len() <= s.history_cap && s.history.capacity() == s.history_cap);
+        assert!(matches!(
+            MappingStage::new(MapperConfig::default(), cap, MappingBudget { iterations_per_keyframe: 2_000_000, ..MappingBudget::default() }),
+            Err(StageError::InvalidBudget { .. })
+        ));
+    }
+}

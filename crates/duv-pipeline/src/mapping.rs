@@ -1,0 +1,154 @@
+//! The mapper (`map::stage::MappingStage`; it renders on the Vulkan kernels or the CPU reference, see
+//! [`StageMapping::use_device`]) bound to the pipeline's mapping thread through [`MapStage`].
+//!
+//! - A keyframe from tracking is written into the run's keyframe folder (`keyframes/NNNNNN.png`,
+//!   `_invdepth.pfm`, `_variance.pfm`, the layout `duv refine --keyframes` reads) and handed to
+//!   the stage, which optimises within its per-keyframe budget.
+//! - While no keyframe waits, `step` runs one more iteration, at most `idle_iterations` after
+//!   each keyframe (so a deterministic run, which steps until idle, ends).
+//! - Checkpoints are the mapper's own checkpoint bytes (Gaussians, medium weights, Adam moments,
+//!   keyframes): the file for resume embeds the keyframes' pixels, the logged one refers to
+//!   the keyframes' own log messages; `restore` rebuilds the stage from the file.
+//! - `finish` sets the final keyframe poses, optimises `final_iterations` more and exports
+//!   `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
+
+use super::{MapCheckpoint, MapStage};
+use duv_core::{Keyframe, Se3};
+use duv_core::io::pfm::write_pfm;
+use duv_core::io::png_io::write_rgb8;
+use duv_gpu::GpuOptions;
+use duv_map::checkpoint::KeyframePixels;
+use duv_map::stage::{MappingBudget, MappingStage};
+use duv_map::vulkan::MapperDevice;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// [`MappingStage`] as the pipeline's mapping stage.
+pub struct StageMapping {
+    stage: MappingStage,
+    budget: MappingBudget,
+    keyframe_dir: PathBuf,
+    scratch: PathBuf,
+    idle_iterations: u64,
+    idle_left: u64,
+    final_iterations: u64,
+    fed: usize,
+    dirty: bool,
+    time: Duration,
+    /// The renderer asked for, applied again to a stage rebuilt by `restore`.
+    device: Option<(MapperDevice, GpuOptions)>,
+}
+
+impl StageMapping {
+    /// `keyframe_dir` receives every keyframe handed over; `scratch` is a file path the
+    /// checkpoint bytes pass through.
+    pub fn new(stage: MappingStage, keyframe_dir: PathBuf, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
+        let budget = stage.budget();
+        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None }
+    }
+
+    /// Renders with `device` from now on, also after a `restore` (see
+    /// [`duv_map::mapper::Mapper::use_device`]); the renderer in use, one line.
+    pub fn use_device(&mut self, device: MapperDevice, gpu: GpuOptions) -> Result<String, String> {
+        let what = self.stage.mapper_mut().use_device(device, &gpu).map_err(|e| e.to_string())?;
+        self.device = Some((device, gpu));
+        Ok(what)
+    }
+
+    pub fn stage(&self) -> &MappingStage {
+        &self.stage
+    }
+
+    /// Keyframes handed over so far.
+    pub fn keyframes_fed(&self) -> usize {
+        self.fed
+    }
+}
+
+impl MapStage for StageMapping {
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String> {
+        let id = kf.index;
+        let dir = &self.keyframe_dir;
+        std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
+        write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image).map_err(|e| e.to_string())?;
+        write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth).map_err(|e| e.to_string())?;
+        write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance).map_err(|e| e.to_string())?;
+        let t0 = Instant::now();
+        self.stage.on_keyframe(kf).map_err(|e| format!("mapping keyframe {id}: {e}"))?;
+        self.time += t0.elapsed();
+        self.fed += 1;
+        self.idle_left = self.idle_iterations;
+        self.dirty = true;
+        Ok(())
+    }
+
+    fn step(&mut self) -> Result<bool, String> {
+        if self.idle_left == 0 || self.fed == 0 {
+            return Ok(false);
+        }
+        let t0 = Instant::now();
+        self.stage.optimise(1, None).map_err(|e| e.to_string())?;
+        self.time += t0.elapsed();
+        self.idle_left -= 1;
+        self.dirty = true;
+        Ok(true)
+    }
+
+    fn checkpoint(&mut self) -> Option<MapCheckpoint> {
+        if !std::mem::take(&mut self.dirty) {
+            return None;
+        }
+        let mapper = self.stage.mapper_mut();
+        // Straight from the mapper's buffers, each into one buffer of its exact size.
+        let made = mapper.checkpoint_bytes_with(KeyframePixels::Embedded).and_then(|file| Ok((file, mapper.checkpoint_bytes_with(KeyframePixels::Referenced)?)));
+        let (file, logged) = match made {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::warn!("map checkpoint not made: {e}");
+                return None;
+            }
+        };
+        let g = mapper.gaussians();
+        let centres_in_world = (0..g.len()).map(|i| g.get(i).mean).collect();
+        Some(MapCheckpoint { file, logged, centres_in_world })
+    }
+
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
+        duv_core::io::write_atomic(&self.scratch, bytes).map_err(|e| e.to_string())?;
+        // The old stage (and its GPU memory) goes before the restored one opens the device.
+        self.stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
+        if let Some((device, gpu)) = &self.device {
+            self.stage.mapper_mut().use_device(*device, gpu).map_err(|e| e.to_string())?;
+        }
+        self.fed = self.stage.mapper().keyframe_count();
+        Ok(())
+    }
+
+    fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path) -> Result<Option<String>, String> {
+        if self.fed == 0 {
+            return Ok(Some("mapped 0 keyframes: no map exported".into()));
+        }
+        for (id, pose) in final_poses {
+            self.stage.set_keyframe_pose(*id, *pose).map_err(|e| e.to_string())?;
+        }
+        let t0 = Instant::now();
+        self.stage.optimise(self.final_iterations, None).map_err(|e| e.to_string())?;
+        self.time += t0.elapsed();
+        self.stage.export(out).map_err(|e| format!("exporting the map to {}: {e}", out.display()))?;
+        let iterations = self.stage.mapper().iteration();
+        let m = self.stage.medium_summary();
+        let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
+        Ok(Some(format!(
+            "mapped {} keyframes: {} iterations in {:.2} s ({:.1} ms per iteration), {} Gaussians (cap {}); medium along the last keyframe's axis: beta_D {} beta_B {} B_inf {}",
+            self.fed,
+            iterations,
+            self.time.as_secs_f64(),
+            self.time.as_secs_f64() * 1e3 / iterations.max(1) as f64,
+            self.stage.mapper().gaussians().len(),
+            self.stage.mapper().capacity().max_gaussians,
+            f(m.beta_d),
+            f(m.beta_b),
+            f(m.b_inf)
+        )))
+    }
+}

@@ -1,0 +1,160 @@
+//! The caller's record of a run: every frame's output, kept to write the final trajectory once
+//! the graph has settled. A frame's pose is re-expressed through its anchor keyframe (so loop
+//! closures and global BA move it too); frames without an anchor (initialisation, lost) are
+//! interpolated in time between their anchored neighbours. This grows with the run, so it
+//! belongs to offline runs and evaluation (`duv run`), not to the fixed-memory tracker.
+
+use super::tracker::{EvictedKeyframe, FrameAnchor, Tracker, TrackingState, TrackOutput};
+use duv_core::{Se3, StampedPose, Timestamp};
+use nalgebra::{Translation3, UnitQuaternion};
+use std::collections::BTreeMap;
+
+/// One recorded frame.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RecordedFrame {
+    pub t_ns: Timestamp,
+    pub seq: u64,
+    /// The pose the tracker reported live.
+    pub live: Se3,
+    pub state: TrackingState,
+    pub anchor: Option<FrameAnchor>,
+}
+
+/// A keyframe of the final result.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FinalKeyframe {
+    pub id: u64,
+    pub t_ns: Timestamp,
+    pub seq: u64,
+    pub world_from_cam: Se3,
+    /// Still in the graph at the end (its depth maps are available from the tracker).
+    pub live: bool,
+}
+
+/// Final poses of a run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FinalTrajectory {
+    /// Every frame, in the order tracked.
+    pub frames: Vec<StampedPose>,
+    pub states: Vec<TrackingState>,
+    /// Every keyframe kept (pruned ones excluded), by id.
+    pub keyframes: Vec<FinalKeyframe>,
+}
+
+/// Collects [`TrackOutput`]s; [`finish`](Self::finish) resolves them against the tracker.
+#[derive(Clone, Debug, Default)]
+pub struct TrajectoryRecorder {
+    frames: Vec<RecordedFrame>,
+    evicted: BTreeMap<u64, EvictedRecord>,
+    keyframes: Vec<(u64, Timestamp, u64)>,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct EvictedRecord {
+    ev: EvictedKeyframe,
+}
+
+impl TrajectoryRecorder {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Room for `frames` frames and `keyframes` keyframes before the record grows (it holds
+    /// the whole run, so a run longer than that grows it, by doubling).
+    pub fn with_capacity(frames: usize, keyframes: usize) -> Self {
+        TrajectoryRecorder { frames: Vec::with_capacity(frames), evicted: BTreeMap::new(), keyframes: Vec::with_capacity(keyframes) }
+    }
+
+    pub fn record(&mut self, out: &TrackOutput) {
+        self.frames.push(RecordedFrame { t_ns: out.t_ns, seq: out.seq, live: out.world_from_cam, state: out.state, anchor: out.anchor });
+        if let Some(id) = out.new_keyframe {
+            self.keyframes.push((id, out.t_ns, out.seq));
+        }
+        if let Some(ev) = out.evicted {
+            self.evicted.insert(ev.id, EvictedRecord { ev });
+        }
+    }
+
+    pub fn frames(&self) -> &[RecordedFrame] {
+        &self.frames
+    }
+
+    /// Pose and current scale correction of keyframe `id`, following eviction anchors.
+    fn keyframe_pose(&self, live: &BTreeMap<u64, (Se3, f64)>, id: u64) -> Option<(Se3, f64)> {
+        // Walk up to a live keyframe, then compose back down.
+        let mut chain: Vec<&EvictedKeyframe> = Vec::new();
+        let mut cur = id;
+        let (mut pose, mut scale) = loop {
+            if let Some(&(p, s)) = live.get(&cur) {
+                break (p, s);
+            }
+            let rec = self.evicted.get(&cur)?;
+            chain.push(&rec.ev);
+            cur = rec.ev.anchor.keyframe;
+            if chain.len() > self.evicted.len() {
+                return None;
+            }
+        };
+        for ev in chain.iter().rev() {
+            let ratio = scale / ev.anchor.kf_scale;
+            pose *= scale_translation(&ev.anchor.kf_from_cam, ratio);
+            scale = ev.scale_correction * ratio;
+        }
+        Some((pose, scale))
+    }
+
+    /// Final poses: anchored frames through their keyframe's current pose, the rest
+    /// interpolated.
+    pub fn finish(&self, tracker: &Tracker) -> FinalTrajectory {
+        let live: BTreeMap<u64, (Se3, f64)> = tracker.keyframes().map(|k| (k.id, (k.world_from_cam, k.scale_correction))).collect();
+        let resolved: Vec<Option<Se3>> = self
+            .frames
+            .iter()
+            .map(|f| {
+                let a = f.anchor?;
+                let (kf_pose, scale) = self.keyframe_pose(&live, a.keyframe)?;
+                Some(kf_pose * scale_translation(&a.kf_from_cam, scale / a.kf_scale))
+            })
+            .collect();
+        let mut frames = Vec::with_capacity(self.frames.len());
+        for (i, f) in self.frames.iter().enumerate() {
+            let pose = match resolved[i] {
+                Some(p) => p,
+                None => {
+                    let before = (0..i).rev().find(|&j| resolved[j].is_some());
+                    let after = (i + 1..self.frames.len()).find(|&j| resolved[j].is_some());
+                    match (before, after) {
+                        (Some(b), Some(a)) => {
+                            let (tb, ta) = (self.frames[b].t_ns.0 as f64, self.frames[a].t_ns.0 as f64);
+                            let u = if ta > tb { ((f.t_ns.0 as f64 - tb) / (ta - tb)).clamp(0.0, 1.0) } else { 0.0 };
+                            interpolate(&resolved[b].unwrap_or(f.live), &resolved[a].unwrap_or(f.live), u)
+                        }
+                        (Some(b), None) => resolved[b].unwrap_or(f.live),
+                        (None, Some(a)) => resolved[a].unwrap_or(f.live),
+                        (None, None) => f.live,
+                    }
+                }
+            };
+            frames.push(StampedPose { t_ns: f.t_ns, world_from_cam: pose });
+        }
+        let keyframes = self
+            .keyframes
+            .iter()
+            .filter_map(|&(id, t_ns, seq)| {
+                let (pose, _) = self.keyframe_pose(&live, id)?;
+                Some(FinalKeyframe { id, t_ns, seq, world_from_cam: pose, live: live.contains_key(&id) })
+            })
+            .collect();
+        FinalTrajectory { frames, states: self.frames.iter().map(|f| f.state).collect(), keyframes }
+    }
+}
+
+fn scale_translation(pose: &Se3, s: f64) -> Se3 {
+    Se3::from_parts(Translation3::from(pose.translation.vector * s), pose.rotation)
+}
+
+fn interpolate(a: &Se3, b: &Se3, u: f64) -> Se3 {
+    let t = a.translation.vector * (1.0 - u) + b.translation.vector * u;
+    let q: UnitQuaternion<f64> = a.rotation.try_slerp(&b.rotation, u, 1e-9).unwrap_or(a.rotation);
+    Se3::from_parts(Translation3::from(t), q)
+}
