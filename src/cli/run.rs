@@ -11,12 +11,13 @@ use duv_core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPos
 use duv_eval::report::AuseInput;
 use duv_eval::{build_report, write_report, EvalInputs, EvalOptions};
 use duv_core::io::pfm::write_pfm;
-use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_sim::{SimConfig, SimRenderer};
+use duv_camera::sim::{SimPace, SimSpec};
 use duv_camera::{open_source, CameraError, FrameSource};
 use duv_log::ReadLimits;
-use duv_gpu::GpuOptions;
+use duv_map::GpuOptions;
 use duv_map::mapper::{MapperCapacity, MapperConfig};
-use duv_map::vulkan::MapperDevice;
+use duv_map::backend::MapperDevice;
 use duv_map::stage::{MappingBudget, MappingStage};
 use duv_pipeline::mapping::StageMapping;
 use duv_pipeline::{resume, MapStage, NoMapping, PipelineConfig};
@@ -39,8 +40,11 @@ fn resume_options(board: &Board) -> resume::ResumeOptions {
 #[derive(clap::Args)]
 pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
-    /// in `duv dataset`), or `sim:WATER[-TRAJECTORY]` generated in memory, e.g. `sim:coastal`,
-    /// `sim:turbid-loop` (water: clear, coastal, turbid; trajectory: survey, loop, hover).
+    /// in `duv dataset`), `mcap:LOG`, a live camera (`v4l2:`, `aravis:`), or
+    /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none]` generated in memory,
+    /// e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3` (water: clear, coastal, turbid;
+    /// trajectory: survey, loop, hover; `frames`/`seed` as --frames/--seed; `pace=realtime` is
+    /// --speed 1).
     #[arg(long)]
     source: String,
     /// Output folder (created if missing).
@@ -64,7 +68,7 @@ pub struct RunArgs {
     /// Image height of a `sim:` source [default: the board's camera height].
     #[arg(long)]
     height: Option<usize>,
-    /// Seed of a `sim:` source.
+    /// Seed of a `sim:` source (its `seed=S` option wins).
     #[arg(long, default_value_t = 1)]
     seed: u64,
     /// No progress line on stderr.
@@ -136,24 +140,6 @@ struct ReplayLoop {
     last_seq: u64,
 }
 
-/// `WATER[-TRAJECTORY]` of a `sim:` spec.
-fn parse_sim_preset(spec: &str) -> anyhow::Result<(WaterPreset, TrajectoryKind)> {
-    let mut parts = spec.splitn(2, '-');
-    let water = match parts.next().unwrap_or("") {
-        "clear" => WaterPreset::Clear,
-        "coastal" => WaterPreset::Coastal,
-        "turbid" => WaterPreset::Turbid,
-        w => anyhow::bail!("sim:{spec}: unknown water {w:?} (expected clear, coastal or turbid)"),
-    };
-    let trajectory = match parts.next() {
-        None | Some("survey") => TrajectoryKind::Survey,
-        Some("loop") => TrajectoryKind::Loop,
-        Some("hover") => TrajectoryKind::Hover,
-        Some(t) => anyhow::bail!("sim:{spec}: unknown trajectory {t:?} (expected survey, loop or hover)"),
-    };
-    Ok((water, trajectory))
-}
-
 impl Source {
     /// `start`: the first frame index (resume continues after the recorded frames).
     fn open(args: &RunArgs, board: &Board, start: usize) -> anyhow::Result<Source> {
@@ -179,14 +165,16 @@ impl Source {
             return Ok(Source::Mcap { replay: Box::new(replay), count: args.frames.unwrap_or(usize::MAX), looping });
         }
         if let Some(preset) = args.source.strip_prefix("sim:") {
-            let (water, trajectory) = parse_sim_preset(preset)?;
-            let mut cfg = SimConfig::preset(water, trajectory);
+            let spec = SimSpec::parse(&args.source, preset)?;
+            let mut cfg = SimConfig::preset(spec.water, spec.trajectory);
             cfg.width = args.width.unwrap_or(board.camera.width as usize);
             cfg.height = args.height.unwrap_or(board.camera.height as usize);
-            if let Some(n) = args.frames {
-                cfg.frames = n;
+            match (spec.frames, args.frames) {
+                (Some(a), Some(b)) if a != b => anyhow::bail!("{}: frames={a} and --frames {b} disagree", args.source),
+                (Some(n), _) | (None, Some(n)) => cfg.frames = n,
+                (None, None) => {}
             }
-            cfg.seed = args.seed;
+            cfg.seed = spec.seed.unwrap_or(args.seed);
             let renderer = SimRenderer::new(&cfg).with_context(|| format!("source {}", args.source))?;
             let count = renderer.len();
             return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count });
@@ -423,11 +411,21 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         board.budgets.host_mb
     );
 
+    // A `sim:` spec's `pace=realtime` is `--speed 1`.
+    let sim_pace = args.source.strip_prefix("sim:").map(|rest| SimSpec::parse(&args.source, rest)).transpose()?.and_then(|s| s.pace);
+    let speed = match sim_pace {
+        Some(SimPace::Realtime) => Some(args.speed.unwrap_or(1.0)),
+        Some(SimPace::None) => {
+            anyhow::ensure!(args.speed.is_none(), "{}: pace=none and --speed disagree", args.source);
+            None
+        }
+        None => args.speed,
+    };
     let mut pcfg = PipelineConfig::from_board(&board, args.out.clone());
-    pcfg.pace_speed = args.speed;
+    pcfg.pace_speed = speed;
     pcfg.deterministic = args.deterministic;
     // Recorded and generated sources lose nothing by waiting; paced replay behaves live.
-    pcfg.lossless_frames = args.speed.is_none();
+    pcfg.lossless_frames = speed.is_none();
     pcfg.announce = args.announce;
     let one = |k: &str, v: String| [(k.to_string(), v)].into_iter().collect();
     pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));

@@ -42,6 +42,47 @@ pub fn parse_sim_preset(spec: &str, preset: &str) -> Result<(WaterPreset, Trajec
     Ok((water, trajectory))
 }
 
+/// A parsed `sim:` spec, `WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none]`: the
+/// one parser of the syntax, for [`SimSource`] and for `duv run`'s in-memory generator.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SimSpec {
+    pub water: WaterPreset,
+    pub trajectory: TrajectoryKind,
+    /// `frames=N`, when given.
+    pub frames: Option<usize>,
+    /// `seed=S`, when given.
+    pub seed: Option<u64>,
+    /// `pace=`, when given ([`SimSource`] paces in real time unless told otherwise).
+    pub pace: Option<SimPace>,
+}
+
+impl SimSpec {
+    /// Parses the part of `spec` after `sim:` (`rest`); errors name `spec`.
+    pub fn parse(spec: &str, rest: &str) -> Result<SimSpec, CameraError> {
+        let bad = |problem: String| CameraError::BadSpec { spec: spec.to_string(), problem };
+        let mut parts = rest.split(',');
+        let (water, trajectory) = parse_sim_preset(spec, parts.next().unwrap_or("").trim())?;
+        let mut parsed = SimSpec { water, trajectory, frames: None, seed: None, pace: None };
+        for part in parts {
+            let (key, value) = part.split_once('=').map(|(k, v)| (k.trim(), v.trim())).ok_or_else(|| bad(format!("option {part:?} is not KEY=VALUE")))?;
+            let number = || value.parse::<u64>().map_err(|_| bad(format!("{key}={value:?} is not a whole number")));
+            match key {
+                "frames" => parsed.frames = Some(number()? as usize),
+                "seed" => parsed.seed = Some(number()?),
+                "pace" => {
+                    parsed.pace = Some(match value {
+                        "realtime" => SimPace::Realtime,
+                        "none" => SimPace::None,
+                        _ => return Err(bad(format!("pace={value:?} (expected realtime or none)"))),
+                    })
+                }
+                _ => return Err(bad(format!("unknown option {key:?} (accepted: frames, seed, pace)"))),
+            }
+        }
+        Ok(parsed)
+    }
+}
+
 /// The generator as a [`FrameSource`].
 pub struct SimSource {
     renderer: Box<SimRenderer>,
@@ -54,33 +95,17 @@ pub struct SimSource {
 impl SimSource {
     /// Opens `sim:` from the part after the colon; size and frame rate from the board.
     pub fn open(spec: &str, rest: &str, board: &Board) -> Result<SimSource, CameraError> {
-        let bad = |problem: String| CameraError::BadSpec { spec: spec.to_string(), problem };
-        let mut parts = rest.split(',');
-        let (water, trajectory) = parse_sim_preset(spec, parts.next().unwrap_or("").trim())?;
-        let mut cfg = SimConfig::preset(water, trajectory);
+        let parsed = SimSpec::parse(spec, rest)?;
+        let mut cfg = SimConfig::preset(parsed.water, parsed.trajectory);
         cfg.width = board.camera.width as usize;
         cfg.height = board.camera.height as usize;
         cfg.fps = board.camera.fps;
-        cfg.frames = SIM_DEFAULT_FRAMES;
-        let mut pace = SimPace::Realtime;
-        for part in parts {
-            let (key, value) = part.split_once('=').map(|(k, v)| (k.trim(), v.trim())).ok_or_else(|| bad(format!("option {part:?} is not KEY=VALUE")))?;
-            let number = || value.parse::<u64>().map_err(|_| bad(format!("{key}={value:?} is not a whole number")));
-            match key {
-                "frames" => cfg.frames = number()? as usize,
-                "seed" => cfg.seed = number()?,
-                "pace" => {
-                    pace = match value {
-                        "realtime" => SimPace::Realtime,
-                        "none" => SimPace::None,
-                        _ => return Err(bad(format!("pace={value:?} (expected realtime or none)"))),
-                    }
-                }
-                _ => return Err(bad(format!("unknown option {key:?} (accepted: frames, seed, pace)"))),
-            }
+        cfg.frames = parsed.frames.unwrap_or(SIM_DEFAULT_FRAMES);
+        if let Some(seed) = parsed.seed {
+            cfg.seed = seed;
         }
-        let renderer = SimRenderer::new(&cfg).map_err(|e| bad(e.to_string()))?;
-        Ok(SimSource { renderer: Box::new(renderer), next: 0, pace, started: None, stats: SourceStats::default() })
+        let renderer = SimRenderer::new(&cfg).map_err(|e| CameraError::BadSpec { spec: spec.to_string(), problem: e.to_string() })?;
+        Ok(SimSource { renderer: Box::new(renderer), next: 0, pace: parsed.pace.unwrap_or(SimPace::Realtime), started: None, stats: SourceStats::default() })
     }
 
     pub fn renderer(&self) -> &SimRenderer {
