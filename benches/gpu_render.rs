@@ -25,13 +25,15 @@ use std::time::{Duration, Instant};
 
 use duv_core::config::Board;
 use duv_core::rng::Rng;
-use duv_gpu::{GpuContext, GpuOptions, Kernel};
+use duv_gpu::{GpuContext, GpuOptions};
+use duv_map::vulkan::{Kernel, KERNELS};
 use duv_map::gaussians::GaussianGrads;
 use duv_map::render::{MediumPlanes, RasterCapacity, RasterWorkspace, RenderConfig, RenderError, RenderOutput};
 use duv_core::{ImageRgb8, Keyframe, PlaneF32, Timestamp};
 use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv_map::medium::{MediumConfig, MediumNet};
-use duv_map::vulkan::{GpuRenderer, MapperDevice, VulkanRenderError};
+use duv_map::backend::MapperDevice;
+use duv_map::vulkan::{GpuRenderer, VulkanRenderError};
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
 
 const RUNS: usize = 7;
@@ -46,7 +48,7 @@ fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     let runs = if quick { QUICK_RUNS } else { RUNS };
     let board = Board::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("boards/sim.toml")).expect("boards/sim.toml");
-    let mut ctx = match GpuContext::new(&GpuOptions::with_budget_mb(board.budgets.gpu_mb)) {
+    let mut ctx = match GpuContext::new(&GpuOptions::with_budget_mb(board.budgets.gpu_mb), &KERNELS) {
         Ok(c) => c,
         Err(e) => {
             eprintln!("gpu_render: no Vulkan device, nothing to compare: {e}");
@@ -169,8 +171,7 @@ fn main() {
             }
             // The atomic backward with the other `pixel_pairs` setting, same inputs.
             if !ctx.deterministic() {
-                let was = ctx.pixel_pairs();
-                ctx.set_pixel_pairs(!was);
+                let was = gpu.set_pixel_pairs(!gpu.pixel_pairs());
                 let before = ctx.profile().clone();
                 let mut other_b = Vec::new();
                 for _ in 0..runs {
@@ -182,13 +183,14 @@ fn main() {
                 let ob = median_ms(&mut other_b);
                 let which = if was { "one pixel per thread" } else { "pixel pairs" };
                 println!("    backward with {which}: {ob:.2} ms ({:.2}x the backward above)", ob / gb);
-                for (k, d, ms) in ctx.profile().rows() {
-                    let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);
-                    if d > d0 && k.name().starts_with("rasterize_backward.rasterize") {
-                        println!("    {:<48} {:8.3} ms per iteration ({which})", k.name(), (ms - ns0 * 1e-6) / runs as f64);
+                for (k, info) in KERNELS.iter().enumerate() {
+                    let (d, ms) = (ctx.profile().dispatches[k], ctx.profile().total_ns[k] * 1e-6);
+                    let (d0, ns0) = (before.dispatches[k], before.total_ns[k]);
+                    if d > d0 && info.name().starts_with("rasterize_backward.rasterize") {
+                        println!("    {:<48} {:8.3} ms per iteration ({which})", info.name(), (ms - ns0 * 1e-6) / runs as f64);
                     }
                 }
-                ctx.set_pixel_pairs(was);
+                gpu.set_pixel_pairs(was);
             }
             println!("    GPU buffers of this renderer: {used_mib:.1} MiB of the {} MiB arena", ctx.arena_capacity_bytes() >> 20);
             ctx.arena_reset_to(mark);
@@ -260,7 +262,7 @@ impl Switch {
 }
 
 /// Median ms of `Mapper::step_on` on the CPU mapper and on the Vulkan mapper with one and two
-/// pixels per thread in the rasterisers (`GpuOptions::pixel_pairs`), for `n` random Gaussians
+/// pixels per thread in the rasterisers (`GpuRenderer::set_pixel_pairs`), for `n` random Gaussians
 /// at `w x h`, one keyframe (the CPU render of the map, no tracked depth), no densification.
 /// With `variants`, also the Vulkan mapper with each CPU-device kernel variant switched
 /// against the device's default ([`Switch`]), one at a time. Each step is
@@ -279,15 +281,19 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
     let mut mappers = Vec::new();
     for (device, pairs, switch) in plan {
         let mut m = Mapper::new(config.clone(), capacity).unwrap();
-        let options = GpuOptions { pixel_pairs: pairs, ..GpuOptions::with_budget_mb(gpu_mb) };
+        let options = GpuOptions::with_budget_mb(gpu_mb);
         let what = m.use_device(device, &options).unwrap();
+        if let (Some(p), Some((r, _))) = (pairs, m.gpu_renderer_mut()) {
+            r.set_pixel_pairs(p);
+        }
         if device == MapperDevice::Vulkan && !m.renders_on_vulkan() {
             println!("mapper step {w}x{h}, {n} Gaussians: no Vulkan mapper ({what})");
             return;
         }
         let is_cpu = m.gpu().is_some_and(|g| g.info().is_cpu());
         m.set_plan_ahead(switch != Switch::NoPlanAhead);
-        let label = match (m.gpu().map(|g| g.pixel_pairs()), m.gpu_renderer_mut()) {
+        let pairs_now = m.gpu_renderer_mut().map(|(r, _)| r.pixel_pairs());
+        let label = match (pairs_now, m.gpu_renderer_mut()) {
             (Some(pairs), Some((r, ctx))) if switch != Switch::None => format!("{}, {}", if pairs { "pixel pairs" } else { "one pixel per thread" }, switch.apply(r, ctx, is_cpu)),
             (Some(true), _) => "pixel pairs".to_string(),
             (Some(false), _) => "one pixel per thread".to_string(),
@@ -362,7 +368,7 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
                 println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), with timestamp queries: {:.2} ms", median_ms(&mut profiled));
             }
             let profile = gpu.profile();
-            let kernels_ms: f64 = profile.rows().map(|(k, _, ms)| ms - before.total_ns[k as usize] * 1e-6).sum::<f64>() / runs as f64;
+            let kernels_ms: f64 = (0..profile.kernels.len()).filter(|&k| profile.dispatches[k] > 0).map(|k| (profile.total_ns[k] - before.total_ns[k]) * 1e-6).sum::<f64>() / runs as f64;
             let spans = (profile.spans - before.spans).max(1);
             println!(
                 "Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), on the device: first kernel's start to last one's end {:.3} ms per step ({:.2} stretches), kernels {kernels_ms:.3} ms",
@@ -370,11 +376,12 @@ fn mapper_step(w: usize, h: usize, n: usize, runs: usize, gpu_mb: u32, variants:
                 spans as f64 / runs as f64
             );
             println!("Vulkan mapper step {w}x{h}, {n} Gaussians ({which}), per kernel:");
-            for (k, d, ms) in profile.rows() {
-                let (d0, ns0) = (before.dispatches[k as usize], before.total_ns[k as usize]);
+            for (k, info) in profile.kernels.iter().enumerate() {
+                let (d, ms) = (profile.dispatches[k], profile.total_ns[k] * 1e-6);
+                let (d0, ns0) = (before.dispatches[k], before.total_ns[k]);
                 let ms = ms - ns0 * 1e-6;
                 if d > d0 {
-                    println!("    {:<48} {:8.3} ms per step ({} dispatches)", k.name(), ms / runs as f64, (d - d0) / runs as u64);
+                    println!("    {:<48} {:8.3} ms per step ({} dispatches)", info.name(), ms / runs as f64, (d - d0) / runs as u64);
                 }
             }
             if timeline && timestamps {

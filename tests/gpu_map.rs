@@ -9,7 +9,9 @@ mod gpu_common;
 mod render_scene;
 
 use duv_core::rng::Rng;
-use duv_gpu::{BindingKind, Kernel};
+use duv_gpu::BindingKind;
+use duv_map::backend::RenderBackend;
+use duv_map::vulkan::Kernel;
 use duv_map::gaussians::{GaussianGrads, GaussianParam, Gaussians, ParamGroup, PARAMS_PER_GAUSSIAN};
 use duv_map::render::{
     emit_intersections, isect_key_bits, exclusive_scan, gather_sorted_gaussians, invert_permutation, project_gaussians, radix_sort_pairs, scan_blocks,
@@ -18,7 +20,7 @@ use duv_map::render::{
 };
 use duv_map::adam::{AdamGroup, AdamGroupConfig, StepConstants};
 use duv_map::vulkan::{
-    record_adam_step, RenderBackend, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
+    record_adam_step, GpuBinning, GpuForwardRenderer, GpuProjectBackward, GpuProjection, GpuRasterBackward, GpuRasterForward, GpuRenderer, VulkanRenderError, GRAD_FLOATS,
     splat_floats, SETUP_WORDS, SPLAT_FLOATS,
 };
 use render_scene::{camera, random_gaussians, random_medium, random_upstream, world_from_cam};
@@ -90,7 +92,7 @@ fn kernel_table_matches_the_host_layouts() {
     assert_eq!(sort.immediate_bytes, 16);
     assert_eq!(Kernel::PrefixSumScanAdd.info().immediate_bytes, 16);
     for k in [Kernel::RadixSortScatterSerial, Kernel::RadixSortHistogramSerial] {
-        assert_eq!(k.info().workgroup_size, [duv_gpu::ops::SERIAL_SCATTER_BLOCKS as u32, 1, 1], "{}: blocks per workgroup", k.name());
+        assert_eq!(k.info().workgroup_size, [duv_map::vulkan::ops::SERIAL_SCATTER_BLOCKS as u32, 1, 1], "{}: blocks per workgroup", k.name());
     }
     assert_eq!(PARAMS_PER_GAUSSIAN, 23, "params layout of project_forward.wgsl");
     for k in Kernel::all() {
@@ -335,9 +337,8 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
         ctx.write(&bin.tile_offsets, &cpu.tile_offsets).unwrap();
         raster.upload_medium(&mut ctx, &medium).unwrap();
         // One pixel per thread and two (`rasterize_pairs`): the same arithmetic per pixel.
-        let pairs_default = ctx.pixel_pairs();
         for pairs in [false, true] {
-            ctx.set_pixel_pairs(pairs);
+            raster.pixel_pairs = pairs;
             ctx.begin().unwrap();
             raster.record(&mut ctx, &proj.splats, &bin, &grid, intrinsics, mode).unwrap();
             ctx.submit_and_wait().unwrap();
@@ -359,7 +360,6 @@ fn rasterize_forward_matches_the_cpu_rasteriser() {
             let ends_differ = got.isect_end.iter().zip(&want.isect_end).filter(|(a, b)| a != b).count();
             assert_eq!(ends_differ, 0, "{mode:?} pairs {pairs}: {ends_differ} pixels stop blending at a different splat");
         }
-        ctx.set_pixel_pairs(pairs_default);
         ctx.arena_reset_to(arena_mark);
     }
 }
@@ -458,7 +458,6 @@ fn rasterize_backward_matches_the_cpu_reference() {
         // the subgroup sums the device's subgroup size picks and with the reduce-scatter
         // forced (lavapipe's 8 lanes would not take it otherwise).
         // Each atomic kernel with one pixel per thread and with two (`pixel_pairs`).
-        let pairs_default = ctx.pixel_pairs();
         // The atomic kernels adding per intersection (then reduced) and per Gaussian.
         let combos = [(true, false, false, false)]
             .into_iter()
@@ -466,7 +465,7 @@ fn rasterize_backward_matches_the_cpu_reference() {
         for (deterministic, scatter, pairs, per_gaussian) in combos {
             bwd.force_reduce_scatter = scatter;
             bwd.atomics_per_gaussian = Some(per_gaussian);
-            ctx.set_pixel_pairs(pairs);
+            bwd.pixel_pairs = pairs;
             let kernel_name = match (ctx.set_deterministic(deterministic), scatter, pairs) {
                 (true, _, _) => "deterministic",
                 (false, false, false) => "atomic",
@@ -542,7 +541,6 @@ fn rasterize_backward_matches_the_cpu_reference() {
             );
         }
         ctx.set_deterministic(false);
-        ctx.set_pixel_pairs(pairs_default);
         ctx.arena_reset_to(arena_mark);
     }
 }

@@ -7,7 +7,7 @@
 use duv_gpu::GpuOptions;
 use duv_map::gaussians::{GaussianParam, Gaussians, ParamGroup};
 use duv_map::mapper::{psnr_db, Mapper, MapperCapacity, MapperConfig};
-use duv_map::vulkan::MapperDevice;
+use duv_map::backend::MapperDevice;
 use duv_sim::keyframes::{sim_keyframes, SimKeyframe};
 use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 

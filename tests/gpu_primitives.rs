@@ -6,7 +6,8 @@ mod gpu_common;
 
 use duv_core::rng::Rng;
 use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuOptions};
-use duv_gpu::ops::{
+use duv_map::vulkan::KERNELS;
+use duv_map::vulkan::ops::{
     ballot_walk, record_ballot_walk, record_exclusive_scan, record_radix_sort, ScanScratch, SortScratch, BALLOT_WALK_END, BALLOT_WALK_WORDS, SCAN_BLOCK, SORT_BLOCK,
 };
 use duv_map::render::{exclusive_scan, radix_sort_pairs, scan_blocks, sort_histogram_len};
@@ -199,7 +200,7 @@ fn staged_host_transfers_cross_chunks_and_sort_like_the_mapped_arena() {
     let Some(mapped) = gpu_common::gpu_or_skip("staged_host_transfers_cross_chunks_and_sort_like_the_mapped_arena") else { return };
     let staging = 4096u64;
     let options = GpuOptions { arena_bytes: 16 << 20, host_staging: Some(staging), ..GpuOptions::with_budget_mb(16) };
-    let mut ctx = GpuContext::new(&options).unwrap();
+    let mut ctx = GpuContext::new(&options, &KERNELS).unwrap();
     assert_eq!(ctx.info().host_transfers, "staged");
     drop(mapped);
     // A 3-element buffer first puts the next ones off any 4 KiB boundary.
@@ -314,12 +315,12 @@ fn barriers_only_where_a_command_depends_on_an_earlier_one() {
 #[test]
 fn a_submission_left_running_is_ordered_before_the_next() {
     let Some(mapped) = gpu_common::gpu_or_skip("a_submission_left_running_is_ordered_before_the_next") else { return };
-    let staged = GpuContext::new(&GpuOptions { arena_bytes: 16 << 20, host_staging: Some(1 << 20), ..GpuOptions::with_budget_mb(16) }).unwrap();
+    let staged = GpuContext::new(&GpuOptions { arena_bytes: 16 << 20, host_staging: Some(1 << 20), ..GpuOptions::with_budget_mb(16) }, &KERNELS).unwrap();
     assert_eq!(staged.info().host_transfers, "staged");
     for ctx in [mapped, staged] {
         submission_left_running(ctx);
     }
-    let staged = GpuContext::new(&GpuOptions { arena_bytes: 16 << 20, host_staging: Some(1 << 20), ..GpuOptions::with_budget_mb(16) }).unwrap();
+    let staged = GpuContext::new(&GpuOptions { arena_bytes: 16 << 20, host_staging: Some(1 << 20), ..GpuOptions::with_budget_mb(16) }, &KERNELS).unwrap();
     two_submissions_left_running(staged);
 }
 
@@ -421,10 +422,9 @@ fn device_choice_and_pipeline_cache_on_disk() {
         pipeline_cache_dir: Some(dir.path().to_path_buf()),
         deterministic: device.is_none(),
         host_staging: None,
-        pixel_pairs: None,
     };
     // By index and by a case-insensitive substring of the name.
-    let mut by_index = GpuContext::new(&options(Some("0"))).unwrap();
+    let mut by_index = GpuContext::new(&options(Some("0")), &KERNELS).unwrap();
     // Float atomics unless asked for deterministic mode (or the device lacks them).
     assert_eq!(by_index.deterministic(), !by_index.info().float_atomics);
     assert!(by_index.set_deterministic(true));
@@ -436,11 +436,11 @@ fn device_choice_and_pipeline_cache_on_disk() {
     assert!(std::fs::metadata(&file).unwrap().len() > 0, "pipeline cache written at start-up");
     drop(by_index);
     let substring = name.split_whitespace().next().unwrap().to_uppercase();
-    let by_name = GpuContext::new(&options(Some(&substring))).unwrap();
+    let by_name = GpuContext::new(&options(Some(&substring)), &KERNELS).unwrap();
     assert_eq!(by_name.info().name, name);
     assert_eq!(by_name.info().pipeline_cache_file.as_ref(), Some(&file), "same device, same cache file (reused)");
     drop(by_name);
-    match GpuContext::new(&options(Some("no-such-gpu"))) {
+    match GpuContext::new(&options(Some("no-such-gpu")), &KERNELS) {
         Err(GpuError::NoMatchingDevice { wanted, seen, .. }) => {
             assert_eq!(wanted, "no-such-gpu");
             assert!(seen.contains(&name), "the error lists the devices seen: {seen}");
@@ -449,7 +449,7 @@ fn device_choice_and_pipeline_cache_on_disk() {
         Ok(_) => panic!("a device matched 'no-such-gpu'"),
     }
     // The arena is the budget: more than it holds is refused, naming the buffer.
-    let mut small = GpuContext::new(&options(None)).unwrap();
+    let mut small = GpuContext::new(&options(None), &KERNELS).unwrap();
     assert!(small.deterministic(), "GpuOptions::deterministic was set");
     match small.alloc::<u32>("too big", (1 << 20) / 4 + 1) {
         Err(GpuError::ArenaFull { what, .. }) => assert_eq!(what, "too big"),
@@ -458,7 +458,7 @@ fn device_choice_and_pipeline_cache_on_disk() {
     // A dispatch with the wrong number of buffers names the kernel.
     let b = small.alloc::<u32>("b", 16).unwrap();
     small.begin().unwrap();
-    let err = small.dispatch(duv_gpu::Kernel::RadixSortScan, &[b.range(), b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
+    let err = small.dispatch(duv_map::vulkan::Kernel::RadixSortScan, &[b.range(), b.range(), b.range()], &[0u8; 16], [1, 1, 1]).unwrap_err();
     assert!(err.to_string().contains("radix_sort.scan"), "{err}");
     small.submit_and_wait().unwrap();
 }

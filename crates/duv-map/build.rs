@@ -1,5 +1,5 @@
 //! Compiles every `kernels/*.wgsl` to SPIR-V with naga (pure Rust, no system tool) and writes
-//! the kernel table `$OUT_DIR/kernels.rs` (`duv::gpu::kernels`): one entry per compute entry
+//! the kernel table `$OUT_DIR/kernels.rs` (`duv_map::vulkan::kernels`, data for `duv_gpu::GpuContext::new`): one entry per compute entry
 //! point with its workgroup size, its bindings (from naga's reflection: binding number,
 //! read-only or read-write storage, type) and the size of its immediate (push-constant)
 //! block, and whether it needs float atomics (`atomic<f32>`), so no binding list is written by
@@ -27,7 +27,6 @@ fn main() {
 
     let mut table = String::new();
     let mut variants = String::new();
-    let mut names = String::new();
     let mut all = String::new();
     let mut count = 0usize;
     for path in &files {
@@ -98,13 +97,12 @@ fn main() {
             bindings.sort_by_key(|b| b.0);
             let variant = format!("{}{}", camel(&stem), camel(&ep.name));
             writeln!(variants, "    /// `kernels/{stem}.wgsl`, entry point `{}`.\n    {variant} = {count},", ep.name).unwrap();
-            writeln!(names, "    \"{stem}.{}\",", ep.name).unwrap();
             writeln!(all, "    Kernel::{variant},").unwrap();
             let [x, y, z] = ep.workgroup_size;
             write!(
                 table,
-                "    KernelInfo {{\n        file: \"{stem}\",\n        entry: \"{}\",\n        workgroup_size: [{x}, {y}, {z}],\n        immediate_bytes: {immediate_bytes},\n        float_atomics: {float_atomics},\n        bindings: &[",
-                ep.name
+                "    KernelInfo {{\n        name: \"{stem}.{}\",\n        file: \"{stem}\",\n        entry: \"{}\",\n        workgroup_size: [{x}, {y}, {z}],\n        immediate_bytes: {immediate_bytes},\n        float_atomics: {float_atomics},\n        bindings: &[",
+                ep.name, ep.name
             )
             .unwrap();
             for (binding, kind, name, ty, bytes) in &bindings {
@@ -128,7 +126,6 @@ fn main() {
          pub const KERNEL_COUNT: usize = {count};\n\n\
          /// The kernel table, indexed by [`Kernel`].\n\
          pub static KERNELS: [KernelInfo; KERNEL_COUNT] = [\n{table}];\n\n\
-         static KERNEL_NAMES: [&str; KERNEL_COUNT] = [\n{names}];\n\n\
          static ALL_KERNELS: [Kernel; KERNEL_COUNT] = [\n{all}];\n"
     );
     std::fs::write(out_dir.join("kernels.rs"), generated).expect("write kernel table");

@@ -14,7 +14,7 @@ pub fn gpu_or_skip(test: &str) -> Option<GpuContext> {
     let board = Board::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("boards/sim.toml")).expect("boards/sim.toml");
     let mut options = GpuOptions::with_budget_mb(board.budgets.gpu_mb);
     options.pipeline_cache_dir = Some(std::env::temp_dir().join("duv-test-pipeline-cache"));
-    match GpuContext::new(&options) {
+    match GpuContext::new(&options, &duv_map::vulkan::KERNELS) {
         Ok(ctx) => {
             eprintln!("[{test}] Vulkan device: {}; arena {} MiB", ctx.info(), ctx.arena_capacity_bytes() >> 20);
             Some(ctx)

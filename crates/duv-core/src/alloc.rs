@@ -4,7 +4,7 @@
 //! A binary opts in with
 //! ```ignore
 //! #[global_allocator]
-//! static GLOBAL: duv::core::alloc::CountingAllocator = duv::core::alloc::CountingAllocator;
+//! static GLOBAL: duv_core::alloc::CountingAllocator = duv_core::alloc::CountingAllocator;
 //! ```
 //! Without that, [`is_installed`] is false and the byte figures stay zero.
 //!

@@ -18,7 +18,7 @@ use ash::vk;
 use bytemuck::Pod;
 
 use super::arena::{Arena, GpuBuffer, GpuRange};
-use super::kernels::{BindingKind, Kernel, KERNEL_COUNT};
+use super::kernels::{BindingKind, KernelId, KernelInfo, MAX_KERNELS};
 use super::GpuError;
 
 /// Environment variable that picks a device: an index into the enumeration order or a
@@ -48,10 +48,6 @@ pub struct GpuOptions {
     /// host-visible device memory is uncached (reading a map back through it cost 5 MB/s-class
     /// bandwidth on an H100).
     pub host_staging: Option<u64>,
-    /// The rasterisers with two pixels per thread (`*_pairs` entry points: each splat a
-    /// subgroup shares serves two pixels, so half the shuffles, subgroup sums and atomics per
-    /// pixel); `None` decides by the subgroup size ([`PIXEL_PAIRS_BELOW_SUBGROUP`]).
-    pub pixel_pairs: Option<bool>,
 }
 
 /// What a staged transfer moves: host bytes to the arena, or arena bytes to the host.
@@ -63,12 +59,6 @@ enum Staged<'a> {
 /// Staging buffer of a discrete GPU's host transfers (host memory, outside the GPU budget);
 /// larger transfers go in chunks of this size.
 pub const STAGING_BYTES: u64 = 64 << 20;
-/// [`GpuOptions::pixel_pairs`] when not given: on devices whose subgroups have fewer lanes than
-/// this (CPU devices such as lavapipe, 8 lanes: the backward in 0.58-0.73x the time of one
-/// pixel per thread, the forward in 0.79x), not on wider ones (an H100, 32 lanes: the backward
-/// 0.750 ms against 0.711 ms, the forward 0.28 against 0.27 ms at 640x480 with 100k Gaussians;
-/// half the threads per tile hide less latency there).
-pub const PIXEL_PAIRS_BELOW_SUBGROUP: u32 = 32;
 /// Staged transfers: writes of at most this many bytes wait in the staging buffer and are
 /// copied at the start of the next submission instead of being submitted on their own.
 pub const DEFERRED_WRITE_BYTES: usize = 64 << 10;
@@ -149,7 +139,7 @@ impl GpuOptions {
             .map(PathBuf::from)
             .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
             .map(|d| d.join("duv"));
-        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache, deterministic: false, host_staging: None, pixel_pairs: None }
+        GpuOptions { arena_bytes: gpu_mb as u64 * 1024 * 1024, device: None, pipeline_cache_dir: cache, deterministic: false, host_staging: None }
     }
 }
 
@@ -199,7 +189,7 @@ impl std::fmt::Display for DeviceInfo {
 const SLOTS: usize = 3;
 
 /// One timed stretch of the queue: its dispatch count and `(kernel, start, end)` ticks.
-type Stretch = (usize, [(Kernel, u64, u64); MAX_DISPATCHES]);
+type Stretch = (usize, [(KernelId, u64, u64); MAX_DISPATCHES]);
 
 /// A copy for the host recorded by [`GpuContext::prefetch`].
 #[derive(Clone, Copy, Debug)]
@@ -311,8 +301,10 @@ impl HostStats {
 /// Time per kernel from the timestamp queries, summed over submissions.
 #[derive(Clone, Debug)]
 pub struct KernelProfile {
-    pub dispatches: [u64; KERNEL_COUNT],
-    pub total_ns: [f64; KERNEL_COUNT],
+    /// The kernel table the counts are indexed by.
+    pub kernels: &'static [KernelInfo],
+    pub dispatches: [u64; MAX_KERNELS],
+    pub total_ns: [f64; MAX_KERNELS],
     /// From the first dispatch's start to the last one's end of every timed stretch of the
     /// queue (the submissions between two idle points: a mapper step's two), summed: the
     /// kernels plus the gaps between them (barriers, a submission waiting for the next).
@@ -323,14 +315,19 @@ pub struct KernelProfile {
 
 impl Default for KernelProfile {
     fn default() -> Self {
-        KernelProfile { dispatches: [0; KERNEL_COUNT], total_ns: [0.0; KERNEL_COUNT], span_ns: 0.0, spans: 0 }
+        KernelProfile::new(&[])
     }
 }
 
 impl KernelProfile {
+    /// An empty profile of the kernels of `kernels`.
+    pub fn new(kernels: &'static [KernelInfo]) -> Self {
+        KernelProfile { kernels, dispatches: [0; MAX_KERNELS], total_ns: [0.0; MAX_KERNELS], span_ns: 0.0, spans: 0 }
+    }
+
     /// `(kernel, dispatches, total ms)` of every kernel that ran.
-    pub fn rows(&self) -> impl Iterator<Item = (Kernel, u64, f64)> + '_ {
-        Kernel::all().filter(|k| self.dispatches[*k as usize] > 0).map(|k| (k, self.dispatches[k as usize], self.total_ns[k as usize] * 1e-6))
+    pub fn rows(&self) -> impl Iterator<Item = (&'static KernelInfo, u64, f64)> + '_ {
+        self.kernels.iter().enumerate().filter(|(k, _)| self.dispatches[*k] > 0).map(|(k, info)| (info, self.dispatches[k], self.total_ns[k] * 1e-6))
     }
 }
 
@@ -405,11 +402,11 @@ pub struct GpuContext {
     info: DeviceInfo,
     /// Reductions instead of float atomics ([`GpuOptions::deterministic`]).
     deterministic: bool,
-    /// Two pixels per thread in the rasterisers ([`GpuOptions::pixel_pairs`]).
-    pixel_pairs: bool,
     recording: bool,
     recorded: usize,
-    recorded_kernels: [Kernel; MAX_DISPATCHES],
+    /// The kernel table this context was built with ([`GpuContext::new`]).
+    kernels: &'static [KernelInfo],
+    recorded_kernels: [KernelId; MAX_DISPATCHES],
     /// The dispatches of the last two timed stretches ([`Self::last_timeline`]): count and
     /// `(kernel, start, end)` ticks.
     timeline: Box<[Stretch; 2]>,
@@ -423,7 +420,7 @@ pub struct GpuContext {
     profile: KernelProfile,
     /// Host-side counters; a `Cell` because reads take `&self`.
     host: std::cell::Cell<HostStats>,
-    last_kernel: Option<Kernel>,
+    last_kernel: Option<KernelId>,
 }
 
 // SAFETY: the context owns its Vulkan objects and the arena mapping; every use goes through
@@ -488,8 +485,12 @@ fn lifecycle_lock() -> MutexGuard<'static, ()> {
 }
 
 impl GpuContext {
-    /// Opens the device, allocates the arena and builds every pipeline.
-    pub fn new(options: &GpuOptions) -> Result<Self, GpuError> {
+    /// Opens the device, allocates the arena and builds a pipeline for every kernel of
+    /// `kernels` (the caller's kernel table; [`KernelId`] indexes it).
+    pub fn new(options: &GpuOptions, kernels: &'static [KernelInfo]) -> Result<Self, GpuError> {
+        if kernels.len() > MAX_KERNELS {
+            return Err(GpuError::TooManyKernels { kernels: kernels.len(), max: MAX_KERNELS });
+        }
         let entry = loader()?.clone();
         // Instance and device creation (and pipeline builds) one context at a time.
         let _lifecycle = lifecycle_lock();
@@ -503,7 +504,7 @@ impl GpuContext {
             Err(result) => return Err(GpuError::Vulkan { call: "vkCreateInstance", result }),
         };
         // From here on a failure must destroy the instance.
-        match Self::open(entry, instance, options) {
+        match Self::open(entry, instance, options, kernels) {
             Ok(ctx) => Ok(ctx),
             Err((instance, e)) => {
                 unsafe { instance.destroy_instance(None) };
@@ -580,7 +581,7 @@ impl GpuContext {
     }
 
     #[allow(clippy::result_large_err)]
-    fn open(entry: ash::Entry, instance: ash::Instance, options: &GpuOptions) -> Result<Self, (ash::Instance, GpuError)> {
+    fn open(entry: ash::Entry, instance: ash::Instance, options: &GpuOptions, kernels: &'static [KernelInfo]) -> Result<Self, (ash::Instance, GpuError)> {
         let wanted = options.device.clone().or_else(|| std::env::var(DEVICE_ENV).ok().filter(|s| !s.trim().is_empty()));
         let cand = match Self::pick(&instance, wanted.as_deref()) {
             Ok(c) => c,
@@ -599,7 +600,7 @@ impl GpuContext {
             Ok(d) => d,
             Err(result) => return Err((instance, GpuError::Vulkan { call: "vkCreateDevice", result })),
         };
-        let mut ctx = GpuContext::skeleton(entry, instance, device, &cand, options.arena_bytes);
+        let mut ctx = GpuContext::skeleton(entry, instance, device, &cand, options.arena_bytes, kernels);
         // Drop now cleans up whatever exists.
         match ctx.init(&cand, options) {
             Ok(()) => Ok(ctx),
@@ -613,7 +614,7 @@ impl GpuContext {
         }
     }
 
-    fn skeleton(entry: ash::Entry, instance: ash::Instance, device: ash::Device, cand: &Candidate, arena_bytes: u64) -> Self {
+    fn skeleton(entry: ash::Entry, instance: ash::Instance, device: ash::Device, cand: &Candidate, arena_bytes: u64, kernels: &'static [KernelInfo]) -> Self {
         let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
         let queue = unsafe { device.get_device_queue(cand.queue_family, 0) };
         GpuContext {
@@ -653,7 +654,7 @@ impl GpuContext {
             prefetch_done: std::cell::Cell::new(0),
             arena: Arena::new(arena_bytes, 256),
             pipeline_cache: vk::PipelineCache::null(),
-            pipelines: Vec::with_capacity(KERNEL_COUNT),
+            pipelines: Vec::with_capacity(kernels.len()),
             max_groups: [0; 3],
             info: DeviceInfo {
                 name: cand.name.clone(),
@@ -670,16 +671,16 @@ impl GpuContext {
                 host_transfers: "mapped",
             },
             deterministic: !cand.float_atomics,
-            pixel_pairs: false,
             recording: false,
             recorded: 0,
             hazards: Hazards::default(),
             timestamps_wanted: true,
             timing: false,
-            recorded_kernels: [Kernel::all().next().expect("at least one kernel"); MAX_DISPATCHES],
-            timeline: Box::new([(0, [(Kernel::all().next().expect("at least one kernel"), 0, 0); MAX_DISPATCHES]); 2]),
+            kernels,
+            recorded_kernels: [KernelId::default(); MAX_DISPATCHES],
+            timeline: Box::new([(0, [(KernelId::default(), 0, 0); MAX_DISPATCHES]); 2]),
             timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
-            profile: KernelProfile::default(),
+            profile: KernelProfile::new(kernels),
             host: std::cell::Cell::new(HostStats::default()),
             last_kernel: None,
         }
@@ -850,14 +851,13 @@ impl GpuContext {
         self.info.pipeline_cache_file = cache_file;
 
         self.deterministic = options.deterministic || !self.info.float_atomics;
-        self.pixel_pairs = options.pixel_pairs.unwrap_or(self.info.subgroup_size < PIXEL_PAIRS_BELOW_SUBGROUP);
-        for kernel in Kernel::all() {
+        for info in self.kernels {
             // A kernel with float atomics has no pipeline on a device without them (a null
             // pipeline; dispatching it is an error).
-            let p = if kernel.info().float_atomics && !self.info.float_atomics {
+            let p = if info.float_atomics && !self.info.float_atomics {
                 Pipeline { set_layout: vk::DescriptorSetLayout::null(), layout: vk::PipelineLayout::null(), pipeline: vk::Pipeline::null() }
             } else {
-                self.build_pipeline(kernel)?
+                self.build_pipeline(info)?
             };
             self.pipelines.push(p);
         }
@@ -869,9 +869,8 @@ impl GpuContext {
         Ok(())
     }
 
-    fn build_pipeline(&self, kernel: Kernel) -> Result<Pipeline, GpuError> {
-        let info = kernel.info();
-        let name = kernel.name();
+    fn build_pipeline(&self, info: &'static KernelInfo) -> Result<Pipeline, GpuError> {
+        let name = info.name;
         let kerr = |call: &'static str| move |result| GpuError::Kernel { kernel: name, call, result };
         let device = &self.device;
         let mut bindings = [vk::DescriptorSetLayoutBinding::default(); MAX_BINDINGS];
@@ -947,15 +946,6 @@ impl GpuContext {
         self.deterministic
     }
 
-    /// Whether the rasterisers take two pixels per thread ([`GpuOptions::pixel_pairs`]).
-    pub fn pixel_pairs(&self) -> bool {
-        self.pixel_pairs
-    }
-
-    /// Switches [`Self::pixel_pairs`]; returns the previous setting.
-    pub fn set_pixel_pairs(&mut self, on: bool) -> bool {
-        std::mem::replace(&mut self.pixel_pairs, on)
-    }
 
     pub fn info(&self) -> &DeviceInfo {
         &self.info
@@ -1334,7 +1324,7 @@ impl GpuContext {
                 unsafe { self.device.get_query_pool_results(q, 0, ts, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
                     .map_err(vk_err("vkGetQueryPoolResults"))?;
                 for i in 0..n {
-                    let k = self.recorded_kernels[i] as usize;
+                    let k = self.recorded_kernels[i].index();
                     let ticks = self.timestamps[2 * i + 1].wrapping_sub(self.timestamps[2 * i]);
                     self.profile.dispatches[k] += 1;
                     self.profile.total_ns[k] += ticks as f64 * period as f64;
@@ -1405,27 +1395,33 @@ impl GpuContext {
 
     /// Records `kernel` over `groups` workgroups with `buffers` bound in the order of the
     /// kernel's bindings and `immediates` (its `var<immediate>` block, exactly its size).
-    pub fn dispatch(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
-        self.record_dispatch(kernel, buffers, immediates, Launch::Groups(groups))
+    pub fn dispatch(&mut self, kernel: impl Into<KernelId>, buffers: &[GpuRange], immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
+        self.record_dispatch(kernel.into(), buffers, immediates, Launch::Groups(groups))
     }
 
     /// [`Self::dispatch`] with the workgroup counts read by the device from `args` (three
     /// u32, written by an earlier kernel of the submission: `vkCmdDispatchIndirect`), so a
     /// size computed on the device needs no round trip to the host. Counts beyond the
     /// device's limits are the writer's to prevent (the host cannot check them).
-    pub fn dispatch_indirect(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], args: GpuRange) -> Result<(), GpuError> {
+    pub fn dispatch_indirect(&mut self, kernel: impl Into<KernelId>, buffers: &[GpuRange], immediates: &[u8], args: GpuRange) -> Result<(), GpuError> {
         if args.size < 12 || args.offset % 4 != 0 {
             return Err(GpuError::OutOfRange { what: "indirect dispatch arguments (3 u32)", requested: 12, len: args.size as usize });
         }
-        self.record_dispatch(kernel, buffers, immediates, Launch::Indirect(args))
+        self.record_dispatch(kernel.into(), buffers, immediates, Launch::Indirect(args))
     }
 
-    fn record_dispatch(&mut self, kernel: Kernel, buffers: &[GpuRange], immediates: &[u8], launch: Launch) -> Result<(), GpuError> {
-        let name = kernel.name();
+    /// The table entry of `kernel`.
+    pub fn kernel_info(&self, kernel: impl Into<KernelId>) -> Result<&'static KernelInfo, GpuError> {
+        let kernel = kernel.into();
+        self.kernels.get(kernel.index()).ok_or(GpuError::UnknownKernel { index: kernel.index(), table: self.kernels.len() })
+    }
+
+    fn record_dispatch(&mut self, kernel: KernelId, buffers: &[GpuRange], immediates: &[u8], launch: Launch) -> Result<(), GpuError> {
+        let info = self.kernel_info(kernel)?;
+        let name = info.name;
         if !self.recording {
             return Err(GpuError::NotRecording { what: name });
         }
-        let info = kernel.info();
         if buffers.len() != info.bindings.len() {
             return Err(GpuError::BindingCount { kernel: name, expected: info.bindings.len(), got: buffers.len() });
         }
@@ -1464,7 +1460,7 @@ impl GpuContext {
                 })
                 .buffer_info(std::slice::from_ref(&infos[i]));
         }
-        if self.pipelines[kernel as usize].pipeline == vk::Pipeline::null() {
+        if self.pipelines[kernel.index()].pipeline == vk::Pipeline::null() {
             return Err(GpuError::NoFloatAtomics { kernel: name });
         }
         let mut n_access = info.bindings.len();
@@ -1473,7 +1469,7 @@ impl GpuContext {
             n_access += 1;
         }
         self.order(&accesses[..n_access]);
-        let p = &self.pipelines[kernel as usize];
+        let p = &self.pipelines[kernel.index()];
         let cb = self.command_buffer;
         let slot = self.recorded as u32;
         let timing = self.query_pool.filter(|_| self.timing);
@@ -1503,11 +1499,12 @@ impl GpuContext {
     /// [`Self::dispatch`] with the buffers looked up by the WGSL names of the kernel's
     /// bindings (`lookup(name)`), so the caller writes no binding list by hand; a binding
     /// `lookup` does not know is [`GpuError::UnknownBinding`].
-    pub fn dispatch_named(&mut self, kernel: Kernel, lookup: impl Fn(&str) -> Option<GpuRange>, immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
-        let info = kernel.info();
+    pub fn dispatch_named(&mut self, kernel: impl Into<KernelId>, lookup: impl Fn(&str) -> Option<GpuRange>, immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
+        let kernel = kernel.into();
+        let info = self.kernel_info(kernel)?;
         let mut ranges = [GpuRange { offset: 0, size: 0 }; MAX_BINDINGS];
         for (slot, b) in ranges.iter_mut().zip(info.bindings) {
-            *slot = lookup(b.name).ok_or(GpuError::UnknownBinding { kernel: kernel.name(), name: b.name })?;
+            *slot = lookup(b.name).ok_or(GpuError::UnknownBinding { kernel: info.name, name: b.name })?;
         }
         self.dispatch(kernel, &ranges[..info.bindings.len().min(MAX_BINDINGS)], immediates, groups)
     }
@@ -1573,7 +1570,7 @@ impl GpuContext {
             return Err(GpuError::NotRecording { what: "submit" });
         }
         self.recording = false;
-        let name = self.last_kernel.map(|k| k.name()).unwrap_or("(no kernel)");
+        let name = self.last_kernel.and_then(|k| self.kernels.get(k.index())).map_or("(no kernel)", |i| i.name);
         let d = &self.device;
         unsafe {
             // What the kernels wrote, visible to the host (a mapped arena is read in place).
@@ -1644,7 +1641,7 @@ impl GpuContext {
         if !self.recording {
             return Err(GpuError::NotRecording { what: "submit_and_wait" });
         }
-        let name = self.last_kernel.map(|k| k.name()).unwrap_or("(no kernel)");
+        let name = self.last_kernel.and_then(|k| self.kernels.get(k.index())).map_or("(no kernel)", |i| i.name);
         let t0 = self.end_and_submit()?;
         let d = &self.device;
         unsafe {
@@ -1684,14 +1681,15 @@ impl GpuContext {
     /// [`KernelProfile::span_ns`]; a mapper step's two submissions) in recording order:
     /// `(kernel, start ms, end ms)` from the earliest dispatch's start. Empty without
     /// timestamps.
-    pub fn last_timeline(&self) -> impl Iterator<Item = (Kernel, f64, f64)> + '_ {
+    pub fn last_timeline(&self) -> impl Iterator<Item = (&'static KernelInfo, f64, f64)> + '_ {
         let entries = || self.timeline.iter().flat_map(|(n, e)| e[..*n].iter());
         let first = entries().map(|e| e.1).min().unwrap_or(0);
         let period = self.info.timestamp_period_ns.unwrap_or(0.0) as f64 * 1e-6;
-        entries().map(move |&(k, start, end)| (k, start.wrapping_sub(first) as f64 * period, end.wrapping_sub(first) as f64 * period))
+        let kernels = self.kernels;
+        entries().map(move |&(k, start, end)| (&kernels[k.index()], start.wrapping_sub(first) as f64 * period, end.wrapping_sub(first) as f64 * period))
     }
     pub fn reset_profile(&mut self) {
-        self.profile = KernelProfile::default();
+        self.profile = KernelProfile::new(self.kernels);
         self.host.set(HostStats::default());
     }
     /// Host-side counters so far ([`HostStats`]).

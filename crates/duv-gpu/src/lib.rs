@@ -1,8 +1,10 @@
 //! Raw Vulkan compute on `ash`: the device layer the mapper's kernels run on. Knows nothing
 //! of SLAM; `map/` is its only user.
 //!
-//! - [`kernels`]: the kernel table `build.rs` generates from `kernels/*.wgsl` (naga
-//!   reflection: entry point, workgroup size, bindings, immediate-block size, SPIR-V).
+//! - [`kernels`]: what a kernel table holds (entry point, workgroup size, bindings,
+//!   immediate-block size, SPIR-V). The table is the caller's data, handed to
+//!   [`GpuContext::new`]: the mapper's is generated from `kernels/*.wgsl` by
+//!   `crates/duv-map/build.rs`. This crate names no kernel.
 //! - [`GpuContext`] ([`device`]): instance and device selection (discrete, then integrated,
 //!   then virtual, then CPU devices such as lavapipe; `DUV_VULKAN_DEVICE` picks one by index
 //!   or name substring), one compute queue, one command buffer and fence, every pipeline built
@@ -11,8 +13,6 @@
 //! - [`arena`]: all GPU memory is one buffer allocated once at start-up from the board's
 //!   budget (`budgets.gpu_mb`); [`GpuBuffer`]s are ranges of it; the peak used is reported
 //!   and an allocation past the budget is an error, never a reallocation.
-//! - [`ops`]: generic primitives on top (exclusive prefix sum with an overflow flag, radix
-//!   sort of u64 keys).
 //!
 //! Errors name the kernel that failed ([`GpuError`]). No Vulkan loader or device at all is
 //! [`GpuError::NoLoader`] / [`GpuError::NoDevice`], which the mapper turns into a CPU
@@ -21,11 +21,10 @@
 pub mod arena;
 pub mod device;
 pub mod kernels;
-pub mod ops;
 
 pub use arena::{GpuBuffer, GpuRange};
 pub use device::{DeviceInfo, GpuContext, GpuOptions, HostStats, KernelProfile, DEVICE_ENV, MAX_DISPATCHES, STAGING_BYTES};
-pub use kernels::{BindingKind, Kernel, KernelInfo, KERNELS};
+pub use kernels::{BindingInfo, BindingKind, KernelId, KernelInfo, MAX_KERNELS};
 
 use ash::vk;
 
@@ -67,6 +66,10 @@ pub enum GpuError {
     NotRecording { what: &'static str },
     #[error("kernel {kernel} needs float atomics (VK_EXT_shader_atomic_float), which this device lacks; use deterministic mode")]
     NoFloatAtomics { kernel: &'static str },
+    #[error("kernel #{index} is not in the kernel table ({table} kernels)")]
+    UnknownKernel { index: usize, table: usize },
+    #[error("{kernels} kernels in the table, at most {max} are supported")]
+    TooManyKernels { kernels: usize, max: usize },
     #[error("pipeline cache {path}: {source}")]
     PipelineCacheIo { path: String, source: std::io::Error },
 }

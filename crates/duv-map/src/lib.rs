@@ -13,6 +13,7 @@
 //! (finite-difference gradient checks).
 
 pub mod adam;
+pub mod backend;
 pub mod checkpoint;
 pub mod densify;
 pub mod gaussians;
@@ -27,3 +28,7 @@ pub mod render;
 pub mod schedule;
 pub mod stage;
 pub mod vulkan;
+
+/// The device options the mapper opens its Vulkan device with (`Mapper::use_device`); re-exported
+/// so that the pipeline and the binary name the mapper, not the device layer.
+pub use duv_gpu::GpuOptions;

@@ -947,6 +947,17 @@ fn medium_variation_term<T: Real>(medium: &MediumPlanes<T>, weight: T, d_medium:
     row_sums.iter().sum::<f64>() / n
 }
 
+/// PSNR in dB of `a` against `b` (data range 1), infinite for identical images.
+pub fn psnr_db(a: &duv_core::ImageRgbF32, b: &duv_core::ImageRgbF32) -> f64 {
+    let n = a.data.len().max(1) as f64;
+    let mse = a.data.iter().zip(&b.data).map(|(&x, &y)| ((x - y) as f64).powi(2)).sum::<f64>() / n;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -30,7 +30,9 @@ use super::medium_estimate::{estimate_medium, set_coefficients, Coefficients, Me
 use super::medium::{MediumConfig, MediumError, MediumNet, MediumPlanes as MediumPlanes9, MediumWorkspace, C_MED, MEDIUM_CHANNELS, SIGMA_ATT, SIGMA_BS};
 use super::render::{MediumPlanes, RasterCapacity, RenderConfig, RenderError, RenderOutput, RenderStats, RenderUpstream};
 use super::schedule::pick_keyframe;
-use super::vulkan::{loss::TargetKey, DeviceMediumBackward, DeviceMediumStep, MapperDevice, RenderBackend, VulkanRenderError};
+use super::backend::{MapperDevice, RenderBackend};
+pub use crate::loss::psnr_db;
+use super::vulkan::{loss::TargetKey, DeviceMediumBackward, DeviceMediumStep, VulkanRenderError};
 use duv_core::rng::Rng;
 use duv_core::alloc::prefault;
 use duv_core::{ImageRgb8, ImageRgbF32, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3};
@@ -1398,13 +1400,3 @@ pub fn fold_single_coefficient(d_planes9: &mut [f32]) {
     }
 }
 
-/// PSNR in dB of `a` against `b` (data range 1), infinite for identical images.
-pub fn psnr_db(a: &ImageRgbF32, b: &ImageRgbF32) -> f64 {
-    let n = a.data.len().max(1) as f64;
-    let mse = a.data.iter().zip(&b.data).map(|(&x, &y)| ((x - y) as f64).powi(2)).sum::<f64>() / n;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        -10.0 * mse.log10()
-    }
-}

@@ -16,10 +16,10 @@ use super::{MapCheckpoint, MapStage};
 use duv_core::{Keyframe, Se3};
 use duv_core::io::pfm::write_pfm;
 use duv_core::io::png_io::write_rgb8;
-use duv_gpu::GpuOptions;
+use duv_map::GpuOptions;
 use duv_map::checkpoint::KeyframePixels;
 use duv_map::stage::{MappingBudget, MappingStage};
-use duv_map::vulkan::MapperDevice;
+use duv_map::backend::MapperDevice;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 

@@ -8,7 +8,7 @@
 //!    into [`GpuCompaction::flags`], or computed on the device by the prune rule of
 //!    [`crate::densify::densify_and_prune`] (`compact.keep_flags`,
 //!    [`GpuCompaction::record_keep_flags`], thresholds from [`PruneThresholds`]);
-//! 2. its exclusive prefix sum ([`GpuCompaction::record_scan`], `gpu::ops`): the new index of
+//! 2. its exclusive prefix sum ([`GpuCompaction::record_scan`], `vulkan::ops`): the new index of
 //!    every kept item, and the kept count;
 //! 3. per buffer (a parameter group or the whole AoS parameter block, an Adam moment, a
 //!    gradient or densification statistic; f32 or u32, any number of 32-bit values per item)
@@ -21,8 +21,9 @@
 
 use bytemuck::Pod;
 
-use duv_gpu::ops::{record_exclusive_scan, ScanScratch};
-use duv_gpu::{GpuBuffer, GpuContext, GpuError, Kernel};
+use super::ops::{record_exclusive_scan, ScanScratch};
+use duv_gpu::{GpuBuffer, GpuContext, GpuError};
+use super::kernels::Kernel;
 use crate::densify::DensifyParams;
 use crate::gaussians::{ParamGroup, PARAMS_PER_GAUSSIAN};
 use crate::render::sigmoid;

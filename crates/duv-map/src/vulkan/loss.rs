@@ -24,7 +24,8 @@
 //! [`GpuLoss::read_terms`] reports as [`LossError::NonFinite`] naming the term.
 
 use duv_core::Image;
-use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange, Kernel};
+use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange};
+use super::kernels::Kernel;
 use crate::loss::{ssim_kernel, LossConfig, LossError, LossTerms, TargetView, SSIM_WINDOW};
 
 /// Pixels per workgroup of the per-pixel loss kernels.
@@ -433,7 +434,7 @@ impl GpuLoss {
     }
 
     /// PSNR in dB of the render read by the last [`Self::read_terms`] against the target
-    /// (data range 1), as [`crate::mapper::psnr_db`] computes it on the host.
+    /// (data range 1), as [`crate::loss::psnr_db`] computes it on the host.
     pub fn last_psnr_db(&self) -> f64 {
         if self.last_mse == 0.0 {
             f64::INFINITY

@@ -42,7 +42,8 @@
 //! 360 MB at step 1, which is for tests and debugging only.
 
 use duv_core::{PinholeCamera, Se3};
-use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange, Kernel};
+use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange};
+use super::kernels::Kernel;
 use crate::medium_estimate::MediumPrior;
 use crate::medium::{MediumError, MediumGrid, MediumLayout, MediumNet, View, HIDDEN, MAX_PE_FREQUENCIES, MEDIUM_CHANNELS};
 

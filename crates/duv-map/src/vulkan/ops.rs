@@ -3,10 +3,8 @@
 //! (`kernels/radix_sort.wgsl`). Scratch buffers come from the arena once, sized for the
 //! largest input ([`ScanScratch::new`], [`SortScratch::new`]).
 
-use super::arena::{GpuBuffer, GpuRange};
-use super::device::GpuContext;
 use super::kernels::Kernel;
-use super::GpuError;
+use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange};
 
 /// Elements per prefix-sum workgroup (256 threads, two elements each).
 pub const SCAN_BLOCK: usize = 512;

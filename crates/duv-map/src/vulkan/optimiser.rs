@@ -10,7 +10,8 @@
 //! `check_grads` pass raises a flag, `map_step` then changes nothing, and
 //! [`GpuMapAdam::step_refused`] reports it after the submission.
 
-use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange, Kernel};
+use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuRange};
+use super::kernels::Kernel;
 use crate::adam::{AdamGroup, StepConstants};
 use crate::gaussians::{ParamGroup, PARAMS_PER_GAUSSIAN};
 

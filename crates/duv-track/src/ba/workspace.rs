@@ -157,9 +157,9 @@ pub(crate) struct Covariance {
 /// docs](super) for the model; a typical use per window:
 ///
 /// ```no_run
-/// # use duv::track::ba::{BaCapacity, BaConfig, BaWorkspace};
-/// # use duv::core::{Image, PinholeCamera, PlaneF32, Se3};
-/// # fn demo(camera: &PinholeCamera, poses: &[Se3], depths: &[PlaneF32], target: &Image<f32, 2>, weight: &Image<f32, 2>) -> Result<(), duv::track::ba::BaError> {
+/// # use duv_track::ba::{BaCapacity, BaConfig, BaWorkspace};
+/// # use duv_core::{Image, PinholeCamera, PlaneF32, Se3};
+/// # fn demo(camera: &PinholeCamera, poses: &[Se3], depths: &[PlaneF32], target: &Image<f32, 2>, weight: &Image<f32, 2>) -> Result<(), duv_track::ba::BaError> {
 /// let mut ws = BaWorkspace::new(BaCapacity { max_keyframes: 8, max_pixels_per_keyframe: 40 * 30, max_edges: 24 });
 /// ws.begin(camera)?;
 /// for (pose, depth) in poses.iter().zip(depths) {
