@@ -1,4 +1,4 @@
-//! A synthetic BA scene shared by `tests/ba.rs`, `tests/ba_alloc.rs` and `benches/ba.rs`: a
+//! A synthetic BA scene shared by `tests/algorithms/ba.rs`, `tests/ba_alloc.rs` and `benches/ba.rs`: a
 //! plane at about 2 m with Gaussian bumps, seen by keyframes strung along a gentle arc,
 //! ground-truth inverse depth by ray casting, and flow-like targets with optional noise and
 //! outliers (weight 0 where the point leaves the target view, as a flow front end would).

@@ -1,4 +1,4 @@
-//! Random Gaussian scenes in front of a camera, shared by `tests/render.rs`,
+//! Random Gaussian scenes in front of a camera, shared by `tests/algorithms/render.rs`,
 //! `tests/render_alloc.rs` and `benches/render.rs`.
 #![allow(dead_code)]
 

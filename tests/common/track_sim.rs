@@ -1,5 +1,5 @@
 //! Runs the tracker over a sequence generated in memory and scores it: shared by
-//! `tests/tracker.rs`, `tests/tracker_alloc.rs` and `examples/track_sim.rs`.
+//! `tests/algorithms/tracker.rs`, `tests/tracker_alloc.rs` and `examples/track_sim.rs`.
 #![allow(dead_code)]
 
 use duv_core::{Frame, FrameImage, StampedPose};

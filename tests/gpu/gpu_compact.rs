@@ -8,7 +8,7 @@
 //! and scan block (512) boundaries; narrow grid rows stand in for maps of more than 65535
 //! workgroups.
 
-mod gpu_common;
+use crate::gpu_common;
 
 use duv_core::rng::Rng;
 use duv_gpu::{GpuBuffer, GpuContext, GpuError};

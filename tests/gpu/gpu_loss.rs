@@ -4,7 +4,7 @@
 //! count is not a multiple of the 256-wide workgroups, with invalid tracked pixels of every
 //! kind; a second run is bit-identical; bad input is an error.
 
-mod gpu_common;
+use crate::gpu_common;
 
 use duv_core::rng::Rng;
 use duv_core::Image;
@@ -19,7 +19,7 @@ use duv_map::vulkan::VulkanRenderError;
 /// sums; the GPU's exp/log are not correctly rounded).
 const VALUE_REL_TOL: f64 = 1e-4;
 /// Gradients: `|gpu - cpu| <= GRAD_REL_TOL * max(|cpu|, GRAD_FLOOR_FRACTION * max |cpu|)` per
-/// value, the floor taken over every value of the same image (see `tests/gpu_map.rs`).
+/// value, the floor taken over every value of the same image (see `tests/gpu/gpu_map.rs`).
 const GRAD_REL_TOL: f64 = 1e-3;
 const GRAD_FLOOR_FRACTION: f64 = 1e-2;
 

@@ -4,9 +4,8 @@
 //! reduction, the projection backward, Adam; the whole forward and backward. Sizes cross workgroup (256 threads) and tile
 //! (16 px) boundaries.
 
-mod gpu_common;
-#[path = "common/render_scene.rs"]
-mod render_scene;
+use crate::gpu_common;
+use crate::render_scene;
 
 use duv_core::rng::Rng;
 use duv_gpu::BindingKind;

@@ -7,8 +7,7 @@
 //! Thresholds were measured with `cargo run --release --example track_sim` (same sequences):
 //! survey 0.17 % of the path, loop 0.26 % with loop closure and 0.86 % without.
 
-#[path = "common/track_sim.rs"]
-mod track_sim;
+use crate::track_sim;
 
 use duv_core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
 use duv_eval::umeyama;

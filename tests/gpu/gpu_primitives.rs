@@ -2,7 +2,7 @@
 //! algorithms and against the CPU references of the same name (`map::render`), with sizes that
 //! cross workgroup boundaries. Integer kernels: results must be exactly equal.
 
-mod gpu_common;
+use crate::gpu_common;
 
 use duv_core::rng::Rng;
 use duv_gpu::{GpuBuffer, GpuContext, GpuError, GpuOptions};

@@ -4,7 +4,7 @@
 //! per group, moments round-tripped through the device layout, a non-finite gradient refused
 //! with nothing changed.
 
-mod gpu_common;
+use crate::gpu_common;
 
 use duv_core::rng::Rng;
 use duv_map::adam::{AdamGroup, AdamGroupConfig};

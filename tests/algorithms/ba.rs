@@ -4,8 +4,7 @@
 //! synthetic scene with and without outliers, motion-only BA, and the error variants of bad
 //! input.
 
-#[path = "common/ba_scene.rs"]
-mod ba_scene;
+use crate::ba_scene;
 
 use ba_scene::{perturb, Scene};
 use duv_core::pose::se3_exp;

@@ -4,7 +4,7 @@
 //! a view that is no multiple of the step and crosses workgroup boundaries) and per pixel
 //! (step 1). A second run is bit-identical; bad input is an error, not a panic.
 
-mod gpu_common;
+use crate::gpu_common;
 
 use std::time::Instant;
 

@@ -6,8 +6,7 @@
 //!
 //! Sizes cross tile boundaries: 37x29 images are 3x2 tiles of 16 with partial tiles.
 
-#[path = "common/render_scene.rs"]
-mod render_scene;
+use crate::render_scene;
 
 use duv_core::rng::Rng;
 use duv_core::{PinholeCamera, RadTan, Se3};
