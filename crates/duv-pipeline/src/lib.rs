@@ -55,24 +55,49 @@ pub enum PipelineError {
     Source(#[from] duv_camera::CameraError),
     #[error("stage {stage} failed: {problem}")]
     Stage { stage: &'static str, problem: String },
+    #[error("stage mapping failed: {0}")]
+    Mapping(#[source] MapStageError),
     #[error("resume from {path}: {problem}")]
     Resume { path: PathBuf, problem: String },
+}
+
+/// Why a call of the mapping stage failed ([`MapStage`]); the messages are the stage's own.
+#[derive(Debug, thiserror::Error)]
+pub enum MapStageError {
+    /// The mapper failed (its error names what).
+    #[error(transparent)]
+    Mapper(#[from] duv_map::stage::StageError),
+    /// The mapper's device could not be opened ([`mapping::StageMapping::use_device`]).
+    #[error(transparent)]
+    Device(#[from] duv_map::mapper::MapperError),
+    /// Writing the keyframe folder or a checkpoint's scratch file.
+    #[error(transparent)]
+    Io(#[from] duv_core::io::IoError),
+    #[error("creating {path}: {source}")]
+    CreateDir { path: PathBuf, source: std::io::Error },
+    #[error("mapping keyframe {id}: {source}")]
+    Keyframe { id: u64, source: duv_map::stage::StageError },
+    #[error("exporting the map to {path}: {source}")]
+    Export { path: PathBuf, source: duv_map::stage::StageError },
+    /// A [`NoMapping`] checkpoint (its keyframe pose list) that does not decode.
+    #[error(transparent)]
+    PoseList(#[from] serde_json::Error),
 }
 
 /// The mapping stage as the pipeline drives it. The mapper binds to this at merge; tests and
 /// tracking-only runs use [`NoMapping`].
 pub trait MapStage: Send {
     /// A keyframe from tracking (a pooled buffer: copy what is kept).
-    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String>;
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError>;
     /// One unit of optimisation when no keyframe is waiting; `false` when idle.
-    fn step(&mut self) -> Result<bool, String>;
+    fn step(&mut self) -> Result<bool, MapStageError>;
     /// A checkpoint to persist now (`None` when nothing changed since the last one).
     fn checkpoint(&mut self) -> Option<MapCheckpoint>;
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
-    fn restore(&mut self, bytes: &[u8]) -> Result<(), String>;
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError>;
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
     /// optimisation and the exports into `out`; a one-line summary for the operator.
-    fn finish(&mut self, _final_poses: &[(u64, Se3)], _out: &Path) -> Result<Option<String>, String> {
+    fn finish(&mut self, _final_poses: &[(u64, Se3)], _out: &Path) -> Result<Option<String>, MapStageError> {
         Ok(None)
     }
 }
@@ -105,12 +130,12 @@ impl NoMapping {
 }
 
 impl MapStage for NoMapping {
-    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String> {
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError> {
         self.keyframes.push((kf.index, kf.t_ns.t_ns(), duv_core::pose::se3_to_tum(&kf.world_from_cam)));
         self.dirty = true;
         Ok(())
     }
-    fn step(&mut self) -> Result<bool, String> {
+    fn step(&mut self) -> Result<bool, MapStageError> {
         Ok(false)
     }
     fn checkpoint(&mut self) -> Option<MapCheckpoint> {
@@ -121,8 +146,8 @@ impl MapStage for NoMapping {
         let centres_in_world = self.keyframes.iter().map(|k| [k.2[0] as f32, k.2[1] as f32, k.2[2] as f32]).collect();
         Some(MapCheckpoint { logged: file.clone(), file, centres_in_world })
     }
-    fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
-        self.keyframes = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError> {
+        self.keyframes = serde_json::from_slice(bytes)?;
         Ok(())
     }
 }
@@ -475,10 +500,10 @@ pub fn run<S: FrameSource + 'static>(
                     let idle = match kq.try_pop() {
                         Some(kf) => {
                             last_t = kf.t_ns;
-                            map.add_keyframe(&kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                            map.add_keyframe(&kf).map_err(PipelineError::Mapping)?;
                             false
                         }
-                        None => !map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?,
+                        None => !map.step().map_err(PipelineError::Mapping)?,
                     };
                     if last_ckpt.elapsed() >= interval {
                         last_ckpt = Instant::now();
@@ -488,7 +513,7 @@ pub fn run<S: FrameSource + 'static>(
                         match kq.pop_timeout(Duration::from_millis(100)) {
                             Ok(Some(kf)) => {
                                 last_t = kf.t_ns;
-                                map.add_keyframe(&kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
+                                map.add_keyframe(&kf).map_err(PipelineError::Mapping)?;
                             }
                             Ok(None) => {}
                             Err(()) => break,
@@ -730,8 +755,8 @@ fn run_deterministic<S: FrameSource + 'static>(
     let mut last_t = Timestamp::from_ns(0);
     let mut handoff = Handoff::new(cfg.handoff(), &tracker);
     let mut to_mapping = |kf: Arc<Keyframe>| -> Result<(), PipelineError> {
-        map.add_keyframe(&kf).map_err(|problem| PipelineError::Stage { stage: "mapping", problem })?;
-        while map.step().map_err(|problem| PipelineError::Stage { stage: "mapping", problem })? {}
+        map.add_keyframe(&kf).map_err(PipelineError::Mapping)?;
+        while map.step().map_err(PipelineError::Mapping)? {}
         Ok(())
     };
     tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {

@@ -12,7 +12,7 @@
 //! - `finish` sets the final keyframe poses, optimises `final_iterations` more and exports
 //!   `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
 
-use super::{MapCheckpoint, MapStage};
+use super::{MapCheckpoint, MapStage, MapStageError};
 use duv_core::{Keyframe, Se3};
 use duv_core::io::pfm::write_pfm;
 use duv_core::io::png_io::write_rgb8;
@@ -49,8 +49,8 @@ impl StageMapping {
 
     /// Renders with `device` from now on, also after a `restore` (see
     /// [`duv_map::mapper::Mapper::use_device`]); the renderer in use, one line.
-    pub fn use_device(&mut self, device: MapperDevice, gpu: GpuOptions) -> Result<String, String> {
-        let what = self.stage.mapper_mut().use_device(device, &gpu).map_err(|e| e.to_string())?;
+    pub fn use_device(&mut self, device: MapperDevice, gpu: GpuOptions) -> Result<String, MapStageError> {
+        let what = self.stage.mapper_mut().use_device(device, &gpu)?;
         self.device = Some((device, gpu));
         Ok(what)
     }
@@ -66,15 +66,15 @@ impl StageMapping {
 }
 
 impl MapStage for StageMapping {
-    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), String> {
+    fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError> {
         let id = kf.index;
         let dir = &self.keyframe_dir;
-        std::fs::create_dir_all(dir).map_err(|e| format!("creating {}: {e}", dir.display()))?;
-        write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image).map_err(|e| e.to_string())?;
-        write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth).map_err(|e| e.to_string())?;
-        write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance).map_err(|e| e.to_string())?;
+        std::fs::create_dir_all(dir).map_err(|source| MapStageError::CreateDir { path: dir.clone(), source })?;
+        write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image)?;
+        write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth)?;
+        write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance)?;
         let t0 = Instant::now();
-        self.stage.on_keyframe(kf).map_err(|e| format!("mapping keyframe {id}: {e}"))?;
+        self.stage.on_keyframe(kf).map_err(|source| MapStageError::Keyframe { id, source })?;
         self.time += t0.elapsed();
         self.fed += 1;
         self.idle_left = self.idle_iterations;
@@ -82,12 +82,12 @@ impl MapStage for StageMapping {
         Ok(())
     }
 
-    fn step(&mut self) -> Result<bool, String> {
+    fn step(&mut self) -> Result<bool, MapStageError> {
         if self.idle_left == 0 || self.fed == 0 {
             return Ok(false);
         }
         let t0 = Instant::now();
-        self.stage.optimise(1, None).map_err(|e| e.to_string())?;
+        self.stage.optimise(1, None)?;
         self.time += t0.elapsed();
         self.idle_left -= 1;
         self.dirty = true;
@@ -113,28 +113,28 @@ impl MapStage for StageMapping {
         Some(MapCheckpoint { file, logged, centres_in_world })
     }
 
-    fn restore(&mut self, bytes: &[u8]) -> Result<(), String> {
-        duv_core::io::write_atomic(&self.scratch, bytes).map_err(|e| e.to_string())?;
+    fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError> {
+        duv_core::io::write_atomic(&self.scratch, bytes)?;
         // The old stage (and its GPU memory) goes before the restored one opens the device.
-        self.stage = MappingStage::from_checkpoint(&self.scratch, self.budget).map_err(|e| e.to_string())?;
+        self.stage = MappingStage::from_checkpoint(&self.scratch, self.budget)?;
         if let Some((device, gpu)) = &self.device {
-            self.stage.mapper_mut().use_device(*device, gpu).map_err(|e| e.to_string())?;
+            self.stage.mapper_mut().use_device(*device, gpu)?;
         }
         self.fed = self.stage.mapper().keyframe_count();
         Ok(())
     }
 
-    fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path) -> Result<Option<String>, String> {
+    fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path) -> Result<Option<String>, MapStageError> {
         if self.fed == 0 {
             return Ok(Some("mapped 0 keyframes: no map exported".into()));
         }
         for (id, pose) in final_poses {
-            self.stage.set_keyframe_pose(*id, *pose).map_err(|e| e.to_string())?;
+            self.stage.set_keyframe_pose(*id, *pose)?;
         }
         let t0 = Instant::now();
-        self.stage.optimise(self.final_iterations, None).map_err(|e| e.to_string())?;
+        self.stage.optimise(self.final_iterations, None)?;
         self.time += t0.elapsed();
-        self.stage.export(out).map_err(|e| format!("exporting the map to {}: {e}", out.display()))?;
+        self.stage.export(out).map_err(|source| MapStageError::Export { path: out.to_path_buf(), source })?;
         let iterations = self.stage.mapper().iteration();
         let m = self.stage.medium_summary();
         let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
