@@ -120,13 +120,19 @@ fn replay_is_deterministic_paced_and_accurate() {
     // Deterministic replay: bit-identical trajectories, and the log replays as the run saw it.
     let r1 = dir.path().join("r1");
     let r2 = dir.path().join("r2");
-    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r1).args(["--deterministic", "--no-progress"]));
-    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r2).args(["--deterministic", "--no-progress"]));
+    // Replay runs the whole pipeline, mapping included: the map is bit-identical too.
+    let mapped = ["--deterministic", "--no-progress", "--mapper", "cpu", "--map-iterations", "2", "--map-final-iterations", "4"];
+    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r1).args(mapped));
+    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r2).args(mapped));
     let t1 = std::fs::read(r1.join("trajectory.txt")).unwrap();
     let t2 = std::fs::read(r2.join("trajectory.txt")).unwrap();
     assert_eq!(String::from_utf8_lossy(&t1).lines().filter(|l| !l.starts_with('#')).count(), 60);
     assert!(t1 == t2, "deterministic replays differ");
     assert_eq!(std::fs::read(r1.join("keyframes.txt")).unwrap(), std::fs::read(r2.join("keyframes.txt")).unwrap());
+    let ply1 = std::fs::read(r1.join("map.ply")).expect("a replay exports the map");
+    assert!(ply1.len() > 1000, "map.ply of {} bytes", ply1.len());
+    assert!(ply1 == std::fs::read(r2.join("map.ply")).unwrap(), "deterministic replays mapped differently");
+    assert_eq!(std::fs::read(r1.join("medium.json")).unwrap(), std::fs::read(r2.join("medium.json")).unwrap());
 
     // Regression: the replayed trajectory against the generator's ground truth.
     let gt = ground_truth(60);
@@ -137,7 +143,7 @@ fn replay_is_deterministic_paced_and_accurate() {
 
     // Paced replay at recorded timing x2: 20 frames span 1.9 s of recorded time.
     let t0 = Instant::now();
-    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(dir.path().join("paced")).args(["--speed", "2", "--frames", "20", "--no-progress"]));
+    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(dir.path().join("paced")).args(["--speed", "2", "--frames", "20", "--no-progress", "--no-map"]));
     assert!(t0.elapsed() >= Duration::from_secs_f64(1.9 / 2.0), "paced replay took {:?}", t0.elapsed());
 }
 
@@ -166,7 +172,7 @@ fn jpeg_logged_run_resumes_inspects_and_replays() {
     // bound of the raw replay above. JPEG is lossy, so the replay is not the recorded run: on
     // this sequence it measured 0.33% of the path against 0.17% for a raw log.
     let r1 = dir.path().join("r1");
-    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r1).args(["--deterministic", "--no-progress"]));
+    run_ok(duv().arg("replay").arg(&rec).arg("--out").arg(&r1).args(["--deterministic", "--no-progress", "--no-map"]));
     let traj = read_trajectory(&r1.join("trajectory.txt"));
     assert_eq!(traj.len(), 60);
     let gt = ground_truth(60);

@@ -1,6 +1,8 @@
-//! `duv replay LOG`: recorded frames through the same pipeline, at recorded timing, `--speed X`
-//! faster, or `--deterministic` (single-threaded, bit-identical output).
+//! `duv replay LOG`: recorded frames through the same pipeline as `duv run` (tracking, mapping
+//! and logging), at recorded timing, `--speed X` faster, or `--deterministic` (single-threaded,
+//! the Vulkan mapper without float atomics: bit-identical trajectory and map on one device).
 
+use duv_map::backend::MapperDevice;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -26,6 +28,18 @@ pub struct ReplayArgs {
     /// No progress line on stderr.
     #[arg(long)]
     no_progress: bool,
+    /// Track only, as `duv run --no-map`.
+    #[arg(long)]
+    no_map: bool,
+    /// Where the mapper renders, as `duv run --mapper`.
+    #[arg(long, value_enum, default_value_t = MapperDevice::Auto)]
+    mapper: MapperDevice,
+    /// Mapper iterations per keyframe, as `duv run --map-iterations` [default: duv run's].
+    #[arg(long)]
+    map_iterations: Option<u64>,
+    /// Mapper iterations after the last frame, as `duv run --map-final-iterations` [default: duv run's].
+    #[arg(long)]
+    map_final_iterations: Option<u64>,
 }
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
@@ -36,5 +50,13 @@ pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
     run.deterministic = args.deterministic;
     run.speed = if args.deterministic { None } else { Some(args.speed) };
     run.no_resume = true;
+    run.no_map = args.no_map;
+    run.mapper = args.mapper;
+    if let Some(n) = args.map_iterations {
+        run.map_iterations = n;
+    }
+    if let Some(n) = args.map_final_iterations {
+        run.map_final_iterations = n;
+    }
     super::run::run(run)
 }

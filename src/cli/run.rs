@@ -93,13 +93,13 @@ pub struct RunArgs {
     pub no_map: bool,
     /// Mapper iterations after each keyframe handed to mapping.
     #[arg(long, default_value_t = MappingBudget::default().iterations_per_keyframe)]
-    map_iterations: u64,
+    pub map_iterations: u64,
     /// Mapper iterations while the mapping thread waits for the next keyframe (at most).
     #[arg(long, default_value_t = 30)]
-    map_idle_iterations: u64,
+    pub map_idle_iterations: u64,
     /// Mapper iterations after the last frame, on the final keyframe poses.
     #[arg(long, default_value_t = 100)]
-    map_final_iterations: u64,
+    pub map_final_iterations: u64,
     /// Mapper parameters (TOML, `MapperConfig` fields); defaults otherwise.
     #[arg(long, value_name = "FILE")]
     map_config: Option<PathBuf>,
