@@ -17,7 +17,8 @@
 //! mean in the world frame: `colour_c = max(0, 0.5 + SH_C0 f_dc[c] + SH_C1 (-y f_rest[c] +
 //! z f_rest[3 + c] - x f_rest[6 + c]))`.
 
-use super::render::{Float, RenderError};
+use super::real::Real;
+use super::render::RenderError;
 
 /// Real SH basis constant of degree 0, `1 / (2 sqrt(pi))`.
 pub const SH_C0: f64 = 0.282_094_791_773_878_14;
@@ -77,8 +78,8 @@ impl<T: Copy + Default> GaussianParam<T> {
 /// The colour of a Gaussian seen along the unit direction `dir` (camera centre to mean,
 /// world frame), before the clamp at zero: `0.5 + C0 f_dc + C1 (-y f1 + z f2 - x f3)`.
 #[inline(always)]
-pub fn sh_colour_raw<T: Float>(f_dc: &[T; 3], f_rest: &[T; 9], dir: &[T; 3]) -> [T; 3] {
-    let (c0, c1, half) = (T::of(SH_C0), T::of(SH_C1), T::of(0.5));
+pub fn sh_colour_raw<T: Real>(f_dc: &[T; 3], f_rest: &[T; 9], dir: &[T; 3]) -> [T; 3] {
+    let (c0, c1, half) = (T::from_f64(SH_C0), T::from_f64(SH_C1), T::from_f64(0.5));
     let mut out = [T::ZERO; 3];
     for c in 0..3 {
         out[c] = half + c0 * f_dc[c] + c1 * (-dir[1] * f_rest[c] + dir[2] * f_rest[3 + c] - dir[0] * f_rest[6 + c]);

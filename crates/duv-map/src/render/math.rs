@@ -1,97 +1,16 @@
-//! Scalar arithmetic shared by the f32 pipeline and the f64 reference: a small [`Float`]
-//! trait (so the per-Gaussian and per-pixel maths is written once and instantiated for both)
-//! and 3x3 / 2x3 matrix helpers on plain arrays, the layout a WGSL kernel would use.
+//! Scalar arithmetic shared by the f32 pipeline and the f64 reference: the per-Gaussian and
+//! per-pixel maths is written once over [`Real`] (the crate's one scalar trait, also the
+//! medium's and the losses') and instantiated for both; 3x3 / 2x3 matrix helpers on plain
+//! arrays, the layout a WGSL kernel would use.
 
-use std::fmt::Debug;
-use std::ops::{Add, AddAssign, Div, DivAssign, Mul, MulAssign, Neg, Sub, SubAssign};
+pub use crate::real::Real;
 
-/// The scalar operations the renderer needs; implemented for `f32` (the pipeline, the GPU
-/// precision) and `f64` (the reference the gradient checks differentiate numerically).
-pub trait Float:
-    Copy
-    + Send
-    + Sync
-    + Default
-    + PartialOrd
-    + Debug
-    + 'static
-    + Add<Output = Self>
-    + Sub<Output = Self>
-    + Mul<Output = Self>
-    + Div<Output = Self>
-    + Neg<Output = Self>
-    + AddAssign
-    + SubAssign
-    + MulAssign
-    + DivAssign
-{
-    const ZERO: Self;
-    const ONE: Self;
-    /// Converts an f64 constant or input (rounding to nearest for f32).
-    fn of(v: f64) -> Self;
-    fn to_f64(self) -> f64;
-    fn exp(self) -> Self;
-    fn sqrt(self) -> Self;
-    fn ln(self) -> Self;
-    fn abs(self) -> Self;
-    fn min(self, other: Self) -> Self;
-    fn max(self, other: Self) -> Self;
-    fn is_finite(self) -> bool;
-}
-
-macro_rules! impl_float {
-    ($t:ty) => {
-        impl Float for $t {
-            const ZERO: Self = 0.0;
-            const ONE: Self = 1.0;
-            #[inline(always)]
-            fn of(v: f64) -> Self {
-                v as $t
-            }
-            #[inline(always)]
-            fn to_f64(self) -> f64 {
-                self as f64
-            }
-            #[inline(always)]
-            fn exp(self) -> Self {
-                <$t>::exp(self)
-            }
-            #[inline(always)]
-            fn sqrt(self) -> Self {
-                <$t>::sqrt(self)
-            }
-            #[inline(always)]
-            fn ln(self) -> Self {
-                <$t>::ln(self)
-            }
-            #[inline(always)]
-            fn abs(self) -> Self {
-                <$t>::abs(self)
-            }
-            #[inline(always)]
-            fn min(self, other: Self) -> Self {
-                <$t>::min(self, other)
-            }
-            #[inline(always)]
-            fn max(self, other: Self) -> Self {
-                <$t>::max(self, other)
-            }
-            #[inline(always)]
-            fn is_finite(self) -> bool {
-                <$t>::is_finite(self)
-            }
-        }
-    };
-}
-
-impl_float!(f32);
-impl_float!(f64);
 
 /// Row-major 3x3 matrix.
 pub type Mat3<T> = [[T; 3]; 3];
 
 #[inline(always)]
-pub fn mat3_mul<T: Float>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
+pub fn mat3_mul<T: Real>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
     let mut out = [[T::ZERO; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
@@ -102,24 +21,24 @@ pub fn mat3_mul<T: Float>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
 }
 
 #[inline(always)]
-pub fn mat3_transpose<T: Float>(a: &Mat3<T>) -> Mat3<T> {
+pub fn mat3_transpose<T: Real>(a: &Mat3<T>) -> Mat3<T> {
     [[a[0][0], a[1][0], a[2][0]], [a[0][1], a[1][1], a[2][1]], [a[0][2], a[1][2], a[2][2]]]
 }
 
 /// `a * b^T`.
 #[inline(always)]
-pub fn mat3_mul_bt<T: Float>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
+pub fn mat3_mul_bt<T: Real>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
     mat3_mul(a, &mat3_transpose(b))
 }
 
 /// `a^T * b`.
 #[inline(always)]
-pub fn mat3_mul_at<T: Float>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
+pub fn mat3_mul_at<T: Real>(a: &Mat3<T>, b: &Mat3<T>) -> Mat3<T> {
     mat3_mul(&mat3_transpose(a), b)
 }
 
 #[inline(always)]
-pub fn mat3_vec<T: Float>(a: &Mat3<T>, v: &[T; 3]) -> [T; 3] {
+pub fn mat3_vec<T: Real>(a: &Mat3<T>, v: &[T; 3]) -> [T; 3] {
     [
         a[0][0] * v[0] + a[0][1] * v[1] + a[0][2] * v[2],
         a[1][0] * v[0] + a[1][1] * v[1] + a[1][2] * v[2],
@@ -129,7 +48,7 @@ pub fn mat3_vec<T: Float>(a: &Mat3<T>, v: &[T; 3]) -> [T; 3] {
 
 /// `a^T v`.
 #[inline(always)]
-pub fn mat3_t_vec<T: Float>(a: &Mat3<T>, v: &[T; 3]) -> [T; 3] {
+pub fn mat3_t_vec<T: Real>(a: &Mat3<T>, v: &[T; 3]) -> [T; 3] {
     [
         a[0][0] * v[0] + a[1][0] * v[1] + a[2][0] * v[2],
         a[0][1] * v[0] + a[1][1] * v[1] + a[2][1] * v[2],
@@ -139,10 +58,10 @@ pub fn mat3_t_vec<T: Float>(a: &Mat3<T>, v: &[T; 3]) -> [T; 3] {
 
 /// Rotation matrix of a unit quaternion `(w, x, y, z)` (Hamilton convention).
 #[inline(always)]
-pub fn quat_to_mat3<T: Float>(q: &[T; 4]) -> Mat3<T> {
+pub fn quat_to_mat3<T: Real>(q: &[T; 4]) -> Mat3<T> {
     let (w, x, y, z) = (q[0], q[1], q[2], q[3]);
     let one = T::ONE;
-    let two = T::of(2.0);
+    let two = T::from_f64(2.0);
     [
         [one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y)],
         [two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x)],
@@ -153,9 +72,9 @@ pub fn quat_to_mat3<T: Float>(q: &[T; 4]) -> Mat3<T> {
 /// Gradient of a loss with respect to the unit quaternion `q`, given its gradient `g` with
 /// respect to the rotation matrix `quat_to_mat3(q)` (treating the nine entries as free).
 #[inline(always)]
-pub fn quat_to_mat3_backward<T: Float>(q: &[T; 4], g: &Mat3<T>) -> [T; 4] {
+pub fn quat_to_mat3_backward<T: Real>(q: &[T; 4], g: &Mat3<T>) -> [T; 4] {
     let (w, x, y, z) = (q[0], q[1], q[2], q[3]);
-    let two = T::of(2.0);
+    let two = T::from_f64(2.0);
     let dw = -z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] + x * g[2][1];
     let dx = y * g[0][1] + z * g[0][2] + y * g[1][0] - two * x * g[1][1] - w * g[1][2] + z * g[2][0] + w * g[2][1] - two * x * g[2][2];
     let dy = -two * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] + z * g[1][2] - w * g[2][0] + z * g[2][1] - two * y * g[2][2];
@@ -165,7 +84,7 @@ pub fn quat_to_mat3_backward<T: Float>(q: &[T; 4], g: &Mat3<T>) -> [T; 4] {
 
 /// Logistic sigmoid, written so neither branch overflows.
 #[inline(always)]
-pub fn sigmoid<T: Float>(x: T) -> T {
+pub fn sigmoid<T: Real>(x: T) -> T {
     if x >= T::ZERO {
         T::ONE / (T::ONE + (-x).exp())
     } else {

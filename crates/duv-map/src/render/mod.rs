@@ -14,7 +14,7 @@
 //!
 //! [`RasterWorkspace`] owns every buffer (allocated once from a [`RasterCapacity`]) and runs
 //! the stages: [`RasterWorkspace::forward`] then [`RasterWorkspace::backward`]. The per-pixel
-//! and per-Gaussian maths is generic over [`Float`]; [`mod@reference`] instantiates it in f64
+//! and per-Gaussian maths is generic over [`Real`]; [`mod@reference`] instantiates it in f64
 //! without tiles, sorting or capacities, for the gradient checks.
 //!
 //! # Image formation (per pixel, per channel)
@@ -59,7 +59,7 @@ mod tiles;
 mod workspace;
 
 pub use bin::{emit_intersections, exclusive_scan, isect_key, isect_key_bits, key_tile, scan_blocks, DEPTH_KEY_BITS, SCAN_BLOCK};
-pub use math::{quat_to_mat3, sigmoid, Float};
+pub use math::{quat_to_mat3, sigmoid};
 pub use project::{project_gaussians, project_splat, tile_rect, ProjectedSplat, ProjectionSetup, TileRect};
 pub use project_bwd::{project_backward, project_splat_backward};
 pub use raster_bwd::{backprop_pixel, rasterize_backward, reduce_isect_grads, PixelState, PixelUpstream, SplatGrad, MAX_DENSIFY_EXPONENT};

@@ -17,7 +17,7 @@
 
 use rayon::prelude::*;
 
-use super::math::{mat3_mul, mat3_mul_bt, mat3_vec, quat_to_mat3, sigmoid, Float, Mat3};
+use super::math::{mat3_mul, mat3_mul_bt, mat3_vec, quat_to_mat3, sigmoid, Real, Mat3};
 use super::{RenderConfig, RenderError, TileGrid, ALPHA_MIN};
 use duv_core::{PinholeCamera, Se3};
 use crate::gaussians::{sh_colour_raw, GaussianParam, Gaussians};
@@ -60,7 +60,7 @@ pub struct ProjectionSetup<T> {
     pub blur: T,
 }
 
-impl<T: Float> ProjectionSetup<T> {
+impl<T: Real> ProjectionSetup<T> {
     /// Validates the camera (undistorted pinhole) and the pose and converts them.
     pub fn new(camera: &PinholeCamera, cam_from_world: &Se3, config: &RenderConfig) -> Result<Self, RenderError> {
         camera.validate()?;
@@ -72,8 +72,8 @@ impl<T: Float> ProjectionSetup<T> {
         if !m.iter().all(|v| v.is_finite()) {
             return Err(RenderError::NonFinitePose);
         }
-        let rot: Mat3<T> = std::array::from_fn(|i| std::array::from_fn(|j| T::of(m[(i, j)])));
-        let trans: [T; 3] = std::array::from_fn(|i| T::of(m[(i, 3)]));
+        let rot: Mat3<T> = std::array::from_fn(|i| std::array::from_fn(|j| T::from_f64(m[(i, j)])));
+        let trans: [T; 3] = std::array::from_fn(|i| T::from_f64(m[(i, 3)]));
         let centre = cam_from_world.inverse().translation.vector;
         let (w, h) = (camera.width as f64, camera.height as f64);
         let margin_x = 0.15 * w / camera.fx;
@@ -81,17 +81,17 @@ impl<T: Float> ProjectionSetup<T> {
         Ok(ProjectionSetup {
             cam_from_world_rot: rot,
             cam_from_world_trans: trans,
-            cam_centre_in_world: [T::of(centre.x), T::of(centre.y), T::of(centre.z)],
-            fx: T::of(camera.fx),
-            fy: T::of(camera.fy),
-            cx: T::of(camera.cx),
-            cy: T::of(camera.cy),
+            cam_centre_in_world: [T::from_f64(centre.x), T::from_f64(centre.y), T::from_f64(centre.z)],
+            fx: T::from_f64(camera.fx),
+            fy: T::from_f64(camera.fy),
+            cx: T::from_f64(camera.cx),
+            cy: T::from_f64(camera.cy),
             width: camera.width,
             height: camera.height,
-            lim_x: [T::of(-camera.cx / camera.fx - margin_x), T::of((w - camera.cx) / camera.fx + margin_x)],
-            lim_y: [T::of(-camera.cy / camera.fy - margin_y), T::of((h - camera.cy) / camera.fy + margin_y)],
-            near_z: T::of(config.near_z_m as f64),
-            blur: T::of(config.cov2d_blur_px2 as f64),
+            lim_x: [T::from_f64(-camera.cx / camera.fx - margin_x), T::from_f64((w - camera.cx) / camera.fx + margin_x)],
+            lim_y: [T::from_f64(-camera.cy / camera.fy - margin_y), T::from_f64((h - camera.cy) / camera.fy + margin_y)],
+            near_z: T::from_f64(config.near_z_m as f64),
+            blur: T::from_f64(config.cov2d_blur_px2 as f64),
         })
     }
 }
@@ -123,15 +123,15 @@ pub(crate) struct ProjectionTape<T> {
 /// opacity below 1/255. Returns the splat and its reach `(k sqrt(Sxx), k sqrt(Syy))` in pixels.
 #[inline]
 #[allow(clippy::neg_cmp_op_on_partial_ord)] // written so that NaN fails every test
-pub fn project_splat<T: Float>(p: &GaussianParam<T>, s: &ProjectionSetup<T>) -> Option<(ProjectedSplat<T>, [T; 2])> {
+pub fn project_splat<T: Real>(p: &GaussianParam<T>, s: &ProjectionSetup<T>) -> Option<(ProjectedSplat<T>, [T; 2])> {
     let tape = projection_tape(p, s)?;
     let opacity = sigmoid(p.opacity_logit);
-    if !(opacity >= T::of(ALPHA_MIN)) {
+    if !(opacity >= T::from_f64(ALPHA_MIN)) {
         return None;
     }
     let [a, b, c] = tape.cov2d;
     let det = tape.det;
-    let q_max = (T::of(2.0) * (T::of(255.0) * opacity).ln()).max(T::ZERO);
+    let q_max = (T::from_f64(2.0) * (T::from_f64(255.0) * opacity).ln()).max(T::ZERO);
     let k = q_max.sqrt();
     let splat = ProjectedSplat {
         mean2d: [s.fx * tape.mean_c[0] / tape.mean_c[2] + s.cx, s.fy * tape.mean_c[1] / tape.mean_c[2] + s.cy],
@@ -150,7 +150,7 @@ pub fn project_splat<T: Float>(p: &GaussianParam<T>, s: &ProjectionSetup<T>) -> 
 /// `Sigma_2d` is not positive definite.
 #[inline(always)]
 #[allow(clippy::neg_cmp_op_on_partial_ord)] // written so that NaN fails every test
-pub(crate) fn projection_tape<T: Float>(p: &GaussianParam<T>, s: &ProjectionSetup<T>) -> Option<ProjectionTape<T>> {
+pub(crate) fn projection_tape<T: Real>(p: &GaussianParam<T>, s: &ProjectionSetup<T>) -> Option<ProjectionTape<T>> {
     let q = p.rotation;
     let q_norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
     if !(q_norm > T::ZERO) {

@@ -5,16 +5,16 @@
 
 use rayon::prelude::*;
 
-use super::math::{mat3_mul, mat3_mul_at, mat3_t_vec, quat_to_mat3_backward, sigmoid, Float, Mat3};
+use super::math::{mat3_mul, mat3_mul_at, mat3_t_vec, quat_to_mat3_backward, sigmoid, Real, Mat3};
 use super::project::{projection_tape, ProjectionSetup};
 use super::raster_bwd::SplatGrad;
 use crate::gaussians::{GaussianGrads, GaussianParam, Gaussians, SH_C0, SH_C1};
 
 /// Gradient with respect to the parameters of one Gaussian given the gradient of its splat;
 /// `None` when the Gaussian is culled by the projection (it has no gradient then).
-pub fn project_splat_backward<T: Float>(p: &GaussianParam<T>, s: &ProjectionSetup<T>, g: &SplatGrad<T>) -> Option<GaussianParam<T>> {
+pub fn project_splat_backward<T: Real>(p: &GaussianParam<T>, s: &ProjectionSetup<T>, g: &SplatGrad<T>) -> Option<GaussianParam<T>> {
     let tape = projection_tape(p, s)?;
-    let two = T::of(2.0);
+    let two = T::from_f64(2.0);
     let [ca, cb, cc] = tape.cov2d;
     let det2 = tape.det * tape.det;
     let [ga, gb, gc] = g.conic;
@@ -86,7 +86,7 @@ pub fn project_splat_backward<T: Float>(p: &GaussianParam<T>, s: &ProjectionSetu
     let mut g_mean = mat3_t_vec(r_cw, &g_mean_c);
 
     // SH colour, clamped at 0.
-    let (c0, c1) = (T::of(SH_C0), T::of(SH_C1));
+    let (c0, c1) = (T::from_f64(SH_C0), T::from_f64(SH_C1));
     let mut g_f_dc = [T::ZERO; 3];
     let mut g_f_rest = [T::ZERO; 9];
     let mut g_dir = [T::ZERO; 3];

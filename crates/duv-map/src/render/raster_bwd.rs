@@ -34,7 +34,7 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use super::math::Float;
+use super::math::Real;
 use super::project::ProjectedSplat;
 use super::raster_fwd::{depth_value, depth_value_dz, medium_at, splat_alpha, PixelMedium, PixelRay, RasterInputs};
 use super::{DepthMode, MediumPlanes, RenderOutput, RenderUpstream};
@@ -80,7 +80,7 @@ pub struct SplatGrad<T> {
     pub pixels: u32,
 }
 
-impl<T: Float> SplatGrad<T> {
+impl<T: Real> SplatGrad<T> {
     #[inline(always)]
     pub fn add(&mut self, o: &SplatGrad<T>) {
         for i in 0..2 {
@@ -102,7 +102,7 @@ impl<T: Float> SplatGrad<T> {
 /// the gradient with respect to the pixel's medium parameters.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub fn backprop_pixel<T: Float>(
+pub fn backprop_pixel<T: Real>(
     range: Range<usize>,
     splat_at: impl Fn(usize) -> ProjectedSplat<T>,
     ray: &PixelRay<T>,
@@ -116,8 +116,8 @@ pub fn backprop_pixel<T: Float>(
     let mut t = state.final_t;
     let mut behind = T::ZERO;
     let inv_w = if state.alpha > T::ZERO { T::ONE / state.alpha } else { T::ZERO };
-    let sigma_med = (medium.sigma_att[0] + medium.sigma_att[1] + medium.sigma_att[2]) / T::of(3.0);
-    let (two, max_exp) = (T::of(2.0), T::of(MAX_DENSIFY_EXPONENT));
+    let sigma_med = (medium.sigma_att[0] + medium.sigma_att[1] + medium.sigma_att[2]) / T::from_f64(3.0);
+    let (two, max_exp) = (T::from_f64(2.0), T::from_f64(MAX_DENSIFY_EXPONENT));
     for k in range.rev() {
         let s = splat_at(k);
         let Some(a) = splat_alpha(&s, ray.x, ray.y) else { continue };
@@ -148,7 +148,7 @@ pub fn backprop_pixel<T: Float>(
         behind += w * value;
         if !a.clamped {
             out.opacity = g_alpha * a.gauss;
-            let g_q = T::of(-0.5) * a.alpha * g_alpha;
+            let g_q = T::from_f64(-0.5) * a.alpha * g_alpha;
             out.conic = [g_q * a.dx * a.dx, g_q * two * a.dx * a.dy, g_q * a.dy * a.dy];
             out.mean2d = [-two * g_q * (s.conic[0] * a.dx + s.conic[1] * a.dy), -two * g_q * (s.conic[1] * a.dx + s.conic[2] * a.dy)];
             let scale = (sigma_med * range_m).min(max_exp).exp();

@@ -6,7 +6,7 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use super::math::Float;
+use super::math::Real;
 use super::project::ProjectedSplat;
 use super::{DepthMode, MediumPlanes, RenderOutput, TileGrid, ALPHA_MAX, ALPHA_MIN, T_MIN};
 
@@ -29,10 +29,10 @@ pub struct PixelRay<T> {
     pub ray_norm: T,
 }
 
-impl<T: Float> PixelRay<T> {
+impl<T: Real> PixelRay<T> {
     #[inline(always)]
     pub fn new(x: usize, y: usize, fx: T, fy: T, cx: T, cy: T) -> Self {
-        let (x, y) = (T::of(x as f64), T::of(y as f64));
+        let (x, y) = (T::from_f64(x as f64), T::from_f64(y as f64));
         let xn = (x - cx) / fx;
         let yn = (y - cy) / fy;
         PixelRay { x, y, ray_norm: (xn * xn + yn * yn + T::ONE).sqrt() }
@@ -74,26 +74,26 @@ pub(crate) struct AlphaEval<T> {
 /// beyond `q_max` is rejected before the exponential (the exact test decides near the edge, so
 /// the pre-test never changes the result).
 #[inline(always)]
-pub(crate) fn splat_alpha<T: Float>(s: &ProjectedSplat<T>, x: T, y: T) -> Option<AlphaEval<T>> {
+pub(crate) fn splat_alpha<T: Real>(s: &ProjectedSplat<T>, x: T, y: T) -> Option<AlphaEval<T>> {
     let dx = x - s.mean2d[0];
     let dy = y - s.mean2d[1];
-    let q = s.conic[0] * dx * dx + T::of(2.0) * s.conic[1] * dx * dy + s.conic[2] * dy * dy;
-    if q > s.q_max * T::of(1.0001) + T::of(1e-3) {
+    let q = s.conic[0] * dx * dx + T::from_f64(2.0) * s.conic[1] * dx * dy + s.conic[2] * dy * dy;
+    if q > s.q_max * T::from_f64(1.0001) + T::from_f64(1e-3) {
         return None;
     }
-    let gauss = (T::of(-0.5) * q).exp();
+    let gauss = (T::from_f64(-0.5) * q).exp();
     let raw = s.opacity * gauss;
-    if raw < T::of(ALPHA_MIN) {
+    if raw < T::from_f64(ALPHA_MIN) {
         return None;
     }
-    let max = T::of(ALPHA_MAX);
+    let max = T::from_f64(ALPHA_MAX);
     let clamped = raw > max;
     Some(AlphaEval { alpha: if clamped { max } else { raw }, gauss, dx, dy, clamped })
 }
 
 /// The per-Gaussian depth that is blended: `1/z` or `z`.
 #[inline(always)]
-pub fn depth_value<T: Float>(z: T, mode: DepthMode) -> T {
+pub fn depth_value<T: Real>(z: T, mode: DepthMode) -> T {
     match mode {
         DepthMode::InverseDepth => T::ONE / z,
         DepthMode::Depth => z,
@@ -102,7 +102,7 @@ pub fn depth_value<T: Float>(z: T, mode: DepthMode) -> T {
 
 /// `d depth_value / dz`.
 #[inline(always)]
-pub(crate) fn depth_value_dz<T: Float>(z: T, mode: DepthMode) -> T {
+pub(crate) fn depth_value_dz<T: Real>(z: T, mode: DepthMode) -> T {
     match mode {
         DepthMode::InverseDepth => -T::ONE / (z * z),
         DepthMode::Depth => T::ONE,
@@ -114,7 +114,7 @@ pub(crate) fn depth_value_dz<T: Float>(z: T, mode: DepthMode) -> T {
 /// below 1e-4, as in 3DGS. The depth mean and variance use West's weighted update (stable in
 /// f32).
 #[inline(always)]
-pub fn blend_pixel<T: Float>(
+pub fn blend_pixel<T: Real>(
     range: Range<usize>,
     splat_at: impl Fn(usize) -> ProjectedSplat<T>,
     ray: &PixelRay<T>,
@@ -126,7 +126,7 @@ pub fn blend_pixel<T: Float>(
     let mut restored = [T::ZERO; 3];
     let (mut w_sum, mut mean, mut m2) = (T::ZERO, T::ZERO, T::ZERO);
     let mut end = range.start;
-    let t_min = T::of(T_MIN);
+    let t_min = T::from_f64(T_MIN);
     for k in range {
         let s = splat_at(k);
         let Some(a) = splat_alpha(&s, ray.x, ray.y) else { continue };
