@@ -4,27 +4,21 @@
 //! uncertainty).
 
 use anyhow::Context;
-use duv_camera::dataset::{open_dataset, Dataset, DATASET_KINDS};
 use duv_core::config::board::Board;
-use duv_core::pose::se3_to_tum;
-use duv_core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
+use duv_core::{PlaneF32, StampedPose};
 use duv_eval::report::AuseInput;
 use duv_eval::{build_report, write_report, EvalInputs, EvalOptions};
-use duv_core::io::pfm::write_pfm;
-use duv_sim::{SimConfig, SimRenderer};
 use duv_camera::sim::{SimPace, SimSpec};
-use duv_camera::{open_source, CameraError, FrameSource};
 use duv_log::ReadLimits;
 use duv_map::GpuOptions;
 use duv_map::mapper::{MapperCapacity, MapperConfig};
 use duv_map::backend::MapperDevice;
 use duv_map::stage::{MappingBudget, MappingStage};
 use duv_pipeline::mapping::StageMapping;
+use duv_pipeline::source::{RunSource, Source, SourceOptions};
 use duv_pipeline::{resume, MapStage, NoMapping, PipelineConfig};
-use duv_log::replay::McapSource;
-use duv_track::{KeyframeView, Tracker, TrackerCapacity, TrackerConfig};
-use std::fmt::Write as _;
-use std::path::{Path, PathBuf};
+use duv_track::{Tracker, TrackerCapacity, TrackerConfig};
+use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
@@ -115,249 +109,6 @@ pub struct RunArgs {
     pub loop_for_s: Option<f64>,
 }
 
-/// Where frames come from, with what ground truth.
-enum Source {
-    Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
-    Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
-    Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>> },
-    /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
-    Live { source: Box<dyn FrameSource>, next: usize, count: usize },
-}
-
-/// A recorded log replayed over and over (soak tests): each lap continues the time stamps and
-/// sequence numbers of the last, one recorded frame period after its last frame.
-struct ReplayLoop {
-    path: PathBuf,
-    until: std::time::Instant,
-    laps: u64,
-    /// Added to the recorded time stamps and sequence numbers of this lap.
-    offset_ns: i64,
-    offset_seq: u64,
-    /// Recorded time stamps of the log's first two frames (the lap period's start and step).
-    first_t_ns: Option<i64>,
-    period_ns: i64,
-    last_t_ns: i64,
-    last_seq: u64,
-}
-
-impl Source {
-    /// `start`: the first frame index (resume continues after the recorded frames).
-    fn open(args: &RunArgs, board: &Board, start: usize) -> anyhow::Result<Source> {
-        if let Some(path) = args.source.strip_prefix("mcap:") {
-            let replay = McapSource::open(Path::new(path), ReadLimits::default()).with_context(|| format!("source {}", args.source))?.with_max_frames(args.frames);
-            let looping = match args.loop_for_s {
-                Some(s) => {
-                    anyhow::ensure!(s.is_finite() && s > 0.0, "--loop-for-s must be > 0, got {s}");
-                    Some(Box::new(ReplayLoop {
-                        path: PathBuf::from(path),
-                        until: std::time::Instant::now() + Duration::from_secs_f64(s),
-                        laps: 0,
-                        offset_ns: 0,
-                        offset_seq: 0,
-                        first_t_ns: None,
-                        period_ns: 0,
-                        last_t_ns: 0,
-                        last_seq: 0,
-                    }))
-                }
-                None => None,
-            };
-            return Ok(Source::Mcap { replay: Box::new(replay), count: args.frames.unwrap_or(usize::MAX), looping });
-        }
-        if let Some(preset) = args.source.strip_prefix("sim:") {
-            let spec = SimSpec::parse(&args.source, preset)?;
-            let mut cfg = SimConfig::preset(spec.water, spec.trajectory);
-            cfg.width = args.width.unwrap_or(board.camera.width as usize);
-            cfg.height = args.height.unwrap_or(board.camera.height as usize);
-            match (spec.frames, args.frames) {
-                (Some(a), Some(b)) if a != b => anyhow::bail!("{}: frames={a} and --frames {b} disagree", args.source),
-                (Some(n), _) | (None, Some(n)) => cfg.frames = n,
-                (None, None) => {}
-            }
-            cfg.seed = spec.seed.unwrap_or(args.seed);
-            let renderer = SimRenderer::new(&cfg).with_context(|| format!("source {}", args.source))?;
-            let count = renderer.len();
-            return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count });
-        }
-        anyhow::ensure!(args.width.is_none() && args.height.is_none(), "--width/--height apply to sim: sources only");
-        if !DATASET_KINDS.split(", ").any(|k| args.source.split(':').next() == Some(k)) {
-            let source = open_source(&args.source, board)?;
-            return Ok(Source::Live { source, next: 0, count: args.frames.unwrap_or(usize::MAX) });
-        }
-        let dataset = open_dataset(&args.source)?;
-        let count = args.frames.unwrap_or(usize::MAX).min(dataset.frames.len());
-        let undistort = dataset.camera.distortion.is_some().then(|| {
-            let map = dataset.camera.undistort_map();
-            let buf = ImageRgb8::new(dataset.camera.width, dataset.camera.height);
-            (map, buf)
-        });
-        Ok(Source::Dataset { dataset: Box::new(dataset), next: start, count, undistort })
-    }
-
-    /// Camera of the frames handed to the tracker (undistorted).
-    fn camera(&self) -> PinholeCamera {
-        match self {
-            Source::Sim { renderer, .. } => *renderer.camera(),
-            Source::Dataset { dataset, .. } => dataset.camera.undistorted(),
-            Source::Mcap { replay, .. } => *replay.camera(),
-            Source::Live { source, .. } => *source.camera(),
-        }
-    }
-
-    fn len(&self) -> usize {
-        match self {
-            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Mcap { count, .. } | Source::Live { count, .. } => *count,
-        }
-    }
-
-    /// The next frame; `Ok(None)` at the end. A dataset frame that cannot be decoded is
-    /// reported and skipped.
-    fn next(&mut self) -> anyhow::Result<Option<Frame>> {
-        match self {
-            Source::Sim { renderer, next, count } => {
-                if *next >= *count {
-                    return Ok(None);
-                }
-                let f = renderer.render(*next);
-                let frame = Frame { t_ns: f.t_ns, seq: *next as u64, image: FrameImage::Rgb8(f.rgb) };
-                *next += 1;
-                Ok(Some(frame))
-            }
-            Source::Dataset { dataset, next, count, undistort } => loop {
-                if *next >= *count {
-                    return Ok(None);
-                }
-                let i = *next;
-                *next += 1;
-                match dataset.load_frame(i) {
-                    Ok(mut frame) => {
-                        if let Some((map, buf)) = undistort {
-                            let rgb = frame.image.to_rgb8();
-                            map.apply_rgb8(&rgb, buf);
-                            frame.image = FrameImage::Rgb8(buf.clone());
-                        }
-                        return Ok(Some(frame));
-                    }
-                    Err(e) => tracing::warn!("skipping a frame: {e}"),
-                }
-            },
-            Source::Mcap { replay, looping: None, .. } => Ok(replay.next_frame()?),
-            Source::Mcap { replay, looping: Some(lp), .. } => loop {
-                if let Some(mut frame) = replay.next_frame()? {
-                    let recorded = frame.t_ns.t_ns();
-                    match lp.first_t_ns {
-                        None => lp.first_t_ns = Some(recorded),
-                        Some(first) if lp.period_ns == 0 && lp.laps == 0 => lp.period_ns = (recorded - first).max(1),
-                        Some(_) => {}
-                    }
-                    frame.t_ns = frame.t_ns.offset_ns(lp.offset_ns);
-                    frame.seq += lp.offset_seq;
-                    lp.last_t_ns = frame.t_ns.t_ns();
-                    lp.last_seq = frame.seq;
-                    return Ok(Some(frame));
-                }
-                if std::time::Instant::now() >= lp.until || lp.first_t_ns.is_none() {
-                    return Ok(None);
-                }
-                // Start the next lap one frame period after this one's last frame.
-                lp.laps += 1;
-                lp.offset_ns = lp.last_t_ns + lp.period_ns - lp.first_t_ns.unwrap_or(0);
-                lp.offset_seq = lp.last_seq + 1;
-                let again = McapSource::open(&lp.path, ReadLimits::default()).with_context(|| format!("reopening {} for lap {}", lp.path.display(), lp.laps + 1))?;
-                **replay = again;
-            },
-            Source::Live { source, next, count } => {
-                if *next >= *count {
-                    return Ok(None);
-                }
-                *next += 1;
-                Ok(source.next_frame()?)
-            }
-        }
-    }
-
-    fn ground_truth(&self) -> Option<Vec<StampedPose>> {
-        match self {
-            Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),
-            Source::Dataset { dataset, .. } => dataset.ground_truth.clone(),
-            Source::Mcap { .. } => None,
-            Source::Live { source, .. } => source.ground_truth().map(<[_]>::to_vec),
-        }
-    }
-
-    /// Ground-truth depth (metres, 0 = none) of frame `seq`, where the source has it.
-    fn depth(&self, seq: u64) -> Option<PlaneF32> {
-        match self {
-            Source::Sim { renderer, .. } => Some(renderer.render(seq as usize).depth_m),
-            Source::Dataset { dataset, .. } => dataset.load_depth_for_frame(seq as usize).ok().flatten(),
-            Source::Mcap { .. } | Source::Live { .. } => None,
-        }
-    }
-
-    fn describe(&self) -> String {
-        match self {
-            Source::Sim { renderer, count, .. } => {
-                let c = renderer.config();
-                format!("sim {:?} water, {:?} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
-            }
-            Source::Dataset { dataset, .. } => dataset.describe(),
-            Source::Mcap { replay, .. } => replay.describe(),
-            Source::Live { source, .. } => source.describe(),
-        }
-    }
-}
-
-/// A [`Source`] as the pipeline's [`FrameSource`].
-struct RunSource {
-    inner: Source,
-    camera: PinholeCamera,
-    spec: String,
-}
-
-impl FrameSource for RunSource {
-    fn camera(&self) -> &PinholeCamera {
-        &self.camera
-    }
-    fn next_frame(&mut self) -> Result<Option<Frame>, CameraError> {
-        self.inner.next().map_err(|e| CameraError::BadSpec { spec: self.spec.clone(), problem: format!("{e:#}") })
-    }
-    /// Live cameras decode into the pipeline's pooled frame (no allocation per frame).
-    fn next_frame_into(&mut self, frame: &mut Frame) -> Result<bool, CameraError> {
-        match &mut self.inner {
-            Source::Live { source, next, count } => {
-                if *next >= *count {
-                    return Ok(false);
-                }
-                *next += 1;
-                source.next_frame_into(frame)
-            }
-            _ => match self.next_frame()? {
-                Some(f) => {
-                    *frame = f;
-                    Ok(true)
-                }
-                None => Ok(false),
-            },
-        }
-    }
-    fn describe(&self) -> String {
-        self.inner.describe()
-    }
-}
-
-/// Writes a keyframe's upsampled inverse depth and variance as PFM.
-fn write_keyframe_maps(tracker: &Tracker, id: u64, dir: &Path, inv: &mut PlaneF32, var: &mut PlaneF32) -> anyhow::Result<()> {
-    tracker.upsample_keyframe(id, inv, var)?;
-    write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
-    write_pfm(&dir.join(format!("{id:06}_variance.pfm")), var)?;
-    Ok(())
-}
-
-fn tum_line(t_ns: duv_core::Timestamp, pose: &duv_core::Se3) -> String {
-    let v = se3_to_tum(pose);
-    format!("{:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}", t_ns.as_secs_f64(), v[0], v[1], v[2], v[3], v[4], v[5], v[6])
-}
-
 fn percentile_ms(sorted: &[Duration], p: f64) -> f64 {
     if sorted.is_empty() {
         return 0.0;
@@ -390,7 +141,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         Some(r) if r.poses_recorded > 0 && !args.source.starts_with("mcap:") => r.last_seq as usize + 1,
         _ => 0,
     };
-    let source = Source::open(&args, &board, start)?;
+    let source_options = SourceOptions { frames: args.frames, width: args.width, height: args.height, seed: args.seed, loop_for_s: args.loop_for_s };
+    let source = Source::open(&args.source, &source_options, &board, start)?;
     let camera = source.camera();
     let plan = duv_pipeline::budget::plan(&board, camera.width, camera.height)?;
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
@@ -554,37 +306,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         result.log.bytes as f64 / 1e6 / wall_s
     );
 
-    // Final trajectory and keyframes.
-    let mut fin = recorder.finish(&tracker);
-    if let Some(a) = &pcfg.world_from_tracker {
-        // Resumed: express everything in the recorded map frame.
-        for f in &mut fin.frames {
-            f.world_from_cam = duv_core::pose::sim3_apply_to_pose(a, &f.world_from_cam);
-        }
-        for k in &mut fin.keyframes {
-            k.world_from_cam = duv_core::pose::sim3_apply_to_pose(a, &k.world_from_cam);
-        }
-    }
-    duv_core::io::tum::write_trajectory(&args.out.join("trajectory.txt"), &fin.frames)?;
-    let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
-    for k in &fin.keyframes {
-        // With mapping on, the keyframe folder lists the keyframes mapping received (their
-        // images are written as they arrive), so `duv refine --keyframes` can read it.
-        if !args.no_map && !kf_dir.join(format!("{:06}.png", k.id)).exists() {
-            continue;
-        }
-        let _ = writeln!(kf_text, "{} {}", k.id, tum_line(k.t_ns, &k.world_from_cam));
-    }
-    duv_core::io::write_atomic(&args.out.join("keyframes.txt"), kf_text.as_bytes())?;
-    let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
-    for &(id, _) in &live {
-        write_keyframe_maps(&tracker, id, &kf_dir, &mut inv, &mut var)?;
-    }
-    let mut states_text = String::from("# seq timestamp state tracker_ms\n");
-    for ((f, s), dt) in recorder.frames().iter().zip(&fin.states).zip(&latencies) {
-        let _ = writeln!(states_text, "{} {:.9} {} {:.3}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"), dt.as_secs_f64() * 1e3);
-    }
-    duv_core::io::write_atomic(&args.out.join("states.txt"), states_text.as_bytes())?;
+    // Final trajectory, keyframes, their depth maps and states: one writer, in the recorded
+    // frame of a resumed dive.
+    let fin = duv_pipeline::outputs::finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
+    let live = duv_pipeline::outputs::write_tracking_outputs(&args.out, &fin, recorder.frames(), &latencies, &tracker, !args.no_map, &mut inv, &mut var)?;
     // The map: final keyframe poses, a last optimisation, the exports.
     let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
     // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs

@@ -17,9 +17,11 @@ pub mod budget;
 pub mod checkpoints;
 mod handoff;
 pub mod mapping;
+pub mod outputs;
 pub mod pool;
 pub mod queue;
 pub mod resume;
+pub mod source;
 
 use duv_camera::FrameSource;
 use duv_core::config::board::{Board, FrameLogEncoding};
