@@ -43,7 +43,7 @@ pub struct ReplayArgs {
 }
 
 pub fn run(args: ReplayArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(args.speed.is_finite() && args.speed > 0.0, "--speed must be > 0, got {}", args.speed);
+    anyhow::ensure!(args.speed.is_finite() && args.speed >= 1e-3, "--speed must be a finite factor >= 0.001, got {}", args.speed);
     let mut run = super::run::RunArgs::with_defaults(format!("mcap:{}", args.path.display()), args.out, args.no_progress);
     run.board = args.board;
     run.frames = args.frames;

@@ -117,7 +117,14 @@ fn percentile_ms(sorted: &[Duration], p: f64) -> f64 {
     sorted[i].as_secs_f64() * 1e3
 }
 
+/// The slowest playback `--speed` takes (a recorded second then lasts about 17 minutes).
+const MIN_SPEED: f64 = 1e-3;
+
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
+    // Numeric options are checked before anything is opened or written.
+    if let Some(s) = args.speed {
+        anyhow::ensure!(s.is_finite() && s >= MIN_SPEED, "--speed must be a finite factor >= {MIN_SPEED}, got {s}");
+    }
     let board = Board::load(&args.board)?;
     let capacity = TrackerCapacity::from_board(&board);
     let mut cfg = match &args.config {

@@ -398,3 +398,36 @@ fn the_consistency_term_ranks_turbid_depth_errors_better_and_leaves_tracking_alo
     assert!(n >= 10, "{n} keyframes with a variance");
     assert!(a_on < CONSISTENCY_AUSE && a_on < 0.8 * a_off && a_on < 0.5 * random, "AUSE {a_on:.4} with the term, {a_off:.4} without, random {random:.4}");
 }
+
+/// Flow and BA settings the tracker cannot run with are refused by `Tracker::new`, by name,
+/// instead of leaving it initialising for ever; a partial `[ba]` table takes the defaults for
+/// the rest.
+#[test]
+fn bad_flow_and_ba_settings_are_refused_at_start_by_name() {
+    let cfg = sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 4, 160, 120, 0.5);
+    let camera = *SimRenderer::new(&cfg).unwrap().camera();
+    let good = small_tracker_config();
+    assert!(Tracker::new(&camera, &good, capacity(1)).is_ok());
+    let mut cases: Vec<(duv_track::TrackerConfig, &str)> = Vec::new();
+    let mut c = good.clone();
+    c.ba.fixed_poses = 0;
+    cases.push((c, "fixed_poses"));
+    let mut c = good.clone();
+    c.ba.huber_threshold = -1.0;
+    cases.push((c, "huber_threshold"));
+    let mut c = good.clone();
+    c.ba.min_inv_depth = f64::NAN;
+    cases.push((c, "min_inv_depth"));
+    let mut c = good.clone();
+    c.flow.patch_size = 2;
+    cases.push((c, "patch_size"));
+    for (cfg, field) in cases {
+        let e = Tracker::new(&camera, &cfg, capacity(1)).err().unwrap_or_else(|| panic!("{field}: accepted"));
+        assert!(matches!(e, TrackError::Ba(_) | TrackError::Flow(_)), "{field}: {e}");
+        assert!(e.to_string().contains(field), "{field}: {e}");
+    }
+    // A partial [ba] table: the named key set, the others the defaults.
+    let parsed: duv_track::TrackerConfig = toml::from_str("[ba]\nfixed_poses = 2\n").unwrap();
+    assert_eq!(parsed.ba.fixed_poses, 2);
+    assert_eq!(parsed.ba.huber_threshold, duv_track::TrackerConfig::default().ba.huber_threshold);
+}

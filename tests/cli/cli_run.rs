@@ -270,3 +270,18 @@ fn sim_spec_options_set_the_frames_and_the_seed() {
         assert!(stderr.contains(needle) && !stderr.contains("panicked"), "{source}: {stderr}");
     }
 }
+
+/// `--speed 0` (or not finite) is refused before anything starts, naming the option; it used to
+/// panic the capture thread and hang the process.
+#[test]
+fn a_speed_that_is_not_positive_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    for speed in ["0", "-1", "1e-320", "NaN", "inf"] {
+        let t0 = std::time::Instant::now();
+        let res = duv().args(["run", "--source", "sim:coastal", "--frames", "4", "--no-progress", "--no-map"]).arg(format!("--speed={speed}")).arg("--out").arg(dir.path().join(speed)).output().unwrap();
+        let stderr = String::from_utf8_lossy(&res.stderr);
+        assert!(!res.status.success(), "--speed {speed}: {stderr}");
+        assert!(stderr.contains("--speed") && !stderr.contains("panicked"), "--speed {speed}: {stderr}");
+        assert!(t0.elapsed() < std::time::Duration::from_secs(30), "--speed {speed} took {:?}", t0.elapsed());
+    }
+}

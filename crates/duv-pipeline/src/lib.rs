@@ -45,6 +45,9 @@ pub use checkpoints::CheckpointStore;
 pub enum PipelineError {
     #[error("board {board:?} refused: {problem}")]
     Budget { board: String, problem: String },
+    /// A pipeline setting out of range, named (`pace_speed`: `--speed`).
+    #[error("{setting} = {value}: {problem}")]
+    BadSetting { setting: &'static str, value: f64, problem: &'static str },
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
     #[error("{path}: corrupt checkpoint: {problem}")]
@@ -414,6 +417,11 @@ pub fn run<S: FrameSource + 'static>(
     retrack: Vec<Frame>,
     stop: Arc<AtomicBool>,
 ) -> Result<PipelineResult<S>, PipelineError> {
+    if let Some(speed) = cfg.pace_speed {
+        if !(speed.is_finite() && speed >= 1e-3) {
+            return Err(PipelineError::BadSetting { setting: "pace_speed (--speed)", value: speed, problem: "must be a finite factor >= 0.001" });
+        }
+    }
     let retrack: Vec<Arc<Frame>> = retrack.into_iter().map(Arc::new).collect();
     let started = Instant::now();
     let mut writer = SegmentWriter::create(cfg.log.clone())?;

@@ -337,7 +337,8 @@ impl TrackerConfig {
         })
     }
 
-    /// Checks the fields the tracker relies on (flow and BA are checked by their owners).
+    /// Checks the fields the tracker relies on (flow and BA are checked by their owners,
+    /// [`FlowConfig::validate`] and [`BaConfig::validate`]; `Tracker::new` runs all three).
     pub fn validate(&self) -> Result<(), ConfigError> {
         let bad = |field, problem| Err(ConfigError { field, problem });
         if self.depth_factor.is_some_and(|f| !(1..=32).contains(&f)) {

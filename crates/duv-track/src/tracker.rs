@@ -336,6 +336,10 @@ impl Tracker {
     /// Builds a tracker for undistorted `camera` images, sizing every buffer from `capacity`.
     pub fn new(camera: &PinholeCamera, config: &TrackerConfig, capacity: TrackerCapacity) -> Result<Self, TrackError> {
         config.validate()?;
+        // Flow and BA settings are refused here, at start, by name: inside a solve a bad value
+        // would only stop the tracker from initialising.
+        config.flow.validate()?;
+        config.ba.validate()?;
         camera.validate()?;
         if camera.distortion.is_some() {
             return Err(TrackError::DistortedCamera);

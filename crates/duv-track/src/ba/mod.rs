@@ -165,7 +165,7 @@ pub struct BaCapacity {
 /// Parameters of the window solve; also used by [`solve_motion_only`]. Defaults live in
 /// [`BaConfig::default`] and nowhere else.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(default, deny_unknown_fields)]
 pub struct BaConfig {
     /// Gauss-Newton / LM iterations (solve attempts, accepted or not) per `solve` call.
     pub max_iterations: usize,

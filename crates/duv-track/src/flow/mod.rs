@@ -1057,6 +1057,13 @@ fn finish(cfg: &FlowConfig, forward_backward: bool, finest: usize, start: usize,
     );
 }
 
+impl FlowConfig {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), FlowError> {
+        validate(self)
+    }
+}
+
 fn validate(cfg: &FlowConfig) -> Result<(), FlowError> {
     let bad = |field, problem| Err(FlowError::Config { field, problem });
     if !(4..=32).contains(&cfg.patch_size) {
