@@ -125,6 +125,8 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if let Some(s) = args.speed {
         anyhow::ensure!(s.is_finite() && s >= MIN_SPEED, "--speed must be a finite factor >= {MIN_SPEED}, got {s}");
     }
+    // One writer per run folder, before anything in it is read or recovered.
+    let _lock = duv_pipeline::lock::RunFolderLock::acquire(&args.out)?;
     let board = Board::load(&args.board)?;
     let capacity = TrackerCapacity::from_board(&board);
     let mut cfg = match &args.config {

@@ -285,3 +285,37 @@ fn a_speed_that_is_not_positive_is_refused() {
         assert!(t0.elapsed() < std::time::Duration::from_secs(30), "--speed {speed} took {:?}", t0.elapsed());
     }
 }
+
+/// Two processes on one run folder: the second is refused, naming the first's process id,
+/// and the first goes on; once it has ended the folder is free again.
+#[test]
+fn a_second_writer_on_a_run_folder_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("dive");
+    let mut first = duv()
+        .args(["run", "--source", "sim:coastal,frames=600,pace=realtime", "--width", "160", "--height", "120", "--no-progress", "--no-map"])
+        .arg("--out")
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let pid = first.id().to_string();
+    let t0 = std::time::Instant::now();
+    while std::fs::read_to_string(out.join("duv.lock")).map(|t| t.trim() != pid).unwrap_or(true) {
+        assert!(t0.elapsed() < std::time::Duration::from_secs(60), "the first run never locked {}", out.display());
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let second = duv().args(["run", "--source", "sim:coastal", "--frames", "4", "--no-progress", "--no-map"]).arg("--out").arg(&out).output().unwrap();
+    let stderr = String::from_utf8_lossy(&second.stderr);
+    let still_running = first.try_wait().unwrap().is_none();
+    let _ = first.kill();
+    let _ = first.wait();
+    assert!(!second.status.success(), "{stderr}");
+    assert!(stderr.contains("in use by process") && stderr.contains(&pid), "{stderr}");
+    assert!(still_running, "the first run must not be disturbed");
+    // The holder is gone (killed): the lock went with it, and a run on the folder starts.
+    let third = duv().args(["run", "--source", "sim:coastal", "--frames", "4", "--no-progress", "--no-map"]).arg("--out").arg(&out).output().unwrap();
+    let stderr = String::from_utf8_lossy(&third.stderr);
+    assert!(!stderr.contains("in use by process"), "{stderr}");
+}

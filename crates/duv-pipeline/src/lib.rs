@@ -16,6 +16,7 @@
 pub mod budget;
 pub mod checkpoints;
 mod handoff;
+pub mod lock;
 pub mod mapping;
 pub mod outputs;
 pub mod pool;
