@@ -38,7 +38,7 @@ pub struct RefineArgs {
     keyframes: Option<PathBuf>,
     /// Instead of a keyframe folder: a run's MCAP log (`RUN/log`, `RUN`, or one segment
     /// `.mcap`). Every keyframe logged with its image, pose, inverse depth and variance is
-    /// refined; a damaged log is read up to the damage. The poses are those logged as each
+    /// refined; a damaged log is read with its damaged ranges skipped. The poses are those logged as each
     /// keyframe left the BA window (a later loop closure is in `RUN/keyframes.txt`, which
     /// --keyframes reads).
     #[arg(long, value_name = "LOG", conflicts_with_all = ["sim", "keyframes"])]
@@ -205,7 +205,7 @@ struct PoseRefinementSummary {
 fn read_log(path: &std::path::Path) -> anyhow::Result<(Vec<Keyframe>, Option<LoggedMap>)> {
     let got = read_log_keyframes(path, ReadLimits::default())?;
     for d in &got.damage {
-        eprintln!("log damaged, read up to the damage: {d}");
+        eprintln!("log damaged, damaged ranges skipped: {d}");
     }
     for (index, why) in &got.skipped {
         eprintln!("keyframe {index} left out: {why}");

@@ -213,7 +213,18 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let mut retrack = Vec::new();
     if let Some(r) = &mut resume_state {
         for rep in &r.recovered {
-            eprintln!("recovered {}: {} messages kept, {} of {} bytes ({})", rep.segment.display(), rep.messages_kept, rep.bytes_after, rep.bytes_before, rep.damage);
+            match &rep.left_in_place {
+                None => eprintln!(
+                    "recovered {}: {} messages kept in intact chunks, {} damaged range(s) skipped, {} of {} bytes ({})",
+                    rep.segment.display(),
+                    rep.messages_kept,
+                    rep.skipped_ranges,
+                    rep.bytes_after,
+                    rep.bytes_before,
+                    rep.damage
+                ),
+                Some(why) => eprintln!("NOT RECOVERED {}: {why}; left as it is, {} messages readable ({})", rep.segment.display(), rep.messages_kept, rep.damage),
+            }
         }
         if let Some((path, bytes)) = &r.checkpoint {
             map.restore(bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;

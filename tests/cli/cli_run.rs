@@ -134,7 +134,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
 }
 
 #[test]
-fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
+fn refine_reads_the_keyframes_of_a_run_log_around_the_damage() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
     // 64 frames at 160x120 with a 1/4 depth grid: enough keyframes with confident depth to
@@ -191,7 +191,7 @@ fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
 
     // Truncated inside the keyframes (they leave tracking after the BA window, so in a short
     // run they are all near the end; the library finds a cut that keeps some of them): read
-    // up to the damage, said so, fewer keyframes refined.
+    // around the damage, said so, fewer keyframes refined.
     let bytes = std::fs::read(&seg).unwrap();
     let cut = dir.path().join("cut");
     std::fs::create_dir_all(&cut).unwrap();
@@ -204,7 +204,7 @@ fn refine_reads_the_keyframes_of_a_run_log_up_to_the_damage() {
     let kept = kept.expect("a cut that keeps some but not all keyframes");
     let (ok, stdout, stderr) = refine(&cut, "cut-out");
     assert!(ok, "stdout:\n{stdout}\nstderr:\n{stderr}");
-    assert!(stderr.contains("log damaged, read up to the damage") && stderr.contains("segment-000000.mcap"), "{stderr}");
+    assert!(stderr.contains("log damaged, damaged ranges skipped") && stderr.contains("segment-000000.mcap"), "{stderr}");
     assert!(stderr.contains(&format!("{kept} keyframe(s) from 1 segment(s)")), "{stderr}");
     assert_eq!(metrics("cut-out")["keyframes"].as_array().unwrap().len(), kept);
 

@@ -77,7 +77,7 @@ impl LogSummary {
             let state = match (&g.recovered, g.complete, &g.damage) {
                 (Some(r), _, _) => format!("recovered ({} of {} bytes kept; {})", g.bytes, r.get("original_bytes").map(String::as_str).unwrap_or("?"), r.get("damage").map(String::as_str).unwrap_or("")),
                 (None, true, None) => "complete".to_string(),
-                (None, _, Some(d)) => format!("UNFINISHED, readable up to the damage: {d}"),
+                (None, _, Some(d)) => format!("UNFINISHED or DAMAGED, read with damaged ranges skipped: {d}"),
                 (None, false, None) => "UNFINISHED".to_string(),
             };
             let _ = writeln!(s, "{}: {} messages, {state}", g.path.display(), g.messages);

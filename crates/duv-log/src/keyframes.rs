@@ -6,7 +6,7 @@
 //! made later (loop closure, the global BA) are in the run's `keyframes.txt`, not in the log.
 //! The newest logged map checkpoint comes along ([`LogKeyframes::newest_map`]): with these
 //! keyframes it restores the onboard map (`duv refine --from-logged-map`).
-//! A damaged segment is read up to the damage, and a keyframe whose messages were cut apart by
+//! A damaged segment is read with its damaged ranges skipped, and a keyframe whose messages were cut apart by
 //! it is left out and counted.
 
 use super::reader::{OwnedEvent, ReadLimits, SegmentReader};
@@ -31,7 +31,7 @@ pub struct LogKeyframes {
     /// Keyframes whose index an earlier one already had (a resumed run's new tracker numbers
     /// from 0 again): given the next free index, (logged index, new index).
     pub renumbered: Vec<(u64, u64)>,
-    /// The newest `/map/checkpoint` read (up to the damage), for `duv refine --from-logged-map`.
+    /// The newest `/map/checkpoint` read (damaged ranges skipped), for `duv refine --from-logged-map`.
     pub newest_map: Option<LoggedMap>,
 }
 

@@ -11,8 +11,9 @@
 //!   [`writer`]: segment files, a chunk closed and fsynced at least every
 //!   [`LogConfig::chunk_interval`], rotation by size and age, disk errors that stop logging
 //!   cleanly instead of failing the run.
-//! - [`reader`]: a streaming reader with a record-size limit that reads a damaged file up to
-//!   the damage; [`recover`] re-indexes an unfinished segment into a valid file;
+//! - [`reader`]: a streaming reader with a record-size limit that salvages a damaged file
+//!   (damaged ranges skipped, every chunk whose CRC holds read); [`recover`] re-writes an
+//!   unfinished segment's intact chunks into a valid file;
 //!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
 //!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
 //!   logged for a resume (`/slam/window`).

@@ -1,15 +1,21 @@
-//! A streaming MCAP reader for our own logs, safe on damaged files: records larger than
+//! A streaming MCAP reader for our own logs that salvages damaged files: records larger than
 //! [`ReadLimits::max_record_bytes`] are refused before they are buffered, chunks are checked
-//! against their CRC before any of their messages is handed out, and reading stops at the
-//! first damage with everything before it delivered.
+//! against their CRC before any of their messages is handed out, and a damaged record does not
+//! end the read: the reader skips it and resynchronises on the next valid record (a chunk whose
+//! CRC holds, or a chain of records that parse and lead to one), so every intact chunk after
+//! the damage is still delivered. Where the file's summary survived (a finished file with a
+//! flipped byte), its channels are known from the start and its chunk index bounds each
+//! resynchronisation. Each skipped byte range is reported with why ([`ReadOutcome::skipped`]).
+//!
+//! Hand-written on top of the `mcap` crate's record parser because the crate's readers stop
+//! at the first error (its linear reader) or need an intact summary (its indexed reader); a
+//! black box must get back every chunk that survived.
 
 use super::LogError;
 use mcap::records::Record;
-use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
-use std::collections::{BTreeMap, HashMap};
-use std::io::Read;
+use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
-
 /// Memory bounds of the reader.
 #[derive(Clone, Copy, Debug)]
 pub struct ReadLimits {
@@ -60,6 +66,14 @@ pub enum ReadEvent<'a> {
     Metadata { name: &'a str, metadata: &'a BTreeMap<String, String> },
 }
 
+/// A byte range the reader could not use, and why.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SkippedRange {
+    pub from_byte: u64,
+    pub to_byte: u64,
+    pub why: String,
+}
+
 /// How far a segment could be read.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ReadOutcome {
@@ -68,9 +82,15 @@ pub struct ReadOutcome {
     pub messages: u64,
     /// The footer and closing magic were read: the file was finished properly.
     pub complete: bool,
-    /// Why reading stopped early (truncation, bad CRC, oversized record); `None` when the
+    /// What was not readable, in words (damaged ranges skipped, no footer); `None` when the
     /// whole file was read.
     pub damage: Option<String>,
+    /// The damaged byte ranges skipped, in file order.
+    pub skipped: Vec<SkippedRange>,
+    /// Messages in intact chunks whose channel record was lost to the damage (not delivered).
+    pub orphaned_messages: u64,
+    /// Chunks whose CRC held and whose messages were delivered.
+    pub chunks: u64,
     pub metadata: Vec<(String, BTreeMap<String, String>)>,
 }
 
@@ -83,34 +103,65 @@ pub enum OwnedEvent {
     Metadata { name: String, metadata: BTreeMap<String, String> },
 }
 
+/// MCAP opcodes the reader looks at (specification, "Records").
+mod op {
+    pub const HEADER: u8 = 0x01;
+    pub const FOOTER: u8 = 0x02;
+    pub const SCHEMA: u8 = 0x03;
+    pub const CHANNEL: u8 = 0x04;
+    pub const MESSAGE: u8 = 0x05;
+    pub const CHUNK: u8 = 0x06;
+    pub const MESSAGE_INDEX: u8 = 0x07;
+    pub const CHUNK_INDEX: u8 = 0x08;
+    pub const METADATA: u8 = 0x0C;
+    pub const DATA_END: u8 = 0x0F;
+}
+
+const MAGIC: [u8; 8] = *b"\x89MCAP0\r\n";
+/// Opcode and length.
+const RECORD_HEAD: u64 = 9;
+/// Bytes the resynchronisation scan reads at a time.
+const SCAN_BLOCK: usize = 1 << 20;
+/// Records a chain of small records may hold before it must reach a chunk whose CRC holds.
+const CHAIN_RECORDS: usize = 32;
+
 /// Pull reader of one segment: [`SegmentReader::next_event`] until `None`, then
-/// [`SegmentReader::outcome`] says whether the file ended cleanly or where it was damaged.
+/// [`SegmentReader::outcome`] says whether the file ended cleanly and what was skipped.
 pub struct SegmentReader {
     file: std::fs::File,
-    reader: LinearReader,
     limits: ReadLimits,
     channels: HashMap<u16, ChannelInfo>,
+    schemas_seen: HashSet<u16>,
     outcome: ReadOutcome,
-    consumed: u64,
+    /// Where the next record starts.
+    pos: u64,
+    /// Events of the last chunk (or the summary's channels) not yet handed out.
+    pending: VecDeque<OwnedEvent>,
+    /// Chunk offsets from the summary's chunk index, ascending (empty without a summary).
+    chunk_offsets: Vec<u64>,
+    body: Vec<u8>,
+    started: bool,
     done: bool,
 }
+
+/// Why a record cannot be used.
+type Bad = String;
 
 impl SegmentReader {
     pub fn open(path: &Path, limits: ReadLimits) -> Result<Self, LogError> {
         let file = std::fs::File::open(path).map_err(|source| LogError::Io { path: path.to_path_buf(), source })?;
-        let file_bytes = file.metadata().map(|m| m.len()).unwrap_or(0);
-        let options = LinearReaderOptions::default()
-            .with_emit_chunks(false)
-            .with_validate_chunk_crcs(true)
-            .with_prevalidate_chunk_crcs(true)
-            .with_record_length_limit(limits.max_record_bytes);
+        let file_bytes = file.metadata().map(|m| m.len()).map_err(|source| LogError::Io { path: path.to_path_buf(), source })?;
         Ok(SegmentReader {
             file,
-            reader: LinearReader::new_with_options(options),
             limits,
             channels: HashMap::new(),
+            schemas_seen: HashSet::new(),
             outcome: ReadOutcome { path: path.to_path_buf(), file_bytes, ..Default::default() },
-            consumed: 0,
+            pos: 0,
+            pending: VecDeque::new(),
+            chunk_offsets: Vec::new(),
+            body: Vec::new(),
+            started: false,
             done: false,
         })
     }
@@ -124,83 +175,386 @@ impl SegmentReader {
         &self.outcome
     }
 
-    fn damaged(&mut self, problem: String) -> Option<OwnedEvent> {
-        self.outcome.damage = Some(format!("after byte {}: {problem}", self.consumed));
-        self.done = true;
-        None
+    fn read_exact_at(&self, buf: &mut [u8], at: u64) -> Result<(), Bad> {
+        self.file.read_exact_at(buf, at).map_err(|e| format!("read error at byte {at}: {e}"))
     }
 
-    /// The next schema, channel, message or metadata record; `None` at the end or the damage.
-    pub fn next_event(&mut self) -> Option<OwnedEvent> {
-        while !self.done {
-            let event = match self.reader.next_event() {
-                None => {
-                    self.done = true;
-                    return None;
-                }
-                Some(Ok(e)) => e,
-                Some(Err(e)) => return self.damaged(e.to_string()),
-            };
-            match event {
-                LinearReadEvent::ReadRequest(n) => {
-                    if n > self.limits.max_record_bytes.saturating_add(64) {
-                        let limit = self.limits.max_record_bytes;
-                        return self.damaged(format!("a record of {n} bytes exceeds the limit of {limit} bytes"));
-                    }
-                    let buf = self.reader.insert(n);
-                    match self.file.read(buf) {
-                        Ok(k) => {
-                            self.consumed += k as u64;
-                            self.reader.notify_read(k);
-                        }
-                        Err(e) => return self.damaged(format!("read error: {e}")),
-                    }
-                }
-                LinearReadEvent::Record { data, opcode } => {
-                    let record = match mcap::parse_record(opcode, data) {
-                        Ok(r) => r,
-                        Err(e) => return self.damaged(format!("bad record (opcode {opcode:#x}): {e}")),
-                    };
-                    match record {
-                        Record::Schema { header, data } => {
-                            return Some(OwnedEvent::Schema(SchemaInfo { id: header.id, name: header.name, encoding: header.encoding, data: data.into_owned() }));
-                        }
-                        Record::Channel(c) => {
-                            let c = ChannelInfo { id: c.id, schema_id: c.schema_id, topic: c.topic, message_encoding: c.message_encoding, metadata: c.metadata };
-                            self.channels.insert(c.id, c.clone());
-                            return Some(OwnedEvent::Channel(c));
-                        }
-                        Record::Message { header, data } => {
-                            if !self.channels.contains_key(&header.channel_id) {
-                                let id = header.channel_id;
-                                return self.damaged(format!("message on unknown channel {id}"));
-                            }
-                            self.outcome.messages += 1;
-                            return Some(OwnedEvent::Message {
-                                channel_id: header.channel_id,
-                                sequence: header.sequence,
-                                log_time_ns: header.log_time,
-                                publish_time_ns: header.publish_time,
-                                data: data.into_owned(),
-                            });
-                        }
-                        Record::Metadata(m) => {
-                            self.outcome.metadata.push((m.name.clone(), m.metadata.clone()));
-                            return Some(OwnedEvent::Metadata { name: m.name, metadata: m.metadata });
-                        }
-                        Record::Footer(_) => self.outcome.complete = true,
-                        _ => {}
-                    }
-                }
+    /// Opcode and body length of the record at `at`, if its head is plausible: a known opcode
+    /// and a body that fits the file and the limit.
+    fn head_at(&self, at: u64) -> Result<(u8, u64), Bad> {
+        let file_bytes = self.outcome.file_bytes;
+        if at + RECORD_HEAD > file_bytes {
+            return Err(format!("the file ends at byte {file_bytes} inside a record head"));
+        }
+        let mut h = [0u8; RECORD_HEAD as usize];
+        self.read_exact_at(&mut h, at)?;
+        let len = u64::from_le_bytes(h[1..9].try_into().expect("8 bytes"));
+        check_head(h[0], len, at, file_bytes, self.limits.max_record_bytes)?;
+        Ok((h[0], len))
+    }
+
+    /// Reads the body of the record at `at` into `self.body`.
+    fn load_body(&mut self, at: u64, len: u64) -> Result<(), Bad> {
+        let mut body = std::mem::take(&mut self.body);
+        body.clear();
+        body.resize(len as usize, 0);
+        let r = self.read_exact_at(&mut body, at + RECORD_HEAD);
+        self.body = body;
+        r
+    }
+
+    /// Reads the summary of a finished file (footer, summary CRC): its schemas and channels
+    /// become known before any damage, its chunk index bounds the resynchronisation.
+    fn preload_summary(&mut self) {
+        let file_bytes = self.outcome.file_bytes;
+        let footer_len = 1 + 8 + 20;
+        if file_bytes < 8 + footer_len + 8 {
+            return;
+        }
+        let footer_at = file_bytes - 8 - footer_len;
+        let mut f = [0u8; 37];
+        if self.read_exact_at(&mut f, footer_at).is_err() || f[29..37] != MAGIC || f[0] != op::FOOTER {
+            return;
+        }
+        let Ok(Record::Footer(footer)) = mcap::parse_record(op::FOOTER, &f[9..29]) else { return };
+        let start = footer.summary_start;
+        if start < 8 || start >= footer_at || footer_at - start > self.limits.max_record_bytes as u64 {
+            return;
+        }
+        let mut summary = vec![0u8; (footer_at - start) as usize];
+        if self.read_exact_at(&mut summary, start).is_err() {
+            return;
+        }
+        if footer.summary_crc != 0 {
+            let mut crc = crc32fast::Hasher::new();
+            crc.update(&summary);
+            crc.update(&f[..1 + 8 + 16]);
+            if crc.finalize() != footer.summary_crc {
+                return;
             }
         }
-        None
+        let mut events = Vec::new();
+        let mut offsets = Vec::new();
+        if for_each_record(&summary, |opcode, body| {
+            match mcap::parse_record(opcode, body).map_err(|e| e.to_string())? {
+                Record::Schema { header, data } => events.push(OwnedEvent::Schema(SchemaInfo { id: header.id, name: header.name, encoding: header.encoding, data: data.into_owned() })),
+                Record::Channel(c) => events.push(OwnedEvent::Channel(ChannelInfo { id: c.id, schema_id: c.schema_id, topic: c.topic, message_encoding: c.message_encoding, metadata: c.metadata })),
+                Record::ChunkIndex(ci) => offsets.push(ci.chunk_start_offset),
+                _ => {}
+            }
+            Ok(())
+        })
+        .is_err()
+        {
+            return;
+        }
+        offsets.sort_unstable();
+        self.chunk_offsets = offsets;
+        for e in events {
+            if let Some(e) = self.first_sighting(e) {
+                self.pending.push_back(e);
+            }
+        }
+    }
+
+    /// `e` unless it repeats a schema or channel already handed out.
+    fn first_sighting(&mut self, e: OwnedEvent) -> Option<OwnedEvent> {
+        match &e {
+            OwnedEvent::Schema(s) if !self.schemas_seen.insert(s.id) => None,
+            OwnedEvent::Channel(c) if self.channels.contains_key(&c.id) => None,
+            OwnedEvent::Channel(c) => {
+                self.channels.insert(c.id, c.clone());
+                Some(e)
+            }
+            _ => Some(e),
+        }
+    }
+
+    /// Handles the record at `self.pos`: its events go to `pending`, `pos` moves past it. On
+    /// damage: why, and where the record ends when its head was plausible.
+    fn read_record(&mut self) -> Result<(), (Bad, Option<u64>)> {
+        let at = self.pos;
+        let (opcode, len) = self.head_at(at).map_err(|why| (why, None))?;
+        let end = at + RECORD_HEAD + len;
+        self.load_body(at, len).map_err(|why| (why, None))?;
+        let body = std::mem::take(&mut self.body);
+        let r = self.take_record(opcode, &body);
+        self.body = body;
+        r.map_err(|why| (why, Some(end)))?;
+        self.pos = end;
+        Ok(())
+    }
+
+    fn take_record(&mut self, opcode: u8, body: &[u8]) -> Result<(), Bad> {
+        let record = mcap::parse_record(opcode, body).map_err(|e| format!("bad record (opcode {opcode:#x}): {e}"))?;
+        match record {
+            Record::Chunk { header, data } => {
+                let records = chunk_records(&header, &data)?;
+                let mut events = Vec::new();
+                let mut orphaned = 0;
+                for_each_record(records, |opcode, body| {
+                    match mcap::parse_record(opcode, body).map_err(|e| format!("bad record in a chunk (opcode {opcode:#x}): {e}"))? {
+                        Record::Message { header, data } => events.push(OwnedEvent::Message {
+                            channel_id: header.channel_id,
+                            sequence: header.sequence,
+                            log_time_ns: header.log_time,
+                            publish_time_ns: header.publish_time,
+                            data: data.into_owned(),
+                        }),
+                        Record::Schema { header, data } => events.push(OwnedEvent::Schema(SchemaInfo { id: header.id, name: header.name, encoding: header.encoding, data: data.into_owned() })),
+                        Record::Channel(c) => events.push(OwnedEvent::Channel(ChannelInfo { id: c.id, schema_id: c.schema_id, topic: c.topic, message_encoding: c.message_encoding, metadata: c.metadata })),
+                        _ => {}
+                    }
+                    Ok(())
+                })?;
+                self.outcome.chunks += 1;
+                for e in events {
+                    if let OwnedEvent::Message { channel_id, .. } = &e {
+                        if !self.channels.contains_key(channel_id) {
+                            orphaned += 1;
+                            continue;
+                        }
+                    }
+                    if let Some(e) = self.first_sighting(e) {
+                        self.pending.push_back(e);
+                    }
+                }
+                self.outcome.orphaned_messages += orphaned;
+            }
+            Record::Message { header, data } => {
+                if self.channels.contains_key(&header.channel_id) {
+                    self.pending.push_back(OwnedEvent::Message {
+                        channel_id: header.channel_id,
+                        sequence: header.sequence,
+                        log_time_ns: header.log_time,
+                        publish_time_ns: header.publish_time,
+                        data: data.into_owned(),
+                    });
+                } else {
+                    self.outcome.orphaned_messages += 1;
+                }
+            }
+            Record::Schema { header, data } => {
+                let e = OwnedEvent::Schema(SchemaInfo { id: header.id, name: header.name, encoding: header.encoding, data: data.into_owned() });
+                if let Some(e) = self.first_sighting(e) {
+                    self.pending.push_back(e);
+                }
+            }
+            Record::Channel(c) => {
+                let e = OwnedEvent::Channel(ChannelInfo { id: c.id, schema_id: c.schema_id, topic: c.topic, message_encoding: c.message_encoding, metadata: c.metadata });
+                if let Some(e) = self.first_sighting(e) {
+                    self.pending.push_back(e);
+                }
+            }
+            Record::Metadata(m) => {
+                self.outcome.metadata.push((m.name.clone(), m.metadata.clone()));
+                self.pending.push_back(OwnedEvent::Metadata { name: m.name, metadata: m.metadata });
+            }
+            Record::Footer(_) => {
+                self.outcome.complete = true;
+                self.done = true;
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// Whether a record chain starting at `at` is real: a chunk whose CRC holds, or small
+    /// records (not messages) that parse, one after the other, up to such a chunk, the footer
+    /// or the file's end.
+    fn chain_holds(&mut self, at: u64) -> bool {
+        let file_bytes = self.outcome.file_bytes;
+        let mut p = at;
+        for _ in 0..CHAIN_RECORDS {
+            if p == file_bytes {
+                return true;
+            }
+            let Ok((opcode, len)) = self.head_at(p) else { return false };
+            if self.load_body(p, len).is_err() {
+                return false;
+            }
+            let ok = match opcode {
+                op::CHUNK => return matches!(mcap::parse_record(opcode, &self.body), Ok(Record::Chunk { header, data }) if chunk_records(&header, &data).is_ok()),
+                op::FOOTER => return mcap::parse_record(opcode, &self.body).is_ok(),
+                op::MESSAGE_INDEX => message_index_ok(&self.body),
+                op::HEADER | op::SCHEMA | op::CHANNEL | op::CHUNK_INDEX | op::METADATA | op::DATA_END => mcap::parse_record(opcode, &self.body).is_ok(),
+                // The records inside a damaged chunk look like messages: never resynchronise on
+                // one (our writer puts every message in a chunk).
+                op::MESSAGE => false,
+                _ => true,
+            };
+            if !ok {
+                return false;
+            }
+            p += RECORD_HEAD + len;
+        }
+        false
+    }
+
+    /// The next position after `from` where a real record starts (see [`Self::chain_holds`]),
+    /// scanning no further than the next chunk the summary's index names.
+    fn resync(&mut self, from: u64) -> Option<u64> {
+        let file_bytes = self.outcome.file_bytes;
+        let bound = self.chunk_offsets.iter().copied().find(|&o| o >= from).unwrap_or(file_bytes);
+        let mut block = vec![0u8; SCAN_BLOCK + RECORD_HEAD as usize];
+        let mut start = from;
+        while start < bound {
+            let n = ((bound - start) as usize + RECORD_HEAD as usize).min(block.len()).min((file_bytes - start) as usize);
+            if self.read_exact_at(&mut block[..n], start).is_err() {
+                return None;
+            }
+            let scan_to = ((bound - start).min(SCAN_BLOCK as u64) as usize).min(n);
+            for i in 0..scan_to {
+                let opcode = block[i];
+                if !(op::HEADER..=op::DATA_END).contains(&opcode) || i + RECORD_HEAD as usize > n {
+                    continue;
+                }
+                let len = u64::from_le_bytes(block[i + 1..i + 9].try_into().expect("8 bytes"));
+                let at = start + i as u64;
+                if check_head(opcode, len, at, file_bytes, self.limits.max_record_bytes).is_ok() && self.chain_holds(at) {
+                    return Some(at);
+                }
+            }
+            start += scan_to as u64;
+        }
+        (bound < file_bytes).then_some(bound)
+    }
+
+    /// Skips the damaged record at `self.pos`: reading goes on at the next real record (right
+    /// after it when its length was plausible and a real record follows there).
+    fn skip_damage(&mut self, why: Bad, end: Option<u64>) {
+        let from_byte = self.pos;
+        let next = match end {
+            Some(e) if self.chain_holds(e) => Some(e),
+            _ => self.resync(from_byte + 1),
+        };
+        let to_byte = next.unwrap_or(self.outcome.file_bytes);
+        self.outcome.skipped.push(SkippedRange { from_byte, to_byte, why });
+        match next {
+            Some(p) => self.pos = p,
+            None => self.done = true,
+        }
+    }
+
+    fn finish(&mut self) {
+        self.done = true;
+        let mut parts: Vec<String> = self.outcome.skipped.iter().map(|s| format!("bytes {}..{} skipped ({})", s.from_byte, s.to_byte, s.why)).collect();
+        if self.outcome.orphaned_messages > 0 {
+            parts.push(format!("{} messages of intact chunks lost with their channel record", self.outcome.orphaned_messages));
+        }
+        if !self.outcome.complete {
+            parts.push("no footer (the writer did not finish the file)".into());
+        }
+        self.outcome.damage = (!parts.is_empty()).then(|| parts.join("; "));
+    }
+
+    /// The next schema, channel, message or metadata record; `None` at the end of the file.
+    pub fn next_event(&mut self) -> Option<OwnedEvent> {
+        loop {
+            if let Some(e) = self.pending.pop_front() {
+                match &e {
+                    OwnedEvent::Message { .. } => self.outcome.messages += 1,
+                    OwnedEvent::Channel(c) => {
+                        self.channels.insert(c.id, c.clone());
+                    }
+                    _ => {}
+                }
+                return Some(e);
+            }
+            if self.done {
+                if self.outcome.damage.is_none() {
+                    self.finish();
+                }
+                return None;
+            }
+            if !self.started {
+                self.started = true;
+                self.preload_summary();
+                let mut magic = [0u8; 8];
+                if self.outcome.file_bytes < 8 || self.read_exact_at(&mut magic, 0).is_err() || magic != MAGIC {
+                    self.skip_damage("no MCAP magic at the start".into(), None);
+                } else {
+                    self.pos = 8;
+                }
+                continue;
+            }
+            if self.pos >= self.outcome.file_bytes {
+                self.done = true;
+                continue;
+            }
+            if let Err((why, end)) = self.read_record() {
+                self.skip_damage(why, end);
+            }
+        }
     }
 }
 
-/// Reads `path` up to its end or its first damage, calling `on_event` for every schema,
+/// Checks a record head: an opcode the specification defines (or a user opcode), a body that
+/// fits the file and the limit, a header or footer only where they belong.
+fn check_head(opcode: u8, len: u64, at: u64, file_bytes: u64, limit: usize) -> Result<(), Bad> {
+    if opcode == 0 || (0x10..0x80).contains(&opcode) {
+        return Err(format!("unknown opcode {opcode:#x} at byte {at}"));
+    }
+    if len > limit as u64 {
+        return Err(format!("a record of {len} bytes at byte {at} exceeds the limit of {limit} bytes"));
+    }
+    if at + RECORD_HEAD + len > file_bytes {
+        return Err(format!("a record of {len} bytes at byte {at} runs past the end of the file ({file_bytes} bytes)"));
+    }
+    // The header opens the file and the footer closes it, right before the closing magic.
+    if opcode == op::HEADER && at != 8 {
+        return Err(format!("a header record at byte {at}"));
+    }
+    if opcode == op::FOOTER && (len != 20 || at + RECORD_HEAD + len + 8 != file_bytes) {
+        return Err(format!("a footer record at byte {at}, not at the end of the file"));
+    }
+    Ok(())
+}
+
+/// The records of a chunk after its CRC is checked (only uncompressed chunks: the writer never
+/// compresses).
+fn chunk_records<'a>(header: &mcap::records::ChunkHeader, data: &'a [u8]) -> Result<&'a [u8], Bad> {
+    if !header.compression.is_empty() {
+        return Err(format!("a chunk compressed with {} (not read)", header.compression));
+    }
+    if data.len() as u64 != header.uncompressed_size {
+        return Err(format!("a chunk of {} bytes says {}", data.len(), header.uncompressed_size));
+    }
+    if header.uncompressed_crc != 0 && crc32fast::hash(data) != header.uncompressed_crc {
+        return Err("chunk CRC mismatch".into());
+    }
+    Ok(data)
+}
+
+fn message_index_ok(body: &[u8]) -> bool {
+    body.len() >= 6 && {
+        let n = u32::from_le_bytes(body[2..6].try_into().expect("4 bytes")) as usize;
+        n % 16 == 0 && body.len() == 6 + n
+    }
+}
+
+/// Calls `f(opcode, body)` for each record laid out back to back in `bytes`.
+fn for_each_record(bytes: &[u8], mut f: impl FnMut(u8, &[u8]) -> Result<(), Bad>) -> Result<(), Bad> {
+    let mut p = 0usize;
+    while p < bytes.len() {
+        if p + RECORD_HEAD as usize > bytes.len() {
+            return Err("a record head cut short".into());
+        }
+        let opcode = bytes[p];
+        let len = u64::from_le_bytes(bytes[p + 1..p + 9].try_into().expect("8 bytes"));
+        let body_at = p + RECORD_HEAD as usize;
+        if len > (bytes.len() - body_at) as u64 {
+            return Err(format!("a record of {len} bytes runs past its container"));
+        }
+        f(opcode, &bytes[body_at..body_at + len as usize])?;
+        p = body_at + len as usize;
+    }
+    Ok(())
+}
+
+/// Reads `path` to its end, damaged ranges skipped, calling `on_event` for every schema,
 /// channel, message and metadata record. Only failing to open the file is an error; damage
-/// is reported in [`ReadOutcome::damage`].
+/// is reported in [`ReadOutcome::damage`] and [`ReadOutcome::skipped`].
 pub fn read_segment_events(path: &Path, limits: ReadLimits, mut on_event: impl FnMut(ReadEvent<'_>)) -> Result<ReadOutcome, LogError> {
     let mut r = SegmentReader::open(path, limits)?;
     while let Some(e) = r.next_event() {

@@ -1,7 +1,10 @@
-//! Recovery of segments a crash left unfinished: every whole chunk is kept and re-written,
-//! with a summary and index, into a valid file that replaces the damaged one (write to a
-//! temporary name, fsync, rename). The recovered file carries a `duv.recovered` metadata
-//! record that `duv inspect` reports.
+//! Recovery of segments a crash left unfinished: every chunk whose CRC holds is kept (damaged
+//! ranges are skipped by the salvaging reader, not the end of the read) and re-written, with a
+//! summary and index, into a valid file that replaces the damaged one (write to a temporary
+//! name, fsync, rename: the original stays until the copy is on disk). The recovered file
+//! carries a `duv.recovered` metadata record that `duv inspect` reports. Recovery needs free
+//! space for the copy (at most the segment's size); without it the segment is left as it is
+//! (every reader salvages it the same way) and the report says so.
 
 use super::chunked::{ChunkedWriter, WriterBuffers, MAGIC};
 use super::reader::{read_segment_events, ReadEvent, ReadLimits};
@@ -21,9 +24,23 @@ pub struct RecoveryReport {
     pub bytes_before: u64,
     pub bytes_after: u64,
     pub messages_kept: u64,
-    /// Where and why the damaged file stopped being readable.
+    /// What was not readable and skipped, in words.
     pub damage: String,
+    /// Damaged byte ranges skipped.
+    pub skipped_ranges: usize,
+    /// `Some(why)` when the segment was not rewritten (not enough free space): it stays as it
+    /// was, readable by the salvaging reader.
+    pub left_in_place: Option<String>,
 }
+
+/// Free bytes for an unprivileged writer on the file system holding `dir`.
+pub fn available_bytes(dir: &Path) -> Result<u64, LogError> {
+    let s = rustix::fs::statvfs(dir).map_err(|e| LogError::Io { path: dir.to_path_buf(), source: e.into() })?;
+    Ok(s.f_bavail.saturating_mul(s.f_frsize))
+}
+
+/// Free space recovery leaves for the run that follows it.
+const RECOVERY_RESERVE_BYTES: u64 = 4 << 20;
 
 /// Chunk size of recovered files.
 const RECOVERY_CHUNK_BYTES: usize = 768 << 10;
@@ -44,6 +61,24 @@ pub fn is_finished(path: &Path) -> Result<bool, LogError> {
 
 /// Re-writes the readable part of `path` into a valid MCAP file in its place.
 pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport, LogError> {
+    let bytes_before = std::fs::metadata(path).map_err(|source| LogError::Io { path: path.to_path_buf(), source })?.len();
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let free = available_bytes(dir)?;
+    if free < bytes_before + RECOVERY_RESERVE_BYTES {
+        // Count what a reader gets from it as it is.
+        let outcome = read_segment_events(path, limits, |_| {})?;
+        let why = format!("recovering needs up to {:.1} MB free, {:.1} MB available", (bytes_before + RECOVERY_RESERVE_BYTES) as f64 / 1e6, free as f64 / 1e6);
+        tracing::warn!(segment = %path.display(), "unfinished log segment left as it is: {why}; it is read by salvage");
+        return Ok(RecoveryReport {
+            segment: path.to_path_buf(),
+            bytes_before,
+            bytes_after: bytes_before,
+            messages_kept: outcome.messages,
+            damage: outcome.damage.unwrap_or_default(),
+            skipped_ranges: outcome.skipped.len(),
+            left_in_place: Some(why),
+        });
+    }
     let tmp = path.with_extension("mcap.recovering");
     let io = |p: &Path| {
         let p = p.to_path_buf();
@@ -80,6 +115,8 @@ pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport
     meta.insert("original_bytes".to_string(), outcome.file_bytes.to_string());
     meta.insert("messages_kept".to_string(), outcome.messages.to_string());
     meta.insert("damage".to_string(), damage.clone());
+    meta.insert("skipped_ranges".to_string(), outcome.skipped.len().to_string());
+    meta.insert("skipped_bytes".to_string(), outcome.skipped.iter().map(|r| r.to_byte - r.from_byte).sum::<u64>().to_string());
     let finish = writer.write_metadata(RECOVERED_METADATA, &meta).and_then(|()| writer.finish());
     let out = match finish {
         Ok((out, _)) => out,
@@ -97,7 +134,15 @@ pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport
         sync_dir(dir);
     }
     tracing::warn!(segment = %path.display(), messages = outcome.messages, "recovered an unfinished log segment: {damage}");
-    Ok(RecoveryReport { segment: path.to_path_buf(), bytes_before: outcome.file_bytes, bytes_after, messages_kept: outcome.messages, damage })
+    Ok(RecoveryReport {
+        segment: path.to_path_buf(),
+        bytes_before: outcome.file_bytes,
+        bytes_after,
+        messages_kept: outcome.messages,
+        damage,
+        skipped_ranges: outcome.skipped.len(),
+        left_in_place: None,
+    })
 }
 
 /// Recovers every unfinished segment in `dir` (leftover temporary files are removed first).

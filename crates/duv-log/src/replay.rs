@@ -1,7 +1,7 @@
 //! Replay: a recorded log as a [`FrameSource`] (`--source mcap:FILE_OR_LOG_FOLDER`). Frames
 //! come out in recorded order with their recorded time stamps; pacing (`--speed`) and the
 //! deterministic mode are the pipeline's. Reading streams segment by segment with the log's
-//! record-size limit, so a damaged log replays up to the damage.
+//! record-size limit, so a damaged log replays with its damaged ranges skipped.
 
 use duv_core::source::{CameraError, FrameSource};
 use duv_core::{Frame, PinholeCamera};
