@@ -78,6 +78,11 @@ fn main() -> std::process::ExitCode {
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) if e.is::<cli::Exit>() => {
+            let exit = e.downcast::<cli::Exit>().expect("checked");
+            eprintln!("{}", exit.why);
+            std::process::ExitCode::from(exit.code)
+        }
         Err(e) => {
             eprintln!("error: {}", cli::error_line(&e));
             std::process::ExitCode::FAILURE

@@ -1,5 +1,6 @@
 //! The onboard runtime end to end, through the built `duv` binary: replay (deterministic,
-//! paced, ATE regression), clean shutdown on SIGTERM, a board refused for its budgets, disk
+//! paced, ATE regression), shutdown on SIGTERM with mapping on (exit 143) and on a second
+//! signal, a board refused for its budgets, disk
 //! full, the crash harness (kill -9 at >= 20 random points, resume each time), and a kill
 //! during the tracker's initialisation.
 
@@ -182,15 +183,42 @@ fn jpeg_logged_run_resumes_inspects_and_replays() {
     assert!(replay_ate < 0.01 * path_len, "JPEG replay ATE {replay_ate} m, path {path_len} m");
 }
 
+/// Sends `signal` to `child` and returns the seconds until it exited, with its exit code.
+fn signal_and_wait(child: &mut std::process::Child, signals: &[&str]) -> (f64, Option<i32>) {
+    let t0 = Instant::now();
+    for (i, sig) in signals.iter().enumerate() {
+        if i > 0 {
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        assert!(Command::new("kill").args([&format!("-{sig}"), &child.id().to_string()]).status().unwrap().success());
+    }
+    let status = child.wait().unwrap();
+    (t0.elapsed().as_secs_f64(), status.code())
+}
+
+/// SIGTERM with mapping on (the CPU mapper, behind its queue on 2 cores): the mapper's queue
+/// and final optimisation are abandoned, the log closes, the outputs are written, and the
+/// process exits 143. It took 82-85 s when the mapper finished its queue first; the 2 s
+/// target is measured, not asserted here (a loaded CI machine is no timer), but a bound far
+/// below the old behaviour catches a shutdown that waits for the mapper again.
 #[test]
-fn sigterm_closes_the_log_cleanly() {
+fn sigterm_closes_the_log_and_exits_143_without_waiting_for_the_mapper() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
-    let mut child = sim_run(&out, 2000).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
-    std::thread::sleep(Duration::from_secs(3));
-    assert!(Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap().success());
-    let status = child.wait().unwrap();
-    assert!(status.success(), "duv run exited with {status} on SIGTERM");
+    let mut child = sim_run(&out, 2000).arg("--map-final-iterations").arg("100000").stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    // Until the mapper has keyframes to be busy with.
+    let started = Instant::now();
+    while !out.join("keyframes").read_dir().is_ok_and(|mut d| d.next().is_some()) && started.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    std::thread::sleep(Duration::from_secs(2));
+    let (secs, code) = signal_and_wait(&mut child, &["TERM"]);
+    eprintln!("SIGTERM to exit with mapping on: {secs:.2} s");
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(child.stderr.as_mut().unwrap(), &mut stderr).unwrap();
+    assert_eq!(code, Some(143), "{stderr}");
+    assert!(stderr.contains("stopped by signal 15"), "{stderr}");
+    assert!(secs < 20.0, "{secs:.1} s from SIGTERM to exit");
     let segs = list_segments(&out.join("log")).unwrap();
     assert_eq!(segs.len(), 1);
     assert!(is_finished(&segs[0].1).unwrap(), "the log was not finished on SIGTERM");
@@ -198,6 +226,24 @@ fn sigterm_closes_the_log_cleanly() {
     assert!(s.segments[0].complete && s.segments[0].damage.is_none());
     let frames = s.topics["/camera/image"].messages;
     assert!(frames > 0 && frames < 2000, "{frames} frames");
+    // The outputs describe what was tracked, the map is exported as it was.
+    let traj = read_trajectory(&out.join("trajectory.txt"));
+    assert!(traj.len() as u64 + 8 >= frames && !traj.is_empty(), "{} poses, {frames} frames logged", traj.len());
+    assert!(out.join("map.ply").is_file());
+}
+
+/// A second signal: the log is closed and the process ends at once, exit 130 for SIGINT.
+#[test]
+fn a_second_signal_closes_the_log_and_exits_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let mut child = sim_run(&out, 2000).stdout(Stdio::null()).stderr(Stdio::piped()).spawn().unwrap();
+    std::thread::sleep(Duration::from_secs(4));
+    let (secs, code) = signal_and_wait(&mut child, &["INT", "INT"]);
+    eprintln!("two SIGINTs to exit: {secs:.2} s");
+    assert_eq!(code, Some(130));
+    let segs = list_segments(&out.join("log")).unwrap();
+    assert!(is_finished(&segs[0].1).unwrap(), "the log was not closed after the second signal");
 }
 
 #[test]

@@ -14,6 +14,23 @@ pub mod replay;
 pub mod run;
 pub mod sim;
 
+/// A command that ended early but in order (stopped by a signal after writing its outputs):
+/// `main` prints `why` and exits with `code` (130 after SIGINT, 143 after SIGTERM, as a shell
+/// reports a process a signal ended).
+#[derive(Debug)]
+pub struct Exit {
+    pub code: u8,
+    pub why: String,
+}
+
+impl std::fmt::Display for Exit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.why)
+    }
+}
+
+impl std::error::Error for Exit {}
+
 /// The error and its causes as one line, `outer: cause: ...`, leaving out a cause whose text
 /// the line already ends with (our error types print their source in their own message, as
 /// `path: No such file or directory`, and anyhow's `{:#}` would print it twice).

@@ -19,8 +19,6 @@ use duv_pipeline::source::{RunSource, Source, SourceOptions};
 use duv_pipeline::{resume, MapStage, NoMapping, PipelineConfig};
 use duv_track::{Tracker, TrackerCapacity, TrackerConfig};
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 use std::time::Duration;
 
 /// What a resumed run reads back from the log: the newest `ba_window` logged keyframes seed
@@ -267,14 +265,21 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             resume::Relocalisation::NewFrame { why } => eprintln!("resumed after frame {}: {why}; relocalisation failed, continuing in a new frame", r.last_seq),
         }
     }
-    let stop = Arc::new(AtomicBool::new(false));
-    duv_pipeline::stop_on_signals(&stop)?;
+    // From here SIGINT/SIGTERM stop the run in order (the log closes first), a second one at
+    // once.
+    let stop = duv_pipeline::Stop::on_signals()?;
     let total = source.len();
     let run_source = RunSource { inner: source, camera, spec: args.source.clone() };
     if !args.no_progress {
         eprintln!("tracking {} frames...", if total == usize::MAX { "all".to_string() } else { total.saturating_sub(start).to_string() });
     }
-    let result = duv_pipeline::run(run_source, tracker, map, &pcfg, retrack, stop)?;
+    let stopped_by = |stop: &duv_pipeline::Stop, what: &str| super::Exit { code: stop.exit_code().unwrap_or(130), why: format!("stopped by signal {}: {what}", stop.signal().unwrap_or(0)) };
+    let result = match duv_pipeline::run(run_source, tracker, map, &pcfg, retrack, stop.clone()) {
+        Err(e @ duv_pipeline::PipelineError::Aborted { .. }) => {
+            return Err(stopped_by(&stop, &format!("{e}; the outputs were not written (a resume rebuilds them from the log)")).into());
+        }
+        r => r?,
+    };
     let source = result.source.inner;
     let tracker = result.tracker;
     let recorder = result.recorder;
@@ -334,7 +339,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
     // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
     // and the report still follow.
-    match map.finish(&final_poses, &args.out) {
+    match map.finish(&final_poses, &args.out, !result.interrupted) {
         Ok(Some(summary)) => println!("{summary}"),
         Ok(None) => {}
         Err(e) => eprintln!("MAP NOT EXPORTED: {e}"),
@@ -375,6 +380,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         counters.relocalisations
     );
 
+    if result.interrupted {
+        if let Some(code) = stop.exit_code() {
+            return Err(super::Exit { code, why: stopped_by(&stop, "outputs written; the map was exported without its final optimisation, no evaluation").why }.into());
+        }
+    }
     // Evaluation against ground truth. A trajectory too short to align (a run stopped during
     // initialisation) is reported, not a failed run: its outputs are all written by now.
     if let Some(gt) = source.ground_truth() {

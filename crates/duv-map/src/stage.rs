@@ -188,9 +188,13 @@ impl MappingStage {
 
     /// Writes `map.ply`, `map.ckpt`, `medium.json` and `renders/` into `dir` (created).
     pub fn export(&mut self, dir: &Path) -> Result<(), StageError> {
+        self.export_with(dir, true)
+    }
+
+    /// [`Self::export`], the keyframe renders only when `renders` (a stopped run leaves them
+    /// out: rendering every keyframe takes seconds on a CPU).
+    pub fn export_with(&mut self, dir: &Path, with_renders: bool) -> Result<(), StageError> {
         let _span = tracing::debug_span!("map.export").entered();
-        let renders = dir.join("renders");
-        std::fs::create_dir_all(&renders).map_err(|source| StageError::CreateDir { path: renders.display().to_string(), source })?;
         // The device map's values (Vulkan) come to the host first.
         self.mapper.sync_from_device()?;
         write_ply(&dir.join("map.ply"), self.mapper.gaussians())?;
@@ -198,6 +202,11 @@ impl MappingStage {
         let medium = self.medium_summary();
         let json = serde_json::to_string_pretty(&medium).map_err(|e| StageError::Json(e.to_string()))?;
         write_atomic(&dir.join("medium.json"), json.as_bytes())?;
+        if !with_renders {
+            return Ok(());
+        }
+        let renders = dir.join("renders");
+        std::fs::create_dir_all(&renders).map_err(|source| StageError::CreateDir { path: renders.display().to_string(), source })?;
         for slot in 0..self.mapper.keyframe_count() {
             let Some(kf) = self.mapper.keyframe(slot) else { continue };
             let (index, image) = (kf.index, kf.image.clone());

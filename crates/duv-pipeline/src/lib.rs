@@ -23,6 +23,9 @@ pub mod pool;
 pub mod queue;
 pub mod resume;
 pub mod source;
+pub mod stop;
+
+pub use stop::Stop;
 
 use duv_camera::FrameSource;
 use duv_core::config::board::{Board, FrameLogEncoding};
@@ -65,6 +68,9 @@ pub enum PipelineError {
     Mapping(#[source] MapStageError),
     #[error("resume from {path}: {problem}")]
     Resume { path: PathBuf, problem: String },
+    /// A second signal: the log was closed, the other stages were left where they were.
+    #[error("stopped at once by a second signal (the log is closed; {frames_captured} frames captured)")]
+    Aborted { frames_captured: u64 },
 }
 
 /// Why a call of the mapping stage failed ([`MapStage`]); the messages are the stage's own.
@@ -102,8 +108,9 @@ pub trait MapStage: Send {
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError>;
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
-    /// optimisation and the exports into `out`; a one-line summary for the operator.
-    fn finish(&mut self, _final_poses: &[(u64, Se3)], _out: &Path) -> Result<Option<String>, MapStageError> {
+    /// optimisation and the exports into `out` (with `optimise` false, a stopped run: no
+    /// optimisation and no keyframe renders, the map as it is); a one-line summary for the operator.
+    fn finish(&mut self, _final_poses: &[(u64, Se3)], _out: &Path, _optimise: bool) -> Result<Option<String>, MapStageError> {
         Ok(None)
     }
 }
@@ -369,14 +376,6 @@ fn apply(align: Option<&Sim3>, pose: &Se3) -> Se3 {
     }
 }
 
-/// Installs SIGINT/SIGTERM handlers that set `stop` (the run then ends like end of stream).
-pub fn stop_on_signals(stop: &Arc<AtomicBool>) -> Result<(), PipelineError> {
-    for sig in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(sig, stop.clone()).map_err(|source| PipelineError::Io { path: PathBuf::from("<signal handler>"), source })?;
-    }
-    Ok(())
-}
-
 fn spawn<T: Send + 'static>(name: &str, f: impl FnOnce() -> T + Send + 'static) -> Result<std::thread::JoinHandle<T>, PipelineError> {
     std::thread::Builder::new().name(name.into()).spawn(f).map_err(|source| PipelineError::Io { path: PathBuf::from(format!("<thread {name}>")), source })
 }
@@ -409,15 +408,19 @@ impl Pacer {
 /// set, then closes the log. `map`: the mapping stage. `retrack`: frames already in the log
 /// that tracking goes through before the source (resume: the logged frames after the newest
 /// logged keyframe, see [`resume`]); their poses are in the log already and are not logged
-/// again, the keyframes they make go to mapping and the log like any other.
+/// again, the keyframes they make go to mapping and the log like any other. `stop`: a flag,
+/// or a [`Stop`] whose second level (`abort`) returns [`PipelineError::Aborted`] as soon as
+/// the log is closed.
 pub fn run<S: FrameSource + 'static>(
     mut source: S,
     tracker: Tracker,
     map: Box<dyn MapStage>,
     cfg: &PipelineConfig,
     retrack: Vec<Frame>,
-    stop: Arc<AtomicBool>,
+    stop: impl Into<Stop>,
 ) -> Result<PipelineResult<S>, PipelineError> {
+    let stop_levels: Stop = stop.into();
+    let stop = stop_levels.requested.clone();
     if let Some(speed) = cfg.pace_speed {
         if !(speed.is_finite() && speed >= 1e-3) {
             return Err(PipelineError::BadSetting { setting: "pace_speed (--speed)", value: speed, problem: "must be a finite factor >= 0.001" });
@@ -459,6 +462,7 @@ pub fn run<S: FrameSource + 'static>(
         let q = log_q.clone();
         let sh = shared.clone();
         let tick = cfg.log.chunk_interval / 4;
+        let abort = stop_levels.abort.clone();
         spawn("logging", move || {
             alloc::label_current_thread(ThreadRole::Logging);
             let _span = tracing::info_span!("log").entered();
@@ -473,6 +477,10 @@ pub fn run<S: FrameSource + 'static>(
                     }
                     Ok(None) => {}
                     Err(()) => break,
+                }
+                // A second signal: what is still queued is dropped, the segment is closed.
+                if abort.load(Ordering::Relaxed) {
+                    break;
                 }
                 if let Err(e) = writer.tick() {
                     first_error.get_or_insert_with(|| e.to_string());
@@ -493,6 +501,7 @@ pub fn run<S: FrameSource + 'static>(
         let lq = log_q.clone();
         let interval = cfg.checkpoint_interval;
         let mut map = map;
+        let stop = stop.clone();
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
             let kq_on_exit = kq.clone();
             let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
@@ -508,6 +517,12 @@ pub fn run<S: FrameSource + 'static>(
                     Ok(())
                 };
                 loop {
+                    // Stopping: the queued keyframes and the final save are abandoned (the
+                    // keyframes are in the log, the newest checkpoint on disk), so shutdown
+                    // never waits for the mapper.
+                    if stop.load(Ordering::Relaxed) {
+                        return Ok(map);
+                    }
                     let idle = match kq.try_pop() {
                         Some(kf) => {
                             last_t = kf.t_ns;
@@ -531,7 +546,7 @@ pub fn run<S: FrameSource + 'static>(
                         }
                     }
                 }
-    save(&mut map, last_t)?;
+                save(&mut map, last_t)?;
                 Ok(map)
             };
             // Closed on any exit, so tracking never waits on a mapping thread that failed.
@@ -678,6 +693,15 @@ pub fn run<S: FrameSource + 'static>(
     let mut last_health = Instant::now();
     while !(tracking.is_finished() && mapping.is_finished()) {
         std::thread::sleep(Duration::from_millis(20));
+        if stop_levels.is_aborted() {
+            // The other stages are left where they are (the process ends with this error).
+            frames.close();
+            keyframes.close();
+            log_q.close();
+            let (stats, _) = join(logging, "logging")?;
+            tracing::warn!(messages = stats.messages, "log closed after a second signal");
+            return Err(PipelineError::Aborted { frames_captured: shared.frames_captured.load(Ordering::Relaxed) });
+        }
         if last_health.elapsed() >= cfg.health_interval {
             last_health = Instant::now();
             let mut recent = std::mem::take(&mut *shared.recent_ms.lock().unwrap_or_else(|p| p.into_inner()));
@@ -766,8 +790,11 @@ fn run_deterministic<S: FrameSource + 'static>(
     let mut last_t = Timestamp::from_ns(0);
     let mut handoff = Handoff::new(cfg.handoff(), &tracker);
     let mut to_mapping = |kf: Arc<Keyframe>| -> Result<(), PipelineError> {
+        if stop.load(Ordering::Relaxed) {
+            return Ok(());
+        }
         map.add_keyframe(&kf).map_err(PipelineError::Mapping)?;
-        while map.step().map_err(PipelineError::Mapping)? {}
+        while !stop.load(Ordering::Relaxed) && map.step().map_err(PipelineError::Mapping)? {}
         Ok(())
     };
     tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {

@@ -124,7 +124,7 @@ impl MapStage for StageMapping {
         Ok(())
     }
 
-    fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path) -> Result<Option<String>, MapStageError> {
+    fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path, optimise: bool) -> Result<Option<String>, MapStageError> {
         if self.fed == 0 {
             return Ok(Some("mapped 0 keyframes: no map exported".into()));
         }
@@ -132,9 +132,11 @@ impl MapStage for StageMapping {
             self.stage.set_keyframe_pose(*id, *pose)?;
         }
         let t0 = Instant::now();
-        self.stage.optimise(self.final_iterations, None)?;
+        if optimise {
+            self.stage.optimise(self.final_iterations, None)?;
+        }
         self.time += t0.elapsed();
-        self.stage.export(out).map_err(|source| MapStageError::Export { path: out.to_path_buf(), source })?;
+        self.stage.export_with(out, optimise).map_err(|source| MapStageError::Export { path: out.to_path_buf(), source })?;
         let iterations = self.stage.mapper().iteration();
         let m = self.stage.medium_summary();
         let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
