@@ -96,6 +96,104 @@ fn ate(est: &BTreeMap<u64, Se3>, gt: &[Vector3<f64>]) -> f64 {
     rms(&aligned_errors(est, gt), None)
 }
 
+/// `states.txt`: frame number -> state.
+fn read_states(p: &Path) -> BTreeMap<u64, String> {
+    std::fs::read_to_string(p)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<&str> = l.split_whitespace().collect();
+            (v[0].parse().unwrap(), v[2].to_string())
+        })
+        .collect()
+}
+
+/// Distinct frame numbers of the logged camera frames, and how many camera messages there are.
+fn logged_frame_seqs(log_dir: &Path) -> (std::collections::BTreeSet<u64>, usize) {
+    let mut seqs = std::collections::BTreeSet::new();
+    let mut messages = 0;
+    for (_, p) in list_segments(log_dir).unwrap() {
+        read_segment(&p, ReadLimits::default(), |m| {
+            if m.channel.topic == Topic::CameraImage.name() {
+                seqs.insert(m.sequence as u64);
+                messages += 1;
+            }
+        })
+        .unwrap();
+    }
+    (seqs, messages)
+}
+
+/// Walks an undamaged (possibly unfinished) MCAP file record by record and returns each
+/// whole chunk's offset, length and message count (by the `mcap` crate's chunk reader):
+/// an independent count, not the log's salvaging reader.
+fn chunk_extents(bytes: &[u8]) -> Vec<(u64, u64, u64)> {
+    let mut out = Vec::new();
+    let mut p = 8usize;
+    while p + 9 <= bytes.len() {
+        let op = bytes[p];
+        let len = u64::from_le_bytes(bytes[p + 1..p + 9].try_into().unwrap()) as usize;
+        if p + 9 + len > bytes.len() {
+            break;
+        }
+        if op == 0x06 {
+            if let Ok(mcap::records::Record::Chunk { header, data }) = mcap::parse_record(op, &bytes[p + 9..p + 9 + len]) {
+                let n = mcap::read::ChunkReader::new(header, &data).unwrap().filter(|r| matches!(r, Ok(mcap::records::Record::Message { .. }))).count();
+                out.push((p as u64, (9 + len) as u64, n as u64));
+            }
+        }
+        p += 9 + len;
+    }
+    out
+}
+
+/// Messages in a finished MCAP file, through the `mcap` crate's summary and chunk indexes.
+fn indexed_messages(bytes: &[u8]) -> u64 {
+    let summary = mcap::read::Summary::read(bytes).unwrap().expect("a summary");
+    summary.chunk_indexes.iter().map(|ci| summary.stream_chunk(bytes, ci).unwrap().count() as u64).sum()
+}
+
+/// A run killed with kill -9, its unfinished segment then damaged (a flipped byte inside a
+/// chunk, the tail cut off inside another): the next start recovers every chunk the damage
+/// did not touch (counted independently, by the `mcap` crate, before and after), and the
+/// final `trajectory.txt` holds every frame whose pose is in the log.
+#[test]
+fn a_damaged_unfinished_segment_is_salvaged_on_resume() {
+    const FRAMES: usize = 150;
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let mut child = sim_run(&out, FRAMES).args(["--no-map", "--announce"]).stdout(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
+    let lines = BufReader::new(child.stdout.take().unwrap()).lines().map_while(Result::ok);
+    let tracked = lines.filter(|l| l.starts_with("tracked ")).take(90).count();
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert_eq!(tracked, 90);
+    let seg = list_segments(&out.join("log")).unwrap()[0].1.clone();
+    let bytes = std::fs::read(&seg).unwrap();
+    assert!(!is_finished(&seg).unwrap());
+    let chunks = chunk_extents(&bytes);
+    assert!(chunks.len() >= 8, "{} chunks", chunks.len());
+    let n = chunks.len();
+    let flip = chunks[n / 3].0 + chunks[n / 3].1 / 2;
+    let cut = chunks[n - 2].0 + chunks[n - 2].1 / 2;
+    let expected: u64 = chunks.iter().enumerate().filter(|(i, (o, l, _))| *i != n / 3 && o + l <= cut).map(|(_, c)| c.2).sum();
+    let mut damaged = bytes[..cut as usize].to_vec();
+    damaged[flip as usize] ^= 0x40;
+    std::fs::write(&seg, &damaged).unwrap();
+
+    let text = run_ok(sim_run(&out, FRAMES).arg("--no-map"));
+    assert!(text.contains("recovered") && text.contains("damaged range(s) skipped"), "{text}");
+    let recovered = std::fs::read(&seg).unwrap();
+    let kept = indexed_messages(&recovered);
+    eprintln!("damaged segment: {kept} messages salvaged, {expected} in chunks the damage did not touch (of {} before the damage)", chunks.iter().map(|c| c.2).sum::<u64>());
+    assert_eq!(kept, expected);
+    let poses = logged_poses(&out.join("log"));
+    let states = read_states(&out.join("states.txt"));
+    assert_eq!(states.keys().copied().collect::<Vec<_>>(), poses.keys().copied().collect::<Vec<_>>());
+    assert_eq!(read_trajectory(&out.join("trajectory.txt")).len(), poses.len());
+}
+
 fn read_trajectory(p: &Path) -> BTreeMap<u64, Se3> {
     // TUM lines in frame order; the n-th line is frame n for a lossless run.
     let text = std::fs::read_to_string(p).unwrap();
@@ -167,7 +265,10 @@ fn jpeg_logged_run_resumes_inspects_and_replays() {
     let inspect = run_ok(duv().arg("inspect").arg(&rec));
     assert!(inspect.lines().any(|l| l.starts_with("/camera/image") && l.contains("foxglove.CompressedImage") && l.contains(" 30 ")), "{inspect}");
     // Resume reads the logged keyframes and the JPEG frames after them back to relocalise.
-    let resumed = run_ok(sim_run(&rec, 60).arg("--board").arg(&board).arg("--no-map"));
+    // A finished dive is left as it is; --continue tracks the longer source on.
+    let again = run_ok(sim_run(&rec, 60).arg("--board").arg(&board).arg("--no-map"));
+    assert!(again.contains("holds a finished dive: 30 frames"), "{again}");
+    let resumed = run_ok(sim_run(&rec, 60).arg("--board").arg(&board).args(["--no-map", "--continue"]));
     assert!(resumed.contains("in the recorded frame and scale; tracking") && resumed.contains("logged frames again"), "{resumed}");
     // Replay of the whole JPEG log (two segments): every frame, and the trajectory holds the
     // bound of the raw replay above. JPEG is lossy, so the replay is not the recorded run: on
@@ -258,16 +359,25 @@ fn a_board_too_small_for_the_resolution_is_refused_with_numbers() {
     assert!(err.contains("refused") && err.contains("budgets.host_mb = 40") && err.contains("640x480 needs"), "{err}");
 }
 
+/// Runs `duv run` on 160x120 `sim:coastal` under a file-size limit of `limit_kib` (every write
+/// past it fails with EFBIG, like a full disk), returning the exit code and the output.
+fn run_with_file_limit(out: &Path, limit_kib: u32, frames: usize, extra: &[&str]) -> (Option<i32>, String) {
+    let mut c = Command::new("bash");
+    c.current_dir(root()).env("RUST_LOG", "error").arg("-c").arg(format!("ulimit -f {limit_kib}; trap '' XFSZ; exec \"$0\" \"$@\"")).arg(DUV);
+    c.args(["run", "--source", "sim:coastal", "--width", W, "--height", H, "--no-progress", "--frames"]).arg(frames.to_string()).args(extra).arg("--out").arg(out);
+    let o = c.output().unwrap();
+    (o.status.code(), format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr)))
+}
+
+/// A full disk: logging stops cleanly and says so, tracking continues, the outputs are still
+/// written, and the exit status (3) says the log is incomplete.
 #[test]
 fn disk_full_stops_logging_and_tracking_continues() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("run");
-    // A file-size limit makes every write past 1200 KiB fail (EFBIG), like a full disk.
-    let mut c = Command::new("bash");
-    c.current_dir(root()).env("RUST_LOG", "error").arg("-c").arg("ulimit -f 1200; trap '' XFSZ; exec \"$0\" \"$@\"").arg(DUV);
-    c.args(["run", "--source", "sim:coastal", "--width", W, "--height", H, "--frames", "40", "--no-progress", "--out"]).arg(&out);
-    let text = run_ok(&mut c);
-    assert!(text.contains("LOGGING STOPPED"), "{text}");
+    let (code, text) = run_with_file_limit(&out, 1200, 40, &["--no-map"]);
+    assert_eq!(code, Some(3), "{text}");
+    assert!(text.contains("LOGGING STOPPED") && text.contains("the log is incomplete"), "{text}");
     assert!(text.contains("40 tracked"), "{text}");
     let traj = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
     assert_eq!(traj.lines().filter(|l| !l.starts_with('#')).count(), 40);
@@ -276,6 +386,36 @@ fn disk_full_stops_logging_and_tracking_continues() {
     let mut frames = 0;
     let outcome = read_segment(seg, ReadLimits::default(), |m| frames += (m.channel.topic == "/camera/image") as u32).unwrap();
     assert!(frames >= 1, "{outcome:?}");
+}
+
+/// With mapping on, the map checkpoints and the map export fail too: mapping goes on, the
+/// tracking outputs and `dive.json` are written, no partial file is left behind.
+#[test]
+fn disk_full_with_mapping_keeps_mapping_and_writes_the_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let (code, text) = run_with_file_limit(&out, 1200, 120, &[]);
+    assert_eq!(code, Some(3), "{text}");
+    assert!(text.contains("map checkpoint not written") && text.contains("mapping goes on"), "{text}");
+    assert!(text.contains("120 tracked") && !text.contains("panicked"), "{text}");
+    let traj = std::fs::read_to_string(out.join("trajectory.txt")).unwrap();
+    assert_eq!(traj.lines().filter(|l| !l.starts_with('#')).count(), 120);
+    assert!(out.join("keyframes.txt").is_file() && out.join("dive.json").is_file());
+    let leftovers: Vec<_> = walk_files(&out).into_iter().filter(|p| p.extension().is_some_and(|e| e == "tmp")).collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+fn walk_files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.extend(walk_files(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
 }
 
 /// What the child said, with when the harness heard it.
@@ -427,6 +567,27 @@ fn crash_harness_kill_9_and_resume() {
     let combined_with_segment = logged_poses_with_segment(&log_dir);
     let combined: BTreeMap<u64, Se3> = combined_with_segment.iter().map(|(seq, (pose, _))| (*seq, *pose)).collect();
     assert_eq!(combined.keys().next_back().copied(), Some(FRAMES as u64 - 1));
+    // The files users read describe the whole dive: a pose for every frame whose pose
+    // reached the log, across all the processes that worked on it.
+    let states = read_states(&out.join("states.txt"));
+    assert_eq!(states.keys().copied().collect::<Vec<_>>(), combined.keys().copied().collect::<Vec<_>>(), "states.txt frames differ from the logged poses");
+    assert_eq!(read_trajectory(&out.join("trajectory.txt")).len(), combined.len());
+    let (frames_logged, camera_messages) = logged_frame_seqs(&log_dir);
+    eprintln!("final trajectory.txt: {} poses; {} frames logged in {camera_messages} camera messages", combined.len(), frames_logged.len());
+    assert_eq!(frames_logged.len(), FRAMES);
+    // No frame logged twice: a start tracks the frames the stopped run logged but had not
+    // tracked from the log, and its source goes on after them.
+    assert_eq!(camera_messages, FRAMES);
+    let dive: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("dive.json")).unwrap()).unwrap();
+    assert_eq!(dive["finished"], true);
+    assert_eq!(dive["frames"].as_u64(), Some(FRAMES as u64));
+    assert!(dive["parts"].as_array().unwrap().len() > kills_after_a_sync, "{dive}");
+    // Started again, the finished dive is left as it is.
+    let before = std::fs::read(out.join("trajectory.txt")).unwrap();
+    let again = run_ok(&mut sim_run(&out, FRAMES));
+    assert!(again.contains("holds a finished dive") && again.contains("nothing changed"), "{again}");
+    assert_eq!(std::fs::read(out.join("trajectory.txt")).unwrap(), before);
+    assert_eq!(list_segments(&log_dir).unwrap().len(), dive["log_segments"].as_u64().unwrap() as usize);
     let summary = inspect_log(&log_dir, ReadLimits::default()).unwrap();
     let recovered = summary.segments.iter().filter(|s| s.recovered.is_some()).count();
     // Each kill after the first fsync left one unfinished segment, recovered on the next start.
@@ -493,6 +654,7 @@ fn a_run_killed_during_its_initialisation_resumes_as_if_never_stopped() {
     run_ok(sim_run(&clean, FRAMES).arg("--no-map"));
     let (combined, uninterrupted) = (logged_poses(&out.join("log")), logged_poses(&clean.join("log")));
     assert_eq!(combined.len(), FRAMES);
+    assert_eq!(logged_frame_seqs(&out.join("log")).1, FRAMES, "a frame was logged twice");
     assert_eq!(uninterrupted.len(), FRAMES);
     let worst = combined.iter().map(|(s, p)| (p.translation.vector - uninterrupted[s].translation.vector).norm()).fold(0.0, f64::max);
     eprintln!("killed after {} poses logged; worst position difference to the uninterrupted run {worst:.3e} m", before.len());

@@ -16,9 +16,11 @@ use duv_map::backend::MapperDevice;
 use duv_map::stage::{MappingBudget, MappingStage};
 use duv_pipeline::mapping::StageMapping;
 use duv_pipeline::source::{RunSource, Source, SourceOptions};
+use duv_pipeline::dive::{part_metadata, unix_now_s, DivePart, DiveRecord, PART_METADATA};
 use duv_pipeline::{resume, MapStage, NoMapping, PipelineConfig};
 use duv_track::{Tracker, TrackerCapacity, TrackerConfig};
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 /// What a resumed run reads back from the log: the newest `ba_window` logged keyframes seed
@@ -76,6 +78,10 @@ pub struct RunArgs {
     /// Start over: an output folder with a log is refused instead of resumed.
     #[arg(long)]
     pub no_resume: bool,
+    /// Track the source further on a finished dive (by default a folder whose dive finished,
+    /// its source ended, is left as it is).
+    #[arg(long = "continue")]
+    pub continue_dive: bool,
     /// Print `tracked SEQ T_NS` per frame and `synced SEGMENT MESSAGES BYTES` per fsync on
     /// stdout (the crash harness reads them).
     #[arg(long, hide = true)]
@@ -115,6 +121,9 @@ fn percentile_ms(sorted: &[Duration], p: f64) -> f64 {
     sorted[i].as_secs_f64() * 1e3
 }
 
+/// Exit status of a run whose outputs were written but whose log stopped early (a full disk).
+pub const EXIT_LOG_INCOMPLETE: u8 = 3;
+
 /// The slowest playback `--speed` takes (a recorded second then lasts about 17 minutes).
 const MIN_SPEED: f64 = 1e-3;
 
@@ -123,6 +132,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if let Some(s) = args.speed {
         anyhow::ensure!(s.is_finite() && s >= MIN_SPEED, "--speed must be a finite factor >= {MIN_SPEED}, got {s}");
     }
+    let started_unix_s = unix_now_s();
     // One writer per run folder, before anything in it is read or recovered.
     let _lock = duv_pipeline::lock::RunFolderLock::acquire(&args.out)?;
     let board = Board::load(&args.board)?;
@@ -143,9 +153,38 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if args.no_resume {
         anyhow::ensure!(duv_log::list_segments(&log_dir)?.is_empty(), "--no-resume: {} already holds a log; choose another --out", log_dir.display());
     }
+    // A finished dive (its source ended, and nothing was logged after) is left as it is.
+    let previous = DiveRecord::load(&args.out);
+    if let Some(rec) = previous.as_ref().filter(|r| r.finished && !args.no_resume) {
+        let segments = duv_log::list_segments(&log_dir)?.len() as u32;
+        if segments == rec.log_segments && !args.continue_dive {
+            println!(
+                "{} holds a finished dive: {} frames ({}..{}), {} keyframes, {} part(s), {}; nothing changed (--continue tracks the source further)",
+                args.out.display(),
+                rec.frames,
+                rec.first_seq.map_or("-".into(), |s| s.to_string()),
+                rec.last_seq.map_or("-".into(), |s| s.to_string()),
+                rec.keyframes,
+                rec.parts.len(),
+                rec.end
+            );
+            return Ok(());
+        }
+    }
+    // Room for the final outputs, whatever the log does to the disk.
+    let reserve = duv_pipeline::outputs::DiskReserve::claim(&args.out);
     let mut resume_state = if args.no_resume { None } else { resume::prepare(&args.out, ReadLimits::default(), &resume_options(&board))? };
+    if let Some(r) = &mut resume_state {
+        r.history.take_ends(previous.as_ref());
+    }
+    // The source goes on after the last logged frame; logged frames without a pose are
+    // tracked from the log (no frame is logged twice).
     let start = match &resume_state {
-        Some(r) if r.poses_recorded > 0 && !args.source.starts_with("mcap:") => r.last_seq as usize + 1,
+        Some(r) if !args.source.starts_with("mcap:") => match (r.poses_recorded > 0, r.last_frame_seq) {
+            (true, f) => f.unwrap_or(0).max(r.last_seq) as usize + 1,
+            (false, Some(f)) => f as usize + 1,
+            (false, None) => 0,
+        },
         _ => 0,
     };
     let source_options = SourceOptions { frames: args.frames, width: args.width, height: args.height, seed: args.seed, loop_for_s: args.loop_for_s };
@@ -209,6 +248,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         Box::new(mapping)
     };
     let mut retrack = Vec::new();
+    let mut start_how = "fresh".to_string();
     if let Some(r) = &mut resume_state {
         for rep in &r.recovered {
             match &rep.left_in_place {
@@ -228,6 +268,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             map.restore(bytes).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             eprintln!("map checkpoint {} reloaded", path.display());
         }
+        // The logged keyframes the map was not fed before it stopped (after its newest
+        // checkpoint), one at a time from the log: the map covers every logged keyframe.
+        if !args.no_map && !r.history.keyframes.is_empty() {
+            let newest = map.newest_keyframe();
+            let (mut fed, mut failed) = (0usize, None);
+            let read = duv_log::for_each_log_keyframe(&log_dir, ReadLimits::default(), |id| newest.is_none_or(|n| id > n), |kf| {
+                if failed.is_none() {
+                    match map.add_keyframe(&kf) {
+                        Ok(()) => fed += 1,
+                        Err(e) => failed = Some(format!("keyframe {}: {e}", kf.index)),
+                    }
+                }
+            });
+            match (read, failed) {
+                (_, Some(e)) => eprintln!("MAP: a logged keyframe was not fed again: {e}"),
+                (Ok(_) | Err(duv_log::LogError::NoKeyframes { .. }), None) => {}
+                (Err(e), None) => eprintln!("MAP: the logged keyframes were not read again: {e}"),
+            }
+            if fed > 0 {
+                eprintln!("map: {fed} logged keyframe(s) after {} fed again", newest.map_or("the start".to_string(), |n| format!("keyframe {n}, the map checkpoint's newest,")));
+            }
+        }
         match resume::relocalise(&mut tracker, r)? {
             resume::Relocalisation::Seeded { keyframes, frames, newest_keyframe_seq, retrack: again } => {
                 let seeds = if let (true, Some(w)) = (keyframes > 0, r.window_seq) {
@@ -242,6 +304,16 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                     again.len()
                 );
                 retrack = again;
+                start_how = format!("resumed after frame {}: seeded with {seeds}", r.last_seq);
+                // The seeded keyframes the log does not hold (they were waiting to be handed
+                // on when the run stopped) go to mapping and the log first.
+                let newest_logged = r.history.keyframes.keys().next_back().copied();
+                for (seq, k) in &r.keyframes {
+                    if newest_logged.is_none_or(|n| k.index > n) {
+                        let frame = duv_core::Frame { t_ns: k.t_ns, seq: *seq, image: duv_core::FrameImage::Rgb8(k.image.clone()) };
+                        pcfg.unlogged_keyframes.push((k.index, Arc::new(frame)));
+                    }
+                }
             }
             resume::Relocalisation::Restarted { from_seq, retrack: again } => {
                 eprintln!(
@@ -251,6 +323,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                     again.len()
                 );
                 retrack = again;
+                start_how = format!("resumed after frame {}: its initialisation tracked again from frame {from_seq}", r.last_seq);
             }
             resume::Relocalisation::Aligned { world_from_tracker, why } => {
                 eprintln!(
@@ -261,10 +334,23 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                     world_from_tracker.scaling()
                 );
                 pcfg.world_from_tracker = Some(world_from_tracker);
+                start_how = format!("resumed after frame {}: re-initialised and aligned by Sim(3), scale {:.4}", r.last_seq, world_from_tracker.scaling());
             }
-            resume::Relocalisation::NewFrame { why } => eprintln!("resumed after frame {}: {why}; relocalisation failed, continuing in a new frame", r.last_seq),
+            resume::Relocalisation::NewFrame { why } => {
+                eprintln!("resumed after frame {}: {why}; relocalisation failed, continuing in a new frame", r.last_seq);
+                start_how = format!("resumed after frame {}: in a new frame ({why})", r.last_seq);
+            }
         }
     }
+    if let Some(r) = &mut resume_state {
+        if !args.source.starts_with("mcap:") && !r.unposed.is_empty() {
+            eprintln!("tracking {} frame(s) logged after the last recorded pose from the log (frames {}..{})", r.unposed.len(), r.unposed[0].seq, r.unposed[r.unposed.len() - 1].seq);
+            retrack.append(&mut r.unposed);
+        }
+        pcfg.retrack_unlogged = retrack.iter().map(|f| f.seq).filter(|s| !r.history.frames.contains_key(s)).collect();
+    }
+    let part = resume_state.as_ref().map_or(0, |r| r.history.next_part());
+    pcfg.log.metadata.push((PART_METADATA.into(), part_metadata(part, &start_how)));
     // From here SIGINT/SIGTERM stop the run in order (the log closes first), a second one at
     // once.
     let stop = duv_pipeline::Stop::on_signals()?;
@@ -309,32 +395,40 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         result.log_error.as_ref().map(|e| format!("; LOGGING STOPPED: {e}")).unwrap_or_default(),
         if result.interrupted { "; interrupted" } else { "" }
     );
-    if frames_done == 0 && resume_state.is_some() {
-        println!("nothing left to track after frame {}", start.saturating_sub(1));
-        return Ok(());
+    let history = resume_state.as_ref().map(|r| &r.history).filter(|h| !h.frames.is_empty());
+    if frames_done == 0 && history.is_none() {
+        if result.interrupted {
+            println!("stopped before the first frame was tracked");
+            if stop.exit_code().is_some() {
+                return Err(stopped_by(&stop, "before the first frame was tracked").into());
+            }
+            return Ok(());
+        }
+        anyhow::bail!("the source delivered no frame");
     }
-    if frames_done == 0 && result.interrupted {
-        println!("stopped before the first frame was tracked");
-        return Ok(());
+    if frames_done == 0 {
+        println!("nothing left to track after frame {}: the outputs are written from the log", start.saturating_sub(1));
+    } else {
+        let mut e2e: Vec<Duration> = result.latencies.clone();
+        e2e.sort();
+        println!("frame-in to pose-out latency median {:.1} ms, p99 {:.1} ms", percentile_ms(&e2e, 0.5), percentile_ms(&e2e, 0.99));
+        let wall_s = result.wall.as_secs_f64().max(1e-9);
+        let per_frame = result.log.bytes as f64 / result.frames_captured.max(1) as f64;
+        let fps = 1e3 / pcfg.frame_period_ms;
+        println!(
+            "log {:.1} MB: {per_frame:.0} bytes per captured frame (all topics), {:.1} MB/s at the board's {fps:.0} frames/s ({:.2} MB/s over the {wall_s:.1} s run)",
+            result.log.bytes as f64 / 1e6,
+            per_frame * fps / 1e6,
+            result.log.bytes as f64 / 1e6 / wall_s
+        );
     }
-    anyhow::ensure!(frames_done > 0, "the source delivered no frame");
-    let mut e2e: Vec<Duration> = result.latencies.clone();
-    e2e.sort();
-    println!("frame-in to pose-out latency median {:.1} ms, p99 {:.1} ms", percentile_ms(&e2e, 0.5), percentile_ms(&e2e, 0.99));
-    let wall_s = result.wall.as_secs_f64().max(1e-9);
-    let per_frame = result.log.bytes as f64 / result.frames_captured.max(1) as f64;
-    let fps = 1e3 / pcfg.frame_period_ms;
-    println!(
-        "log {:.1} MB: {per_frame:.0} bytes per captured frame (all topics), {:.1} MB/s at the board's {fps:.0} frames/s ({:.2} MB/s over the {wall_s:.1} s run)",
-        result.log.bytes as f64 / 1e6,
-        per_frame * fps / 1e6,
-        result.log.bytes as f64 / 1e6 / wall_s
-    );
 
-    // Final trajectory, keyframes, their depth maps and states: one writer, in the recorded
-    // frame of a resumed dive.
+    // Final trajectory, keyframes, their depth maps and states of the whole dive: one writer,
+    // this process's poses in the recorded frame over what earlier processes logged.
+    reserve.release();
     let fin = duv_pipeline::outputs::finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
-    let live = duv_pipeline::outputs::write_tracking_outputs(&args.out, &fin, recorder.frames(), &latencies, &tracker, !args.no_map, &mut inv, &mut var)?;
+    let written = duv_pipeline::outputs::write_tracking_outputs(&args.out, &fin, recorder.frames(), &latencies, &tracker, !args.no_map, history, &mut inv, &mut var)?;
+    let live = written.live.clone();
     // The map: final keyframe poses, a last optimisation, the exports.
     let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
     // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
@@ -343,6 +437,53 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         Ok(Some(summary)) => println!("{summary}"),
         Ok(None) => {}
         Err(e) => eprintln!("MAP NOT EXPORTED: {e}"),
+    }
+    // dive.json: the parts of the dive and how each ended.
+    let end = match stop.signal() {
+        Some(sig) if result.interrupted => format!("stopped by signal {sig}"),
+        _ if result.interrupted => "stopped".to_string(),
+        _ => "source ended".to_string(),
+    };
+    let segments_now = duv_log::list_segments(&log_dir)?;
+    let mut parts: Vec<DivePart> = resume_state.as_ref().map(|r| r.history.parts.values().cloned().collect()).unwrap_or_default();
+    let earlier: std::collections::BTreeSet<u32> = parts.iter().flat_map(|p| p.segments.iter().copied()).collect();
+    let mine_seqs = recorder.frames().iter().map(|f| f.seq);
+    parts.push(DivePart {
+        part,
+        pid: std::process::id(),
+        started_unix_s,
+        start: start_how.clone(),
+        end: Some(end.clone()),
+        segments: segments_now.iter().map(|(i, _)| *i).filter(|i| !earlier.contains(i)).collect(),
+        poses_logged: frames_done as u64,
+        first_seq: mine_seqs.clone().min(),
+        last_seq: mine_seqs.max(),
+    });
+    let record = DiveRecord {
+        finished: !result.interrupted,
+        end,
+        frames: written.frames,
+        first_seq: written.first_seq,
+        last_seq: written.last_seq,
+        keyframes: written.keyframes,
+        log_segments: segments_now.len() as u32,
+        parts,
+    };
+    if let Err(e) = record.write(&args.out) {
+        eprintln!("dive.json not written: {e}");
+    }
+    println!(
+        "dive: {} frames in trajectory.txt ({} from earlier parts), {} keyframes, part {part} of {}",
+        written.frames,
+        written.frames_from_log,
+        written.keyframes,
+        record.parts.len()
+    );
+    if frames_done == 0 {
+        if result.interrupted && stop.exit_code().is_some() {
+            return Err(stopped_by(&stop, "outputs written from the log").into());
+        }
+        return Ok(());
     }
 
     // Timing.
@@ -380,6 +521,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         counters.relocalisations
     );
 
+    if let Some(e) = &result.log_error {
+        if stop.exit_code().is_none() {
+            return Err(super::Exit { code: EXIT_LOG_INCOMPLETE, why: format!("the outputs are written, but the log is incomplete: logging stopped: {e}") }.into());
+        }
+    }
     if result.interrupted {
         if let Some(code) = stop.exit_code() {
             return Err(super::Exit { code, why: stopped_by(&stop, "outputs written; the map was exported without its final optimisation, no evaluation").why }.into());
@@ -388,7 +534,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Evaluation against ground truth. A trajectory too short to align (a run stopped during
     // initialisation) is reported, not a failed run: its outputs are all written by now.
     if let Some(gt) = source.ground_truth() {
-        if let Err(e) = evaluate(&args, &source, &tracker, &gt, &fin.frames, &live, &mut inv, &mut var) {
+        if let Err(e) = evaluate(&args, &source, &tracker, &gt, &written.trajectory, &live, &mut inv, &mut var) {
             eprintln!("evaluation skipped: {e:#}");
         }
     }
@@ -461,6 +607,7 @@ impl RunArgs {
             speed: None,
             deterministic: false,
             no_resume: false,
+            continue_dive: false,
             announce: false,
             no_map: true,
             map_iterations: MappingBudget::default().iterations_per_keyframe,

@@ -76,9 +76,21 @@ struct Partial {
 /// Reads every complete keyframe of the log at `path` (see [`log_files`]). A log that holds
 /// none is [`LogError::NoKeyframes`]; damage is reported in [`LogKeyframes::damage`].
 pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframes, LogError> {
+    let mut keyframes = Vec::new();
+    let mut out = for_each_log_keyframe(path, limits, |_| true, |kf| keyframes.push(kf))?;
+    out.keyframes = keyframes;
+    Ok(out)
+}
+
+/// Streams the complete keyframes of the log at `path` whose logged index `keep` accepts to
+/// `on_keyframe`, in log order, one at a time (the others are not decoded): memory for one
+/// keyframe, not the dive's. [`LogKeyframes::keyframes`] comes back empty; a log with no
+/// keyframe `keep` accepts is [`LogError::NoKeyframes`].
+pub fn for_each_log_keyframe(path: &Path, limits: ReadLimits, keep: impl Fn(u64) -> bool, mut on_keyframe: impl FnMut(Keyframe)) -> Result<LogKeyframes, LogError> {
     let segments = log_files(path)?;
     let mut out = LogKeyframes { keyframes: Vec::new(), segments: segments.clone(), damage: Vec::new(), skipped: Vec::new(), renumbered: Vec::new(), newest_map: None };
     let mut used: BTreeSet<u64> = BTreeSet::new();
+    let mut delivered = 0usize;
     for file in &segments {
         let mut r = SegmentReader::open(file, limits)?;
         let mut camera: Option<PinholeCamera> = None;
@@ -99,7 +111,7 @@ pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframe
                     out.newest_map = Some(LoggedMap { log_time_ns, segment: file.clone(), bytes: data });
                     continue;
                 }
-                Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance | Topic::KeyframePose if !failed.contains(&index) => partial.entry(index).or_default(),
+                Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance | Topic::KeyframePose if !failed.contains(&index) && keep(index) => partial.entry(index).or_default(),
                 _ => continue,
             };
             p.camera = p.camera.or(camera);
@@ -118,7 +130,10 @@ pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframe
                     failed.insert(index);
                 }
                 if let Some(p) = partial.remove(&index) {
-                    finish(index, p, &mut used, &mut out);
+                    if let Some(kf) = finish(index, p, &mut used, &mut out) {
+                        delivered += 1;
+                        on_keyframe(kf);
+                    }
                 }
             }
         }
@@ -135,7 +150,7 @@ pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframe
             out.skipped.push((index, format!("{}: no /keyframe/{{{}}} message", file.display(), missing.join(","))));
         }
     }
-    if out.keyframes.is_empty() {
+    if delivered == 0 {
         let mut why = String::new();
         if !out.skipped.is_empty() {
             why.push_str(&format!("; {} incomplete or unreadable ({})", out.skipped.len(), out.skipped[0].1));
@@ -149,22 +164,22 @@ pub fn read_log_keyframes(path: &Path, limits: ReadLimits) -> Result<LogKeyframe
 }
 
 /// Turns the parts of keyframe `index` into a keyframe, or records why it is left out.
-fn finish(index: u64, p: Partial, used: &mut BTreeSet<u64>, out: &mut LogKeyframes) {
+fn finish(index: u64, p: Partial, used: &mut BTreeSet<u64>, out: &mut LogKeyframes) -> Option<Keyframe> {
     if let Some(problem) = p.problem {
         out.skipped.push((index, problem));
-        return;
+        return None;
     }
     let Some(camera) = p.camera else {
         out.skipped.push((index, "no /camera/calibration before it".into()));
-        return;
+        return None;
     };
     let (Some((image, t_ns)), Some(inv_depth), Some(inv_depth_variance), Some(world_from_cam)) = (p.image, p.inv_depth, p.variance, p.pose) else {
-        return;
+        return None;
     };
     let mut kf = Keyframe { index, t_ns, image, world_from_cam, camera, inv_depth, inv_depth_variance };
     if !kf.is_consistent() {
         out.skipped.push((index, format!("image {}x{} or depth {}x{} differs from the calibration {}x{}", kf.image.width, kf.image.height, kf.inv_depth.width, kf.inv_depth.height, camera.width, camera.height)));
-        return;
+        return None;
     }
     if used.contains(&index) {
         let new = used.last().map_or(0, |m| m + 1);
@@ -172,5 +187,5 @@ fn finish(index: u64, p: Partial, used: &mut BTreeSet<u64>, out: &mut LogKeyfram
         kf.index = new;
     }
     used.insert(kf.index);
-    out.keyframes.push(kf);
+    Some(kf)
 }

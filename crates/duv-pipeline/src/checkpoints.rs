@@ -58,7 +58,12 @@ impl CheckpointStore {
         header[..8].copy_from_slice(MAGIC);
         header[8..16].copy_from_slice(&(bytes.len() as u64).to_le_bytes());
         header[16..24].copy_from_slice(&fnv1a64(bytes).to_le_bytes());
-        f.write_all(&header).and_then(|()| f.write_all(bytes)).and_then(|()| f.sync_all()).map_err(io(&tmp))?;
+        if let Err(e) = f.write_all(&header).and_then(|()| f.write_all(bytes)).and_then(|()| f.sync_all()) {
+            // A full disk: the partial file goes, so it does not hold on to the space.
+            drop(f);
+            let _ = std::fs::remove_file(&tmp);
+            return Err(PipelineError::Io { path: tmp, source: e });
+        }
         drop(f);
         std::fs::rename(&tmp, &path).map_err(io(&path))?;
         duv_log::writer::sync_dir(&self.dir);

@@ -67,6 +67,14 @@ impl Handoff {
         }
     }
 
+    /// Keyframes the tracker already holds that are still to be handed on (a resume's, see
+    /// [`PipelineConfig::unlogged_keyframes`](super::PipelineConfig)), oldest first.
+    pub(super) fn adopt(&mut self, keyframes: &[(u64, Arc<Frame>)]) {
+        for (id, frame) in keyframes {
+            self.lag.push_back((*id, Arc::clone(frame)));
+        }
+    }
+
     /// After `tracker` tracked `frame` (`out`): each keyframe now due goes to `log` and then to
     /// `keyframe`; a window record, when one is due, to `log`.
     pub(super) fn after_frame(

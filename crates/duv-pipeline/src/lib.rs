@@ -15,6 +15,7 @@
 
 pub mod budget;
 pub mod checkpoints;
+pub mod dive;
 mod handoff;
 pub mod lock;
 pub mod mapping;
@@ -107,6 +108,11 @@ pub trait MapStage: Send {
     fn checkpoint(&mut self) -> Option<MapCheckpoint>;
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError>;
+    /// The newest keyframe id the stage was fed (keyframes come in id order), `None` when it
+    /// has none or keeps none: on resume, the logged keyframes after it are fed again.
+    fn newest_keyframe(&self) -> Option<u64> {
+        None
+    }
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
     /// optimisation and the exports into `out` (with `optimise` false, a stopped run: no
     /// optimisation and no keyframe renders, the map as it is); a one-line summary for the operator.
@@ -212,6 +218,14 @@ pub struct PipelineConfig {
     /// 0: none.
     pub window_keyframes: usize,
     pub window_interval: Duration,
+    /// Keyframes a resumed tracker holds that never reached mapping and the log (they were
+    /// waiting in the stopped run's hand-off lag; seeded from its logged window), with their
+    /// frames: handed on like new keyframes, so the map and `keyframes.txt` miss none.
+    pub unlogged_keyframes: Vec<(u64, Arc<Frame>)>,
+    /// Frames tracked again on resume whose pose the log does not hold (logged frames the
+    /// stopped run had not tracked yet, or whose pose was lost to damage): their poses are
+    /// logged this time.
+    pub retrack_unlogged: std::collections::BTreeSet<u64>,
 }
 
 impl PipelineConfig {
@@ -252,6 +266,8 @@ impl PipelineConfig {
             keyframe_lag: board.budgets.ba_window as usize,
             window_keyframes: board.budgets.ba_window as usize,
             window_interval: Duration::from_millis(500),
+            unlogged_keyframes: Vec::new(),
+            retrack_unlogged: std::collections::BTreeSet::new(),
         }
     }
 }
@@ -509,10 +525,20 @@ pub fn run<S: FrameSource + 'static>(
                 let _span = tracing::info_span!("map").entered();
                 let mut last_ckpt = Instant::now();
                 let mut last_t = Timestamp::from_ns(0);
-                let save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
+                // A checkpoint that cannot be written (a full disk) is reported once; mapping
+                // goes on, and a resume starts from the newest one on disk.
+                let mut failed_saves = 0u64;
+                let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
                     if let Some(c) = map.checkpoint() {
-                        checkpoints.save(&c.file)?;
-                        log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged });
+                        match checkpoints.save(&c.file) {
+                            Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
+                            Err(e) => {
+                                failed_saves += 1;
+                                if failed_saves == 1 {
+                                    tracing::error!("map checkpoint not written: {e}; mapping goes on");
+                                }
+                            }
+                        }
                     }
                     Ok(())
                 };
@@ -566,6 +592,8 @@ pub fn run<S: FrameSource + 'static>(
         let align = cfg.world_from_tracker;
         let mut tracker = tracker;
         let mut handoff = Handoff::new(cfg.handoff(), &tracker);
+        handoff.adopt(&cfg.unlogged_keyframes);
+        let retrack_unlogged = cfg.retrack_unlogged.clone();
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
             let _span = tracing::info_span!("track").entered();
@@ -587,6 +615,9 @@ pub fn run<S: FrameSource + 'static>(
                     let out = tracker.track(frame)?;
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
+                    if retrack_unlogged.contains(&frame.seq) {
+                        log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
+                    }
                     handoff.after_frame(tracker, frame, &out, |item| log_push(&lq, item), to_mapping)?;
                 }
                 drop(retrack);
@@ -789,6 +820,7 @@ fn run_deterministic<S: FrameSource + 'static>(
     };
     let mut last_t = Timestamp::from_ns(0);
     let mut handoff = Handoff::new(cfg.handoff(), &tracker);
+    handoff.adopt(&cfg.unlogged_keyframes);
     let mut to_mapping = |kf: Arc<Keyframe>| -> Result<(), PipelineError> {
         if stop.load(Ordering::Relaxed) {
             return Ok(());
@@ -806,6 +838,9 @@ fn run_deterministic<S: FrameSource + 'static>(
             let out = tracker.track(frame)?;
             track_times.push(t0.elapsed());
             recorder.record(&out);
+            if cfg.retrack_unlogged.contains(&frame.seq) {
+                log(&mut writer, LogItem::Pose(pose_record(&out, align.as_ref())));
+            }
             handoff.after_frame(tracker, frame, &out, |item| log(&mut writer, item), &mut to_mapping)?;
         }
         while !stop.load(Ordering::Relaxed) {
@@ -834,8 +869,10 @@ fn run_deterministic<S: FrameSource + 'static>(
     })?;
     drop(to_mapping);
     if let Some(c) = map.checkpoint() {
-        checkpoints.save(&c.file)?;
-        log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged });
+        match checkpoints.save(&c.file) {
+            Ok(_) => log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
+            Err(e) => tracing::error!("map checkpoint not written: {e}"),
+        }
     }
     let (log_stats, r) = writer.finish();
     if let Err(e) = r {

@@ -37,6 +37,8 @@ pub struct StageMapping {
     time: Duration,
     /// The renderer asked for, applied again to a stage rebuilt by `restore`.
     device: Option<(MapperDevice, GpuOptions)>,
+    /// Keyframe folder writes that failed (reported once).
+    folder_failures: u64,
 }
 
 impl StageMapping {
@@ -44,7 +46,7 @@ impl StageMapping {
     /// checkpoint bytes pass through.
     pub fn new(stage: MappingStage, keyframe_dir: PathBuf, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
         let budget = stage.budget();
-        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None }
+        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0 }
     }
 
     /// Renders with `device` from now on, also after a `restore` (see
@@ -69,10 +71,19 @@ impl MapStage for StageMapping {
     fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError> {
         let id = kf.index;
         let dir = &self.keyframe_dir;
-        std::fs::create_dir_all(dir).map_err(|source| MapStageError::CreateDir { path: dir.clone(), source })?;
-        write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image)?;
-        write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth)?;
-        write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance)?;
+        // The keyframe folder is written as keyframes arrive; a write that fails (a full disk)
+        // is reported once and mapping goes on (the keyframes are in the log).
+        let written = std::fs::create_dir_all(dir)
+            .map_err(|source| MapStageError::CreateDir { path: dir.clone(), source })
+            .and_then(|()| write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image).map_err(MapStageError::from))
+            .and_then(|()| write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth).map_err(MapStageError::from))
+            .and_then(|()| write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance).map_err(MapStageError::from));
+        if let Err(e) = written {
+            self.folder_failures += 1;
+            if self.folder_failures == 1 {
+                tracing::error!("keyframe folder not written: {e}; mapping goes on");
+            }
+        }
         let t0 = Instant::now();
         self.stage.on_keyframe(kf).map_err(|source| MapStageError::Keyframe { id, source })?;
         self.time += t0.elapsed();
@@ -111,6 +122,11 @@ impl MapStage for StageMapping {
         let g = mapper.gaussians();
         let centres_in_world = (0..g.len()).map(|i| g.get(i).mean).collect();
         Some(MapCheckpoint { file, logged, centres_in_world })
+    }
+
+    fn newest_keyframe(&self) -> Option<u64> {
+        let m = self.stage.mapper();
+        (0..m.keyframe_count()).filter_map(|slot| m.keyframe(slot).map(|k| k.index)).max()
     }
 
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError> {

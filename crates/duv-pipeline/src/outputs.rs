@@ -1,12 +1,16 @@
 //! The files a finished run leaves in its folder, written in one place: `trajectory.txt`
 //! (every frame, TUM), `keyframes.txt`, the keyframes' full-resolution inverse depth and
 //! variance (PFM), `states.txt`. A resumed dive's poses are put in the recorded frame here,
-//! once ([`finish_trajectory`]).
+//! once ([`finish_trajectory`]), and merged with what earlier processes of the dive logged
+//! ([`DiveHistory`]): the files describe the whole dive.
 
 use duv_core::io::pfm::write_pfm;
 use duv_core::pose::se3_to_tum;
 use duv_core::{PlaneF32, Sim3, Timestamp};
+use super::dive::DiveHistory;
+use duv_core::StampedPose;
 use duv_track::{FinalTrajectory, KeyframeView, RecordedFrame, TrackError, Tracker, TrajectoryRecorder};
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 use std::time::Duration;
@@ -35,11 +39,29 @@ pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &Tracker, world
     fin
 }
 
+/// What [`write_tracking_outputs`] wrote.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct WrittenOutputs {
+    /// The tracker's live keyframes, `(id, frame seq)`.
+    pub live: Vec<(u64, u64)>,
+    /// Frames in `trajectory.txt` (the whole dive) and the first and last frame number.
+    pub frames: u64,
+    pub first_seq: Option<u64>,
+    pub last_seq: Option<u64>,
+    /// Of them, poses logged by earlier processes of the dive (not tracked by this one).
+    pub frames_from_log: u64,
+    /// Keyframes in `keyframes.txt`.
+    pub keyframes: u64,
+    /// What `trajectory.txt` holds (the whole dive, by frame number).
+    pub trajectory: Vec<StampedPose>,
+}
+
 /// Writes `trajectory.txt`, `keyframes.txt` (with `mapped`, only the keyframes whose image the
 /// mapping stage wrote into `keyframes/`, so `duv refine --keyframes` reads the folder), the
 /// inverse depth and variance of the keyframes still in the tracker's graph, and `states.txt`
-/// (`frames` and `latencies` as the tracking thread recorded them). Returns the live keyframes'
-/// `(id, frame seq)`; `inv`/`var` are full-resolution scratch planes.
+/// (`frames` and `latencies` as the tracking thread recorded them), for the whole dive: this
+/// process's final poses over what `history` (earlier processes, from the log) holds.
+/// `inv`/`var` are full-resolution scratch planes.
 #[allow(clippy::too_many_arguments)]
 pub fn write_tracking_outputs(
     out: &Path,
@@ -48,19 +70,44 @@ pub fn write_tracking_outputs(
     latencies: &[Duration],
     tracker: &Tracker,
     mapped: bool,
+    history: Option<&DiveHistory>,
     inv: &mut PlaneF32,
     var: &mut PlaneF32,
-) -> Result<Vec<(u64, u64)>, OutputError> {
+) -> Result<WrittenOutputs, OutputError> {
     let kf_dir = out.join("keyframes");
-    duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &fin.frames)?;
-    let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
+    // seq -> (pose, state, tracker ms): the log's first, this process's over them.
+    let mut dive: BTreeMap<u64, (StampedPose, String, Option<f64>)> = BTreeMap::new();
+    if let Some(h) = history {
+        for (&seq, f) in &h.frames {
+            let state = f.state.clone().unwrap_or_else(|| "unknown".into()).replace(' ', "_");
+            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, None));
+        }
+    }
+    let from_log = dive.len() as u64;
+    let mut replaced = 0u64;
+    for (((f, pose), s), dt) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))) {
+        let state = s.name().replace(' ', "_");
+        if dive.insert(f.seq, (*pose, state, dt.map(|d| d.as_secs_f64() * 1e3))).is_some() {
+            replaced += 1;
+        }
+    }
+    let trajectory: Vec<StampedPose> = dive.values().map(|v| v.0).collect();
+    duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &trajectory)?;
+    // Keyframes: the logged poses, this process's final ones over them.
+    let mut keyframes: BTreeMap<u64, (Timestamp, duv_core::Se3)> = history.map(|h| h.keyframes.clone()).unwrap_or_default();
     for k in &fin.keyframes {
+        keyframes.insert(k.id, (k.t_ns, k.world_from_cam));
+    }
+    let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
+    let mut kf_written = 0u64;
+    for (id, (t_ns, pose)) in &keyframes {
         // With mapping on, the keyframe folder lists the keyframes mapping received (their
         // images are written as they arrive), so `duv refine --keyframes` can read it.
-        if mapped && !kf_dir.join(format!("{:06}.png", k.id)).exists() {
+        if mapped && !kf_dir.join(format!("{id:06}.png")).exists() {
             continue;
         }
-        let _ = writeln!(kf_text, "{} {}", k.id, tum_line(k.t_ns, &k.world_from_cam));
+        let _ = writeln!(kf_text, "{id} {}", tum_line(*t_ns, pose));
+        kf_written += 1;
     }
     duv_core::io::write_atomic(&out.join("keyframes.txt"), kf_text.as_bytes())?;
     let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
@@ -69,12 +116,57 @@ pub fn write_tracking_outputs(
         write_pfm(&kf_dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
         write_pfm(&kf_dir.join(format!("{id:06}_variance.pfm")), var)?;
     }
-    let mut states_text = String::from("# seq timestamp state tracker_ms\n");
-    for ((f, s), dt) in frames.iter().zip(&fin.states).zip(latencies) {
-        let _ = writeln!(states_text, "{} {:.9} {} {:.3}", f.seq, f.t_ns.as_secs_f64(), s.name().replace(' ', "_"), dt.as_secs_f64() * 1e3);
+    let mut states_text = String::from("# seq timestamp state tracker_ms (nan: tracked by an earlier process of the dive, see dive.json)\n");
+    for (seq, (pose, state, ms)) in &dive {
+        let _ = writeln!(states_text, "{seq} {:.9} {state} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
     }
     duv_core::io::write_atomic(&out.join("states.txt"), states_text.as_bytes())?;
-    Ok(live)
+    Ok(WrittenOutputs {
+        live,
+        frames: dive.len() as u64,
+        first_seq: dive.keys().next().copied(),
+        last_seq: dive.keys().next_back().copied(),
+        frames_from_log: from_log - replaced,
+        keyframes: kf_written,
+        trajectory,
+    })
+}
+
+/// Space held back in the run folder for the final outputs: a file of zeros made at start and
+/// removed right before the outputs are written, so a disk the log filled still takes the
+/// trajectory, the keyframe list, the states and `dive.json`.
+pub struct DiskReserve {
+    path: std::path::PathBuf,
+}
+
+/// Bytes [`DiskReserve`] holds back.
+pub const RESERVE_BYTES: usize = 8 << 20;
+
+impl DiskReserve {
+    /// Makes (or keeps) `OUT/duv.reserve`; a disk too full for it is reported, not an error.
+    pub fn claim(out: &Path) -> DiskReserve {
+        let path = out.join("duv.reserve");
+        let ok = std::fs::metadata(&path).is_ok_and(|m| m.len() as usize == RESERVE_BYTES) || {
+            let zeros = vec![0u8; RESERVE_BYTES];
+            match std::fs::File::create(&path).and_then(|mut f| std::io::Write::write_all(&mut f, &zeros).and_then(|()| f.sync_all())) {
+                Ok(()) => true,
+                Err(e) => {
+                    let _ = std::fs::remove_file(&path);
+                    tracing::warn!("{}: no room for the {} MiB kept for the final outputs: {e}", path.display(), RESERVE_BYTES >> 20);
+                    false
+                }
+            }
+        };
+        if !ok {
+            tracing::warn!("the final outputs may not fit if the disk fills");
+        }
+        DiskReserve { path }
+    }
+
+    /// Frees the space for the outputs.
+    pub fn release(self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
 }
 
 fn tum_line(t_ns: Timestamp, pose: &duv_core::Se3) -> String {

@@ -32,6 +32,7 @@
 //! Its scale comes from ~20 frames of a re-initialisation, so it drifts; the caller says which
 //! path was taken.
 
+use super::dive::{DiveHistory, PART_METADATA};
 use super::{CheckpointStore, PipelineError};
 use duv_core::{Frame, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Sim3, Timestamp};
 use duv_log::reader::OwnedEvent;
@@ -93,11 +94,20 @@ pub struct ResumeState {
     /// Logged frames after the newest of `keyframes` (or `seed_frames`) up to `last_seq`,
     /// oldest first.
     pub retrack: Vec<Frame>,
+    /// Logged frames after `last_seq` (captured and logged, not yet tracked when the run
+    /// stopped), oldest first: tracked from the log, so the source goes on after the last
+    /// logged frame and no frame is logged twice.
+    pub unposed: Vec<Frame>,
+    /// The newest logged camera frame.
+    pub last_frame_seq: Option<u64>,
     /// Recorded poses of the last frames: seq -> (pose, measured).
     pub poses: BTreeMap<u64, (Se3, bool)>,
     pub camera: Option<PinholeCamera>,
     /// Newest checkpoint that verified.
     pub checkpoint: Option<(PathBuf, Vec<u8>)>,
+    /// Every logged pose, state and keyframe pose, and the processes that wrote them: what
+    /// the output files of the whole dive are written from.
+    pub history: DiveHistory,
 }
 
 /// A keyframe's four records as they arrive.
@@ -136,10 +146,19 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     let mut camera = None;
     let mut poses_recorded = 0u64;
     let mut last: Option<(u64, Timestamp)> = None;
-    for (_, path) in list_segments(&log_dir)? {
+    let mut history = DiveHistory::default();
+    for (segment, path) in list_segments(&log_dir)? {
         let mut r = SegmentReader::open(&path, limits)?;
+        let mut part: Option<u32> = None;
         while let Some(e) = r.next_event() {
-            let OwnedEvent::Message { channel_id, sequence, log_time_ns, data, .. } = e else { continue };
+            let (channel_id, sequence, log_time_ns, data) = match e {
+                OwnedEvent::Message { channel_id, sequence, log_time_ns, data, .. } => (channel_id, sequence, log_time_ns, data),
+                OwnedEvent::Metadata { name, metadata } if name == PART_METADATA && part.is_none() => {
+                    part = Some(history.open_segment(segment, Some(&metadata)));
+                    continue;
+                }
+                _ => continue,
+            };
             let Some(topic) = r.channel(channel_id).and_then(|c| Topic::from_name(&c.topic)) else { continue };
             let seq = sequence as u64;
             match topic {
@@ -159,6 +178,8 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                 Topic::CameraCalibration => camera = decode_calibration(&data).ok(),
                 Topic::Pose => {
                     if let Ok(p) = decode_pose(&data) {
+                        let part = *part.get_or_insert_with(|| history.open_segment(segment, None));
+                        history.add_pose(part, seq, Timestamp::from_ns(log_time_ns as i64), p);
                         poses_recorded += 1;
                         let tracked = poses.get(&seq).map(|x| x.1).unwrap_or(true);
                         poses.insert(seq, (p, tracked));
@@ -176,6 +197,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                 }
                 Topic::State => {
                     if let Ok(s) = serde_json::from_slice::<StateMessage>(&data) {
+                        history.add_state(s.seq, &s.state);
                         if let Some(p) = poses.get_mut(&s.seq) {
                             // Lost frames hold a prediction, not a measurement.
                             p.1 = !s.state.starts_with("lost");
@@ -232,6 +254,9 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                     // The last of a keyframe's four records.
                     next_keyframe_id = next_keyframe_id.max(seq + 1);
                     let parts = partial.remove(&seq).unwrap_or_default();
+                    if let Ok(pose) = decode_pose(&data) {
+                        history.add_keyframe(seq, Timestamp::from_ns(log_time_ns as i64), pose);
+                    }
                     let (Ok(pose), Some(image), Some(inv_depth), Some(variance), Some(cam)) = (decode_pose(&data), parts.image, parts.inv_depth, parts.variance, camera) else {
                         tracing::warn!("resume: logged keyframe {seq} incomplete, not used");
                         continue;
@@ -258,6 +283,23 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
         }
     }
     let Some((last_seq, last_t_ns)) = last else {
+        // Stopped before its first pose: the frames it logged are tracked from the log (when
+        // they follow one another), not captured and logged again.
+        let contiguous = frames.keys().zip(frames.keys().skip(1)).all(|(a, b)| b == &(a + 1));
+        let mut unposed = Vec::new();
+        if contiguous {
+            for (seq, (data, t)) in &frames {
+                match decode_frame(data, *seq, *t) {
+                    Ok(f) => unposed.push(f),
+                    Err(e) => {
+                        tracing::warn!("resume: logged frame {seq} unreadable: {e}; the source starts again at the first");
+                        unposed.clear();
+                        break;
+                    }
+                }
+            }
+        }
+        let last_frame_seq = unposed.last().map(|f| f.seq);
         return Ok(Some(ResumeState {
             log_dir,
             recovered,
@@ -271,9 +313,12 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
             seed_frames: Vec::new(),
             restart: false,
             retrack: Vec::new(),
+            unposed,
+            last_frame_seq,
             poses,
             camera,
             checkpoint: None,
+            history,
         }));
     };
     let mut keyframes: Vec<(u64, Keyframe)> = keyframes.into_iter().filter(|(s, _)| *s <= last_seq).collect();
@@ -327,13 +372,16 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     let mut seed_frames = Vec::new();
     let mut recent = Vec::new();
     let mut retrack = Vec::new();
+    let mut unposed = Vec::new();
+    let last_frame_seq = frames.keys().next_back().copied();
     let first_recent = frames.keys().rev().filter(|s| poses.contains_key(s)).nth(options.relocalisation_frames.saturating_sub(1)).copied().unwrap_or(0);
     for (seq, (data, t)) in frames {
         let wanted_retrack = retrack_from.is_some_and(|a| seq >= a && seq <= last_seq);
         let pose = poses.get(&seq).copied();
         let wanted_recent = seq >= first_recent && pose.is_some();
         let wanted_seed = seed_seqs.contains(&seq);
-        if !(wanted_retrack || wanted_recent || wanted_seed) {
+        let wanted_unposed = seq > last_seq;
+        if !(wanted_retrack || wanted_recent || wanted_seed || wanted_unposed) {
             continue;
         }
         match decode_frame(&data, seq, t) {
@@ -344,7 +392,9 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                 if let (true, Some((p, _))) = (wanted_seed, pose) {
                     seed_frames.push((f.clone(), p));
                 }
-                if wanted_retrack {
+                if wanted_unposed {
+                    unposed.push(f);
+                } else if wanted_retrack {
                     retrack.push(f);
                 }
             }
@@ -354,7 +404,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     let checkpoint = CheckpointStore::new(out_dir.join("checkpoints"), 3).load_newest();
     // A logged frame that does not decode is skipped like a dropped frame.
     let restart = restart_from.is_some();
-    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, restart, retrack, poses, camera, checkpoint }))
+    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, restart, retrack, unposed, last_frame_seq, poses, camera, checkpoint, history }))
 }
 
 /// Whether `pose` is where a tracker starts (its first keyframe, the identity), so that a new

@@ -52,8 +52,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         path.extension().and_then(|e| e.to_str()).unwrap_or("")
     ));
     let mut f = std::fs::File::create(&tmp).map_err(|e| IoError::file(&tmp, e))?;
-    f.write_all(bytes).map_err(|e| IoError::file(&tmp, e))?;
-    f.sync_all().map_err(|e| IoError::file(&tmp, e))?;
+    if let Err(e) = f.write_all(bytes).and_then(|()| f.sync_all()) {
+        // A full disk: the partial file goes, so it does not hold on to the space.
+        drop(f);
+        let _ = std::fs::remove_file(&tmp);
+        return Err(IoError::file(&tmp, e));
+    }
     drop(f);
     std::fs::rename(&tmp, path).map_err(|e| IoError::file(path, e))
 }
