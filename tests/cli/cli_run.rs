@@ -286,6 +286,38 @@ fn a_speed_that_is_not_positive_is_refused() {
     }
 }
 
+/// Each bad value in a tracker or mapper config file is refused before any frame is tracked,
+/// with the key and what it must be; a partial table takes the defaults for the rest.
+#[test]
+fn each_bad_config_value_is_refused_with_its_key_and_range() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        ("--config", "[ba]\nfixed_poses = 0\n", "fixed_poses"),
+        ("--config", "[ba]\nhuber_threshold = -1.0\n", "huber"),
+        ("--config", "keyframe_flow_px = -1.0\n", "keyframe_flow_px: must be finite and positive"),
+        ("--config", "edge_min_overlap = 1.5\n", "edge_min_overlap: must be in [0, 1], got 1.5"),
+        ("--config", "[flow]\npatch_size = 0\n", "patch_size"),
+        ("--map-config", "window = 0\n", "window = 0 must be >= 1"),
+        ("--map-config", "prune_min_opacity = 1.5\n", "prune_min_opacity = 1.5 must be in [0, 1]"),
+        ("--map-config", "init_opacity = 1.0\n", "init_opacity = 1 must be in [1e-6, 1 - 1e-6]"),
+    ];
+    for (i, (flag, toml, needle)) in cases.iter().enumerate() {
+        let cfg = dir.path().join(format!("bad-{i}.toml"));
+        std::fs::write(&cfg, toml).unwrap();
+        let out = dir.path().join(format!("run-{i}"));
+        let res = duv().args(["run", "--source", "sim:coastal", "--frames", "3", "--width", "160", "--height", "120", "--no-progress"]).arg(flag).arg(&cfg).arg("--out").arg(&out).output().unwrap();
+        let stderr = String::from_utf8_lossy(&res.stderr);
+        assert_eq!(res.status.code(), Some(1), "{flag} {toml}: {stderr}");
+        assert!(stderr.contains(needle) && !stderr.contains("panicked"), "{flag} {toml}: expected {needle:?} in {stderr}");
+        assert!(!out.join("trajectory.txt").exists() && !out.join("log").exists(), "{flag} {toml}: the run started");
+    }
+    // A partial table: the rest from the defaults.
+    let cfg = dir.path().join("partial.toml");
+    std::fs::write(&cfg, "[ba]\nhuber_threshold = 2.0\n").unwrap();
+    let res = duv().args(["run", "--source", "sim:coastal", "--frames", "3", "--width", "160", "--height", "120", "--no-progress", "--no-map", "--config"]).arg(&cfg).arg("--out").arg(dir.path().join("partial")).output().unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+}
+
 /// Two processes on one run folder: the second is refused, naming the first's process id,
 /// and the first goes on; once it has ended the folder is free again.
 #[test]

@@ -303,16 +303,18 @@ impl MapperConfig {
         if self.intersections_per_gaussian == 0 {
             return bad("intersections_per_gaussian", 0.0, "must be >= 1");
         }
-        for (field, v, lo, hi) in [
-            ("init_opacity", self.init_opacity, 1e-6, 1.0 - 1e-6),
-            ("window_probability", self.window_probability, 0.0, 1.0),
-            ("max_replace_fraction", self.max_replace_fraction, 0.0, 1.0),
-            ("init_covered_alpha", self.init_covered_alpha, 0.0, 1.0),
-            ("init_replace_fraction", self.init_replace_fraction, 0.0, 1.0),
-            ("prune_min_opacity", self.prune_min_opacity, 0.0, 1.0),
+        if !(self.init_opacity.is_finite() && self.init_opacity >= 1e-6 && self.init_opacity <= 1.0 - 1e-6) {
+            return bad("init_opacity", self.init_opacity, "must be in [1e-6, 1 - 1e-6]");
+        }
+        for (field, v) in [
+            ("window_probability", self.window_probability),
+            ("max_replace_fraction", self.max_replace_fraction),
+            ("init_covered_alpha", self.init_covered_alpha),
+            ("init_replace_fraction", self.init_replace_fraction),
+            ("prune_min_opacity", self.prune_min_opacity),
         ] {
-            if !(v.is_finite() && v >= lo && v <= hi) {
-                return bad(field, v, "is out of range");
+            if !(v.is_finite() && (0.0..=1.0).contains(&v)) {
+                return bad(field, v, "must be in [0, 1]");
             }
         }
         for (field, v) in [

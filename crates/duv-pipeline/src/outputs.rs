@@ -163,8 +163,13 @@ impl DiskReserve {
         DiskReserve { path }
     }
 
-    /// Frees the space for the outputs.
-    pub fn release(self) {
+    /// Frees the space for the outputs (dropping it does the same: a run that ends with an
+    /// error leaves no reserve behind; only a killed one does, and its next start reuses it).
+    pub fn release(self) {}
+}
+
+impl Drop for DiskReserve {
+    fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.path);
     }
 }

@@ -326,7 +326,8 @@ impl Default for TrackerConfig {
 #[error("tracker config: {field}: {problem}")]
 pub struct ConfigError {
     pub field: &'static str,
-    pub problem: &'static str,
+    /// What the value must be (the allowed range).
+    pub problem: String,
 }
 
 impl TrackerConfig {
@@ -340,7 +341,7 @@ impl TrackerConfig {
     /// Checks the fields the tracker relies on (flow and BA are checked by their owners,
     /// [`FlowConfig::validate`] and [`BaConfig::validate`]; `Tracker::new` runs all three).
     pub fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |field, problem| Err(ConfigError { field, problem });
+        let bad = |field, problem: &str| Err(ConfigError { field, problem: problem.to_string() });
         if self.depth_factor.is_some_and(|f| !(1..=32).contains(&f)) {
             return bad("depth_factor", "must be in 1..=32");
         }
@@ -412,7 +413,8 @@ impl TrackerConfig {
         ];
         for (field, v, hi) in unit {
             if !(v.is_finite() && v >= 0.0 && v <= hi) {
-                return bad(field, "out of range");
+                let range = if hi == f32::MAX { "must be finite and >= 0".to_string() } else { format!("must be in [0, {hi}], got {v}") };
+                return Err(ConfigError { field, problem: range });
             }
         }
         if self.consistency_neighbours > MAX_CONSISTENCY_NEIGHBOURS {
