@@ -125,6 +125,20 @@ fn logged_frame_seqs(log_dir: &Path) -> (std::collections::BTreeSet<u64>, usize)
     (seqs, messages)
 }
 
+/// Ids of the logged keyframes (`/keyframe/pose`, sequence = keyframe id).
+fn logged_keyframe_ids(log_dir: &Path) -> std::collections::BTreeSet<u64> {
+    let mut ids = std::collections::BTreeSet::new();
+    for (_, p) in list_segments(log_dir).unwrap() {
+        read_segment(&p, ReadLimits::default(), |m| {
+            if m.channel.topic == Topic::KeyframePose.name() {
+                ids.insert(m.sequence as u64);
+            }
+        })
+        .unwrap();
+    }
+    ids
+}
+
 /// Walks an undamaged (possibly unfinished) MCAP file record by record and returns each
 /// whole chunk's offset, length and message count (by the `mcap` crate's chunk reader):
 /// an independent count, not the log's salvaging reader.
@@ -578,6 +592,15 @@ fn crash_harness_kill_9_and_resume() {
     // No frame logged twice: a start tracks the frames the stopped run logged but had not
     // tracked from the log, and its source goes on after them.
     assert_eq!(camera_messages, FRAMES);
+    // The map covers every logged keyframe: each was fed to mapping (its image is in the
+    // keyframe folder) and is listed in keyframes.txt.
+    let logged_keyframes = logged_keyframe_ids(&log_dir);
+    let listed: std::collections::BTreeSet<u64> = std::fs::read_to_string(out.join("keyframes.txt")).unwrap().lines().filter(|l| !l.starts_with('#')).map(|l| l.split_whitespace().next().unwrap().parse().unwrap()).collect();
+    let unmapped: Vec<u64> = logged_keyframes.iter().copied().filter(|id| !out.join("keyframes").join(format!("{id:06}.png")).exists()).collect();
+    eprintln!("keyframes: {} logged, {} in keyframes.txt, {} not mapped", logged_keyframes.len(), listed.len(), unmapped.len());
+    assert!(unmapped.is_empty(), "logged keyframes never mapped: {unmapped:?}");
+    assert!(logged_keyframes.is_subset(&listed), "logged keyframes missing from keyframes.txt: {:?}", logged_keyframes.difference(&listed).collect::<Vec<_>>());
+    assert!(out.join("map.ply").is_file());
     let dive: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("dive.json")).unwrap()).unwrap();
     assert_eq!(dive["finished"], true);
     assert_eq!(dive["frames"].as_u64(), Some(FRAMES as u64));

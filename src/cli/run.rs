@@ -272,22 +272,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         // checkpoint), one at a time from the log: the map covers every logged keyframe.
         if !args.no_map && !r.history.keyframes.is_empty() {
             let newest = map.newest_keyframe();
-            let (mut fed, mut failed) = (0usize, None);
-            let read = duv_log::for_each_log_keyframe(&log_dir, ReadLimits::default(), |id| newest.is_none_or(|n| id > n), |kf| {
-                if failed.is_none() {
-                    match map.add_keyframe(&kf) {
-                        Ok(()) => fed += 1,
-                        Err(e) => failed = Some(format!("keyframe {}: {e}", kf.index)),
-                    }
-                }
-            });
-            match (read, failed) {
-                (_, Some(e)) => eprintln!("MAP: a logged keyframe was not fed again: {e}"),
-                (Ok(_) | Err(duv_log::LogError::NoKeyframes { .. }), None) => {}
-                (Err(e), None) => eprintln!("MAP: the logged keyframes were not read again: {e}"),
+            let refed = duv_pipeline::mapping::feed_unmapped_keyframes(map.as_mut(), &log_dir, &kf_dir, newest);
+            if let Some(e) = &refed.problem {
+                eprintln!("MAP: the logged keyframes were not all fed again: {e}");
             }
-            if fed > 0 {
-                eprintln!("map: {fed} logged keyframe(s) after {} fed again", newest.map_or("the start".to_string(), |n| format!("keyframe {n}, the map checkpoint's newest,")));
+            if refed.keyframes > 0 {
+                eprintln!("map: {} logged keyframe(s) the map did not cover fed again (after {})", refed.keyframes, newest.map_or("the start".to_string(), |n| format!("keyframe {n}, the checkpoint's newest")));
             }
         }
         match resume::relocalise(&mut tracker, r)? {
@@ -426,6 +416,17 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Final trajectory, keyframes, their depth maps and states of the whole dive: one writer,
     // this process's poses in the recorded frame over what earlier processes logged.
     reserve.release();
+    // Keyframes the full keyframe queue kept from mapping are in the log: the map gets them
+    // now, before its final optimisation, so it covers every logged keyframe.
+    if !args.no_map && !result.interrupted && (result.keyframe_queue.dropped > 0 || resume_state.is_some()) {
+        let refed = duv_pipeline::mapping::feed_unmapped_keyframes(map.as_mut(), &log_dir, &kf_dir, Some(u64::MAX));
+        if let Some(e) = &refed.problem {
+            eprintln!("MAP: the logged keyframes were not all mapped: {e}");
+        }
+        if refed.keyframes > 0 {
+            println!("map: {} logged keyframe(s) the keyframe queue had dropped mapped before the final optimisation", refed.keyframes);
+        }
+    }
     let fin = duv_pipeline::outputs::finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
     let written = duv_pipeline::outputs::write_tracking_outputs(&args.out, &fin, recorder.frames(), &latencies, &tracker, !args.no_map, history, &mut inv, &mut var)?;
     let live = written.live.clone();

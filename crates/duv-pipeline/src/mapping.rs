@@ -170,3 +170,37 @@ impl MapStage for StageMapping {
         )))
     }
 }
+
+/// What [`feed_unmapped_keyframes`] did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Refed {
+    pub keyframes: usize,
+    /// Why it stopped early (a keyframe the stage refused, an unreadable log).
+    pub problem: Option<String>,
+}
+
+/// Feeds `map` the keyframes logged in `log_dir` that it does not cover: those after
+/// `newest_fed` (a restored checkpoint's newest; `None`: all when the stage holds none) and
+/// those whose image is not in `keyframe_dir` (every keyframe mapping receives is written
+/// there; the missing ones were dropped by a full keyframe queue, or came after the newest
+/// checkpoint of a stopped run). One keyframe at a time from the log: the map then covers
+/// every logged keyframe.
+pub fn feed_unmapped_keyframes(map: &mut dyn MapStage, log_dir: &Path, keyframe_dir: &Path, newest_fed: Option<u64>) -> Refed {
+    let mut out = Refed::default();
+    let unmapped = |id: u64| newest_fed.is_none_or(|n| id > n) || !keyframe_dir.join(format!("{id:06}.png")).exists();
+    let read = duv_log::for_each_log_keyframe(log_dir, duv_log::ReadLimits::default(), unmapped, |kf| {
+        if out.problem.is_none() {
+            match map.add_keyframe(&kf) {
+                Ok(()) => out.keyframes += 1,
+                Err(e) => out.problem = Some(format!("keyframe {}: {e}", kf.index)),
+            }
+        }
+    });
+    match read {
+        Ok(_) | Err(duv_log::LogError::NoKeyframes { .. }) => {}
+        Err(e) => {
+            out.problem.get_or_insert(e.to_string());
+        }
+    }
+    out
+}

@@ -9,7 +9,7 @@ use duv_core::pose::se3_to_tum;
 use duv_core::{PlaneF32, Sim3, Timestamp};
 use super::dive::DiveHistory;
 use duv_core::StampedPose;
-use duv_track::{FinalTrajectory, KeyframeView, RecordedFrame, TrackError, Tracker, TrajectoryRecorder};
+use duv_track::{FinalKeyframe, FinalTrajectory, KeyframeView, RecordedFrame, TrackError, Tracker, TrajectoryRecorder};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -28,6 +28,12 @@ pub enum OutputError {
 /// the run resumed a dive (`world_from_tracker`, the resume's alignment).
 pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &Tracker, world_from_tracker: Option<&Sim3>) -> FinalTrajectory {
     let mut fin = recorder.finish(tracker);
+    // Keyframes the tracker was seeded with on resume never came out of `track`: they are
+    // listed from the tracker's graph.
+    let known: std::collections::BTreeSet<u64> = fin.keyframes.iter().map(|k| k.id).collect();
+    let seeded: Vec<FinalKeyframe> = tracker.keyframes().filter(|k| !known.contains(&k.id)).map(|k| FinalKeyframe { id: k.id, t_ns: k.t_ns, seq: k.seq, world_from_cam: k.world_from_cam, live: true }).collect();
+    fin.keyframes.extend(seeded);
+    fin.keyframes.sort_by_key(|k| k.id);
     if let Some(a) = world_from_tracker {
         for f in &mut fin.frames {
             f.world_from_cam = duv_core::pose::sim3_apply_to_pose(a, &f.world_from_cam);
