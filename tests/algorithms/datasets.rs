@@ -330,6 +330,74 @@ fn folder_time_stamps_from_names_or_rate() {
     assert_err_contains(&e, &["calibration.txt", "calibration file not found"]);
 }
 
+/// JPEG frames named by video time in `DIR/images/`, no calibration file: `fov=DEG` guesses
+/// the intrinsics; frames decode within JPEG's error of the pixels written.
+#[test]
+fn folder_of_jpeg_frames_with_video_times_and_a_field_of_view_guess() {
+    let dir = tempfile::tempdir().unwrap();
+    let images = dir.path().join("images");
+    std::fs::create_dir_all(&images).unwrap();
+    // A smooth image (JPEG's 8x8 blocks keep it within a few levels).
+    let (w, h) = (64usize, 48usize);
+    let smooth = |k: usize| ImageRgb8 { width: w, height: h, data: (0..w * h * 3).map(|i| ((i / 3 % w) * 2 + (i / 3 / w) + k * 10) as u8).collect() };
+    let enc = duv_log::jpeg::JpegEncoder::new(95).unwrap();
+    for (k, name) in ["frame_00_00_21.000", "frame_00_00_35.500", "frame_00_00_22.000"].iter().enumerate() {
+        let mut bytes = Vec::new();
+        enc.encode(&smooth(k).data, w, h, 3, &mut bytes).unwrap();
+        std::fs::write(images.join(format!("{name}.jpg")), bytes).unwrap();
+    }
+    // No calibration: the error says how to guess one.
+    let e = open_dataset(&spec("folder", dir.path())).unwrap_err();
+    assert_err_contains(&e, &["calibration.txt", "fov=DEG"]);
+    let d = open_dataset(&format!("{},fov=90", spec("folder", dir.path()))).unwrap();
+    // Irregular gaps kept, in time order.
+    assert_eq!(d.frames.iter().map(|f| f.t_ns.t_ns()).collect::<Vec<_>>(), [21_000_000_000, 22_000_000_000, 35_500_000_000]);
+    // 90 degrees: fx = half the width.
+    assert!((d.camera.fx - 32.0).abs() < 1e-9 && d.camera.fx == d.camera.fy && (d.camera.cx - 31.5).abs() < 1e-9 && (d.camera.cy - 23.5).abs() < 1e-9);
+    assert_eq!((d.camera.width, d.camera.height), (w, h));
+    let mut src = d.into_source();
+    let f = src.next_frame().unwrap().unwrap();
+    let FrameImage::Rgb8(img) = f.image else { panic!("JPEG frames decode to RGB") };
+    let max_err = img.data.iter().zip(&smooth(0).data).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+    assert!(max_err <= 8, "JPEG frame differs by up to {max_err} levels");
+    // downsample=2: half the size, the camera scaled, each pixel the mean of its 2x2 block.
+    let d = open_dataset(&format!("{},fov=90,downsample=2", spec("folder", dir.path()))).unwrap();
+    assert_eq!((d.camera.width, d.camera.height), (w / 2, h / 2));
+    assert!((d.camera.fx - 16.0).abs() < 1e-9 && (d.camera.cx - 15.5).abs() < 1e-9);
+    let full = img.clone();
+    let f = d.into_source().next_frame().unwrap().unwrap();
+    let FrameImage::Rgb8(half) = f.image else { panic!("RGB") };
+    assert_eq!((half.width, half.height), (w / 2, h / 2));
+    let mean = |x: usize, y: usize, c: usize| ((0..4).map(|k| full.data[((2 * y + k / 2) * w + 2 * x + k % 2) * 3 + c] as u32).sum::<u32>() + 2) / 4;
+    assert_eq!(half.data[(5 * (w / 2) + 7) * 3 + 1] as u32, mean(7, 5, 1));
+    let e = open_dataset(&format!("{},fov=90,downsample=9", spec("folder", dir.path()))).unwrap_err();
+    assert_err_contains(&e, &["downsample", "1 to 8"]);
+    // A bad field of view is refused by name.
+    let e = open_dataset(&format!("{},fov=200", spec("folder", dir.path()))).unwrap_err();
+    assert_err_contains(&e, &["fov", "1 to 170"]);
+}
+
+/// The real SUBVO pool footage (`../shared/data/real/subvo`, Neyestani et al., I2MTC 2025, CC
+/// BY 4.0) opens as it ships: 220 JPEG frames of 1280x720 in `images/`, time stamps from the
+/// video times in the names (1-14 s gaps), the ground truth beside them.
+#[test]
+fn real_subvo_footage_opens_as_shipped() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/real/subvo");
+    let d = open_dataset(&format!("folder:{},fov=77", root.display())).unwrap();
+    assert_eq!(d.frames.len(), 220);
+    assert_eq!((d.camera.width, d.camera.height), (1280, 720));
+    assert!((d.camera.fx - 640.0 / (38.5f64).to_radians().tan()).abs() < 1e-6);
+    let gaps: Vec<f64> = d.frames.windows(2).map(|w| (w[1].t_ns.t_ns() - w[0].t_ns.t_ns()) as f64 * 1e-9).collect();
+    let (min, max) = gaps.iter().fold((f64::MAX, 0.0f64), |(a, b), &g| (a.min(g), b.max(g)));
+    assert!(min >= 0.9 && max <= 15.0, "gaps {min}..{max} s");
+    assert_eq!(d.frames[0].t_ns.t_ns(), 21_000_000_000);
+    let gt = d.ground_truth.as_ref().expect("groundtruth.txt");
+    assert_eq!(gt.len(), 220);
+    let mut src = d.into_source();
+    let f = src.next_frame().unwrap().unwrap();
+    assert_eq!((f.image.width(), f.image.height()), (1280, 720));
+}
+
 // ---- bad input ----
 
 #[test]
@@ -424,7 +492,7 @@ fn empty_folders() {
     let dir = tempfile::tempdir().unwrap();
     let e = open_dataset(&spec("folder", dir.path())).unwrap_err();
     assert!(matches!(e, CameraError::Empty { .. }));
-    assert_err_contains(&e, &[&dir.path().display().to_string(), "no PNG images found"]);
+    assert_err_contains(&e, &[&dir.path().display().to_string(), "no PNG or JPEG images (here or in images/) found"]);
     let e = open_dataset(&spec("tum", dir.path())).unwrap_err();
     assert_err_contains(&e, &["rgb.txt", "not found"]);
     std::fs::write(dir.path().join("rgb.txt"), "# nothing\n").unwrap();

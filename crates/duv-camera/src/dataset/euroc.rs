@@ -35,6 +35,8 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         ground_truth,
         medium: super::optional_medium(root)?,
         body_from_cam: Some(sensor.body_from_cam),
+        downsample: 1,
+        source_size: None,
     })
 }
 

@@ -18,7 +18,8 @@ pub use folder::FOLDER_DEFAULT_FPS;
 pub use tartanair::{ned_to_cam, TARTANAIR_DEFAULT_FPS};
 
 use super::{CameraError, FrameSource};
-use duv_core::{Frame, MediumParams, PinholeCamera, PlaneF32, Se3, StampedPose, Timestamp};
+use duv_core::io::IoError;
+use duv_core::{Frame, FrameImage, MediumParams, PinholeCamera, PlaneF32, Se3, StampedPose, Timestamp};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
@@ -62,10 +63,10 @@ impl DatasetKind {
     /// The options a spec of this kind accepts.
     fn options(self) -> &'static [&'static str] {
         match self {
-            DatasetKind::Tum => &["calib", "depth_scale"],
+            DatasetKind::Tum => &["calib", "depth_scale", "fov", "downsample"],
             DatasetKind::Euroc => &["cam"],
             DatasetKind::TartanAir => &["calib", "fps"],
-            DatasetKind::Folder => &["calib", "fps"],
+            DatasetKind::Folder => &["calib", "fps", "fov", "downsample"],
         }
     }
 }
@@ -122,6 +123,9 @@ pub struct Dataset {
     pub medium: Option<MediumParams>,
     /// Camera-to-body extrinsics (EuRoC `T_BS`), where the dataset has them.
     pub body_from_cam: Option<Se3>,
+    /// `downsample=N` (1: frames as stored) and the stored image size it applies to.
+    pub downsample: usize,
+    pub source_size: Option<(usize, usize)>,
 }
 
 /// A parsed spec `KIND:DIR[,OPTION=VALUE]...`; see [`open_dataset`] for the syntax.
@@ -137,6 +141,13 @@ pub struct DatasetSpec {
     pub depth_scale: Option<f64>,
     /// `cam=NAME`: EuRoC camera folder under `mav0/`.
     pub cam: Option<String>,
+    /// `fov=DEG`: intrinsics unknown: a pinhole camera with this horizontal field of view,
+    /// square pixels, the principal point in the image centre, no distortion (used when no
+    /// calibration file is given or found).
+    pub fov_deg: Option<f64>,
+    /// `downsample=N`: frames averaged over N x N pixel blocks (and the camera scaled to
+    /// match), for footage larger than the board's tracking resolution.
+    pub downsample: Option<usize>,
 }
 
 impl DatasetSpec {
@@ -152,7 +163,7 @@ impl DatasetSpec {
         if dir.is_empty() {
             return Err(bad("no directory after the kind".into()));
         }
-        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None };
+        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None, fov_deg: None, downsample: None };
         let mut seen: Vec<&str> = Vec::new();
         for part in parts {
             let (key, value) = part
@@ -180,6 +191,17 @@ impl DatasetSpec {
                 "calib" => out.calib = Some(PathBuf::from(value)),
                 "fps" => out.fps = Some(positive("fps")?),
                 "depth_scale" => out.depth_scale = Some(positive("depth_scale")?),
+                "downsample" => match value.parse::<usize>() {
+                    Ok(n) if (1..=8).contains(&n) => out.downsample = Some(n),
+                    _ => return Err(bad(format!("downsample={value:?} must be a whole factor 1 to 8"))),
+                },
+                "fov" => {
+                    let fov = positive("fov")?;
+                    if !(1.0..=170.0).contains(&fov) {
+                        return Err(bad(format!("fov={value:?} must be a horizontal field of view in degrees, 1 to 170")));
+                    }
+                    out.fov_deg = Some(fov);
+                }
                 "cam" => {
                     if value.contains(['/', '\\']) || value == ".." || value == "." {
                         return Err(bad(format!("cam={value:?} must be a folder name such as cam0")));
@@ -202,9 +224,9 @@ impl DatasetSpec {
 /// contain a comma; an option a kind does not take, or one given twice, is an error; relative
 /// paths are relative to the working directory):
 ///
-/// - `tum:DIR[,calib=FILE][,depth_scale=F]`: `DIR/rgb.txt` (required), `DIR/depth.txt`,
+/// - `tum:DIR[,calib=FILE][,depth_scale=F][,fov=DEG]`: `DIR/rgb.txt` (required), `DIR/depth.txt`,
 ///   `DIR/groundtruth.txt`, `DIR/medium.json` (optional), calibration from `calib=FILE` or else
-///   `DIR/calibration.txt` (required: one line `fx fy cx cy width height`, optionally followed by
+///   `DIR/calibration.txt` (required unless `fov=DEG` guesses it: one line `fx fy cx cy width height`, optionally followed by
 ///   `k1 k2 p1 p2 k3`). Depth PNGs hold metres x `depth_scale` (default 5000).
 /// - `euroc:DIR[,cam=NAME]`: `DIR/mav0/NAME/` (or `DIR/NAME/` when `DIR` is the `mav0` folder),
 ///   `NAME` default `cam0`: `data.csv`, `data/`, `sensor.yaml`; ground truth from
@@ -214,24 +236,40 @@ impl DatasetSpec {
 ///   (NED, converted to camera axes), `DIR/depth_left/NNNNNN_left_depth.npy` when present;
 ///   camera fx = fy = 320, cx = 320, cy = 240, 640x480 unless `calib=FILE` or
 ///   `DIR/calibration.txt` says otherwise; time stamps `i / fps`, fps default 10.
-/// - `folder:DIR[,calib=FILE][,fps=F]`: every `*.png` in `DIR`, calibration from `calib=FILE` or
-///   `DIR/calibration.txt` (required). Time stamps from the file stems when every stem is a
-///   19-digit integer (nanoseconds) or every stem is a decimal number with a point (seconds),
-///   frames then ordered by time; otherwise, or when `fps=F` is given, frames are ordered by
-///   name and stamped `i / fps` (default 10). `DIR/groundtruth.txt` (TUM) and
-///   `DIR/medium.json` are read when present.
+/// - `folder:DIR[,calib=FILE][,fps=F][,fov=DEG]`: every `*.png`, `*.jpg` or `*.jpeg` in `DIR`
+///   (or in `DIR/images/` when `DIR` holds none), calibration from `calib=FILE` or
+///   `DIR/calibration.txt`, or else guessed from `fov=DEG` (horizontal field of view, for
+///   footage whose intrinsics are unknown). Time stamps from the file stems when every stem is a
+///   19-digit integer (nanoseconds), every stem is a decimal number with a point (seconds), or
+///   every stem ends in a video time `HH_MM_SS.mmm` after a common prefix
+///   (`frame_00_01_05.250`), frames then ordered by time; otherwise, or when `fps=F` is given,
+///   frames are ordered by name and stamped `i / fps` (default 10). `DIR/groundtruth.txt` (TUM)
+///   and `DIR/medium.json` are read when present.
+///
+/// Images are PNG (8-bit, or 16-bit reduced to 8) or JPEG in every layout. `tum:` and `folder:`
+/// also take `downsample=N` (1-8): frames averaged over N x N blocks, the camera scaled.
 pub fn open_dataset(spec: &str) -> Result<Dataset, CameraError> {
     open_spec(&DatasetSpec::parse(spec)?)
 }
 
 /// Opens a dataset from a parsed spec.
 pub fn open_spec(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
-    let dataset = match spec.kind {
+    let mut dataset = match spec.kind {
         DatasetKind::Tum => tum::open(spec),
         DatasetKind::Euroc => euroc::open(spec),
         DatasetKind::TartanAir => tartanair::open(spec),
         DatasetKind::Folder => folder::open(spec),
     }?;
+    if let Some(n) = spec.downsample.filter(|&n| n > 1) {
+        let c = dataset.camera;
+        if c.distortion.is_some() {
+            return Err(CameraError::BadSpec { spec: format!("{}:{}", spec.kind, spec.dir.display()), problem: "downsample= needs a camera without distortion".into() });
+        }
+        let k = n as f64;
+        dataset.source_size = Some((c.width, c.height));
+        dataset.camera = PinholeCamera { fx: c.fx / k, fy: c.fy / k, cx: (c.cx + 0.5) / k - 0.5, cy: (c.cy + 0.5) / k - 0.5, width: c.width / n, height: c.height / n, distortion: None };
+        dataset.downsample = n;
+    }
     tracing::debug!(
         depth = dataset.depth.is_some(),
         ground_truth = dataset.ground_truth.is_some(),
@@ -259,7 +297,16 @@ impl Dataset {
     pub fn load_frame(&self, index: usize) -> Result<Frame, CameraError> {
         let f = &self.frames[index];
         let wrap = |e: CameraError| CameraError::BadFrame { index, path: f.path.clone(), source: Box::new(e) };
-        let image = duv_core::io::png_io::read_image(&f.path).map_err(|e| wrap(e.into()))?;
+        let image = read_image_file(&f.path).map_err(wrap)?;
+        let image = if self.downsample > 1 {
+            let (w, h) = self.source_size.unwrap_or((0, 0));
+            if image.width() != w || image.height() != h {
+                return Err(wrap(CameraError::ImageSize { path: f.path.clone(), width: image.width(), height: image.height(), expected_width: w, expected_height: h }));
+            }
+            downsample_image(&image, self.downsample)
+        } else {
+            image
+        };
         self.check_size(&f.path, image.width(), image.height()).map_err(wrap)?;
         Ok(Frame { t_ns: f.t_ns, seq: index as u64, image })
     }
@@ -411,12 +458,90 @@ fn optional_calibration(spec: &DatasetSpec, default_path: &Path) -> Result<Optio
     }
 }
 
-/// Like [`optional_calibration`], but a missing file is an error naming the file looked for.
-fn required_calibration(spec: &DatasetSpec, default_path: &Path) -> Result<PinholeCamera, CameraError> {
-    optional_calibration(spec, default_path)?.ok_or_else(|| CameraError::MissingCalibration {
-        path: default_path.to_path_buf(),
-        hint: "write one line `fx fy cx cy width height` there, or add calib=FILE to the source spec",
-    })
+/// Like [`optional_calibration`], but a missing file is an error naming the file looked for,
+/// unless the spec gives `fov=DEG`: then a pinhole guess at the size of `first_image`.
+fn required_calibration(spec: &DatasetSpec, default_path: &Path, first_image: Option<&Path>) -> Result<PinholeCamera, CameraError> {
+    if let Some(c) = optional_calibration(spec, default_path)? {
+        return Ok(c);
+    }
+    match (spec.fov_deg, first_image) {
+        (Some(fov), Some(image)) => {
+            let img = read_image_file(image)?;
+            let c = camera_from_fov(fov, img.width(), img.height());
+            tracing::warn!("{}: no calibration; guessed from fov={fov} deg: fx = fy = {:.1} px, centre ({:.1}, {:.1}), no distortion", spec.dir.display(), c.fx, c.cx, c.cy);
+            Ok(c)
+        }
+        _ => Err(CameraError::MissingCalibration {
+            path: default_path.to_path_buf(),
+            hint: "write one line `fx fy cx cy width height` there, add calib=FILE to the source spec, or guess the intrinsics with fov=DEG",
+        }),
+    }
+}
+
+/// A pinhole camera of `width x height` with horizontal field of view `fov_deg`, square
+/// pixels and the principal point at the image centre.
+pub fn camera_from_fov(fov_deg: f64, width: usize, height: usize) -> PinholeCamera {
+    let f = 0.5 * width as f64 / (0.5 * fov_deg.to_radians()).tan();
+    PinholeCamera { fx: f, fy: f, cx: 0.5 * width as f64 - 0.5, cy: 0.5 * height as f64 - 0.5, width, height, distortion: None }
+}
+
+/// `image` averaged over `n x n` blocks (the last partial row and column of blocks dropped).
+pub fn downsample_image(image: &FrameImage, n: usize) -> FrameImage {
+    fn avg(data: &[u8], w: usize, h: usize, ch: usize, n: usize) -> (usize, usize, Vec<u8>) {
+        let (ow, oh) = (w / n, h / n);
+        let mut out = vec![0u8; ow * oh * ch];
+        for y in 0..oh {
+            for x in 0..ow {
+                for c in 0..ch {
+                    let mut sum = 0u32;
+                    for dy in 0..n {
+                        let row = (y * n + dy) * w;
+                        for dx in 0..n {
+                            sum += data[(row + x * n + dx) * ch + c] as u32;
+                        }
+                    }
+                    out[(y * ow + x) * ch + c] = ((sum + (n * n / 2) as u32) / (n * n) as u32) as u8;
+                }
+            }
+        }
+        (ow, oh, out)
+    }
+    match image {
+        FrameImage::Rgb8(i) => {
+            let (width, height, data) = avg(&i.data, i.width, i.height, 3, n);
+            FrameImage::Rgb8(duv_core::ImageRgb8 { width, height, data })
+        }
+        FrameImage::Gray8(i) => {
+            let (width, height, data) = avg(&i.data, i.width, i.height, 1, n);
+            FrameImage::Gray8(duv_core::ImageGray8 { width, height, data })
+        }
+    }
+}
+
+/// Whether `path` names an image the readers decode: PNG or JPEG, by extension.
+pub fn is_image_file(path: &Path) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| ["png", "jpg", "jpeg"].iter().any(|x| e.eq_ignore_ascii_case(x)))
+}
+
+/// Decodes a PNG (8-bit grey or colour; 16-bit reduced to 8) or a baseline or progressive
+/// JPEG (to RGB, through `zune-jpeg`), chosen by the file's extension.
+pub fn read_image_file(path: &Path) -> Result<FrameImage, CameraError> {
+    let is_jpeg = path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("jpg") || e.eq_ignore_ascii_case("jpeg"));
+    if !is_jpeg {
+        return Ok(duv_core::io::png_io::read_image(path)?);
+    }
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let bytes = std::fs::read(path).map_err(|e| IoError::file(path, e))?;
+    let bad = |problem: String| CameraError::Dataset { path: path.to_path_buf(), problem };
+    let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(ColorSpace::RGB);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&bytes, options);
+    let data = decoder.decode().map_err(|e| bad(format!("JPEG: {e:?}")))?;
+    let (width, height) = decoder.dimensions().ok_or_else(|| bad("JPEG without dimensions".into()))?;
+    if data.len() != width * height * 3 {
+        return Err(bad(format!("JPEG decoded to {} bytes, {width}x{height} RGB is {}", data.len(), width * height * 3)));
+    }
+    Ok(FrameImage::Rgb8(duv_core::ImageRgb8 { width, height, data }))
 }
 
 /// `medium.json` in `dir`, when present.
@@ -479,6 +604,8 @@ mod tests {
             ground_truth: None,
             medium: None,
             body_from_cam: None,
+            downsample: 1,
+            source_size: None,
         };
         assert_eq!(ds.depth_index_for(Timestamp(140), 50), Some(1));
         assert_eq!(ds.depth_index_for(Timestamp(160), 50), Some(2));

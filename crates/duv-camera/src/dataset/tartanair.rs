@@ -74,6 +74,8 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         ground_truth,
         medium: super::optional_medium(root)?,
         body_from_cam: None,
+        downsample: 1,
+        source_size: None,
     })
 }
 

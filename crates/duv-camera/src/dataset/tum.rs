@@ -21,7 +21,7 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
     if frames.is_empty() {
         return Err(CameraError::Empty { path: rgb_list, what: "image lines" });
     }
-    let camera = required_calibration(spec, &root.join("calibration.txt"))?;
+    let camera = required_calibration(spec, &root.join("calibration.txt"), frames.first().map(|f| f.path.as_path()))?;
     let depth_list = root.join("depth.txt");
     let depth = if depth_list.exists() {
         let units_per_metre = spec.depth_scale.unwrap_or(TUM_DEPTH_UNITS_PER_METRE);
@@ -38,6 +38,8 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         ground_truth: optional_trajectory(&root.join("groundtruth.txt"))?,
         medium: optional_medium(root)?,
         body_from_cam: None,
+        downsample: 1,
+        source_size: None,
     })
 }
 
