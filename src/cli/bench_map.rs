@@ -38,7 +38,6 @@ use duv_map::stage::render_panel;
 use duv_sim::keyframes::sim_keyframes;
 use duv_sim::keyframes::SimKeyframe;
 use duv_sim::{SimConfig, SimFrame, SimRenderer, TrajectoryKind, WaterPreset};
-use duv_core::config::board::Board;
 use duv_core::{Keyframe, PlaneF32, Se3};
 use duv_eval::{evaluate_trajectory, TrajectoryOptions};
 use duv_track::{Tracker, TrackerCapacity, TrackerConfig, TrajectoryRecorder};
@@ -449,7 +448,7 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 Some(p) => toml::from_str::<TrackerConfig>(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?,
                 None => TrackerConfig::default(),
             };
-            Some((cfg, TrackerCapacity::from_board(&Board::load(&a.board)?)))
+            Some((cfg, TrackerCapacity::from_board(&super::load_board(&a.board)?)))
         }
     };
     if a.novel_altitude_m.is_some() && tracker.is_some() {

@@ -11,7 +11,6 @@
 //! memory for all runs (their bytes are reported beside the RSS, which includes them).
 
 use anyhow::Context;
-use duv_core::config::board::Board;
 use duv_core::{Frame, FrameImage, PlaneF32};
 use duv_eval::{ause, evaluate_trajectory, AuseOptions, TrajectoryOptions};
 use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
@@ -446,7 +445,7 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
         "off" => vec![false],
         other => anyhow::bail!("--loop-closure {other:?}: expected both, on or off"),
     };
-    let board = Board::load(&args.board)?;
+    let board = super::load_board(&args.board)?;
     let cap = TrackerCapacity::from_board(&board);
     let base_cfg = match &args.config {
         Some(p) => {

@@ -42,7 +42,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let mut cfg = SimConfig::preset(args.water, TrajectoryKind::Survey);
     cfg.frames = args.frames;
     cfg.seed = args.seed;
-    eprintln!("[1/4] generating {} frames of {:?} water at {}x{}", cfg.frames, args.water, cfg.width, cfg.height);
+    eprintln!("[1/4] generating {} frames of {} water at {}x{}", cfg.frames, args.water, cfg.width, cfg.height);
     let sim = write_sequence(&cfg, &seq_dir, !args.no_progress).context("generating the demo sequence")?;
 
     // 2. Read it back through the dataset reader, decoding every frame, as `duv run` will.
@@ -86,7 +86,7 @@ pub fn run(args: DemoArgs) -> anyhow::Result<()> {
     let mut table = String::new();
     let _ = writeln!(table, "| metric | value |");
     let _ = writeln!(table, "|---|---|");
-    let _ = writeln!(table, "| sequence | {:?} water, survey, {}x{}, seed {} |", args.water, cfg.width, cfg.height, cfg.seed);
+    let _ = writeln!(table, "| sequence | {} water, survey, {}x{}, seed {} |", args.water, cfg.width, cfg.height, cfg.seed);
     let _ = writeln!(table, "| frames generated / decoded / ground-truth poses | {} / {} / {} |", sim.frames, decoded, gt_poses);
     let _ = writeln!(table, "| generator speed | {:.1} frames/s |", sim.frames_per_sec);
     let _ = writeln!(table, "| camera path length | {:.2} m |", sim.path_length_m);

@@ -31,6 +31,21 @@ impl std::fmt::Display for Exit {
 
 impl std::error::Error for Exit {}
 
+/// The default `--board`, relative to the working directory.
+pub const DEFAULT_BOARD: &str = "boards/sim.toml";
+/// The default board as built into the binary, so `duv run` works from any folder.
+const BUILT_IN_SIM_BOARD: &str = include_str!("../../boards/sim.toml");
+
+/// Loads `--board PATH`; the default path, when it is not there (a run started outside the
+/// repository), is the copy of `boards/sim.toml` built into the binary.
+pub fn load_board(path: &std::path::Path) -> anyhow::Result<duv_core::config::board::Board> {
+    if path == std::path::Path::new(DEFAULT_BOARD) && !path.exists() {
+        tracing::debug!("{DEFAULT_BOARD} not found here: the built-in copy");
+        return Ok(duv_core::config::board::Board::parse(std::path::Path::new("<built-in boards/sim.toml>"), BUILT_IN_SIM_BOARD)?);
+    }
+    Ok(duv_core::config::board::Board::load(path)?)
+}
+
 /// The error and its causes as one line, `outer: cause: ...`, leaving out a cause whose text
 /// the line already ends with (our error types print their source in their own message, as
 /// `path: No such file or directory`, and anyhow's `{:#}` would print it twice).

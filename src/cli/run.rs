@@ -135,7 +135,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let started_unix_s = unix_now_s();
     // One writer per run folder, before anything in it is read or recovered.
     let _lock = duv_pipeline::lock::RunFolderLock::acquire(&args.out)?;
-    let board = Board::load(&args.board)?;
+    let board = super::load_board(&args.board)?;
     let capacity = TrackerCapacity::from_board(&board);
     let mut cfg = match &args.config {
         Some(p) => {

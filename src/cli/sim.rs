@@ -126,7 +126,7 @@ pub fn run(args: SimArgs) -> anyhow::Result<()> {
     let cfg = args.config()?;
     let report = write_sequence(&cfg, &args.out, !args.no_progress).with_context(|| format!("generating a sequence into {}", args.out.display()))?;
     println!(
-        "wrote {} frames ({}x{}, {:?} water, {:?}{}) to {} in {:.2} s: {:.1} frames/s, path {:.2} m",
+        "wrote {} frames ({}x{}, {} water, {}{}) to {} in {:.2} s: {:.1} frames/s, path {:.2} m",
         report.frames,
         cfg.width,
         cfg.height,

@@ -286,6 +286,24 @@ fn a_speed_that_is_not_positive_is_refused() {
     }
 }
 
+/// From a folder outside the repository the default board is the built-in copy; stderr
+/// redirected to a file carries no ANSI colour codes; names are the ones the CLI takes.
+#[test]
+fn duv_run_works_from_any_folder_and_logs_plain_text() {
+    let dir = tempfile::tempdir().unwrap();
+    let res = Command::new(env!("CARGO_BIN_EXE_duv"))
+        .current_dir(dir.path())
+        .env("RUST_LOG", "info")
+        .args(["run", "--source", "sim:coastal", "--frames", "4", "--width", "160", "--height", "120", "--no-progress", "--no-map", "--out", "run"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(res.status.success(), "{stderr}");
+    assert!(dir.path().join("run/trajectory.txt").is_file());
+    assert!(!stderr.contains('\u{1b}'), "ANSI codes in redirected stderr: {stderr:?}");
+    assert!(stderr.contains("sim coastal water, survey path"), "{stderr}");
+}
+
 /// Each bad value in a tracker or mapper config file is refused before any frame is tracked,
 /// with the key and what it must be; a partial table takes the defaults for the rest.
 #[test]

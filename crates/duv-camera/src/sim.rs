@@ -149,7 +149,7 @@ impl FrameSource for SimSource {
             SimPace::Realtime => "real time",
             SimPace::None => "unpaced",
         };
-        format!("sim {:?} water, {:?} path, {} frames {}x{} at {} fps ({pace})", c.water, c.trajectory, self.renderer.len(), c.width, c.height, c.fps)
+        format!("sim {} water, {} path, {} frames {}x{} at {} fps ({pace})", c.water, c.trajectory, self.renderer.len(), c.width, c.height, c.fps)
     }
 
     fn stats(&self) -> SourceStats {

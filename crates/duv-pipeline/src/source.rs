@@ -248,7 +248,7 @@ impl Source {
         match self {
             Source::Sim { renderer, count, .. } => {
                 let c = renderer.config();
-                format!("sim {:?} water, {:?} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
+                format!("sim {} water, {} path, {count} frames {}x{}", c.water, c.trajectory, c.width, c.height)
             }
             Source::Dataset { dataset, .. } => dataset.describe(),
             Source::Mcap { replay, .. } => replay.describe(),

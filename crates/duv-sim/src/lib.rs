@@ -56,6 +56,28 @@ pub enum TrajectoryKind {
     Hover,
 }
 
+impl std::fmt::Display for WaterPreset {
+    /// The name the command line takes (`coastal`).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            WaterPreset::Clear => "clear",
+            WaterPreset::Coastal => "coastal",
+            WaterPreset::Turbid => "turbid",
+        })
+    }
+}
+
+impl std::fmt::Display for TrajectoryKind {
+    /// The name the command line takes (`survey`).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            TrajectoryKind::Survey => "survey",
+            TrajectoryKind::Loop => "loop",
+            TrajectoryKind::Hover => "hover",
+        })
+    }
+}
+
 /// Vehicle attitude and depth wobble: each axis is a sum of two incommensurate sinusoids with
 /// seeded phases (smooth, never periodic within a sequence).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
