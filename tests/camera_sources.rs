@@ -105,7 +105,7 @@ fn sim_source_delivers_the_renderer_frames_with_ground_truth() {
     b.camera.height = 64;
     b.camera.fps = 25.0;
     let mut src = open_source("sim:turbid-loop,frames=4,seed=7,pace=none", &b).unwrap();
-    assert!(src.describe().contains("Turbid"), "{}", src.describe());
+    assert!(src.describe().contains("turbid water, loop path"), "{}", src.describe());
     assert_eq!((src.camera().width, src.camera().height), (96, 64));
     let gt = src.ground_truth().expect("the generator has ground truth").to_vec();
     assert_eq!(gt.len(), 4);

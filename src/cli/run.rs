@@ -370,6 +370,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             last_state = Some(f.state);
         }
     }
+    if let Some(line) = duv_pipeline::outputs::init_summary(recorder.frames()) {
+        eprintln!("{line}");
+    }
     let track_time: Duration = latencies.iter().sum();
     let mut inv = PlaneF32::new(camera.width, camera.height);
     let mut var = PlaneF32::new(camera.width, camera.height);

@@ -12,7 +12,7 @@ use crate::track_sim;
 use duv_core::{Frame, FrameImage, ImageRgb8, Keyframe, PlaneF32};
 use duv_eval::umeyama;
 use duv_sim::{SimRenderer, TrajectoryKind, WaterPreset};
-use duv_track::{LostReason, SeedKeyframe, TrackError, Tracker, TrackerSeed, TrackingState};
+use duv_track::{LostReason, SeedKeyframe, TrackError, TrackNote, Tracker, TrackerSeed, TrackingState};
 use nalgebra::Vector3;
 use track_sim::{capacity, render_all, run, sim_config, small_tracker_config};
 
@@ -220,6 +220,42 @@ fn bad_frames_are_lost_then_tracking_recovers_and_the_map_is_untouched() {
     let fin = rec.finish(&tracker2);
     let (_, percent, _) = track_sim::ate(renderer.poses(), &fin.frames);
     assert!(percent < 2.0 * SURVEY_ATE_PERCENT, "ATE with bad frames {percent:.3} %");
+}
+
+/// While it initialises, every frame says what the tracker waits for: the same view again has
+/// no parallax (a mean flow near 0 px against the 2.5-px-per-grid-cell threshold), a featureless
+/// frame no confident flow, and a moved view a keyframe counted against the eight it takes.
+#[test]
+fn initialising_frames_say_what_the_tracker_waits_for() {
+    let (renderer, frames) = survey(40);
+    let mut t = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(1)).unwrap();
+    let first = t.track(&frames[0]).unwrap();
+    assert_eq!(first.note, TrackNote::None);
+    let same = Frame { seq: 1, t_ns: frames[1].t_ns, image: frames[0].image.clone() };
+    let out = t.track(&same).unwrap();
+    let TrackNote::InitSmallFlow { flow_px, needed_px } = out.note else { panic!("{:?}", out.note) };
+    assert!(flow_px < 0.5 && needed_px >= 2.0, "{flow_px} {needed_px}");
+    assert!(out.note.to_string().contains("waiting for parallax"));
+    // A grey frame with a faint gradient: no texture to trust (contrast above the lost
+    // threshold, so it reaches the flow).
+    let (w, h) = (renderer.camera().width, renderer.camera().height);
+    let mut grad = ImageRgb8::new(w, h);
+    for (i, v) in grad.data.iter_mut().enumerate() {
+        *v = (90 + ((i / 3) % w) * 60 / w) as u8;
+    }
+    let out = t.track(&Frame { seq: 2, t_ns: frames[2].t_ns, image: FrameImage::Rgb8(grad) }).unwrap();
+    assert!(matches!(out.note, TrackNote::InitLowConfidence { .. } | TrackNote::None) || matches!(out.state, TrackingState::Lost(_)), "{:?} {:?}", out.note, out.state);
+    // Real motion: sooner or later a keyframe, counted.
+    let mut counted = None;
+    for f in &frames[3..] {
+        let o = t.track(f).unwrap();
+        if let TrackNote::InitKeyframe { keyframes, needed } = o.note {
+            counted = Some((keyframes, needed));
+            break;
+        }
+    }
+    let (k, n) = counted.expect("an initialisation keyframe within 40 frames");
+    assert!(k >= 2 && n == 8, "{k} of {n}");
 }
 
 #[test]

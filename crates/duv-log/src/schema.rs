@@ -62,7 +62,7 @@ pub struct TopicSchema {
     pub message_encoding: String,
 }
 
-const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"}}}"#;
+const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
 const HEALTH_SCHEMA: &str = r#"{"title":"duv.Health","type":"object","description":"once a second: queue depths and drops, per-stage latency, budget headroom, host memory"}"#;
 
 fn foxglove_schema<T: Encode>() -> TopicSchema {
@@ -164,6 +164,11 @@ pub struct PoseRecord {
     /// Id of the keyframe this frame became.
     pub new_keyframe: Option<u64>,
     pub loop_closed: bool,
+    /// Why the frame has no measured pose yet (`init_low_confidence`, `init_small_flow`,
+    /// `init_pose_failed`, `init_keyframe`), with the measured value and its threshold.
+    pub why: Option<&'static str>,
+    pub value: Option<f64>,
+    pub limit: Option<f64>,
 }
 
 /// The JSON body of a `/slam/state` message.
@@ -176,6 +181,14 @@ pub struct StateMessage {
     pub keyframe: Option<u64>,
     pub new_keyframe: Option<u64>,
     pub loop_closed: bool,
+    /// Why the frame has no measured pose yet, with the value against its limit (logs
+    /// written before these fields read back as `None`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub why: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub value: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub limit: Option<f64>,
 }
 
 /// What the other stages hand to the log writer.
@@ -322,6 +335,12 @@ struct StateRef<'a> {
     keyframe: Option<u64>,
     new_keyframe: Option<u64>,
     loop_closed: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    why: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    value: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    limit: Option<f64>,
 }
 
 /// One encoded MCAP message: topic, header sequence, log time, body in the caller's buffer.
@@ -454,6 +473,9 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
                 keyframe: p.keyframe,
                 new_keyframe: p.new_keyframe,
                 loop_closed: p.loop_closed,
+                why: p.why,
+                value: p.value,
+                limit: p.limit,
             };
             scratch.clear();
             serde_json::to_writer(&mut *scratch, &state).map_err(|e| LogError::Encode { what: "state", problem: e.to_string() })?;
@@ -661,7 +683,7 @@ mod tests {
         assert_eq!(decode_frame(&got[0].3, 42, 0).unwrap(), frame);
 
         let pose = Se3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
-        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false };
+        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false, why: None, value: None, limit: None };
         got.clear();
         enc.encode(&LogItem::Pose(rec), |e, b| {
             got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));

@@ -29,6 +29,8 @@ pub struct LoggedFrame {
     pub world_from_cam: Se3,
     /// The tracking state logged for it (`None` when its state record was lost).
     pub state: Option<String>,
+    /// Why it had no measured pose yet, as logged (`init_small_flow 1.2 / 2.5`).
+    pub note: Option<String>,
 }
 
 /// One process's share of the dive.
@@ -101,8 +103,8 @@ impl DiveHistory {
     }
 
     pub fn add_pose(&mut self, part: u32, seq: u64, t_ns: Timestamp, world_from_cam: Se3) {
-        let state = self.frames.get(&seq).and_then(|f| f.state.clone());
-        self.frames.insert(seq, LoggedFrame { t_ns, world_from_cam, state });
+        let (state, note) = self.frames.get(&seq).map_or((None, None), |f| (f.state.clone(), f.note.clone()));
+        self.frames.insert(seq, LoggedFrame { t_ns, world_from_cam, state, note });
         if let Some(p) = self.parts.get_mut(&part) {
             p.poses_logged += 1;
             p.first_seq = Some(p.first_seq.map_or(seq, |s| s.min(seq)));
@@ -110,9 +112,10 @@ impl DiveHistory {
         }
     }
 
-    pub fn add_state(&mut self, seq: u64, state: &str) {
+    pub fn add_state(&mut self, seq: u64, state: &str, note: Option<String>) {
         if let Some(f) = self.frames.get_mut(&seq) {
             f.state = Some(state.to_string());
+            f.note = note;
         }
     }
 
@@ -196,7 +199,7 @@ mod tests {
         let mut h = DiveHistory::default();
         let p0 = h.open_segment(0, Some(&part_metadata(0, "fresh")));
         h.add_pose(p0, 0, Timestamp::from_ns(0), Se3::identity());
-        h.add_state(0, "initializing");
+        h.add_state(0, "initializing", Some("init_small_flow 1.2 <= 2.5".into()));
         h.add_pose(p0, 1, Timestamp::from_ns(10), Se3::identity());
         let p1 = h.open_segment(1, Some(&part_metadata(1, "resumed")));
         let moved = Se3::from_parts(nalgebra::Translation3::new(1.0, 0.0, 0.0), nalgebra::UnitQuaternion::identity());
@@ -206,6 +209,7 @@ mod tests {
         assert_eq!(h.frames.len(), 3);
         assert_eq!(h.frames[&1].world_from_cam, moved);
         assert_eq!(h.frames[&0].state.as_deref(), Some("initializing"));
+        assert_eq!(h.frames[&0].note.as_deref(), Some("init_small_flow 1.2 <= 2.5"));
         assert_eq!((h.parts[&0].first_seq, h.parts[&0].last_seq, h.parts[&0].poses_logged), (Some(0), Some(1), 2));
         assert_eq!((h.parts[&1].first_seq, h.parts[&1].last_seq), (Some(1), Some(2)));
         assert_eq!(h.next_part(), 2);

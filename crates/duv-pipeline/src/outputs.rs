@@ -82,18 +82,19 @@ pub fn write_tracking_outputs(
 ) -> Result<WrittenOutputs, OutputError> {
     let kf_dir = out.join("keyframes");
     // seq -> (pose, state, tracker ms): the log's first, this process's over them.
-    let mut dive: BTreeMap<u64, (StampedPose, String, Option<f64>)> = BTreeMap::new();
+    // seq -> (pose, state, tracker ms, note).
+    let mut dive: BTreeMap<u64, (StampedPose, String, Option<f64>, String)> = BTreeMap::new();
     if let Some(h) = history {
         for (&seq, f) in &h.frames {
             let state = f.state.clone().unwrap_or_else(|| "unknown".into()).replace(' ', "_");
-            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, None));
+            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, None, f.note.clone().unwrap_or_default()));
         }
     }
     let from_log = dive.len() as u64;
     let mut replaced = 0u64;
     for (((f, pose), s), dt) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))) {
         let state = s.name().replace(' ', "_");
-        if dive.insert(f.seq, (*pose, state, dt.map(|d| d.as_secs_f64() * 1e3))).is_some() {
+        if dive.insert(f.seq, (*pose, state, dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string())).is_some() {
             replaced += 1;
         }
     }
@@ -122,9 +123,13 @@ pub fn write_tracking_outputs(
         write_pfm(&kf_dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
         write_pfm(&kf_dir.join(format!("{id:06}_variance.pfm")), var)?;
     }
-    let mut states_text = String::from("# seq timestamp state tracker_ms (nan: tracked by an earlier process of the dive, see dive.json)\n");
-    for (seq, (pose, state, ms)) in &dive {
-        let _ = writeln!(states_text, "{seq} {:.9} {state} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
+    let mut states_text = String::from("# seq timestamp state tracker_ms [why, while initialising] (tracker_ms nan: tracked by an earlier process of the dive, see dive.json)\n");
+    for (seq, (pose, state, ms, note)) in &dive {
+        let _ = write!(states_text, "{seq} {:.9} {state} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
+        if !note.is_empty() {
+            let _ = write!(states_text, " {note}");
+        }
+        states_text.push('\n');
     }
     duv_core::io::write_atomic(&out.join("states.txt"), states_text.as_bytes())?;
     Ok(WrittenOutputs {
@@ -136,6 +141,42 @@ pub fn write_tracking_outputs(
         keyframes: kf_written,
         trajectory,
     })
+}
+
+/// One line on what the initialisation waited for, when frames of this run waited: per
+/// reason, the frames and the median value against its threshold (`None` when no frame waited).
+pub fn init_summary(frames: &[RecordedFrame]) -> Option<String> {
+    use duv_track::TrackNote;
+    let mut by_kind: BTreeMap<&'static str, (Vec<f64>, f64)> = BTreeMap::new();
+    for f in frames {
+        let (Some(kind), TrackNote::InitLowConfidence { .. } | TrackNote::InitSmallFlow { .. } | TrackNote::InitPoseFailed) = (f.note.kind(), f.note) else { continue };
+        let e = by_kind.entry(kind).or_insert_with(|| (Vec::new(), 0.0));
+        if let Some((v, l)) = f.note.value_and_limit() {
+            e.0.push(v);
+            e.1 = l;
+        } else {
+            e.0.push(f64::NAN);
+        }
+    }
+    if by_kind.is_empty() {
+        return None;
+    }
+    let tracked = frames.iter().filter(|f| f.state.is_tracked()).count();
+    let parts: Vec<String> = by_kind
+        .into_iter()
+        .map(|(kind, (mut v, limit))| {
+            let n = v.len();
+            v.sort_by(f64::total_cmp);
+            let median = v[n / 2];
+            match kind {
+                "init_low_confidence" => format!("{n} with flow to the reference keyframe confident on too few pixels (median {:.1}% < {:.1}%)", median * 100.0, limit * 100.0),
+                "init_small_flow" => format!("{n} with too little parallax (median mean flow {median:.2} px <= {limit:.2} px)"),
+                _ => format!("{n} whose pose against the reference keyframe did not converge"),
+            }
+        })
+        .collect();
+    let waited = frames.iter().filter(|f| f.note.kind().is_some_and(|k| k != "init_keyframe")).count();
+    Some(format!("initialisation waited on {waited} frame(s) ({tracked} of {} frames measured): {}", frames.len(), parts.join("; ")))
 }
 
 /// Space held back in the run folder for the final outputs: a file of zeros made at start and

@@ -197,7 +197,11 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                 }
                 Topic::State => {
                     if let Ok(s) = serde_json::from_slice::<StateMessage>(&data) {
-                        history.add_state(s.seq, &s.state);
+                        let note = s.why.as_ref().map(|w| match (s.value, s.limit) {
+                            (Some(v), Some(l)) => format!("{w} {v:.4} (limit {l:.4})"),
+                            _ => w.clone(),
+                        });
+                        history.add_state(s.seq, &s.state, note);
                         if let Some(p) = poses.get_mut(&s.seq) {
                             // Lost frames hold a prediction, not a measurement.
                             p.1 = !s.state.starts_with("lost");

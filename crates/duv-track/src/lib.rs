@@ -117,6 +117,6 @@ mod upsample;
 pub use config::{ConfigError, TrackerCapacity, TrackerConfig};
 pub use tracker::{
     depth_grid_camera, EvictedKeyframe, FrameAnchor, KeyframeView, LostReason, ResumePoint, SeedFrame, SeedKeyframe, StageTimes, TrackError,
-    TrackOutput, Tracker, TrackerCounters, TrackerSeed, TrackingState,
+    TrackNote, TrackOutput, Tracker, TrackerCounters, TrackerSeed, TrackingState,
 };
 pub use trajectory::{FinalKeyframe, FinalTrajectory, RecordedFrame, TrajectoryRecorder};

@@ -68,6 +68,62 @@ impl TrackingState {
     }
 }
 
+/// Why a frame has no measured pose yet while the tracker initialises: what it waited for or
+/// refused, with the number against its threshold. `states.txt` and the log carry it, so a run
+/// that never initialises says why on every frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum TrackNote {
+    #[default]
+    None,
+    /// The flow to the reference keyframe was confident on too few pixels (`confident` of the
+    /// pixels, `needed` the threshold, both fractions).
+    InitLowConfidence { confident: f32, needed: f32 },
+    /// Not enough parallax yet: mean flow to the reference keyframe below the keyframe
+    /// threshold (pixels at the input resolution).
+    InitSmallFlow { flow_px: f32, needed_px: f32 },
+    /// The pose against the reference keyframe did not converge.
+    InitPoseFailed,
+    /// A keyframe was added; `keyframes` of the `needed` the initialisation takes.
+    InitKeyframe { keyframes: usize, needed: usize },
+}
+
+impl TrackNote {
+    /// A short machine name (`init_low_confidence`), `None` for no note.
+    pub fn kind(self) -> Option<&'static str> {
+        match self {
+            TrackNote::None => None,
+            TrackNote::InitLowConfidence { .. } => Some("init_low_confidence"),
+            TrackNote::InitSmallFlow { .. } => Some("init_small_flow"),
+            TrackNote::InitPoseFailed => Some("init_pose_failed"),
+            TrackNote::InitKeyframe { .. } => Some("init_keyframe"),
+        }
+    }
+
+    /// The measured value and its threshold, where the note has them.
+    pub fn value_and_limit(self) -> Option<(f64, f64)> {
+        match self {
+            TrackNote::InitLowConfidence { confident, needed } => Some((confident as f64, needed as f64)),
+            TrackNote::InitSmallFlow { flow_px, needed_px } => Some((flow_px as f64, needed_px as f64)),
+            TrackNote::InitKeyframe { keyframes, needed } => Some((keyframes as f64, needed as f64)),
+            TrackNote::None | TrackNote::InitPoseFailed => None,
+        }
+    }
+}
+
+impl std::fmt::Display for TrackNote {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match *self {
+            TrackNote::None => Ok(()),
+            TrackNote::InitLowConfidence { confident, needed } => {
+                write!(f, "flow to the reference keyframe confident on {:.1}% of pixels < {:.1}%", confident * 100.0, needed * 100.0)
+            }
+            TrackNote::InitSmallFlow { flow_px, needed_px } => write!(f, "mean flow to the reference keyframe {flow_px:.2} px <= {needed_px:.2} px (waiting for parallax)"),
+            TrackNote::InitPoseFailed => f.write_str("pose against the reference keyframe did not converge"),
+            TrackNote::InitKeyframe { keyframes, needed } => write!(f, "keyframe {keyframes} of the {needed} the initialisation takes"),
+        }
+    }
+}
+
 /// A frame's pose relative to a keyframe, so that it follows the keyframe when the graph is
 /// corrected: `world_from_cam = world_from_kf * kf_from_cam`, the translation scaled by the
 /// keyframe's scale correction since `kf_scale`.
@@ -106,6 +162,8 @@ pub struct TrackOutput {
     pub evicted: Option<EvictedKeyframe>,
     /// A loop closure was accepted at this frame.
     pub loop_closed: bool,
+    /// Why the frame has no measured pose yet (initialisation), [`TrackNote::None`] otherwise.
+    pub note: TrackNote,
 }
 
 /// Accumulated wall time per stage.
@@ -777,6 +835,7 @@ impl State {
             new_keyframe: None,
             evicted: None,
             loop_closed,
+            note: TrackNote::None,
         };
         to_grey(&frame.image, &mut self.grey);
         // Health check first: a bad image never reaches the flow or the map.
@@ -884,6 +943,7 @@ impl State {
         if conf < self.cfg.min_confident_fraction {
             // Nothing to trust: wait for a better frame (the first keyframe stays).
             self.have_prev_flow = false;
+            out.note = TrackNote::InitLowConfidence { confident: conf, needed: self.cfg.min_confident_fraction };
             return Ok(out);
         }
         self.prev_flow.dx.data.copy_from_slice(&self.res.pooled.flow.dx.data);
@@ -891,6 +951,7 @@ impl State {
         self.have_prev_flow = true;
         let mean_flow = self.res.stats.mean_flow_input_px / self.factor as f32;
         if mean_flow <= self.cfg.keyframe_flow_px {
+            out.note = TrackNote::InitSmallFlow { flow_px: mean_flow * self.factor as f32, needed_px: self.cfg.keyframe_flow_px * self.factor as f32 };
             return Ok(out);
         }
         // A new keyframe. The previous one's staged solve first (its stages usually ran on the
@@ -900,6 +961,7 @@ impl State {
         let mut pose = self.kfs.slots[r].world_from_cam;
         if self.motion_only(r, &mut pose).is_err() {
             self.counters.ba_failures += 1;
+            out.note = TrackNote::InitPoseFailed;
             return Ok(out);
         }
         let prev = r;
@@ -938,6 +1000,8 @@ impl State {
         if initialising {
             self.initialise()?;
             out.state = TrackingState::Tracking;
+        } else {
+            out.note = TrackNote::InitKeyframe { keyframes: self.kfs.len(), needed: self.cfg.init_keyframes };
         }
         out.world_from_cam = self.kfs.slots[s].world_from_cam;
         self.last_pose = out.world_from_cam;

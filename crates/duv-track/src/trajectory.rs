@@ -4,7 +4,7 @@
 //! interpolated in time between their anchored neighbours. This grows with the run, so it
 //! belongs to offline runs and evaluation (`duv run`), not to the fixed-memory tracker.
 
-use super::tracker::{EvictedKeyframe, FrameAnchor, Tracker, TrackingState, TrackOutput};
+use super::tracker::{EvictedKeyframe, FrameAnchor, TrackNote, Tracker, TrackingState, TrackOutput};
 use duv_core::{Se3, StampedPose, Timestamp};
 use nalgebra::{Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
@@ -18,6 +18,8 @@ pub struct RecordedFrame {
     pub live: Se3,
     pub state: TrackingState,
     pub anchor: Option<FrameAnchor>,
+    /// Why it has no measured pose yet (initialisation).
+    pub note: TrackNote,
 }
 
 /// A keyframe of the final result.
@@ -66,7 +68,7 @@ impl TrajectoryRecorder {
     }
 
     pub fn record(&mut self, out: &TrackOutput) {
-        self.frames.push(RecordedFrame { t_ns: out.t_ns, seq: out.seq, live: out.world_from_cam, state: out.state, anchor: out.anchor });
+        self.frames.push(RecordedFrame { t_ns: out.t_ns, seq: out.seq, live: out.world_from_cam, state: out.state, anchor: out.anchor, note: out.note });
         if let Some(id) = out.new_keyframe {
             self.keyframes.push((id, out.t_ns, out.seq));
         }
