@@ -418,7 +418,6 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
 
     // Final trajectory, keyframes, their depth maps and states of the whole dive: one writer,
     // this process's poses in the recorded frame over what earlier processes logged.
-    reserve.release();
     // Keyframes the full keyframe queue kept from mapping are in the log: the map gets them
     // now, before its final optimisation, so it covers every logged keyframe.
     if !args.no_map && !result.interrupted && (result.keyframe_queue.dropped > 0 || resume_state.is_some()) {
@@ -430,18 +429,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             println!("map: {} logged keyframe(s) the keyframe queue had dropped mapped before the final optimisation", refed.keyframes);
         }
     }
+    // The room kept since the start, for the dive's record (small files first).
+    reserve.release();
     let fin = duv_pipeline::outputs::finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
-    let written = duv_pipeline::outputs::write_tracking_outputs(&args.out, &fin, recorder.frames(), &latencies, &tracker, !args.no_map, history, &mut inv, &mut var)?;
+    let written = duv_pipeline::outputs::write_tracking_outputs(&args.out, &fin, recorder.frames(), &latencies, &tracker, !args.no_map, history)?;
     let live = written.live.clone();
-    // The map: final keyframe poses, a last optimisation, the exports.
-    let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
-    // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
-    // and the report still follow.
-    match map.finish(&final_poses, &args.out, !result.interrupted) {
-        Ok(Some(summary)) => println!("{summary}"),
-        Ok(None) => {}
-        Err(e) => eprintln!("MAP NOT EXPORTED: {e}"),
-    }
     // dive.json: the parts of the dive and how each ended.
     let end = match stop.signal() {
         Some(sig) if result.interrupted => format!("stopped by signal {sig}"),
@@ -473,8 +465,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         log_segments: segments_now.len() as u32,
         parts,
     };
-    if let Err(e) = record.write(&args.out) {
+    // Written before the map export (large, it may not fit a full disk) and marked finished
+    // only after it: a run stopped during the export is resumed, not taken as finished.
+    if let Err(e) = (DiveRecord { finished: false, ..record.clone() }).write(&args.out) {
         eprintln!("dive.json not written: {e}");
+    }
+    // A full disk here is reported, not an error: the files above are the dive's record.
+    if let Err(e) = duv_pipeline::outputs::write_keyframe_depths(&args.out, &tracker, &mut inv, &mut var) {
+        eprintln!("KEYFRAME DEPTH FILES NOT ALL WRITTEN: {e}");
+    }
+    // The map: final keyframe poses, a last optimisation, the exports.
+    let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
+    // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
+    // and the report still follow.
+    match map.finish(&final_poses, &args.out, !result.interrupted) {
+        Ok(Some(summary)) => println!("{summary}"),
+        Ok(None) => {}
+        Err(e) => eprintln!("MAP NOT EXPORTED: {e}"),
+    }
+    if record.finished {
+        if let Err(e) = record.write(&args.out) {
+            eprintln!("dive.json not written: {e}");
+        }
     }
     println!(
         "dive: {} frames in trajectory.txt ({} from earlier parts), {} keyframes, part {part} of {}",

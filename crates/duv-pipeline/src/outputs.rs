@@ -62,13 +62,26 @@ pub struct WrittenOutputs {
     pub trajectory: Vec<StampedPose>,
 }
 
+/// Writes the full-resolution inverse depth and variance (PFM) of the tracker's live keyframes
+/// into `out/keyframes/`: large files, written after the dive's small ones (a full disk then
+/// costs these, not the record). `inv`/`var` are full-resolution scratch planes.
+pub fn write_keyframe_depths(out: &Path, tracker: &Tracker, inv: &mut PlaneF32, var: &mut PlaneF32) -> Result<(), OutputError> {
+    let kf_dir = out.join("keyframes");
+    let live: Vec<u64> = tracker.keyframes().map(|k: KeyframeView| k.id).collect();
+    for id in live {
+        tracker.upsample_keyframe(id, inv, var).map_err(|source| OutputError::Upsample { id, source })?;
+        write_pfm(&kf_dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
+        write_pfm(&kf_dir.join(format!("{id:06}_variance.pfm")), var)?;
+    }
+    Ok(())
+}
+
 /// Writes `trajectory.txt`, `keyframes.txt` (with `mapped`, only the keyframes whose image the
-/// mapping stage wrote into `keyframes/`, so `duv refine --keyframes` reads the folder), the
-/// inverse depth and variance of the keyframes still in the tracker's graph, and `states.txt`
+/// mapping stage wrote into `keyframes/`, so `duv refine --keyframes` reads the folder) and
+/// `states.txt`
 /// (`frames` and `latencies` as the tracking thread recorded them), for the whole dive: this
-/// process's final poses over what `history` (earlier processes, from the log) holds.
-/// `inv`/`var` are full-resolution scratch planes.
-#[allow(clippy::too_many_arguments)]
+/// process's final poses over what `history` (earlier processes, from the log) holds. The
+/// keyframes' depth files are [`write_keyframe_depths`]'s.
 pub fn write_tracking_outputs(
     out: &Path,
     fin: &FinalTrajectory,
@@ -77,8 +90,6 @@ pub fn write_tracking_outputs(
     tracker: &Tracker,
     mapped: bool,
     history: Option<&DiveHistory>,
-    inv: &mut PlaneF32,
-    var: &mut PlaneF32,
 ) -> Result<WrittenOutputs, OutputError> {
     let kf_dir = out.join("keyframes");
     // seq -> (pose, state, tracker ms): the log's first, this process's over them.
@@ -118,11 +129,6 @@ pub fn write_tracking_outputs(
     }
     duv_core::io::write_atomic(&out.join("keyframes.txt"), kf_text.as_bytes())?;
     let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
-    for &(id, _) in &live {
-        tracker.upsample_keyframe(id, inv, var).map_err(|source| OutputError::Upsample { id, source })?;
-        write_pfm(&kf_dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
-        write_pfm(&kf_dir.join(format!("{id:06}_variance.pfm")), var)?;
-    }
     let mut states_text = String::from("# seq timestamp state tracker_ms [why, while initialising] (tracker_ms nan: tracked by an earlier process of the dive, see dive.json)\n");
     for (seq, (pose, state, ms, note)) in &dive {
         let _ = write!(states_text, "{seq} {:.9} {state} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
@@ -132,6 +138,7 @@ pub fn write_tracking_outputs(
         states_text.push('\n');
     }
     duv_core::io::write_atomic(&out.join("states.txt"), states_text.as_bytes())?;
+    // The large files last: the small ones above always get the room kept for them.
     Ok(WrittenOutputs {
         live,
         frames: dive.len() as u64,
