@@ -420,8 +420,19 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // this process's poses in the recorded frame over what earlier processes logged.
     // Keyframes the full keyframe queue kept from mapping are in the log: the map gets them
     // now, before its final optimisation, so it covers every logged keyframe.
-    if !args.no_map && !result.interrupted && (result.keyframe_queue.dropped > 0 || resume_state.is_some()) {
-        let refed = duv_pipeline::mapping::feed_unmapped_keyframes(map.as_mut(), &log_dir, &kf_dir, Some(u64::MAX));
+    // Only this run's dropped keyframes, from this run's segments (an earlier run's are fed
+    // when the dive is resumed).
+    if !args.no_map && !result.interrupted && !result.dropped_keyframes.is_empty() {
+        let dropped: std::collections::BTreeSet<u64> = result.dropped_keyframes.iter().copied().collect();
+        let earlier: std::collections::BTreeSet<u32> = resume_state.as_ref().map(|r| r.history.parts.values().flat_map(|p| p.segments.iter().copied()).collect()).unwrap_or_default();
+        let mut refed = duv_pipeline::mapping::Refed::default();
+        for (index, segment) in duv_log::list_segments(&log_dir)?.into_iter().filter(|(i, _)| !earlier.contains(i)) {
+            let r = duv_pipeline::mapping::feed_logged_keyframes(map.as_mut(), &segment, |id| dropped.contains(&id) && !kf_dir.join(format!("{id:06}.png")).exists());
+            refed.keyframes += r.keyframes;
+            if let Some(e) = r.problem {
+                refed.problem.get_or_insert(format!("segment {index}: {e}"));
+            }
+        }
         if let Some(e) = &refed.problem {
             eprintln!("MAP: the logged keyframes were not all mapped: {e}");
         }

@@ -179,6 +179,8 @@ pub const KEYFRAME_SLOTS_IN_FLIGHT: usize = 4;
 
 /// Frames a run records (poses, latencies) before its records grow: an hour at 30 frames/s.
 const RECORD_FRAMES: usize = 30 * 3600;
+/// Dropped keyframe ids a run remembers for mapping to take from the log at its end.
+pub const DROPPED_KEYFRAMES_KEPT: usize = 1 << 14;
 
 /// How the pipeline runs.
 #[derive(Clone, Debug)]
@@ -355,6 +357,9 @@ pub struct PipelineResult<S> {
     pub map: Box<dyn MapStage>,
     /// Shutdown came from a signal, not the end of the source.
     pub interrupted: bool,
+    /// Ids of the keyframes the full keyframe queue kept from mapping (they are in the log),
+    /// the first [`DROPPED_KEYFRAMES_KEPT`].
+    pub dropped_keyframes: Vec<u64>,
     pub wall: Duration,
 }
 
@@ -369,6 +374,8 @@ struct Shared {
     /// Latencies (ms) since the last health record.
     recent_ms: Mutex<Vec<f64>>,
     log_failure: Mutex<Option<String>>,
+    /// Ids of the keyframes the full keyframe queue refused (capacity fixed at start).
+    dropped_keyframes: Mutex<Vec<u64>>,
 }
 
 fn pose_record(out: &TrackOutput, world_from_tracker: Option<&Sim3>) -> PoseRecord {
@@ -470,6 +477,7 @@ pub fn run<S: FrameSource + 'static>(
         latest_t_ns: AtomicI64::new(0),
         recent_ms: Mutex::new(Vec::with_capacity(4096)),
         log_failure: Mutex::new(None),
+        dropped_keyframes: Mutex::new(Vec::with_capacity(DROPPED_KEYFRAMES_KEPT)),
     });
     let log_push = |q: &BoundedQueue<LogItem>, item: LogItem| {
         let b = item.approx_bytes();
@@ -606,7 +614,14 @@ pub fn run<S: FrameSource + 'static>(
             let mut track_times = Vec::with_capacity(RECORD_FRAMES);
             let to_mapping = |kf: Arc<Keyframe>| {
                 sh.keyframes.fetch_add(1, Ordering::Relaxed);
-                let _ = kq.push(kf, 0);
+                if let Pushed::Refused(kf) = kq.push(kf, 0) {
+                    // The id, for mapping to take the keyframe from the log at the end.
+                    if let Ok(mut ids) = sh.dropped_keyframes.lock() {
+                        if ids.len() < ids.capacity() {
+                            ids.push(kf.index);
+                        }
+                    }
+                }
                 Ok(())
             };
             let result = tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
@@ -777,6 +792,7 @@ pub fn run<S: FrameSource + 'static>(
     let (log_stats, log_error) = join(logging, "logging")?;
     let (tracker, recorder, latencies, track_times) = tracked?;
     let map = mapped?;
+    let dropped_keyframes = std::mem::take(&mut *shared.dropped_keyframes.lock().unwrap_or_else(|p| p.into_inner()));
     if let Some(e) = capture_error {
         tracing::warn!("the source ended with an error: {e}");
     }
@@ -794,6 +810,7 @@ pub fn run<S: FrameSource + 'static>(
         log_error,
         map,
         interrupted: stop.load(Ordering::Relaxed),
+        dropped_keyframes,
         wall: started.elapsed(),
     })
 }
@@ -896,6 +913,7 @@ fn run_deterministic<S: FrameSource + 'static>(
         log_error,
         map,
         interrupted: stop.load(Ordering::Relaxed),
+        dropped_keyframes: Vec::new(),
         wall: started.elapsed(),
     })
 }

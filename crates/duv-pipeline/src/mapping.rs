@@ -186,9 +186,15 @@ pub struct Refed {
 /// checkpoint of a stopped run). One keyframe at a time from the log: the map then covers
 /// every logged keyframe.
 pub fn feed_unmapped_keyframes(map: &mut dyn MapStage, log_dir: &Path, keyframe_dir: &Path, newest_fed: Option<u64>) -> Refed {
-    let mut out = Refed::default();
     let unmapped = |id: u64| newest_fed.is_none_or(|n| id > n) || !keyframe_dir.join(format!("{id:06}.png")).exists();
-    let read = duv_log::for_each_log_keyframe(log_dir, duv_log::ReadLimits::default(), unmapped, |kf| {
+    feed_logged_keyframes(map, log_dir, unmapped)
+}
+
+/// Feeds `map` the keyframes logged in `log` (a log folder or one segment) whose id `wanted`
+/// accepts, one at a time.
+pub fn feed_logged_keyframes(map: &mut dyn MapStage, log: &Path, wanted: impl Fn(u64) -> bool) -> Refed {
+    let mut out = Refed::default();
+    let read = duv_log::for_each_log_keyframe(log, duv_log::ReadLimits::default(), wanted, |kf| {
         if out.problem.is_none() {
             match map.add_keyframe(&kf) {
                 Ok(()) => out.keyframes += 1,
