@@ -18,8 +18,8 @@ use std::io::{self, Write};
 /// The MCAP magic at both ends of a file.
 pub const MAGIC: [u8; 8] = *b"\x89MCAP0\r\n";
 
-/// Record opcodes (MCAP specification, "Records").
-mod op {
+/// Record opcodes (MCAP specification, "Records"), shared with the reader.
+pub(crate) mod op {
     pub const HEADER: u8 = 0x01;
     pub const FOOTER: u8 = 0x02;
     pub const SCHEMA: u8 = 0x03;

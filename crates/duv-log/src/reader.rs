@@ -11,6 +11,7 @@
 //! at the first error (its linear reader) or need an intact summary (its indexed reader); a
 //! black box must get back every chunk that survived.
 
+use super::chunked::{op, MAGIC};
 use super::LogError;
 use mcap::records::Record;
 use std::collections::{BTreeMap, HashMap, HashSet, VecDeque};
@@ -103,21 +104,6 @@ pub enum OwnedEvent {
     Metadata { name: String, metadata: BTreeMap<String, String> },
 }
 
-/// MCAP opcodes the reader looks at (specification, "Records").
-mod op {
-    pub const HEADER: u8 = 0x01;
-    pub const FOOTER: u8 = 0x02;
-    pub const SCHEMA: u8 = 0x03;
-    pub const CHANNEL: u8 = 0x04;
-    pub const MESSAGE: u8 = 0x05;
-    pub const CHUNK: u8 = 0x06;
-    pub const MESSAGE_INDEX: u8 = 0x07;
-    pub const CHUNK_INDEX: u8 = 0x08;
-    pub const METADATA: u8 = 0x0C;
-    pub const DATA_END: u8 = 0x0F;
-}
-
-const MAGIC: [u8; 8] = *b"\x89MCAP0\r\n";
 /// Opcode and length.
 const RECORD_HEAD: u64 = 9;
 /// Bytes the resynchronisation scan reads at a time.

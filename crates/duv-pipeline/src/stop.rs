@@ -53,10 +53,6 @@ impl Stop {
         Ok(stop)
     }
 
-    pub fn is_requested(&self) -> bool {
-        self.requested.load(Ordering::Relaxed)
-    }
-
     pub fn is_aborted(&self) -> bool {
         self.abort.load(Ordering::Relaxed)
     }
