@@ -467,3 +467,60 @@ fn bad_flow_and_ba_settings_are_refused_at_start_by_name() {
     assert_eq!(parsed.ba.fixed_poses, 2);
     assert_eq!(parsed.ba.huber_threshold, duv_track::TrackerConfig::default().ba.huber_threshold);
 }
+
+/// The tracker hands each keyframe on once `lag` newer ones were inserted, oldest first,
+/// with the depth and pose it holds at that moment written into the caller's buffer; at the
+/// end of the stream the rest follow; nothing is queued when emission is off.
+#[test]
+fn keyframes_are_emitted_once_final_in_insertion_order() {
+    let (renderer, frames) = survey(60);
+    let lag = 2;
+    let mut t = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
+    t.emit_keyframes_after(lag);
+    let (w, h) = (renderer.camera().width, renderer.camera().height);
+    let mut kf = duv_core::Keyframe {
+        index: u64::MAX,
+        t_ns: duv_core::Timestamp::from_ns(0),
+        image: ImageRgb8::new(w, h),
+        world_from_cam: duv_core::Se3::identity(),
+        camera: *renderer.camera(),
+        inv_depth: duv_core::PlaneF32::new(w, h),
+        inv_depth_variance: duv_core::PlaneF32::new(w, h),
+    };
+    let (mut inserted, mut emitted) = (Vec::new(), Vec::new());
+    let (mut inv, mut var) = (duv_core::PlaneF32::new(w, h), duv_core::PlaneF32::new(w, h));
+    for f in &frames {
+        let out = t.track(f).unwrap();
+        inserted.extend(out.new_keyframe);
+        while let Some(id) = t.next_final_keyframe(false, &mut kf) {
+            assert_eq!(kf.index, id);
+            // Emitted only once `lag` newer keyframes exist.
+            let newer = inserted.iter().filter(|&&k| k > id).count();
+            assert!(newer >= lag, "keyframe {id} emitted with {newer} newer");
+            // The depth and pose the tracker holds now, bit for bit.
+            t.upsample_keyframe(id, &mut inv, &mut var).unwrap();
+            assert!(inv.data == kf.inv_depth.data && var.data == kf.inv_depth_variance.data, "keyframe {id}: depth differs");
+            let view = t.keyframes().find(|k| k.id == id).unwrap();
+            assert_eq!(view.world_from_cam, kf.world_from_cam);
+            assert!(kf.inv_depth.data.iter().any(|&d| d > 0.0), "keyframe {id}: no depth");
+            emitted.push(id);
+        }
+        assert_eq!(t.keyframes_waiting().len(), inserted.len() - emitted.len());
+    }
+    assert!(inserted.len() >= lag + 3, "only {} keyframes", inserted.len());
+    assert_eq!(emitted[..], inserted[..emitted.len()], "emitted out of order");
+    assert_eq!(emitted.len(), inserted.len() - lag);
+    while let Some(id) = t.next_final_keyframe(true, &mut kf) {
+        emitted.push(id);
+    }
+    assert_eq!(emitted, inserted);
+    assert_eq!(t.keyframes_overflowed(), 0);
+    // Off by default: nothing waits, nothing is emitted.
+    let mut off = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
+    for f in &frames[..30] {
+        off.track(f).unwrap();
+    }
+    assert!(off.num_keyframes() > 0);
+    assert_eq!(off.keyframes_waiting().len(), 0);
+    assert_eq!(off.next_final_keyframe(true, &mut kf), None);
+}

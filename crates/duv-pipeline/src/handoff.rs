@@ -1,6 +1,7 @@
-//! What tracking hands on after each frame: the keyframes that are due for mapping and the
-//! log (after [`PipelineConfig::keyframe_lag`](super::PipelineConfig) newer ones, so their
-//! depth went through the window BA), and, every
+//! What tracking hands on after each frame: the keyframes the tracker emits as final for
+//! mapping and the log (after [`PipelineConfig::keyframe_lag`](super::PipelineConfig) newer
+//! ones, so their depth went through the window BA: [`Tracker::next_final_keyframe`] writes
+//! them into our pooled slots, we add the image and the resume alignment), and, every
 //! [`PipelineConfig::window_interval`](super::PipelineConfig) of frame time, the tracker's
 //! newest keyframes as a [`TrackerWindow`] for the log (what a resume seeds a tracker with).
 //! One type for the threaded and the deterministic pipeline and for frames tracked again on
@@ -33,7 +34,8 @@ pub(super) struct HandoffConfig {
 }
 
 pub(super) struct Handoff {
-    lag: VecDeque<(u64, Arc<Frame>)>,
+    /// The frames of the keyframes the tracker has not emitted yet, in its order.
+    frames: VecDeque<(u64, Arc<Frame>)>,
     keyframe_lag: usize,
     keyframes: Pool<Keyframe>,
     window: WindowLog,
@@ -41,8 +43,10 @@ pub(super) struct Handoff {
 }
 
 impl Handoff {
-    /// Pools sized for `tracker`'s camera and depth grid.
-    pub(super) fn new(cfg: HandoffConfig, tracker: &Tracker) -> Self {
+    /// Pools sized for `tracker`'s camera and depth grid; turns on `tracker`'s keyframe
+    /// emission after `cfg.keyframe_lag` newer keyframes.
+    pub(super) fn new(cfg: HandoffConfig, tracker: &mut Tracker) -> Self {
+        tracker.emit_keyframes_after(cfg.keyframe_lag);
         let cam = *tracker.camera();
         let grid = *tracker.depth_camera();
         let blank_window = || TrackerWindow {
@@ -53,7 +57,7 @@ impl Handoff {
                 .collect(),
         };
         Handoff {
-            lag: VecDeque::with_capacity(cfg.keyframe_lag + 1),
+            frames: VecDeque::with_capacity(tracker.capacity().max_keyframes + 1),
             keyframe_lag: cfg.keyframe_lag,
             keyframes: Pool::new(cfg.keyframe_slots, || blank_keyframe(&cam)),
             // One being logged, one waiting, one to fill.
@@ -69,24 +73,25 @@ impl Handoff {
 
     /// Keyframes the tracker already holds that are still to be handed on (a resume's, see
     /// [`PipelineConfig::unlogged_keyframes`](super::PipelineConfig)), oldest first.
-    pub(super) fn adopt(&mut self, keyframes: &[(u64, Arc<Frame>)]) {
+    pub(super) fn adopt(&mut self, tracker: &mut Tracker, keyframes: &[(u64, Arc<Frame>)]) {
         for (id, frame) in keyframes {
-            self.lag.push_back((*id, Arc::clone(frame)));
+            self.frames.push_back((*id, Arc::clone(frame)));
         }
+        tracker.emit_held_keyframes(keyframes.iter().map(|(id, _)| *id));
     }
 
     /// After `tracker` tracked `frame` (`out`): each keyframe now due goes to `log` and then to
     /// `keyframe`; a window record, when one is due, to `log`.
     pub(super) fn after_frame(
         &mut self,
-        tracker: &Tracker,
+        tracker: &mut Tracker,
         frame: &Arc<Frame>,
         out: &TrackOutput,
         mut log: impl FnMut(LogItem),
         mut keyframe: impl FnMut(Arc<Keyframe>) -> Result<(), PipelineError>,
     ) -> Result<(), PipelineError> {
         if let Some(id) = out.new_keyframe {
-            self.lag.push_back((id, Arc::clone(frame)));
+            self.frames.push_back((id, Arc::clone(frame)));
         }
         while let Some(kf) = self.pop_ready(tracker, false) {
             log(LogItem::Keyframe(Arc::clone(&kf)));
@@ -99,7 +104,7 @@ impl Handoff {
     }
 
     /// End of the stream: every keyframe still waiting, to `log` and then `keyframe`.
-    pub(super) fn flush(&mut self, tracker: &Tracker, mut log: impl FnMut(LogItem), mut keyframe: impl FnMut(Arc<Keyframe>) -> Result<(), PipelineError>) -> Result<(), PipelineError> {
+    pub(super) fn flush(&mut self, tracker: &mut Tracker, mut log: impl FnMut(LogItem), mut keyframe: impl FnMut(Arc<Keyframe>) -> Result<(), PipelineError>) -> Result<(), PipelineError> {
         while let Some(kf) = self.pop_ready(tracker, true) {
             log(LogItem::Keyframe(Arc::clone(&kf)));
             keyframe(kf)?;
@@ -107,29 +112,44 @@ impl Handoff {
         Ok(())
     }
 
-    /// The next keyframe due (all of them when `flush`), with the tracker's current depth,
-    /// variance and pose; keyframes the tracker no longer holds are skipped.
-    fn pop_ready(&mut self, tracker: &Tracker, flush: bool) -> Option<Arc<Keyframe>> {
-        while self.lag.len() > if flush { 0 } else { self.keyframe_lag } {
-            let (id, frame) = self.lag.pop_front()?;
-            let mut fresh = None;
-            let mut slot = self.keyframes.take();
-            let kf = match slot.as_mut() {
-                Some(s) => s.get_mut(),
-                None => {
-                    tracing::debug!("keyframe {id}: every keyframe buffer is held downstream; a fresh one");
-                    fresh.insert(blank_keyframe(tracker.camera()))
-                }
-            };
-            if fill_keyframe(tracker, &frame, id, self.align.as_ref(), kf) {
-                return Some(match (slot, fresh) {
-                    (Some(s), _) => s.share(),
-                    (None, Some(f)) => Arc::new(f),
-                    (None, None) => unreachable!("a keyframe buffer was taken or made above"),
-                });
+    /// The next keyframe the tracker emits as final (all waiting ones when `flush`), with its
+    /// image and the alignment applied, in a pooled buffer.
+    fn pop_ready(&mut self, tracker: &mut Tracker, flush: bool) -> Option<Arc<Keyframe>> {
+        if tracker.keyframes_waiting().len() <= if flush { 0 } else { self.keyframe_lag } {
+            // Nothing due: no buffer taken.
+            return None;
+        }
+        let mut fresh = None;
+        let mut slot = self.keyframes.take();
+        let kf = match slot.as_mut() {
+            Some(s) => s.get_mut(),
+            None => {
+                tracing::debug!("every keyframe buffer is held downstream; a fresh one");
+                fresh.insert(blank_keyframe(tracker.camera()))
+            }
+        };
+        let emitted = tracker.next_final_keyframe(flush, kf);
+        // The frames of keyframes the tracker skipped (no longer held, no depth) go too.
+        let waiting = tracker.keyframes_waiting().len();
+        let mut frame = None;
+        while self.frames.len() > waiting {
+            let (id, f) = self.frames.pop_front()?;
+            if Some(id) == emitted {
+                frame = Some(f);
             }
         }
-        None
+        let Some(frame) = frame else {
+            if let Some(id) = emitted {
+                tracing::warn!("keyframe {id}: emitted by the tracker but its frame is not held; not handed on");
+            }
+            return None;
+        };
+        finish_keyframe(&frame, self.align.as_ref(), kf);
+        Some(match (slot, fresh) {
+            (Some(s), _) => s.share(),
+            (None, Some(f)) => Arc::new(f),
+            (None, None) => unreachable!("a keyframe buffer was taken or made above"),
+        })
     }
 }
 
@@ -146,15 +166,10 @@ fn blank_keyframe(cam: &PinholeCamera) -> Keyframe {
     }
 }
 
-/// Writes keyframe `id` of the tracker at full resolution (for mapping and the log) into `kf`
-/// without allocating; `false` when the tracker no longer holds it or it has no depth yet.
-fn fill_keyframe(tracker: &Tracker, frame: &Frame, id: u64, world_from_tracker: Option<&Sim3>, kf: &mut Keyframe) -> bool {
-    let Some(view) = tracker.keyframes().find(|k| k.id == id) else { return false };
-    let world_from_cam = apply(world_from_tracker, &view.world_from_cam);
-    if let Err(e) = tracker.upsample_keyframe(id, &mut kf.inv_depth, &mut kf.inv_depth_variance) {
-        tracing::debug!("keyframe {id}: no depth yet: {e}");
-        return false;
-    }
+/// Completes keyframe `kf` as the tracker emitted it: its frame's image and time, and the
+/// resume alignment `world_from_tracker` applied to its pose and depth.
+fn finish_keyframe(frame: &Frame, world_from_tracker: Option<&Sim3>, kf: &mut Keyframe) {
+    kf.world_from_cam = apply(world_from_tracker, &kf.world_from_cam);
     if let Some(a) = world_from_tracker {
         // Inverse depth scales with 1/s, its variance with 1/s^2.
         let s = a.scaling() as f32;
@@ -162,11 +177,7 @@ fn fill_keyframe(tracker: &Tracker, frame: &Frame, id: u64, world_from_tracker: 
         kf.inv_depth_variance.data.iter_mut().for_each(|v| *v /= s * s);
     }
     copy_rgb(&frame.image, &mut kf.image);
-    kf.index = id;
     kf.t_ns = frame.t_ns;
-    kf.world_from_cam = world_from_cam;
-    kf.camera = *tracker.camera();
-    true
 }
 
 /// `image` as RGB into `out` (grey repeated over the channels), reusing its buffer.

@@ -602,8 +602,8 @@ pub fn run<S: FrameSource + 'static>(
         let announce = cfg.announce;
         let align = cfg.world_from_tracker;
         let mut tracker = tracker;
-        let mut handoff = Handoff::new(cfg.handoff(), &tracker);
-        handoff.adopt(&cfg.unlogged_keyframes);
+        let mut handoff = Handoff::new(cfg.handoff(), &mut tracker);
+        handoff.adopt(&mut tracker, &cfg.unlogged_keyframes);
         let retrack_unlogged = cfg.retrack_unlogged.clone();
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
@@ -839,8 +839,8 @@ fn run_deterministic<S: FrameSource + 'static>(
         }
     };
     let mut last_t = Timestamp::from_ns(0);
-    let mut handoff = Handoff::new(cfg.handoff(), &tracker);
-    handoff.adopt(&cfg.unlogged_keyframes);
+    let mut handoff = Handoff::new(cfg.handoff(), &mut tracker);
+    handoff.adopt(&mut tracker, &cfg.unlogged_keyframes);
     let mut to_mapping = |kf: Arc<Keyframe>| -> Result<(), PipelineError> {
         if stop.load(Ordering::Relaxed) {
             return Ok(());

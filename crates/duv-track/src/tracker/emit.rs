@@ -1,0 +1,91 @@
+//! Keyframes handed on once their depth is final. A keyframe's depth keeps changing while it
+//! is in the window BA; after `lag` newer keyframes were inserted it has been through that
+//! many window solves and is handed on: [`Tracker::next_final_keyframe`] writes its pose, its
+//! camera and its full-resolution inverse depth and variance into a [`Keyframe`] the caller
+//! owns (a pooled slot), so nothing downstream reaches into the keyframe store. The tracker
+//! keeps no colour image; the caller fills `image` (and may replace `t_ns` with its frame's).
+//!
+//! Off until [`Tracker::emit_keyframes_after`] is called: a tracker used alone (benches,
+//! tests) keeps no queue. The queue is allocated with the tracker ([`TrackerCapacity`]'s
+//! `max_keyframes` entries); a caller that never takes keyframes loses the oldest ids, counted.
+
+use super::*;
+use duv_core::Keyframe;
+use std::collections::VecDeque;
+
+/// The ids of inserted keyframes waiting for `lag` newer ones, oldest first.
+pub(super) struct Emission {
+    lag: Option<usize>,
+    waiting: VecDeque<u64>,
+    capacity: usize,
+    overflowed: u64,
+}
+
+impl Emission {
+    pub(super) fn new(capacity: usize) -> Self {
+        Emission { lag: None, waiting: VecDeque::with_capacity(capacity + 1), capacity: capacity.max(1), overflowed: 0 }
+    }
+
+    /// Keyframe `id` was inserted.
+    pub(super) fn inserted(&mut self, id: u64) {
+        if self.lag.is_none() {
+            return;
+        }
+        if self.waiting.len() >= self.capacity {
+            self.waiting.pop_front();
+            self.overflowed += 1;
+            tracing::warn!("keyframe emission: {} waiting keyframes, the oldest is dropped (nobody takes them)", self.capacity);
+        }
+        self.waiting.push_back(id);
+    }
+}
+
+impl Tracker {
+    /// Hands keyframes on once `lag` newer keyframes were inserted after them
+    /// ([`Tracker::next_final_keyframe`]). Keyframes inserted before the call are not queued.
+    pub fn emit_keyframes_after(&mut self, lag: usize) {
+        self.emit.lag = Some(lag);
+    }
+
+    /// Queues keyframes the tracker already holds (seeded on resume, not yet handed on), oldest
+    /// first, as if they had just been inserted. Only after [`Tracker::emit_keyframes_after`].
+    pub fn emit_held_keyframes(&mut self, ids: impl IntoIterator<Item = u64>) {
+        for id in ids {
+            self.emit.inserted(id);
+        }
+    }
+
+    /// Keyframes waiting to be final, oldest first.
+    pub fn keyframes_waiting(&self) -> impl ExactSizeIterator<Item = u64> + '_ {
+        self.emit.waiting.iter().copied()
+    }
+
+    /// The next keyframe whose depth is final (with `flush`, the oldest waiting one, final or
+    /// not: the end of the stream), written into `out` (`index`, `t_ns`, `world_from_cam` in the
+    /// tracker's frame, `camera`, `inv_depth` and `inv_depth_variance` at the input
+    /// resolution) without allocating once `out`'s planes have that size; `None` when none is
+    /// due. Keyframes the tracker no longer holds, or without depth yet, are skipped.
+    pub fn next_final_keyframe(&mut self, flush: bool, out: &mut Keyframe) -> Option<u64> {
+        let lag = self.emit.lag?;
+        while self.emit.waiting.len() > if flush { 0 } else { lag } {
+            let id = self.emit.waiting.pop_front()?;
+            let Some(view) = self.keyframes().find(|k| k.id == id) else { continue };
+            let (world_from_cam, t_ns) = (view.world_from_cam, view.t_ns);
+            if let Err(e) = self.upsample_keyframe(id, &mut out.inv_depth, &mut out.inv_depth_variance) {
+                tracing::debug!("keyframe {id}: no depth yet: {e}");
+                continue;
+            }
+            out.index = id;
+            out.t_ns = t_ns;
+            out.world_from_cam = world_from_cam;
+            out.camera = *self.camera();
+            return Some(id);
+        }
+        None
+    }
+
+    /// Waiting keyframes dropped because nobody took them (see the module docs).
+    pub fn keyframes_overflowed(&self) -> u64 {
+        self.emit.overflowed
+    }
+}

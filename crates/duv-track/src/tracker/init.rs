@@ -1,0 +1,178 @@
+//! Initialisation: collecting the first keyframes and the initial BA.
+
+use super::*;
+
+/// Initialisation: which insertion path keyframes take, and the initial BA's first solution
+/// while the second start is tried.
+pub(super) struct Init {
+    pub(super) phase: Phase,
+    pub(super) init_snapshot: WindowSnapshot,
+}
+
+impl State {
+    pub(super) fn track_collecting(&mut self, frame: &Frame, mut out: TrackOutput) -> Result<TrackOutput, TrackError> {
+        out.state = TrackingState::Initializing;
+        self.motion.state = TrackingState::Initializing;
+        let r = self.motion.ref_slot;
+        if self.work.have_prev_flow {
+            self.work.seed.dx.data.copy_from_slice(&self.work.prev_flow.dx.data);
+            self.work.seed.dy.data.copy_from_slice(&self.work.prev_flow.dy.data);
+        }
+        self.flow_ref_to_current(r, self.work.have_prev_flow, true)?;
+        let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+        if conf < self.cfg.min_confident_fraction {
+            // Nothing to trust: wait for a better frame (the first keyframe stays).
+            self.work.have_prev_flow = false;
+            out.note = TrackNote::InitLowConfidence { confident: conf, needed: self.cfg.min_confident_fraction };
+            return Ok(out);
+        }
+        self.work.prev_flow.dx.data.copy_from_slice(&self.work.res.pooled.flow.dx.data);
+        self.work.prev_flow.dy.data.copy_from_slice(&self.work.res.pooled.flow.dy.data);
+        self.work.have_prev_flow = true;
+        let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
+        if mean_flow <= self.cfg.keyframe_flow_px {
+            out.note = TrackNote::InitSmallFlow { flow_px: mean_flow * self.factor as f32, needed_px: self.cfg.keyframe_flow_px * self.factor as f32 };
+            return Ok(out);
+        }
+        // A new keyframe. The previous one's staged solve first (its stages usually ran on the
+        // frames in between): the pose and the splat below use the solved reference.
+        self.finish_pending()?;
+        // A first pose against the reference's (constant or solved) depth.
+        let mut pose = self.graph.kfs.slots[r].world_from_cam;
+        if self.motion_only(r, &mut pose).is_err() {
+            self.stats.counters.ba_failures += 1;
+            out.note = TrackNote::InitPoseFailed;
+            return Ok(out);
+        }
+        let prev = r;
+        let s = self.insert_keyframe_slot(frame, &pose);
+        self.splat_depth(prev, s);
+        // Incremental initialisation: link the new keyframe and refine everything collected
+        // so far, so that each new keyframe starts from a better map than constant depth.
+        self.graph.new_edges.clear();
+        let n = self.graph.kfs.len();
+        for back in 1..=self.cfg.edges_per_keyframe.min(n - 1) {
+            let c = self.graph.kfs.order[n - 1 - back];
+            for (f, t) in [(s, c), (c, s)] {
+                if let Some(e) = self.graph.edges.add(f, t, false) {
+                    self.graph.new_edges.push(e);
+                }
+            }
+        }
+        self.win.window.clear();
+        self.win.window.extend_from_slice(&self.graph.kfs.order);
+        let initialising = self.graph.kfs.len() >= self.cfg.init_keyframes;
+        if self.cfg.defer_rounds && self.cfg.defer_insertion && !initialising {
+            // Staged like an insertion: one edge per stage, then the solve over everything
+            // collected, on the following frames. The initial BA itself is not staged.
+            self.insert.pending = Some(Pending { slot: s, fixed: 1, next_round: 0, next_edge: 0, fine: true, next_candidate: None, collecting: true });
+        } else {
+            self.estimate_new_edges()?;
+            self.solve_window(self.cfg.init_iterations, 1);
+        }
+        self.motion.ref_slot = s;
+        self.work.have_prev_flow = false;
+        self.motion.last_pose = pose;
+        self.motion.last_seq = frame.seq;
+        out.world_from_cam = pose;
+        out.new_keyframe = Some(self.graph.kfs.slots[s].id);
+        out.anchor = Some(FrameAnchor { keyframe: self.graph.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: 1.0 });
+        if initialising {
+            self.initialise()?;
+            out.state = TrackingState::Tracking;
+        } else {
+            out.note = TrackNote::InitKeyframe { keyframes: self.graph.kfs.len(), needed: self.cfg.init_keyframes };
+        }
+        out.world_from_cam = self.graph.kfs.slots[s].world_from_cam;
+        self.motion.last_pose = out.world_from_cam;
+        Ok(out)
+    }
+
+    /// Monocular initialisation: link the collected keyframes, then alternate flow and BA with
+    /// many iterations from constant inverse depth.
+    pub(super) fn initialise(&mut self) -> Result<(), TrackError> {
+        let n = self.graph.kfs.len();
+        self.graph.new_edges.clear();
+        for pos in 1..n {
+            for back in 1..=self.cfg.edges_per_keyframe.min(pos) {
+                let (a, b) = (self.graph.kfs.order[pos], self.graph.kfs.order[pos - back]);
+                for (f, t) in [(a, b), (b, a)] {
+                    if let Some(e) = self.graph.edges.add(f, t, false) {
+                        self.graph.new_edges.push(e);
+                    }
+                }
+            }
+        }
+        self.win.window.clear();
+        self.win.window.extend_from_slice(&self.graph.kfs.order);
+        let collected = self.initial_rounds()?;
+        let rms = self.cfg.init_level_start_rms_px as f64;
+        let try_level = self.cfg.init_level_start && collected.is_none_or(|c| c > 0.5 * rms * rms);
+        if try_level && self.init.init_snapshot.save(&self.graph.kfs, &self.graph.edges, &self.win.window, &self.graph.new_edges) {
+            self.level_start();
+            let level = self.initial_rounds()?;
+            let keep_level = match (collected, level) {
+                (Some(c), Some(l)) => l < c,
+                (None, Some(_)) => true,
+                _ => false,
+            };
+            tracing::debug!(collected, level, keep_level, "track: initial BA from the collected and the level start");
+            if !keep_level {
+                self.init.init_snapshot.restore(&mut self.graph.kfs, &mut self.graph.edges, &self.win.window, &self.graph.new_edges);
+                // The covariance below is taken on the loaded window.
+                if let Err(e) = load_window(&mut self.win.ba, &self.low, &mut self.graph.kfs, &self.graph.edges, &self.win.window, false) {
+                    tracing::debug!(error = %e, "track: reloading the initial window failed");
+                }
+            }
+            self.stats.counters.init_level_start = keep_level;
+        }
+        self.window_covariance(1);
+        self.init.phase = Phase::Running;
+        self.motion.state = TrackingState::Tracking;
+        let newest = self.graph.kfs.newest().expect("initialised with keyframes");
+        self.motion.ref_slot = newest;
+        let last = &self.graph.kfs.slots[newest];
+        let before = &self.graph.kfs.slots[self.graph.kfs.order[n - 2]];
+        let frames = last.seq.saturating_sub(before.seq).max(1) as f64;
+        self.motion.velocity = se3_exp(&(se3_log(&before.world_from_cam.inv_mul(&last.world_from_cam)) / frames));
+        self.motion.last_pose = last.world_from_cam;
+        self.motion.last_seq = last.seq;
+        self.loops.inserted_since_loop = 0;
+        self.loops.inserted_since_global = 0;
+        Ok(())
+    }
+
+    /// `init_rounds` flow/BA rounds over the window (first pose fixed); the final cost per
+    /// unit of flow weight of the new edges (`None` if the last solve failed).
+    pub(super) fn initial_rounds(&mut self) -> Result<Option<f64>, TrackError> {
+        let mut cost = None;
+        for _ in 0..self.cfg.init_rounds {
+            self.estimate_new_edges()?;
+            cost = self.solve_window(self.cfg.init_iterations, 1);
+        }
+        let weight: f64 = self.graph.new_edges.iter().map(|&e| self.graph.edges.edges[e].weight.data.iter().map(|&w| w as f64).sum::<f64>()).sum();
+        Ok(cost.filter(|_| weight > 0.0).map(|c| c / weight))
+    }
+
+    /// The second start of the initial BA (`init_level_start`): every window keyframe at the
+    /// first one's attitude, positions kept, every inverse depth the window's median.
+    pub(super) fn level_start(&mut self) {
+        let Some(&first) = self.win.window.first() else { return };
+        let attitude = self.graph.kfs.slots[first].world_from_cam.rotation;
+        self.work.scratch.clear();
+        for &s in &self.win.window {
+            self.work.scratch.extend(self.graph.kfs.slots[s].inv_depth.data.iter().copied().filter(|d| d.is_finite() && *d >= MIN_INV_DEPTH));
+        }
+        let median = if self.work.scratch.is_empty() {
+            self.cfg.initial_inv_depth
+        } else {
+            let m = self.work.scratch.len() / 2;
+            *self.work.scratch.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1
+        };
+        for &s in &self.win.window {
+            let kf = &mut self.graph.kfs.slots[s];
+            kf.world_from_cam = Se3::from_parts(kf.world_from_cam.translation, attitude);
+            kf.inv_depth.data.fill(median);
+        }
+    }
+}

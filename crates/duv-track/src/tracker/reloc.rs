@@ -1,0 +1,67 @@
+//! Relocalisation against stored keyframes after a loss.
+
+use super::*;
+
+/// Relocalisation: stored keyframes ranked against the current frame (NCC, slot), best first.
+pub(super) struct Reloc {
+    pub(super) candidates: Vec<(f32, usize)>,
+}
+
+impl State {
+    /// Lost: try the reference keyframe with the predicted pose, then appearance candidates.
+    pub(super) fn relocalise(&mut self, frame: &Frame, mut out: TrackOutput) -> Result<TrackOutput, TrackError> {
+        let w = self.camera.width;
+        thumbnail(&self.work.grey.data, w, self.camera.height, &mut self.work.cur_thumb);
+        // The reference keyframe first, seeded by the prediction (a short outage).
+        let r = self.motion.ref_slot;
+        let predicted = out.world_from_cam;
+        {
+            let kf = &self.graph.kfs.slots[r];
+            induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &predicted, Some(&mut self.work.seed));
+        }
+        if let Some(pose) = self.try_relocalise_against(r, Some(predicted))? {
+            return Ok(self.relocalised(out, r, pose, frame.seq));
+        }
+        self.rank_candidates(None, self.graph.kfs.len(), self.cfg.reloc_min_ncc);
+        for k in 0..self.reloc.candidates.len() {
+            let c = self.reloc.candidates[k].1;
+            if c == r {
+                continue;
+            }
+            if let Some(pose) = self.try_relocalise_against(c, None)? {
+                return Ok(self.relocalised(out, c, pose, frame.seq));
+            }
+        }
+        out.world_from_cam = predicted;
+        Ok(self.lost(out, LostReason::NotRelocalised))
+    }
+
+    /// Flow from keyframe `c` (seeded by `self.work.seed` when `predicted` is given) and
+    /// motion-only BA; the pose when the match is verified.
+    pub(super) fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
+        self.flow_ref_to_current(c, predicted.is_some(), true)?;
+        let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+        let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
+        if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
+            return Ok(None);
+        }
+        let mut pose = predicted.unwrap_or(self.graph.kfs.slots[c].world_from_cam);
+        if self.motion_only(c, &mut pose).is_err() {
+            return Ok(None);
+        }
+        Ok(Some(pose))
+    }
+
+    pub(super) fn relocalised(&mut self, mut out: TrackOutput, c: usize, pose: Se3, seq: u64) -> TrackOutput {
+        self.motion.ref_slot = c;
+        self.motion.velocity = Se3::identity();
+        self.motion.last_pose = pose;
+        self.motion.last_seq = seq;
+        self.motion.state = TrackingState::Relocalised;
+        self.stats.counters.relocalisations += 1;
+        out.state = TrackingState::Relocalised;
+        out.world_from_cam = pose;
+        out.anchor = Some(self.anchor_to(c, &pose));
+        out
+    }
+}
