@@ -1,5 +1,6 @@
 //! `duv eval`: a trajectory (and optionally rendered images and depth uncertainty) against
-//! ground truth. Prints the metrics table and writes `report.json`, `report.md` and figures.
+//! ground truth. Prints the metrics table and writes `report.json`, `report.md` and figures
+//! (the figures only in a build with the `figures` feature; without it the report says so).
 
 use anyhow::Context;
 use clap::ValueEnum;
@@ -77,7 +78,7 @@ pub struct EvalArgs {
     /// Points on the sparsification curves.
     #[arg(long, default_value_t = 100)]
     ause_steps: usize,
-    /// Output folder for report.json, report.md and the figures (created if needed).
+    /// Output folder for report.json, report.md and the figures (created if needed; figures need a build with the `figures` feature).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
 }
@@ -146,5 +147,8 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let written = write_report(&evaluation, &args.out).with_context(|| format!("writing the report to {}", args.out.display()))?;
     print!("{}", evaluation.report.metrics_table());
     println!("\nwrote {}", written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
+    if let Some(why) = &evaluation.report.figures_not_drawn {
+        println!("{why}");
+    }
     Ok(())
 }

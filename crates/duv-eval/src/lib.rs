@@ -2,16 +2,17 @@
 //! trajectory association, Umeyama alignment, ATE and RPE as evo computes them
 //! ([`sync`], [`align`], [`trajectory`]); PSNR and SSIM as scikit-image (or the 3DGS papers)
 //! compute them ([`image`]); the sparsification error of depth uncertainty ([`ause`]);
-//! and the report with its figures ([`report`], [`plot`]).
+//! and the report with its figures ([`report`]; the figures, drawn with `plotters`, only with
+//! the `figures` feature, in `plot`).
 //!
 //! Everything takes in-memory data; only [`report::write_report`] and the `duv eval`
 //! command touch files.
 
 pub mod align;
 pub mod ause;
-mod font;
 pub mod image;
 pub mod load;
+#[cfg(feature = "figures")]
 pub mod plot;
 pub mod report;
 pub mod stats;
@@ -65,6 +66,10 @@ pub enum EvalError {
     AuseBadValue { index: usize, error: f64, uncertainty: f64, problem: &'static str },
     #[error("AUSE: every error is zero, so the sparsification curves cannot be normalised")]
     AuseZeroError,
+    /// A figure of the report could not be drawn.
+    #[cfg(feature = "figures")]
+    #[error("figure {figure}: {source}")]
+    Figure { figure: &'static str, source: plot::PlotError },
     #[error("invalid {name} = {value}: {reason}")]
     InvalidParameter { name: &'static str, value: String, reason: &'static str },
     /// An error in one named input of several (an image pair, a keyframe).

@@ -1,10 +1,26 @@
-//! A small plotting module for the report figures: line charts with axes, tick labels, grid,
-//! legend and title, drawn into an RGB image with anti-aliased lines and the built-in bitmap
-//! font. No plotting crate, no font files.
+//! The report figures: line charts with a title, axes with round ticks, a grid and a legend,
+//! drawn with the `plotters` crate into an in-memory RGB image (the caller writes the PNG).
+//! Text is DejaVu Sans, embedded in the binary and rasterised by plotters' pure-Rust
+//! `ab_glyph` path: no system fonts, no fontconfig. Only built with the `figures` feature.
+//!
+//! What plotters does not decide for us stays here: round ticks at a 1-2-5 step with labels
+//! that never read "-0.00" ([`ticks`]), equal aspect for maps, the legend in the corner that
+//! hides the fewest data points (raising the top of the y axis where every corner hides some),
+//! and the plane a 3-D path is seen from ([`top_view_axes`]).
 
-use super::font::{self, CELL_H, CELL_W};
 use duv_core::ImageRgb8;
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use plotters::coord::ranged1d::{KeyPointHint, KeyPointWeight, NoDefaultFormatting, Ranged, ValueFormatter};
+use plotters::coord::Shift;
+use plotters::drawing::IntoDrawingArea;
+use plotters::element::{Circle, DashedPathElement, MultiLineText, PathElement, Rectangle};
+use plotters::prelude::{
+    BitMapBackend, ChartBuilder, Color, DashedLineSeries, DrawingArea, FontStyle, IntoFont, LineSeries, RGBColor,
+    SeriesLabelPosition, ShapeStyle, TextStyle,
+};
+use std::fmt::Display;
+use std::ops::Range;
+use std::sync::OnceLock;
 
 pub type Rgb = [u8; 3];
 
@@ -17,8 +33,16 @@ pub const ORANGE: Rgb = [255, 127, 14];
 pub const GREEN: Rgb = [44, 160, 44];
 pub const RED: Rgb = [214, 39, 40];
 
-/// Text scale (font pixels to image pixels) of every label.
-const TEXT_SCALE: usize = 2;
+/// Errors of the `plot` module.
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    #[error("chart {title:?}: {width}x{height} pixels is too small, a chart needs at least {min}x{min}")]
+    TooSmall { title: String, width: usize, height: usize, min: usize },
+    #[error("the embedded figure font {font} cannot be read")]
+    Font { font: &'static str },
+    #[error("chart {title:?}: drawing failed: {message}")]
+    Draw { title: String, message: String },
+}
 
 /// How a series is drawn.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -29,7 +53,8 @@ pub enum Style {
     Dots,
 }
 
-/// One labelled polyline (or set of dots) in data coordinates.
+/// One labelled polyline (or set of dots) in data coordinates; an empty label keeps it out of
+/// the legend.
 #[derive(Clone, Debug)]
 pub struct Series {
     pub label: String,
@@ -64,169 +89,68 @@ pub struct Chart {
     pub y_range: Option<(f64, f64)>,
 }
 
-/// An RGB canvas with alpha blending.
-struct Canvas {
-    img: ImageRgb8,
+/// The smallest chart side, pixels: room for the title, the axis labels and a plot area.
+pub const MIN_SIDE_PX: usize = 160;
+
+/// The family name the embedded font is registered under with plotters.
+const FONT_FAMILY: &str = "duv-eval DejaVu Sans";
+const FONT_FILE: &str = "DejaVuSans.ttf";
+static FONT_TTF: &[u8] = include_bytes!("../fonts/DejaVuSans.ttf");
+
+/// Space above the title, pixels.
+const TITLE_TOP_PX: i32 = 8;
+/// Font sizes (pixels) of the title and of every other text.
+const TITLE_PX: f64 = 22.0;
+const LABEL_PX: f64 = 17.0;
+
+/// Space around the chart body (below the title), pixels.
+const MARGIN_TOP: i32 = 8;
+const MARGIN_RIGHT: i32 = 28;
+const MARGIN_BOTTOM: i32 = 10;
+const MARGIN_LEFT: i32 = 12;
+/// Tick marks, and the gap between a tick label and its tick.
+const TICK_PX: i32 = 6;
+/// Height of the x label area (tick labels and the axis label) below the plot.
+const X_LABEL_AREA_PX: i32 = 62;
+/// Width of the y label area beyond the widest tick label (the rotated axis label and gaps).
+const Y_LABEL_AREA_EXTRA_PX: i32 = 48;
+
+const LEGEND_INSET: i32 = 12;
+const LEGEND_PAD: i32 = 10;
+const LEGEND_SAMPLE_W: i32 = 34;
+const LEGEND_GAP: i32 = 10;
+/// Dash and gap lengths of dashed series, pixels.
+const DASH_PX: i32 = 12;
+const DASH_GAP_PX: i32 = 7;
+
+/// Names the chart in a plotters error.
+trait OrDraw<T> {
+    fn or_draw(self, title: &str) -> Result<T, PlotError>;
 }
 
-impl Canvas {
-    fn new(width: usize, height: usize) -> Self {
-        Canvas { img: ImageRgb8::filled(width, height, WHITE) }
-    }
-
-    fn blend(&mut self, x: i64, y: i64, c: Rgb, alpha: f32) {
-        if x < 0 || y < 0 || x >= self.img.width as i64 || y >= self.img.height as i64 || alpha <= 0.0 {
-            return;
-        }
-        let i = self.img.index(x as usize, y as usize);
-        let a = alpha.min(1.0);
-        for (dst, &src) in self.img.data[i..i + 3].iter_mut().zip(&c) {
-            let old = *dst as f32;
-            *dst = (old + (src as f32 - old) * a).round().clamp(0.0, 255.0) as u8;
-        }
-    }
-
-    fn fill_rect(&mut self, x0: i64, y0: i64, x1: i64, y1: i64, c: Rgb) {
-        for y in y0..y1 {
-            for x in x0..x1 {
-                self.blend(x, y, c, 1.0);
-            }
-        }
-    }
-
-    fn rect_outline(&mut self, x0: i64, y0: i64, x1: i64, y1: i64, c: Rgb) {
-        self.fill_rect(x0, y0, x1, y0 + 1, c);
-        self.fill_rect(x0, y1 - 1, x1, y1, c);
-        self.fill_rect(x0, y0, x0 + 1, y1, c);
-        self.fill_rect(x1 - 1, y0, x1, y1, c);
-    }
-
-    /// Text with its top-left corner at (x, y).
-    fn text(&mut self, x: i64, y: i64, s: &str, scale: usize, c: Rgb) {
-        let mut pen = x;
-        for ch in s.chars() {
-            let rows = font::glyph(ch);
-            for (gy, bits) in rows.iter().enumerate() {
-                for gx in 0..CELL_W {
-                    if bits & (1 << (CELL_W - 1 - gx)) != 0 {
-                        let (px, py) = (pen + (gx * scale) as i64, y + (gy * scale) as i64);
-                        self.fill_rect(px, py, px + scale as i64, py + scale as i64, c);
-                    }
-                }
-            }
-            pen += ((CELL_W + 1) * scale) as i64;
-        }
-    }
-
-    /// Text rotated a quarter turn anticlockwise (reading upwards), its bounding box's top-left
-    /// corner at (x, y).
-    fn text_vertical(&mut self, x: i64, y: i64, s: &str, scale: usize, c: Rgb) {
-        let w = font::text_width(s, scale) as i64;
-        let mut pen = 0i64;
-        for ch in s.chars() {
-            let rows = font::glyph(ch);
-            for (gy, bits) in rows.iter().enumerate() {
-                for gx in 0..CELL_W {
-                    if bits & (1 << (CELL_W - 1 - gx)) != 0 {
-                        let tx = pen + (gx * scale) as i64;
-                        let ty = (gy * scale) as i64;
-                        let (px, py) = (x + ty, y + w - tx - scale as i64);
-                        self.fill_rect(px, py, px + scale as i64, py + scale as i64, c);
-                    }
-                }
-            }
-            pen += ((CELL_W + 1) * scale) as i64;
-        }
-    }
-
-    fn composite(&mut self, mask: &Mask, c: Rgb) {
-        for y in mask.y0..mask.y1 {
-            for x in mask.x0..mask.x1 {
-                let a = mask.alpha[(y - mask.y0) * mask.width() + (x - mask.x0)];
-                if a > 0.0 {
-                    self.blend(x as i64, y as i64, c, a);
-                }
-            }
-        }
+impl<T, E: Display> OrDraw<T> for Result<T, E> {
+    fn or_draw(self, title: &str) -> Result<T, PlotError> {
+        self.map_err(|e| PlotError::Draw { title: title.to_string(), message: e.to_string() })
     }
 }
 
-/// Coverage of one series over a clip rectangle; overlapping segments take the maximum so that
-/// joints are not drawn twice.
-struct Mask {
-    x0: usize,
-    y0: usize,
-    x1: usize,
-    y1: usize,
-    alpha: Vec<f32>,
+/// Registers the embedded font with plotters, once per process.
+fn register_font() -> Result<(), PlotError> {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    let ok = *REGISTERED.get_or_init(|| plotters::style::register_font(FONT_FAMILY, FontStyle::Normal, FONT_TTF).is_ok());
+    if ok {
+        Ok(())
+    } else {
+        Err(PlotError::Font { font: FONT_FILE })
+    }
 }
 
-impl Mask {
-    /// A mask over `[x0, x1) x [y0, y1)`; negative or inverted bounds give an empty mask.
-    fn new(x0: i64, y0: i64, x1: i64, y1: i64) -> Self {
-        let (x0, y0) = (x0.max(0) as usize, y0.max(0) as usize);
-        let (x1, y1) = ((x1.max(0) as usize).max(x0), (y1.max(0) as usize).max(y0));
-        Mask { x0, y0, x1, y1, alpha: vec![0.0; (x1 - x0) * (y1 - y0)] }
-    }
-    fn width(&self) -> usize {
-        self.x1 - self.x0
-    }
+fn color(c: Rgb) -> RGBColor {
+    RGBColor(c[0], c[1], c[2])
+}
 
-    /// An anti-aliased segment of width `2 * half` between pixel-space points.
-    fn segment(&mut self, a: [f64; 2], b: [f64; 2], half: f64) {
-        let pad = half + 1.0;
-        let bx0 = ((a[0].min(b[0]) - pad).floor().max(self.x0 as f64)) as usize;
-        let by0 = ((a[1].min(b[1]) - pad).floor().max(self.y0 as f64)) as usize;
-        let bx1 = ((a[0].max(b[0]) + pad).ceil().min(self.x1 as f64)).max(bx0 as f64) as usize;
-        let by1 = ((a[1].max(b[1]) + pad).ceil().min(self.y1 as f64)).max(by0 as f64) as usize;
-        let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
-        let len2 = dx * dx + dy * dy;
-        let w = self.width();
-        for y in by0..by1 {
-            for x in bx0..bx1 {
-                let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
-                let t = if len2 > 0.0 { (((px - a[0]) * dx + (py - a[1]) * dy) / len2).clamp(0.0, 1.0) } else { 0.0 };
-                let (cx, cy) = (a[0] + t * dx, a[1] + t * dy);
-                let d = ((px - cx).powi(2) + (py - cy).powi(2)).sqrt();
-                let cover = (half + 0.5 - d).clamp(0.0, 1.0) as f32;
-                let slot = &mut self.alpha[(y - self.y0) * w + (x - self.x0)];
-                *slot = slot.max(cover);
-            }
-        }
-    }
-
-    fn polyline(&mut self, pts: &[[f64; 2]], half: f64) {
-        if pts.len() == 1 {
-            self.segment(pts[0], pts[0], half);
-        }
-        for w in pts.windows(2) {
-            self.segment(w[0], w[1], half);
-        }
-    }
-
-    /// Dashes of `on` pixels separated by `off` pixels, continuing across vertices.
-    fn dashed(&mut self, pts: &[[f64; 2]], half: f64, on: f64, off: f64) {
-        let period = on + off;
-        let mut phase = 0.0; // distance travelled modulo the period
-        for w in pts.windows(2) {
-            let (a, b) = (w[0], w[1]);
-            let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
-            let mut s = 0.0;
-            while s < len {
-                let in_on = phase < on;
-                let step = if in_on { on - phase } else { period - phase }.min(len - s);
-                if in_on && step > 0.0 {
-                    let p = |u: f64| [a[0] + (b[0] - a[0]) * u / len, a[1] + (b[1] - a[1]) * u / len];
-                    self.segment(p(s), p(s + step), half);
-                }
-                s += step;
-                phase = (phase + step) % period;
-                if step <= 0.0 {
-                    break;
-                }
-            }
-        }
-    }
+fn text_style(size_px: f64) -> TextStyle<'static> {
+    (FONT_FAMILY, size_px).into_font().color(&color(BLACK))
 }
 
 /// Tick positions covering [lo, hi] at a 1-2-5 step, about `target` of them, and the decimals
@@ -291,65 +215,137 @@ fn padded((lo, hi): (f64, f64)) -> (f64, f64) {
     }
 }
 
-const LEGEND_INSET: i64 = 12;
-const LEGEND_PAD: i64 = 10;
-const LEGEND_SAMPLE_W: i64 = 34;
-
-fn legend_row_h() -> i64 {
-    (CELL_H * TEXT_SCALE + 8) as i64
+/// A linear axis for plotters whose grid lines and labels are [`ticks`] (no minor lines).
+#[derive(Clone, Debug)]
+struct Axis {
+    lo: f64,
+    hi: f64,
+    ticks: Vec<f64>,
+    decimals: usize,
 }
 
-/// Axis ranges and the plot area they map onto.
+impl Axis {
+    fn new(lo: f64, hi: f64, target: usize) -> Self {
+        let (ticks, decimals) = ticks(lo, hi, target);
+        Axis { lo, hi, ticks, decimals }
+    }
+}
+
+impl Ranged for Axis {
+    type FormatOption = NoDefaultFormatting;
+    type ValueType = f64;
+
+    fn map(&self, v: &f64, limit: (i32, i32)) -> i32 {
+        let span = self.hi - self.lo;
+        if !(span > 0.0 && span.is_finite()) {
+            return (limit.0 + limit.1) / 2;
+        }
+        // `as` saturates: a far-off value lands at the edge of the backend's i32 range.
+        (limit.0 as f64 + (v - self.lo) / span * (limit.1 - limit.0) as f64).round() as i32
+    }
+
+    fn key_points<H: KeyPointHint>(&self, hint: H) -> Vec<f64> {
+        match hint.weight() {
+            KeyPointWeight::Bold => self.ticks.clone(),
+            // The light (minor) grid: none.
+            KeyPointWeight::Any => Vec::new(),
+        }
+    }
+
+    fn range(&self) -> Range<f64> {
+        self.lo..self.hi
+    }
+}
+
+impl ValueFormatter<f64> for Axis {
+    fn format_ext(&self, v: &f64) -> String {
+        tick_label(*v, self.decimals)
+    }
+}
+
+/// Axis ranges and the size of the plot area they map onto, pixels (the legend is placed in
+/// plot-area pixels, origin top-left).
 #[derive(Clone, Copy, Debug)]
 struct Frame {
     x0: f64,
     x1: f64,
     y0: f64,
     y1: f64,
-    /// Left and top of the plot area, its width and height, pixels.
-    pl: usize,
-    pt: usize,
-    pw: usize,
-    ph: usize,
+    pw: i32,
+    ph: i32,
+    /// Width of the y label area that gives this plot area.
+    y_area_w: i32,
 }
 
 impl Frame {
-    /// Margins for title, tick labels and axis labels around the plot area; with equal
-    /// aspect, the ranges widen about their centres until a unit is as long on both axes.
-    fn fit((mut x0, mut x1): (f64, f64), (mut y0, mut y1): (f64, f64), width: usize, height: usize, equal_aspect: bool) -> Frame {
-        let s = TEXT_SCALE;
-        let line_h = CELL_H * s;
-        let top = 20 + line_h + 16;
-        let bottom_margin = 8 + 6 + line_h + 14 + line_h + 14;
-        let ph = height.saturating_sub(top + bottom_margin).max(10);
-        // The y tick labels' width decides the left margin.
-        let (y_ticks, y_dec) = ticks(y0, y1, (ph / 70).max(2));
-        let label_w = y_ticks.iter().map(|v| font::text_width(&tick_label(*v, y_dec), s)).max().unwrap_or(0);
-        let pl = 14 + line_h + 14 + label_w + 8 + 6;
-        let pw = width.saturating_sub(pl + 28).max(10);
-        if equal_aspect {
-            let px_per_unit = (pw as f64 / (x1 - x0)).min(ph as f64 / (y1 - y0));
-            let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
-            let (hx, hy) = (0.5 * pw as f64 / px_per_unit, 0.5 * ph as f64 / px_per_unit);
-            (x0, x1, y0, y1) = (cx - hx, cx + hx, cy - hy, cy + hy);
-        }
-        Frame { x0, x1, y0, y1, pl, pt: top, pw, ph }
-    }
-
     fn to_px(self, p: [f64; 2]) -> [f64; 2] {
-        [
-            self.pl as f64 + (p[0] - self.x0) / (self.x1 - self.x0) * self.pw as f64,
-            (self.pt + self.ph) as f64 - (p[1] - self.y0) / (self.y1 - self.y0) * self.ph as f64,
-        ]
+        [(p[0] - self.x0) / (self.x1 - self.x0) * self.pw as f64, self.ph as f64 - (p[1] - self.y0) / (self.y1 - self.y0) * self.ph as f64]
     }
+    fn x_ticks_target(self) -> usize {
+        (self.pw / 110).max(2) as usize
+    }
+    fn y_ticks_target(ph: i32) -> usize {
+        (ph / 70).max(2) as usize
+    }
+}
+
+/// Where the plot area of a drawn chart is: its ranges and size, and its top-left pixel (what
+/// the tests check drawn pixels against).
+#[derive(Clone, Copy, Debug)]
+#[cfg_attr(not(test), allow(dead_code))]
+struct Layout {
+    frame: Frame,
+    left: i32,
+    top: i32,
+}
+
+impl Layout {
+    /// Image pixel of a data point.
+    #[cfg(test)]
+    fn pixel(&self, p: [f64; 2]) -> (usize, usize) {
+        let q = self.frame.to_px(p);
+        ((self.left as f64 + q[0]).round() as usize, (self.top as f64 + q[1]).round() as usize)
+    }
+}
+
+/// A chart builder with the fixed margins and label areas of every chart.
+fn builder<'a, 'b>(body: &'a DrawingArea<BitMapBackend<'b>, Shift>, y_area_w: i32) -> ChartBuilder<'a, 'b, BitMapBackend<'b>> {
+    let mut b = ChartBuilder::on(body);
+    b.margin_top(MARGIN_TOP)
+        .margin_right(MARGIN_RIGHT)
+        .margin_bottom(MARGIN_BOTTOM)
+        .margin_left(MARGIN_LEFT)
+        .x_label_area_size(X_LABEL_AREA_PX)
+        .y_label_area_size(y_area_w);
+    b
 }
 
 impl Chart {
     /// Draws the chart into a `width` x `height` image.
-    pub fn render(&self, width: usize, height: usize) -> ImageRgb8 {
-        let s = TEXT_SCALE;
-        let line_h = CELL_H * s;
-        let mut canvas = Canvas::new(width, height);
+    pub fn render(&self, width: usize, height: usize) -> Result<ImageRgb8, PlotError> {
+        self.render_with_layout(width, height).map(|(img, _)| img)
+    }
+
+    /// The image, and where the plot area landed in it.
+    fn render_with_layout(&self, width: usize, height: usize) -> Result<(ImageRgb8, Layout), PlotError> {
+        if width < MIN_SIDE_PX || height < MIN_SIDE_PX {
+            return Err(PlotError::TooSmall { title: self.title.clone(), width, height, min: MIN_SIDE_PX });
+        }
+        register_font()?;
+        let mut buf = vec![255u8; width * height * 3];
+        let layout = {
+            let root = BitMapBackend::with_buffer(&mut buf, (width as u32, height as u32)).into_drawing_area();
+            let layout = self.draw(&root)?;
+            root.present().or_draw(&self.title)?;
+            layout
+        };
+        Ok((ImageRgb8 { width, height, data: buf }, layout))
+    }
+
+    fn draw(&self, root: &DrawingArea<BitMapBackend<'_>, Shift>) -> Result<Layout, PlotError> {
+        root.fill(&color(WHITE)).or_draw(&self.title)?;
+        let label_font = text_style(LABEL_PX);
+        let body = root.margin(TITLE_TOP_PX, 0, 0, 0).titled(&self.title, text_style(TITLE_PX)).or_draw(&self.title)?;
 
         let all_x = self.series.iter().flat_map(|se| se.points.iter().map(|p| p[0]));
         let all_y = self.series.iter().flat_map(|se| se.points.iter().map(|p| p[1]));
@@ -359,8 +355,9 @@ impl Chart {
         // Fit the axes; where the legend would hide data in every corner, raise the top of the
         // y range until the data passes below the legend (a few rounds: with equal aspect the
         // scale changes as the range grows).
-        let mut frame = Frame::fit(x_range, y_range, width, height, self.equal_aspect);
-        if let (Some((box_w, box_h)), Some((_, y_max))) = (self.legend_size(), data_range(all_y)) {
+        let legend = self.legend_size(&label_font)?;
+        let mut frame = self.fit(&body, &label_font, x_range, y_range)?;
+        if let (Some((box_w, box_h)), Some((_, y_max))) = (legend, data_range(all_y)) {
             for _ in 0..4 {
                 let (_, hidden) = self.legend_corner(&frame, box_w, box_h);
                 if hidden == 0 {
@@ -377,98 +374,130 @@ impl Chart {
                     break;
                 }
                 y_range = (y_range.0, y_range.1 + (new_y1 - y1));
-                frame = Frame::fit(x_range, y_range, width, height, self.equal_aspect);
+                frame = self.fit(&body, &label_font, x_range, y_range)?;
             }
         }
-        let Frame { x0, x1, y0, y1, pl, pt, pw: plot_w, ph: plot_h } = frame;
-        let (pr, pb) = (pl + plot_w, pt + plot_h);
-        let to_px = |p: [f64; 2]| frame.to_px(p);
 
-        // Grid and ticks.
-        let (x_ticks, x_dec) = ticks(x0, x1, (plot_w / 110).max(2));
-        let (y_ticks, y_dec) = ticks(y0, y1, (plot_h / 70).max(2));
-        for &v in &x_ticks {
-            let x = to_px([v, y0])[0].round() as i64;
-            canvas.fill_rect(x, pt as i64, x + 1, pb as i64, GRID);
-        }
-        for &v in &y_ticks {
-            let y = to_px([x0, v])[1].round() as i64;
-            canvas.fill_rect(pl as i64, y, pr as i64, y + 1, GRID);
-        }
+        let x_axis = Axis::new(frame.x0, frame.x1, frame.x_ticks_target());
+        let y_axis = Axis::new(frame.y0, frame.y1, Frame::y_ticks_target(frame.ph));
+        let mut chart = builder(&body, frame.y_area_w).build_cartesian_2d(x_axis, y_axis).or_draw(&self.title)?;
+        chart
+            .configure_mesh()
+            .bold_line_style(color(GRID))
+            .axis_style(color(BLACK))
+            .set_all_tick_mark_size(TICK_PX)
+            .label_style(label_font.clone())
+            .axis_desc_style(label_font.clone())
+            .x_desc(self.x_label.as_str())
+            .y_desc(self.y_label.as_str())
+            .draw().or_draw(&self.title)?;
 
-        // Series, clipped to the plot area.
         for se in &self.series {
-            let pts: Vec<[f64; 2]> = se.points.iter().filter(|p| p[0].is_finite() && p[1].is_finite()).map(|&p| to_px(p)).collect();
+            let pts: Vec<(f64, f64)> = se.points.iter().filter(|p| p[0].is_finite() && p[1].is_finite()).map(|p| (p[0], p[1])).collect();
             if pts.is_empty() {
                 continue;
             }
-            let mut mask = Mask::new(pl as i64, pt as i64, pr as i64, pb as i64);
-            let half = 0.5 * se.width_px as f64;
-            match se.style {
-                Style::Solid => mask.polyline(&pts, half),
-                Style::Dashed => mask.dashed(&pts, half, 12.0, 7.0),
-                Style::Dots => pts.iter().for_each(|&p| mask.segment(p, p, half)),
+            let c = color(se.color);
+            let line = ShapeStyle { color: c.to_rgba(), filled: false, stroke_width: se.width_px.round().max(1.0) as u32 };
+            let sample = ShapeStyle { stroke_width: line.stroke_width.max(2), ..line };
+            let radius = (0.5 * se.width_px).round().max(1.0) as i32;
+            let anno = match se.style {
+                Style::Solid => chart.draw_series(LineSeries::new(pts, line)).or_draw(&self.title)?,
+                Style::Dashed => chart.draw_series(DashedLineSeries::new(pts, DASH_PX, DASH_GAP_PX, line)).or_draw(&self.title)?,
+                Style::Dots => chart.draw_series(pts.into_iter().map(|p| Circle::new(p, radius, c.filled()))).or_draw(&self.title)?,
+            };
+            if se.label.is_empty() {
+                continue;
             }
-            canvas.composite(&mask, se.color);
+            anno.label(se.label.as_str());
+            match se.style {
+                Style::Solid => anno.legend(move |(x, y)| PathElement::new(vec![(x, y), (x + LEGEND_SAMPLE_W, y)], sample)),
+                Style::Dashed => anno.legend(move |(x, y)| DashedPathElement::new(vec![(x, y), (x + LEGEND_SAMPLE_W, y)], DASH_PX, DASH_GAP_PX, sample)),
+                Style::Dots => anno.legend(move |(x, y)| Circle::new((x + LEGEND_SAMPLE_W / 2, y), radius, c.filled())),
+            };
         }
 
-        // Frame, tick marks and labels.
-        canvas.rect_outline(pl as i64 - 1, pt as i64 - 1, pr as i64 + 1, pb as i64 + 1, BLACK);
-        for &v in &x_ticks {
-            let x = to_px([v, y0])[0].round() as i64;
-            canvas.fill_rect(x, pb as i64, x + 1, pb as i64 + 6, BLACK);
-            let label = tick_label(v, x_dec);
-            let tw = font::text_width(&label, s) as i64;
-            canvas.text(x - tw / 2, pb as i64 + 6 + 8, &label, s, BLACK);
-        }
-        for &v in &y_ticks {
-            let y = to_px([x0, v])[1].round() as i64;
-            canvas.fill_rect(pl as i64 - 6, y, pl as i64, y + 1, BLACK);
-            let label = tick_label(v, y_dec);
-            let tw = font::text_width(&label, s) as i64;
-            canvas.text(pl as i64 - 6 - 8 - tw, y - (7 * s as i64) / 2, &label, s, BLACK);
-        }
+        // A frame round the plot area.
+        chart.plotting_area().draw(&Rectangle::new([(frame.x0, frame.y0), (frame.x1, frame.y1)], color(BLACK))).or_draw(&self.title)?;
 
-        // Axis labels and title.
-        let xl_w = font::text_width(&self.x_label, s) as i64;
-        canvas.text((pl + pr) as i64 / 2 - xl_w / 2, (pb + 8 + 6 + line_h + 14) as i64, &self.x_label, s, BLACK);
-        let yl_w = font::text_width(&self.y_label, s) as i64;
-        canvas.text_vertical(14, (pt + pb) as i64 / 2 - yl_w / 2, &self.y_label, s, BLACK);
-        let t_w = font::text_width(&self.title, s) as i64;
-        let tx = ((pl + pr) as i64 / 2 - t_w / 2).max(4);
-        // Bold by a one-pixel double strike.
-        canvas.text(tx, 20, &self.title, s, BLACK);
-        canvas.text(tx + 1, 20, &self.title, s, BLACK);
-
-        self.legend(&mut canvas, &frame);
-        canvas.img
+        if let Some((box_w, box_h)) = legend {
+            let ((bx, by), _) = self.legend_corner(&frame, box_w, box_h);
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::Coordinate(bx, by))
+                .margin(LEGEND_PAD)
+                .legend_area_size(LEGEND_SAMPLE_W + LEGEND_GAP)
+                .label_font(label_font.clone())
+                .background_style(color(WHITE).filled())
+                .border_style(color(GREY))
+                .draw().or_draw(&self.title)?;
+        }
+        let (xs, ys) = chart.plotting_area().get_pixel_range();
+        Ok(Layout { frame, left: xs.start, top: ys.start })
     }
 
-    /// Size of the legend box in pixels; `None` without labelled series.
-    fn legend_size(&self) -> Option<(i64, i64)> {
-        let entries = self.series.iter().filter(|se| !se.label.is_empty()).count();
-        if entries == 0 {
-            return None;
+    /// The axis ranges and plot area: the y label area is as wide as the widest y tick label
+    /// needs; with equal aspect, the ranges widen about their centres until a unit is as long
+    /// on both axes.
+    fn fit(&self, body: &DrawingArea<BitMapBackend<'_>, Shift>, font: &TextStyle, (x0, x1): (f64, f64), (y0, y1): (f64, f64)) -> Result<Frame, PlotError> {
+        let mut y_area_w = Y_LABEL_AREA_EXTRA_PX;
+        let mut frame = None;
+        // The plot area depends on the label width, the label width on the ticks of the final
+        // range: settle in a few rounds.
+        for _ in 0..4 {
+            let probe = builder(body, y_area_w).build_cartesian_2d(0.0..1.0, 0.0..1.0).or_draw(&self.title)?;
+            let (xs, ys) = probe.plotting_area().get_pixel_range();
+            let (pw, ph) = ((xs.end - xs.start).max(1), (ys.end - ys.start).max(1));
+            let (mut fx0, mut fx1, mut fy0, mut fy1) = (x0, x1, y0, y1);
+            if self.equal_aspect {
+                let px_per_unit = (pw as f64 / (x1 - x0)).min(ph as f64 / (y1 - y0));
+                let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+                let (hx, hy) = (0.5 * pw as f64 / px_per_unit, 0.5 * ph as f64 / px_per_unit);
+                (fx0, fx1, fy0, fy1) = (cx - hx, cx + hx, cy - hy, cy + hy);
+            }
+            let f = Frame { x0: fx0, x1: fx1, y0: fy0, y1: fy1, pw, ph, y_area_w };
+            let y_axis = Axis::new(fy0, fy1, Frame::y_ticks_target(ph));
+            let mut label_w = 0;
+            for v in &y_axis.ticks {
+                label_w = label_w.max(body.estimate_text_size(&tick_label(*v, y_axis.decimals), font).or_draw(&self.title)?.0 as i32);
+            }
+            let need = label_w + TICK_PX + Y_LABEL_AREA_EXTRA_PX;
+            frame = Some(f);
+            if need == y_area_w {
+                break;
+            }
+            y_area_w = need;
         }
-        let s = TEXT_SCALE;
-        let text_w = self.series.iter().map(|se| font::text_width(&se.label, s)).max().unwrap_or(0) as i64;
-        let box_w = LEGEND_PAD + LEGEND_SAMPLE_W + 10 + text_w + LEGEND_PAD;
-        let box_h = LEGEND_PAD + legend_row_h() * entries as i64 - 8 + LEGEND_PAD;
-        Some((box_w, box_h))
+        // The loop runs at least once.
+        Ok(frame.unwrap_or(Frame { x0, x1, y0, y1, pw: 1, ph: 1, y_area_w }))
     }
 
-    /// The corner (top-left of the box) of the plot area where the legend hides the fewest data
-    /// points, and how many it hides there. Top corners first.
-    fn legend_corner(&self, frame: &Frame, box_w: i64, box_h: i64) -> ((i64, i64), usize) {
-        let (pl, pt) = (frame.pl as i64, frame.pt as i64);
-        let (pr, pb) = (pl + frame.pw as i64, pt + frame.ph as i64);
+    /// Size of the legend box in pixels, as plotters lays it out; `None` without labelled
+    /// series.
+    fn legend_size(&self, font: &TextStyle) -> Result<Option<(i32, i32)>, PlotError> {
+        let labels: Vec<&str> = self.series.iter().filter(|se| !se.label.is_empty()).map(|se| se.label.as_str()).collect();
+        if labels.is_empty() {
+            return Ok(None);
+        }
+        let mut text = MultiLineText::<(i32, i32), &str>::new((0, 0), font.clone());
+        for l in labels {
+            text.push_line(l);
+        }
+        let (w, h) = text.estimate_dimension().or_draw(&self.title)?;
+        Ok(Some((w + LEGEND_SAMPLE_W + LEGEND_GAP + 2 * LEGEND_PAD, h + 2 * LEGEND_PAD)))
+    }
+
+    /// The corner (top-left of the box, plot-area pixels) where the legend hides the fewest
+    /// data points, and how many it hides there. Top corners first.
+    fn legend_corner(&self, frame: &Frame, box_w: i32, box_h: i32) -> ((i32, i32), usize) {
+        let (pr, pb) = (frame.pw, frame.ph);
         let corners = [
-            (pr - LEGEND_INSET - box_w, pt + LEGEND_INSET),
-            (pl + LEGEND_INSET, pt + LEGEND_INSET),
+            (pr - LEGEND_INSET - box_w, LEGEND_INSET),
+            (LEGEND_INSET, LEGEND_INSET),
             (pr - LEGEND_INSET - box_w, pb - LEGEND_INSET - box_h),
-            (pl + LEGEND_INSET, pb - LEGEND_INSET - box_h),
+            (LEGEND_INSET, pb - LEGEND_INSET - box_h),
         ];
-        let hidden = |(bx, by): (i64, i64)| -> usize {
+        let hidden = |(bx, by): (i32, i32)| -> usize {
             self.series
                 .iter()
                 .flat_map(|se| se.points.iter())
@@ -477,32 +506,6 @@ impl Chart {
                 .count()
         };
         corners.iter().map(|&c| (c, hidden(c))).min_by_key(|&(_, h)| h).unwrap_or((corners[0], 0))
-    }
-
-    /// Draws the legend box in the best corner.
-    fn legend(&self, canvas: &mut Canvas, frame: &Frame) {
-        let Some((box_w, box_h)) = self.legend_size() else { return };
-        let entries: Vec<&Series> = self.series.iter().filter(|se| !se.label.is_empty()).collect();
-        let s = TEXT_SCALE;
-        let (row_h, pad, sample_w) = (legend_row_h(), LEGEND_PAD, LEGEND_SAMPLE_W);
-        let ((bx, by), _) = self.legend_corner(frame, box_w, box_h);
-        canvas.fill_rect(bx, by, bx + box_w, by + box_h, WHITE);
-        canvas.rect_outline(bx, by, bx + box_w, by + box_h, GREY);
-        for (i, se) in entries.iter().enumerate() {
-            let ty = by + pad + row_h * i as i64;
-            let cy = ty as f64 + 7.0 * s as f64 / 2.0;
-            let mut mask = Mask::new(bx, by, bx + box_w, by + box_h);
-            let x_a = (bx + pad) as f64;
-            let x_b = (bx + pad + sample_w) as f64;
-            let half = 0.5 * se.width_px.max(2.0) as f64;
-            match se.style {
-                Style::Solid => mask.segment([x_a, cy], [x_b, cy], half),
-                Style::Dashed => mask.dashed(&[[x_a, cy], [x_b, cy]], half, 12.0, 7.0),
-                Style::Dots => mask.segment([0.5 * (x_a + x_b), cy], [0.5 * (x_a + x_b), cy], half),
-            }
-            canvas.composite(&mask, se.color);
-            canvas.text(bx + pad + sample_w + 10, ty, &se.label, s, BLACK);
-        }
     }
 }
 
@@ -572,10 +575,72 @@ mod tests {
             series: vec![Series::line("a", vec![[0.0, 0.0], [1.0, 1.0]], RED, 3.0)],
             ..Default::default()
         };
-        let img = chart.render(400, 300);
+        let img = chart.render(400, 300).unwrap();
         assert_eq!((img.width, img.height), (400, 300));
         let red = img.data.chunks_exact(3).filter(|p| p[0] > 180 && p[1] < 80 && p[2] < 80).count();
         assert!(red > 300, "{red}");
+    }
+
+    /// Pixels of `img` within `r` of (x, y) whose colour is within 10 of `c` in every channel.
+    fn near(img: &ImageRgb8, (x, y): (usize, usize), r: usize, c: Rgb) -> usize {
+        let (x0, y0) = (x.saturating_sub(r), y.saturating_sub(r));
+        let (x1, y1) = ((x + r).min(img.width - 1), (y + r).min(img.height - 1));
+        (y0..=y1).flat_map(|yy| (x0..=x1).map(move |xx| (xx, yy))).filter(|&(xx, yy)| img.pixel(xx, yy).iter().zip(&c).all(|(a, b)| a.abs_diff(*b) <= 10)).count()
+    }
+
+    #[test]
+    fn series_land_where_their_data_is() {
+        // A rising solid line, a dashed level, a dot: fixed ranges so every position is known.
+        let rising: Vec<[f64; 2]> = (0..=50).map(|i| [i as f64 * 0.2, 2.0 + i as f64 * 0.12]).collect();
+        let chart = Chart {
+            title: "Pixel check".into(),
+            x_label: "x (m)".into(),
+            y_label: "y (m)".into(),
+            series: vec![
+                Series::line("rising", rising.clone(), BLUE, 3.0),
+                Series::line("level", vec![[0.0, 5.0], [10.0, 5.0]], RED, 2.0).with_style(Style::Dashed),
+                Series { label: String::new(), points: vec![[8.0, 2.0]], color: GREEN, width_px: 11.0, style: Style::Dots },
+            ],
+            x_range: Some((0.0, 10.0)),
+            y_range: Some((0.0, 10.0)),
+            ..Default::default()
+        };
+        let (img, layout) = chart.render_with_layout(640, 480).unwrap();
+        assert_eq!((img.width, img.height, img.data.len()), (640, 480, 640 * 480 * 3));
+        let f = layout.frame;
+        assert_eq!((f.x0, f.x1, f.y0, f.y1), (0.0, 10.0, 0.0, 10.0));
+        assert!(f.pw > 400 && f.ph > 280 && layout.left > 40 && layout.top > 20, "{layout:?}");
+
+        // The blue line passes through each of its points (the middle third, clear of any legend).
+        for p in &rising[17..34] {
+            let at = layout.pixel(*p);
+            assert!(near(&img, at, 1, BLUE) > 0, "no blue near {at:?} for {p:?}");
+        }
+        // ...and nowhere near a point off the line.
+        assert_eq!(near(&img, layout.pixel([2.0, 8.0]), 6, BLUE), 0);
+        // The dashed level: red dashes with gaps along y = 5.
+        let y5 = layout.pixel([0.0, 5.0]).1;
+        let along: Vec<bool> = (layout.pixel([3.0, 5.0]).0..layout.pixel([7.0, 5.0]).0).map(|x| near(&img, (x, y5), 1, RED) > 0).collect();
+        let red = along.iter().filter(|&&r| r).count();
+        assert!(red > along.len() / 2 && red < along.len(), "{red} of {} pixels red: dashes and gaps", along.len());
+        // The dot: a filled disc of about 11 pixels across.
+        let dot = near(&img, layout.pixel([8.0, 2.0]), 7, GREEN);
+        assert!((60..=160).contains(&dot), "{dot} green pixels");
+        // Below and left of the plot area: white margin and black text (tick labels, axis labels).
+        let dark = |x0: usize, x1: usize, y0: usize, y1: usize| (y0..y1).flat_map(|y| (x0..x1).map(move |x| (x, y))).filter(|&(x, y)| img.pixel(x, y).iter().all(|&v| v < 100)).count();
+        let (left, bottom) = (layout.left as usize, layout.top as usize + f.ph as usize);
+        assert!(dark(0, left - 8, 0, 480) > 150, "no y labels");
+        assert!(dark(left, 640, bottom + 8, 480) > 150, "no x labels");
+        assert!(dark(0, 640, 0, layout.top as usize - 4) > 100, "no title");
+    }
+
+    #[test]
+    fn a_chart_too_small_is_an_error_naming_it() {
+        let chart = Chart { title: "tiny".into(), ..Default::default() };
+        let e = chart.render(100, 40).unwrap_err().to_string();
+        assert!(e.contains("tiny") && e.contains("100x40"), "{e}");
+        // No data at all still draws (empty axes).
+        assert!(chart.render(MIN_SIDE_PX, MIN_SIDE_PX).is_ok());
     }
 
     #[test]

@@ -1,14 +1,19 @@
 //! The evaluation report: every metric of one run against its ground truth, built from
 //! in-memory data ([`build_report`], what `duv demo` and `duv run` call) and written as
 //! `report.json`, `report.md` and PNG figures ([`write_report`], what `duv eval` calls).
+//! The figures are drawn only with the `figures` feature; without it the report lists none and
+//! says why ([`FIGURES_NOT_BUILT`]).
 
 use super::ause::{ause, AuseOptions};
 use super::image::{psnr, ssim, SsimConvention};
+#[cfg(feature = "figures")]
 use super::plot::{self, Chart, Series, Style};
 use super::trajectory::{evaluate_trajectory, TrajectoryEvaluation, TrajectoryOptions, TrajectoryReport};
 use super::EvalError;
-use duv_core::{FrameImage, ImageRgb8, ImageRgbF32, PlaneF32, StampedPose};
-use duv_core::io::{png_io, write_atomic, IoError};
+use duv_core::{FrameImage, ImageRgbF32, PlaneF32, StampedPose};
+#[cfg(feature = "figures")]
+use duv_core::{io::png_io, ImageRgb8};
+use duv_core::io::{write_atomic, IoError};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -208,6 +213,9 @@ pub struct Report {
     pub ause: Option<AuseReport>,
     /// Figure files written beside the report.
     pub figures: Vec<String>,
+    /// Why no figures were drawn, where none were: a build without the `figures` feature.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub figures_not_drawn: Option<String>,
 }
 
 /// A finished evaluation: the report and the data behind its figures.
@@ -220,6 +228,10 @@ pub struct Evaluation {
 pub const FIGURE_TRAJECTORY: &str = "trajectory_top.png";
 pub const FIGURE_ATE: &str = "ate_along_path.png";
 pub const FIGURE_SPARSIFICATION: &str = "sparsification.png";
+
+/// What the report says in place of its figures when the program was built without them.
+pub const FIGURES_NOT_BUILT: &str = "Figures were not drawn: this binary was built without the `figures` feature \
+     (to draw them, install it with `cargo install --path . --features figures`).";
 
 /// Computes every metric the inputs allow.
 pub fn build_report(inputs: &EvalInputs) -> Result<Evaluation, EvalError> {
@@ -273,10 +285,15 @@ pub fn build_report(inputs: &EvalInputs) -> Result<Evaluation, EvalError> {
         })
     };
 
-    let mut figures = vec![FIGURE_TRAJECTORY.to_string(), FIGURE_ATE.to_string()];
-    if ause_report.is_some() {
-        figures.push(FIGURE_SPARSIFICATION.to_string());
-    }
+    let (figures, figures_not_drawn) = if cfg!(feature = "figures") {
+        let mut figures = vec![FIGURE_TRAJECTORY.to_string(), FIGURE_ATE.to_string()];
+        if ause_report.is_some() {
+            figures.push(FIGURE_SPARSIFICATION.to_string());
+        }
+        (figures, None)
+    } else {
+        (Vec::new(), Some(FIGURES_NOT_BUILT.to_string()))
+    };
     let report = Report {
         generator: format!("duv eval {}", env!("CARGO_PKG_VERSION")),
         inputs: ReportInputs {
@@ -290,6 +307,7 @@ pub fn build_report(inputs: &EvalInputs) -> Result<Evaluation, EvalError> {
         images,
         ause: ause_report,
         figures,
+        figures_not_drawn,
     };
     Ok(Evaluation { report, trajectory })
 }
@@ -391,16 +409,25 @@ impl Report {
         for f in &self.figures {
             let _ = writeln!(s, "![{f}]({f})\n");
         }
+        if let Some(why) = &self.figures_not_drawn {
+            let _ = writeln!(s, "{why}");
+        }
         s
     }
 }
 
+#[cfg(feature = "figures")]
 const FIG_W: usize = 1000;
+#[cfg(feature = "figures")]
 const FIG_H: usize = 750;
 
+#[cfg(feature = "figures")]
 impl Evaluation {
-    /// The figures, by file name.
-    pub fn figures(&self) -> Vec<(&'static str, ImageRgb8)> {
+    /// The figures, by file name (only with the `figures` feature).
+    pub fn figures(&self) -> Result<Vec<(&'static str, ImageRgb8)>, EvalError> {
+        let draw = |figure: &'static str, chart: &Chart| {
+            chart.render(FIG_W, FIG_H).map(|img| (figure, img)).map_err(|source| EvalError::Figure { figure, source })
+        };
         let t = &self.trajectory;
         let r = &self.report.trajectory;
         let axes = plot::top_view_axes(&t.gt_path_positions);
@@ -448,7 +475,7 @@ impl Evaluation {
             y_range: Some((0.0, if max_err > 0.0 { 1.1 * max_err * per_m } else { 1.0 })),
             ..Default::default()
         };
-        let mut out = vec![(FIGURE_TRAJECTORY, top.render(FIG_W, FIG_H)), (FIGURE_ATE, ate.render(FIG_W, FIG_H))];
+        let mut out = vec![draw(FIGURE_TRAJECTORY, &top)?, draw(FIGURE_ATE, &ate)?];
 
         if let Some(u) = &self.report.ause {
             let pts = |ys: &[f64]| u.fractions.iter().zip(ys).map(|(&x, &y)| [x, y]).collect::<Vec<_>>();
@@ -467,14 +494,15 @@ impl Evaluation {
                 y_range: Some((0.0, 1.08 * y_max)),
                 ..Default::default()
             };
-            out.push((FIGURE_SPARSIFICATION, chart.render(FIG_W, FIG_H)));
+            out.push(draw(FIGURE_SPARSIFICATION, &chart)?);
         }
-        out
+        Ok(out)
     }
 }
 
 /// Writes `report.json`, `report.md` and the figures into `out_dir` (created if needed);
-/// returns the paths written.
+/// returns the paths written. Without the `figures` feature no figure is drawn, and
+/// `report.md` says so ([`Report::figures_not_drawn`]).
 pub fn write_report(eval: &Evaluation, out_dir: &Path) -> Result<Vec<PathBuf>, EvalError> {
     std::fs::create_dir_all(out_dir).map_err(|e| IoError::file(out_dir, e))?;
     let mut written = Vec::new();
@@ -486,7 +514,8 @@ pub fn write_report(eval: &Evaluation, out_dir: &Path) -> Result<Vec<PathBuf>, E
     let md_path = out_dir.join("report.md");
     write_atomic(&md_path, eval.report.markdown().as_bytes())?;
     written.push(md_path);
-    for (name, img) in eval.figures() {
+    #[cfg(feature = "figures")]
+    for (name, img) in eval.figures()? {
         let path = out_dir.join(name);
         png_io::write_rgb8(&path, &img)?;
         written.push(path);
@@ -541,21 +570,100 @@ mod tests {
         assert_eq!(imgs.psnr_mean_db, f64::INFINITY);
         assert!(imgs.per_image[1].psnr_db.is_finite() && imgs.per_image[1].ssim < 1.0);
         assert_eq!(r.ause.as_ref().unwrap().ause_mean, 0.0);
+        #[cfg(feature = "figures")]
         assert_eq!(r.figures.len(), 3);
+        #[cfg(not(feature = "figures"))]
+        assert!(r.figures.is_empty() && r.figures_not_drawn.as_deref() == Some(FIGURES_NOT_BUILT));
         let json = serde_json::to_string(r).unwrap();
         assert!(json.contains("\"psnr_db\":\"inf\""), "{json}");
         // Reads back (serde_json parses floats to within an ulp; per-pose errors are not stored).
         let back: Report = serde_json::from_str(&json).unwrap();
         assert_eq!(back.images.as_ref().unwrap().per_image[0].psnr_db, f64::INFINITY);
         assert_eq!(back.figures, r.figures);
+        assert_eq!(back.figures_not_drawn, r.figures_not_drawn);
         assert!((back.trajectory.ate.stats_m.rmse - r.trajectory.ate.stats_m.rmse).abs() < 1e-15);
         assert_eq!(back.options, r.options);
         let table = r.metrics_table();
         assert!(table.contains("ATE RMSE") && table.contains("inf (1 of 2 pairs identical)"), "{table}");
         // Figures render at full size.
-        let figs = ev.figures();
-        assert_eq!(figs.len(), 3);
-        assert!(figs.iter().all(|(_, f)| f.width == FIG_W && f.height == FIG_H));
+        #[cfg(feature = "figures")]
+        {
+            let figs = ev.figures().unwrap();
+            assert_eq!(figs.len(), 3);
+            assert!(figs.iter().all(|(_, f)| f.width == FIG_W && f.height == FIG_H));
+        }
+    }
+
+    fn small_evaluation(with_ause: bool) -> Evaluation {
+        let gt = poses(40, 0.0);
+        let est = poses(40, 0.02);
+        let ause_in = vec![AuseInput { name: "kf0".into(), errors: (1..=200).map(f64::from).collect(), uncertainties: (1..=200).rev().map(f64::from).collect() }];
+        let inputs = EvalInputs {
+            gt_name: "gt".into(),
+            est_name: "est".into(),
+            gt: &gt,
+            est: &est,
+            images: &[],
+            images_source: None,
+            ause: if with_ause { &ause_in } else { &[] },
+            ause_source: None,
+            options: EvalOptions::default(),
+        };
+        build_report(&inputs).unwrap()
+    }
+
+    /// Without the `figures` feature the report is still written, lists no figures and says why
+    /// (in report.json and report.md).
+    #[cfg(not(feature = "figures"))]
+    #[test]
+    fn without_the_feature_the_report_says_why_there_are_no_figures() {
+        let ev = small_evaluation(true);
+        let dir = tempfile::tempdir().unwrap();
+        let written = write_report(&ev, dir.path()).unwrap();
+        let names: Vec<String> = written.iter().map(|p| p.file_name().unwrap().to_string_lossy().into_owned()).collect();
+        assert_eq!(names, ["report.json", "report.md"]);
+        assert!(!dir.path().join(FIGURE_TRAJECTORY).exists());
+        let md = std::fs::read_to_string(dir.path().join("report.md")).unwrap();
+        assert!(md.contains("## Figures") && md.contains("`figures` feature") && md.contains("--features figures"), "{md}");
+        assert!(!md.contains(".png"), "{md}");
+        let back: Report = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
+        assert!(back.figures.is_empty());
+        assert_eq!(back.figures_not_drawn.as_deref(), Some(FIGURES_NOT_BUILT));
+    }
+
+    /// With the feature, every listed figure is written as a PNG of the figure size, and each
+    /// has the colours of its series.
+    #[cfg(feature = "figures")]
+    #[test]
+    fn figures_are_written_as_pngs_with_their_series() {
+        let ev = small_evaluation(true);
+        assert!(ev.report.figures_not_drawn.is_none());
+        let md = ev.report.markdown();
+        assert!(md.contains("![trajectory_top.png](trajectory_top.png)") && !md.contains("`figures` feature"), "{md}");
+        let dir = tempfile::tempdir().unwrap();
+        let written = write_report(&ev, dir.path()).unwrap();
+        assert_eq!(written.len(), 5);
+        let has = |img: &ImageRgb8, c: plot::Rgb| img.data.chunks_exact(3).filter(|p| p.iter().zip(&c).all(|(a, b)| a.abs_diff(*b) <= 8)).count();
+        for (name, colours) in [
+            (FIGURE_TRAJECTORY, vec![plot::BLUE, plot::GREEN]),
+            (FIGURE_ATE, vec![plot::RED, plot::GREY]),
+            (FIGURE_SPARSIFICATION, vec![plot::BLUE, plot::GREEN, plot::ORANGE]),
+        ] {
+            assert!(ev.report.figures.iter().any(|f| f == name), "{name}");
+            let img = png_io::read_image(&dir.path().join(name)).unwrap();
+            let duv_core::FrameImage::Rgb8(img) = img else { panic!("{name} is not RGB") };
+            assert_eq!((img.width, img.height), (FIG_W, FIG_H), "{name}");
+            for c in colours {
+                assert!(has(&img, c) > 50, "{name}: colour {c:?} appears on {} pixels", has(&img, c));
+            }
+            // Text (title, labels) is drawn: dark pixels in the title band at the top.
+            let dark_title = (0..40).flat_map(|y| (0..FIG_W).map(move |x| (x, y))).filter(|&(x, y)| img.pixel(x, y).iter().all(|&v| v < 90)).count();
+            assert!(dark_title > 200, "{name}: {dark_title} dark pixels in the title band");
+        }
+        // Without AUSE input there is no sparsification figure.
+        let ev = small_evaluation(false);
+        assert_eq!(ev.report.figures, [FIGURE_TRAJECTORY, FIGURE_ATE]);
+        assert_eq!(ev.figures().unwrap().len(), 2);
     }
 
     #[test]

@@ -35,8 +35,8 @@ pub use inspect::{inspect_log, LogSummary};
 pub use keyframes::{for_each_log_keyframe, log_files, read_log_keyframes, LogKeyframes, LoggedMap};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
-pub use schema::{FrameEncoding, LogItem, PoseRecord, Topic};
-pub use window::{TrackerWindow, WindowKeyframe};
+pub use schema::{DecodeError, FrameEncoding, LogItem, PoseRecord, Topic};
+pub use window::{TrackerWindow, WindowError, WindowKeyframe};
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 
 use std::path::PathBuf;
@@ -62,11 +62,15 @@ pub enum LogError {
     NotALog { path: PathBuf, problem: String },
     #[error("{what}: cannot encode: {problem}")]
     Encode { what: &'static str, problem: String },
+    /// The tracker window could not be encoded (its keyframes' depth grids differ): the item
+    /// is skipped, logging goes on.
+    #[error("tracker window: cannot encode: {0}")]
+    EncodeWindow(#[from] window::WindowError),
     /// A log without one complete keyframe (`duv refine --mcap`).
     #[error("{path}: no keyframes in the log ({segments} segment(s) read; a keyframe is a /keyframe/image, /keyframe/inv_depth, /keyframe/variance and /keyframe/pose message of one index){why}")]
     NoKeyframes { path: PathBuf, segments: usize, why: String },
-    #[error("{path}: message {topic} at {log_time_ns} ns: cannot decode: {problem}")]
-    Decode { path: PathBuf, topic: String, log_time_ns: u64, problem: String },
+    #[error("{path}: message {topic} at {log_time_ns} ns: cannot decode: {source}")]
+    Decode { path: PathBuf, topic: String, log_time_ns: u64, source: schema::DecodeError },
 }
 
 /// Segment file name for `index`.

@@ -8,11 +8,52 @@
 use super::window::TrackerWindow;
 use super::jpeg::{JpegEncoder, JpegError};
 use super::LogError;
-use duv_core::{Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
+use duv_core::{CameraModelError, Frame, FrameImage, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use foxglove::messages as fg;
 use foxglove::Encode;
 use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
+
+/// What a protobuf message body that does not parse gives (`prost`'s error, through
+/// `foxglove`).
+pub type ProtobufError = <fg::RawImage as foxglove::Decode>::Error;
+
+/// Errors of the `schema` module: a logged message that does not decode into what its topic
+/// holds. (Encoding errors are the crate's [`LogError::Encode`].)
+#[derive(Debug, thiserror::Error)]
+pub enum DecodeError {
+    /// The body is not the protobuf message `schema`.
+    #[error("not a {schema}: {source}")]
+    Protobuf { schema: &'static str, source: ProtobufError },
+    /// A raw image whose row stride is not its width times the pixel size.
+    #[error("{encoding} step {step} for width {width}")]
+    Step { encoding: &'static str, step: u32, width: usize },
+    /// A raw image whose data is not its width x height pixels.
+    #[error("{bytes} bytes for a {width}x{height} {encoding} image")]
+    ImageSize { encoding: &'static str, bytes: usize, width: usize, height: usize },
+    #[error("unsupported image encoding {encoding:?}")]
+    UnsupportedEncoding { encoding: String },
+    #[error("unsupported compressed image format {format:?} (this build reads jpeg)")]
+    UnsupportedFormat { format: String },
+    /// The JPEG stream does not decode (cut short, damaged, unsupported).
+    #[error("jpeg: {source}")]
+    Jpeg { source: zune_jpeg::errors::DecodeErrors },
+    #[error("jpeg: no dimensions")]
+    JpegNoDimensions,
+    #[error("jpeg: decoded size differs from {width}x{height} {colour}")]
+    JpegSize { width: usize, height: usize, colour: &'static str },
+    /// A depth or variance plane of another encoding than `32FC1`.
+    #[error("encoding {encoding:?}, expected \"32FC1\"")]
+    PlaneEncoding { encoding: String },
+    #[error("{bytes} bytes with step {step} for a {width}x{height} 32FC1 image")]
+    PlaneSize { bytes: usize, step: u32, width: usize, height: usize },
+    #[error("K has {entries} entries, expected 9")]
+    CalibrationK { entries: usize },
+    #[error(transparent)]
+    Calibration(#[from] CameraModelError),
+    #[error("pose missing or not finite")]
+    BadPose,
+}
 
 /// Frame id of the world (the tracker's map frame).
 pub const WORLD_FRAME: &str = "world";
@@ -519,7 +560,7 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
         }
         LogItem::Health { json, .. } => emit(Encoded { topic: Topic::Health, sequence: 0, log_time_ns }, json.as_bytes()),
         LogItem::Window(w) => {
-            w.encode(scratch).map_err(|problem| LogError::Encode { what: "tracker window", problem })?;
+            w.encode(scratch)?;
             emit(Encoded { topic: Topic::TrackerWindow, sequence: w.seq as u32, log_time_ns }, scratch)
         }
     }
@@ -564,28 +605,29 @@ fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
 
 /// Decodes a logged frame: a `foxglove.RawImage` (`rgb8` or `mono8`) or a
 /// `foxglove.CompressedImage` in format `jpeg` (colour or grey), whichever the message is.
-pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, DecodeError> {
     if field2_wire_type(data) == Some(2) {
         return decode_jpeg_frame(data, seq, log_time_ns);
     }
     use foxglove::Decode;
-    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let img = fg::RawImage::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.RawImage", source })?;
     let (w, h) = (img.width as usize, img.height as usize);
     let t_ns = timestamp_or(img.timestamp, log_time_ns);
+    let size = |encoding| DecodeError::ImageSize { encoding, bytes: img.data.len(), width: w, height: h };
     let image = match img.encoding.as_str() {
         "rgb8" => {
             if img.step as usize != w * 3 {
-                return Err(format!("rgb8 step {} for width {w}", img.step));
+                return Err(DecodeError::Step { encoding: "rgb8", step: img.step, width: w });
             }
-            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| format!("{} bytes for a {w}x{h} rgb8 image", img.data.len()))?)
+            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("rgb8"))?)
         }
         "mono8" => {
             if img.step as usize != w {
-                return Err(format!("mono8 step {} for width {w}", img.step));
+                return Err(DecodeError::Step { encoding: "mono8", step: img.step, width: w });
             }
-            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| format!("{} bytes for a {w}x{h} mono8 image", img.data.len()))?)
+            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("mono8"))?)
         }
-        other => return Err(format!("unsupported image encoding {other:?}")),
+        other => return Err(DecodeError::UnsupportedEncoding { encoding: other.to_string() }),
     };
     Ok(Frame { t_ns, seq, image })
 }
@@ -599,64 +641,67 @@ fn timestamp_or(t: Option<fg::Timestamp>, log_time_ns: u64) -> Timestamp {
 
 /// Decodes a `foxglove.CompressedImage` holding a JPEG into a frame: grey JPEGs give grey
 /// frames, colour ones RGB.
-fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, String> {
+fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, DecodeError> {
     use foxglove::Decode;
     use zune_jpeg::zune_core::colorspace::ColorSpace;
     use zune_jpeg::zune_core::options::DecoderOptions;
-    let img = fg::CompressedImage::decode(data).map_err(|e| e.to_string())?;
+    let img = fg::CompressedImage::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.CompressedImage", source })?;
     if !img.format.eq_ignore_ascii_case("jpeg") && !img.format.eq_ignore_ascii_case("jpg") {
-        return Err(format!("unsupported compressed image format {:?} (this build reads jpeg)", img.format));
+        return Err(DecodeError::UnsupportedFormat { format: img.format });
     }
     let t_ns = timestamp_or(img.timestamp, log_time_ns);
     let mut probe = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], DecoderOptions::new_safe());
-    probe.decode_headers().map_err(|e| format!("jpeg: {e:?}"))?;
+    probe.decode_headers().map_err(|source| DecodeError::Jpeg { source })?;
     let grey = probe.get_input_colorspace() == Some(ColorSpace::Luma);
-    let (w, h) = probe.dimensions().ok_or("jpeg: no dimensions")?;
+    let (w, h) = probe.dimensions().ok_or(DecodeError::JpegNoDimensions)?;
     let out = if grey { ColorSpace::Luma } else { ColorSpace::RGB };
     // Strict: a damaged stream is an error, not a frame with a grey lower half.
     let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(out).set_strict_mode(true);
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], options);
-    let pixels = decoder.decode().map_err(|e| format!("jpeg: {e:?}"))?;
+    let pixels = decoder.decode().map_err(|source| DecodeError::Jpeg { source })?;
+    let size = |colour| DecodeError::JpegSize { width: w, height: h, colour };
     let image = if grey {
-        FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} grey"))?)
+        FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, pixels).ok_or_else(|| size("grey"))?)
     } else {
-        FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, pixels).ok_or_else(|| format!("jpeg: decoded size differs from {w}x{h} rgb"))?)
+        FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, pixels).ok_or_else(|| size("rgb"))?)
     };
     Ok(Frame { t_ns, seq, image })
 }
 
 /// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
 /// and variance are logged) into a plane.
-pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, String> {
+pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, DecodeError> {
     use foxglove::Decode;
-    let img = fg::RawImage::decode(data).map_err(|e| e.to_string())?;
+    let img = fg::RawImage::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.RawImage", source })?;
     let (w, h) = (img.width as usize, img.height as usize);
     if img.encoding != "32FC1" {
-        return Err(format!("encoding {:?}, expected \"32FC1\"", img.encoding));
+        return Err(DecodeError::PlaneEncoding { encoding: img.encoding });
     }
-    if img.step as usize != w * 4 || img.data.len() != w * h * 4 {
-        return Err(format!("{} bytes with step {} for a {w}x{h} 32FC1 image", img.data.len(), img.step));
+    let size = || DecodeError::PlaneSize { bytes: img.data.len(), step: img.step, width: w, height: h };
+    let bytes = w.checked_mul(h).and_then(|n| n.checked_mul(4));
+    if w.checked_mul(4) != Some(img.step as usize) || bytes != Some(img.data.len()) {
+        return Err(size());
     }
     let data = img.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-    PlaneF32::from_vec(w, h, data).ok_or_else(|| format!("{w}x{h} 32FC1 size mismatch"))
+    PlaneF32::from_vec(w, h, data).ok_or_else(size)
 }
 
 /// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
 /// holds undistorted frames).
-pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, String> {
+pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, DecodeError> {
     use foxglove::Decode;
-    let c = fg::CameraCalibration::decode(data).map_err(|e| e.to_string())?;
+    let c = fg::CameraCalibration::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.CameraCalibration", source })?;
     if c.k.len() != 9 {
-        return Err(format!("K has {} entries, expected 9", c.k.len()));
+        return Err(DecodeError::CalibrationK { entries: c.k.len() });
     }
-    PinholeCamera::new(c.k[0], c.k[4], c.k[2], c.k[5], c.width as usize, c.height as usize).map_err(|e| e.to_string())
+    Ok(PinholeCamera::new(c.k[0], c.k[4], c.k[2], c.k[5], c.width as usize, c.height as usize)?)
 }
 
 /// Decodes a `foxglove.PoseInFrame`.
-pub fn decode_pose(data: &[u8]) -> Result<Se3, String> {
+pub fn decode_pose(data: &[u8]) -> Result<Se3, DecodeError> {
     use foxglove::Decode;
-    let p = fg::PoseInFrame::decode(data).map_err(|e| e.to_string())?;
-    p.pose.as_ref().and_then(se3_from_fg).ok_or_else(|| "pose missing or not finite".to_string())
+    let p = fg::PoseInFrame::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.PoseInFrame", source })?;
+    p.pose.as_ref().and_then(se3_from_fg).ok_or(DecodeError::BadPose)
 }
 
 #[cfg(test)]
@@ -759,7 +804,7 @@ mod tests {
             let msg = fg::CompressedImage { timestamp: None, frame_id: String::new(), data: data.into(), format: format.into() };
             let mut body = Vec::new();
             msg.encode(&mut body).unwrap();
-            let e = decode_frame(&body, 0, 0).unwrap_err();
+            let e = decode_frame(&body, 0, 0).unwrap_err().to_string();
             assert!(e.contains(want), "{e}");
         }
         assert!(decode_frame(&[0xff, 0xff, 0xff], 0, 0).is_err());
@@ -785,7 +830,7 @@ mod tests {
         assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), vec![(Topic::KeyframeImage, 9), (Topic::KeyframeInvDepth, 9), (Topic::KeyframeVariance, 9), (Topic::KeyframePose, 9)]);
         assert_eq!(decode_plane_f32(&got[1].2).unwrap(), inv);
         assert_eq!(decode_plane_f32(&got[2].2).unwrap(), var);
-        let err = decode_plane_f32(&got[0].2).unwrap_err();
+        let err = decode_plane_f32(&got[0].2).unwrap_err().to_string();
         assert!(err.contains("rgb8"), "{err}");
     }
 }

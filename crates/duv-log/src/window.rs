@@ -13,8 +13,9 @@
 //! (tx ty tz qx qy qz qw), `u8` has variance, width x height `f32` inverse depth, and the same
 //! again for the variance when it has one.
 
+use duv_core::io::le::{LeError, LeReader};
+use duv_core::pose::PoseError;
 use duv_core::{PlaneF32, Se3, Timestamp};
-use duv_core::io::le::LeReader;
 
 /// Message encoding of the `/slam/window` channel.
 pub const WINDOW_ENCODING: &str = "duv.tracker_window";
@@ -22,6 +23,32 @@ const MAGIC: &[u8; 4] = b"DUVW";
 const VERSION: u32 = 1;
 const HEADER_BYTES: usize = 4 + 4 + 8 + 8 + 4 + 4 + 4;
 const KEYFRAME_HEADER_BYTES: usize = 8 + 8 + 8 + 7 * 8 + 1;
+
+/// Errors of the `window` module: a window that cannot be encoded, a body that cannot be
+/// decoded.
+#[derive(Debug, thiserror::Error)]
+pub enum WindowError {
+    /// A keyframe's depth or variance plane is not the size of the window's grid.
+    #[error("keyframe {id}: depth grid differs from the window's {width}x{height}")]
+    GridMismatch { id: u64, width: usize, height: usize },
+    /// The body ends early or claims an array it does not hold.
+    #[error(transparent)]
+    Read(#[from] LeError),
+    #[error("not a tracker window (magic)")]
+    BadMagic,
+    #[error("tracker window version {found}, this build reads {VERSION}")]
+    UnsupportedVersion { found: u32 },
+    #[error("depth grid {width}x{height} overflows")]
+    GridOverflow { width: usize, height: usize },
+    #[error("{count} keyframes of a {width}x{height} grid do not fit in {bytes} bytes")]
+    TooManyKeyframes { count: usize, width: usize, height: usize, bytes: usize },
+    #[error("keyframe {id}: pose: {source}")]
+    BadPose { id: u64, source: PoseError },
+    #[error("keyframe {id}: variance flag {flag}")]
+    BadVarianceFlag { id: u64, flag: u8 },
+    #[error("{bytes} bytes after the last keyframe")]
+    TrailingBytes { bytes: usize },
+}
 
 /// One keyframe of the window.
 #[derive(Clone, Debug, PartialEq)]
@@ -67,7 +94,7 @@ impl TrackerWindow {
     }
 
     /// Encodes into `out` (cleared first). Every keyframe must have the grid size of the first.
-    pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), String> {
+    pub fn encode(&self, out: &mut Vec<u8>) -> Result<(), WindowError> {
         let (w, h) = self
             .keyframes
             .first()
@@ -78,10 +105,7 @@ impl TrackerWindow {
                 .into_iter()
                 .any(|p| p.width != w || p.height != h || p.data.len() != w * h)
             {
-                return Err(format!(
-                    "keyframe {}: depth grid differs from the window's {w}x{h}",
-                    k.id
-                ));
+                return Err(WindowError::GridMismatch { id: k.id, width: w, height: h });
             }
         }
         out.clear();
@@ -113,26 +137,21 @@ impl TrackerWindow {
     /// Decodes a body; the error says what is wrong with it. Sizes are checked against the
     /// body before anything is allocated, so a damaged message cannot ask for more memory
     /// than it holds.
-    pub fn decode(data: &[u8]) -> Result<TrackerWindow, String> {
+    pub fn decode(data: &[u8]) -> Result<TrackerWindow, WindowError> {
         let mut r = LeReader::new(data);
         if r.take(4)? != MAGIC {
-            return Err("not a tracker window (magic)".into());
+            return Err(WindowError::BadMagic);
         }
         let version = r.u32()?;
         if version != VERSION {
-            return Err(format!(
-                "tracker window version {version}, this build reads {VERSION}"
-            ));
+            return Err(WindowError::UnsupportedVersion { found: version });
         }
         let seq = r.u64()?;
         let t_ns = Timestamp::from_ns(r.i64()?);
         let (n, w, h) = (r.u32()? as usize, r.u32()? as usize, r.u32()? as usize);
-        let grid = w.checked_mul(h).ok_or("depth grid size overflows")?;
-        if n.saturating_mul(KEYFRAME_HEADER_BYTES + 4 * grid) > data.len() {
-            return Err(format!(
-                "{n} keyframes of a {w}x{h} grid do not fit in {} bytes",
-                data.len()
-            ));
+        let grid = w.checked_mul(h).ok_or(WindowError::GridOverflow { width: w, height: h })?;
+        if n.saturating_mul(KEYFRAME_HEADER_BYTES.saturating_add(grid.saturating_mul(4))) > data.len() {
+            return Err(WindowError::TooManyKeyframes { count: n, width: w, height: h, bytes: data.len() });
         }
         let mut keyframes = Vec::with_capacity(n);
         for _ in 0..n {
@@ -144,13 +163,13 @@ impl TrackerWindow {
                 *v = r.f64()?;
             }
             let world_from_cam = duv_core::pose::se3_from_tum(tum)
-                .map_err(|e| format!("keyframe {id}: pose: {e}"))?;
+                .map_err(|source| WindowError::BadPose { id, source })?;
             let has_variance = match r.u8()? {
                 0 => false,
                 1 => true,
-                b => return Err(format!("keyframe {id}: variance flag {b}")),
+                flag => return Err(WindowError::BadVarianceFlag { id, flag }),
             };
-            let mut plane = || -> Result<PlaneF32, String> {
+            let mut plane = || -> Result<PlaneF32, LeError> {
                 let bytes = r.take(4 * grid)?;
                 let mut p = PlaneF32::new(w, h);
                 for (x, b) in p.data.iter_mut().zip(bytes.chunks_exact(4)) {
@@ -171,10 +190,7 @@ impl TrackerWindow {
             });
         }
         if r.remaining() != 0 {
-            return Err(format!(
-                "{} bytes after the last keyframe",
-                r.remaining()
-            ));
+            return Err(WindowError::TrailingBytes { bytes: r.remaining() });
         }
         Ok(TrackerWindow {
             seq,
@@ -246,24 +262,27 @@ mod tests {
     fn damaged_bodies_are_refused_with_the_reason() {
         let mut body = Vec::new();
         window().encode(&mut body).unwrap();
-        let truncated = TrackerWindow::decode(&body[..body.len() - 7]).unwrap_err();
+        let truncated = TrackerWindow::decode(&body[..body.len() - 7]).unwrap_err().to_string();
         assert!(truncated.contains("truncated"), "{truncated}");
         let mut huge = body.clone();
         huge[24..28].copy_from_slice(&u32::MAX.to_le_bytes());
-        let e = TrackerWindow::decode(&huge).unwrap_err();
+        let e = TrackerWindow::decode(&huge).unwrap_err().to_string();
         assert!(e.contains("do not fit"), "{e}");
         let mut flag = body.clone();
         flag[36 + 80] = 9;
         assert!(TrackerWindow::decode(&flag)
             .unwrap_err()
+            .to_string()
             .contains("variance flag 9"));
         assert!(TrackerWindow::decode(b"JUNKJUNK")
             .unwrap_err()
+            .to_string()
             .contains("magic"));
         let mut longer = body;
         longer.push(0);
         assert!(TrackerWindow::decode(&longer)
             .unwrap_err()
+            .to_string()
             .contains("after the last keyframe"));
     }
 
@@ -274,6 +293,7 @@ mod tests {
         assert!(w
             .encode(&mut Vec::new())
             .unwrap_err()
+            .to_string()
             .contains("keyframe 5"));
     }
 }

@@ -223,7 +223,7 @@ impl SegmentWriter {
 
     fn check(&mut self, result: Result<(), LogError>) -> Result<(), LogError> {
         if let Err(e) = &result {
-            if matches!(e, LogError::Encode { .. }) {
+            if matches!(e, LogError::Encode { .. } | LogError::EncodeWindow(_)) {
                 return result;
             }
             self.failed = true;

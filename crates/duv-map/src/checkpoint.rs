@@ -45,7 +45,7 @@ use super::medium::{MediumCheckpoint, MediumNet, MEDIUM_CHECKPOINT_VERSION};
 use super::medium_estimate::{Coefficients, MediumPrior};
 use duv_core::rng::Rng;
 use duv_core::{ImageRgb8, Keyframe, MediumParams, PinholeCamera, PlaneF32, Se3, Timestamp};
-use duv_core::io::le::LeReader;
+use duv_core::io::le::{LeError, LeReader};
 use duv_core::io::{write_atomic, IoError};
 
 /// File magic.
@@ -76,8 +76,29 @@ pub enum CheckpointError {
     BadChecksum { path: String, saved: u64, calculated: u64 },
     #[error("{path}: payload: {why}")]
     BadPayload { path: String, why: String },
+    /// A binary payload that does not read back (damaged, or written by a broken build).
+    #[error("{path}: payload: {source}")]
+    Payload { path: String, source: PayloadError },
     #[error("restoring the mapper: {0}")]
     Mapper(#[from] MapperError),
+}
+
+/// What is wrong inside a binary payload ([`CheckpointError::Payload`]).
+#[derive(Debug, thiserror::Error)]
+pub enum PayloadError {
+    /// The payload ends early or claims an array it does not hold.
+    #[error(transparent)]
+    Read(#[from] LeError),
+    #[error("size {value} does not fit in usize")]
+    Size { value: u64 },
+    #[error("config: {0}")]
+    ConfigText(#[from] std::string::FromUtf8Error),
+    #[error("medium prior channel flag {flag} is not a mask of 3 coefficients")]
+    PriorFlag { flag: u64 },
+    #[error("medium prior has {found} values, expected 0 or {PRIOR_WORDS}")]
+    PriorLength { found: usize },
+    #[error("{bytes} bytes after the last keyframe")]
+    TrailingBytes { bytes: usize },
 }
 
 #[derive(Serialize, Deserialize)]
@@ -156,12 +177,12 @@ impl MediumStateRecord {
         };
         MediumStateRecord { estimate_at: m.medium_estimate_at as u64, prior }
     }
-    fn prior(&self, version: u32) -> Result<Option<MediumPrior>, String> {
+    fn prior(&self, version: u32) -> Result<Option<MediumPrior>, PayloadError> {
         let held_of = |flag: u64| match (version <= CHECKPOINT_VERSION_CHANNEL_PRIOR, flag) {
             (true, 0) => Ok(Coefficients::NONE),
             (true, _) => Ok(Coefficients::ALL),
             (false, 0..=7) => Ok(Coefficients::from_bits(flag as u32)),
-            (false, _) => Err(format!("medium prior channel flag {flag} is not a mask of 3 coefficients")),
+            (false, _) => Err(PayloadError::PriorFlag { flag }),
         };
         match self.prior.len() {
             0 => Ok(None),
@@ -176,7 +197,7 @@ impl MediumStateRecord {
                     b_inf_std: f(14),
                 }))
             }
-            n => Err(format!("medium prior has {n} values, expected 0 or {PRIOR_WORDS}")),
+            found => Err(PayloadError::PriorLength { found }),
         }
     }
 }
@@ -244,19 +265,22 @@ fn put_adam(w: &mut Vec<u8>, g: &super::adam::AdamGroup) {
 
 /// Reads a version 2, 3, 4 or 5 payload; every count is checked against the bytes left before anything
 /// is allocated, so a damaged file cannot ask for more memory than it holds.
-fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
+fn decode_binary(body: &[u8], version: u32) -> Result<Payload, PayloadError> {
     let mut r = LeReader::new(body);
-    let size = |r: &mut LeReader<'_>| usize::try_from(r.u64()?).map_err(|e| e.to_string());
-    let bytes = |r: &mut LeReader<'_>| -> Result<Vec<u8>, String> {
+    let size = |r: &mut LeReader<'_>| -> Result<usize, PayloadError> {
+        let value = r.u64()?;
+        usize::try_from(value).map_err(|_| PayloadError::Size { value })
+    };
+    let bytes = |r: &mut LeReader<'_>| -> Result<Vec<u8>, LeError> {
         let n = r.count(1)?;
         Ok(r.take(n)?.to_vec())
     };
-    let words = |r: &mut LeReader<'_>| -> Result<Vec<u32>, String> {
+    let words = |r: &mut LeReader<'_>| -> Result<Vec<u32>, LeError> {
         let n = r.count(4)?;
         Ok(r.words(n)?.collect())
     };
-    let adam_of = |r: &mut LeReader<'_>| -> Result<AdamRecord, String> { Ok(AdamRecord { steps: r.u64()?, m: words(r)?, v: words(r)? }) };
-    let config_toml = String::from_utf8(bytes(&mut r)?).map_err(|e| format!("config: {e}"))?;
+    let adam_of = |r: &mut LeReader<'_>| -> Result<AdamRecord, LeError> { Ok(AdamRecord { steps: r.u64()?, m: words(r)?, v: words(r)? }) };
+    let config_toml = String::from_utf8(bytes(&mut r)?)?;
     let capacity = MapperCapacity { max_gaussians: size(&mut r)?, max_keyframes: size(&mut r)?, width: size(&mut r)?, height: size(&mut r)? };
     let iteration = r.u64()?;
     let rng_state = [r.u64()?, r.u64()?, r.u64()?, r.u64()?];
@@ -300,7 +324,7 @@ fn decode_binary(body: &[u8], version: u32) -> Result<Payload, String> {
     };
     let footprint = if version > CHECKPOINT_VERSION_NO_FOOTPRINT { words(&mut r)? } else { Vec::new() };
     if r.remaining() != 0 {
-        return Err(format!("{} bytes after the last keyframe", r.remaining()));
+        return Err(PayloadError::TrailingBytes { bytes: r.remaining() });
     }
     Ok(Payload { config_toml, capacity, iteration, rng_state, gaussians, densify_grad_norm, pixels_touched, views, adam, medium_pe_frequencies, medium_params, medium_adam, keyframes, medium_state, footprint })
 }
@@ -427,7 +451,8 @@ impl Mapper {
             return Err(CheckpointError::BadChecksum { path: p, saved, calculated });
         }
         let bad = |why: String| CheckpointError::BadPayload { path: p.clone(), why };
-        let payload: Payload = if version == CHECKPOINT_VERSION_JSON { serde_json::from_slice(body).map_err(|e| bad(e.to_string()))? } else { decode_binary(body, version).map_err(bad)? };
+        let unreadable = |source: PayloadError| CheckpointError::Payload { path: p.clone(), source };
+        let payload: Payload = if version == CHECKPOINT_VERSION_JSON { serde_json::from_slice(body).map_err(|e| bad(e.to_string()))? } else { decode_binary(body, version).map_err(unreadable)? };
         let config: MapperConfig = toml::from_str(&payload.config_toml).map_err(|e| bad(e.to_string()))?;
         let c = payload.capacity;
         let capacity = match options.capacity {
@@ -512,8 +537,8 @@ impl Mapper {
         m.iteration = payload.iteration;
         match &payload.medium_state {
             Some(state) => {
-                m.medium_estimate_at = usize::try_from(state.estimate_at).map_err(|e| bad(e.to_string()))?;
-                m.medium_prior = state.prior(version).map_err(bad)?;
+                m.medium_estimate_at = usize::try_from(state.estimate_at).map_err(|_| unreadable(PayloadError::Size { value: state.estimate_at }))?;
+                m.medium_prior = state.prior(version).map_err(unreadable)?;
             }
             // An older checkpoint with at least as many keyframes as the first medium estimate
             // needs: its optimised medium is not replaced by a new estimate.
@@ -549,7 +574,7 @@ mod tests {
         let p = old.prior(CHECKPOINT_VERSION_CHANNEL_PRIOR).unwrap().unwrap();
         assert_eq!(p.held, [Coefficients::ALL, Coefficients::NONE, Coefficients::ALL]);
         old.prior[0] = 9;
-        let e = old.prior(CHECKPOINT_VERSION).unwrap_err();
+        let e = old.prior(CHECKPOINT_VERSION).unwrap_err().to_string();
         assert!(e.contains("flag 9"), "{e}");
     }
 
@@ -563,11 +588,11 @@ mod tests {
         // A count far beyond the payload: refused before anything is allocated.
         let mut huge = body.to_vec();
         huge[..8].copy_from_slice(&u64::MAX.to_le_bytes());
-        assert!(decode_binary(&huge, CHECKPOINT_VERSION).err().unwrap().contains("does not fit"));
-        let cut = decode_binary(&body[..body.len() - 3], CHECKPOINT_VERSION).err().unwrap();
+        assert!(decode_binary(&huge, CHECKPOINT_VERSION).err().unwrap().to_string().contains("does not fit"));
+        let cut = decode_binary(&body[..body.len() - 3], CHECKPOINT_VERSION).err().unwrap().to_string();
         assert!(cut.contains("truncated") || cut.contains("does not fit"), "{cut}");
         let mut longer = body.to_vec();
         longer.push(0);
-        assert!(decode_binary(&longer, CHECKPOINT_VERSION).err().unwrap().contains("after the last keyframe"));
+        assert!(decode_binary(&longer, CHECKPOINT_VERSION).err().unwrap().to_string().contains("after the last keyframe"));
     }
 }

@@ -9,6 +9,25 @@ use duv_core::io::{read_text, IoError};
 use nalgebra::{Isometry3, Matrix3, Matrix4, Rotation3, Translation3, UnitQuaternion};
 use std::path::Path;
 
+/// Errors of the `euroc` module that no file names yet: a `T_BS` matrix that is not a rigid
+/// transform, a `[a, b, c]` list that does not parse (the caller reports them at their line of
+/// `sensor.yaml`).
+#[derive(Debug, thiserror::Error)]
+pub enum EurocError {
+    #[error("list does not start with [")]
+    ListOpen,
+    #[error("list is not closed with ]")]
+    ListNotClosed,
+    #[error("unexpected text after ]: {text:?}")]
+    TextAfterList { text: String },
+    #[error("empty or nested list item")]
+    BadListItem,
+    #[error("last row {last:?} is not [0, 0, 0, 1]")]
+    BadLastRow { last: [f64; 4] },
+    #[error("rotation part is not a rotation (|R^T R - I| = {orthonormality_error:.2e}, det = {determinant:.4})")]
+    NotARotation { orthonormality_error: f64, determinant: f64 },
+}
+
 pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
     let root = &spec.dir;
     let cam_name = spec.cam.as_deref().unwrap_or("cam0");
@@ -195,16 +214,16 @@ fn read_sensor_yaml(path: &Path) -> Result<Sensor, CameraError> {
 
 /// A rigid transform from 16 row-major numbers; the rotation must be orthonormal to 1e-4 and
 /// is re-orthonormalised (files carry about 10 digits).
-fn rigid_from_row_major(m: &[f64]) -> Result<Se3, String> {
+fn rigid_from_row_major(m: &[f64]) -> Result<Se3, EurocError> {
     let t = Matrix4::from_row_slice(m);
     let last = [t[(3, 0)], t[(3, 1)], t[(3, 2)], t[(3, 3)]];
     if last != [0.0, 0.0, 0.0, 1.0] {
-        return Err(format!("last row {last:?} is not [0, 0, 0, 1]"));
+        return Err(EurocError::BadLastRow { last });
     }
     let r: Matrix3<f64> = t.fixed_view::<3, 3>(0, 0).into_owned();
     let err = (r.transpose() * r - Matrix3::identity()).abs().max();
     if err > 1e-4 || r.determinant() < 0.0 {
-        return Err(format!("rotation part is not a rotation (|R^T R - I| = {err:.2e}, det = {:.4})", r.determinant()));
+        return Err(EurocError::NotARotation { orthonormality_error: err, determinant: r.determinant() });
     }
     let rot = Rotation3::from_matrix_eps(&r, 1e-15, 100, Rotation3::identity());
     Ok(Isometry3::from_parts(Translation3::new(t[(0, 3)], t[(1, 3)], t[(2, 3)]), UnitQuaternion::from_rotation_matrix(&rot)))
@@ -330,12 +349,12 @@ fn strip_comment(line: &str) -> &str {
 }
 
 /// `[a, b, c]` (one trailing comma allowed) into its items.
-fn parse_flow_list(text: &str) -> Result<Vec<String>, String> {
+fn parse_flow_list(text: &str) -> Result<Vec<String>, EurocError> {
     let t = text.trim();
-    let inner = t.strip_prefix('[').ok_or("list does not start with [")?;
-    let close = inner.find(']').ok_or("list is not closed with ]")?;
+    let inner = t.strip_prefix('[').ok_or(EurocError::ListOpen)?;
+    let close = inner.find(']').ok_or(EurocError::ListNotClosed)?;
     if !inner[close + 1..].trim().is_empty() {
-        return Err(format!("unexpected text after ]: {:?}", inner[close + 1..].trim()));
+        return Err(EurocError::TextAfterList { text: inner[close + 1..].trim().to_string() });
     }
     let body = inner[..close].trim();
     if body.is_empty() {
@@ -344,7 +363,7 @@ fn parse_flow_list(text: &str) -> Result<Vec<String>, String> {
     let body = body.strip_suffix(',').unwrap_or(body);
     let items: Vec<String> = body.split(',').map(|s| s.trim().to_string()).collect();
     if items.iter().any(|s| s.is_empty() || s.contains('[')) {
-        return Err("empty or nested list item".into());
+        return Err(EurocError::BadListItem);
     }
     Ok(items)
 }

@@ -1,13 +1,51 @@
-//! Minimal NumPy `.npy` reader and writer for 2-D little-endian float32 arrays (TartanAir
-//! depth). Strict: any other dtype, Fortran order, a shape that is not 2-D or a data size that
-//! does not match the shape is an error naming the file.
+//! NumPy `.npy` reading and writing of 2-D little-endian float32 arrays (TartanAir depth),
+//! through the `npyz` crate: it parses the preamble (magic, format version 1, 2 or 3) and the
+//! header dict, reads the data and writes whole files. On top of it this module is as strict
+//! as numpy's own reader, and stricter about what it accepts: a header whose keys are not
+//! exactly `descr`, `fortran_order` and `shape` (npyz ignores extra keys and keeps the last of
+//! a repeated one, so the dict is checked with `py_literal`, the parser npyz uses), any dtype
+//! but `<f4`, Fortran order, a shape that is not 2-D or data that is not exactly the shape's
+//! size is an error naming the file.
 
 use crate::CameraError;
 use duv_core::PlaneF32;
 use duv_core::io::IoError;
+use npyz::{DType, NpyFile, NpyHeader, Order, TypeStr, WriterBuilder};
+use py_literal::Value;
+use std::io::ErrorKind;
 use std::path::Path;
 
-const MAGIC: &[u8] = b"\x93NUMPY";
+/// Errors of the `npy` module: why bytes are not a readable array. The reader returns them
+/// as [`CameraError::BadNpy`], with the file's path.
+#[derive(Debug, thiserror::Error)]
+pub enum NpyError {
+    /// What npyz refused before the header text: the `\x93NUMPY` magic, the format version.
+    #[error(transparent)]
+    Preamble(std::io::Error),
+    #[error("truncated header")]
+    TruncatedHeader,
+    /// A header dict npyz could not read (not a dict, a key missing, a value of the wrong kind).
+    #[error("header {text:?}: {source}")]
+    Header { text: String, source: std::io::Error },
+    /// A key numpy does not write, or one of its keys twice.
+    #[error("header {text:?}: unexpected or repeated key {key:?}")]
+    Key { text: String, key: String },
+    #[error("dtype {descr:?} is not little-endian float32 ('<f4')")]
+    Dtype { descr: String },
+    #[error("Fortran-order arrays are not supported")]
+    FortranOrder,
+    #[error("shape {shape:?} is not 2-D")]
+    NotTwoD { shape: Vec<u64> },
+    #[error("shape {shape:?} overflows")]
+    ShapeOverflow { shape: Vec<u64> },
+    #[error("shape ({height}, {width}) needs {need} bytes of data, found {found}")]
+    DataSize { height: usize, width: usize, need: usize, found: usize },
+    #[error("data: {0}")]
+    Data(#[source] std::io::Error),
+}
+
+/// The keys of a `.npy` header dict, each exactly once.
+const KEYS: [&str; 3] = ["descr", "fortran_order", "shape"];
 
 /// Reads a C-order `<f4` array of shape `(height, width)`.
 pub fn read_npy_f32(path: &Path) -> Result<PlaneF32, CameraError> {
@@ -17,185 +55,128 @@ pub fn read_npy_f32(path: &Path) -> Result<PlaneF32, CameraError> {
 
 /// Parses the bytes of a `.npy` file (`path` names it in errors).
 pub fn parse_npy_f32(path: &Path, bytes: &[u8]) -> Result<PlaneF32, CameraError> {
-    let bad = |problem: String| CameraError::BadNpy { path: path.to_path_buf(), problem };
-    if bytes.len() < 10 || &bytes[..6] != MAGIC {
-        return Err(bad("missing the \\x93NUMPY magic".into()));
-    }
-    let (header_len, start): (usize, usize) = match bytes[6] {
-        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 => {
-            if bytes.len() < 12 {
-                return Err(bad("truncated header".into()));
-            }
-            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
-        }
-        v => return Err(bad(format!("format version {v}.{} is not supported", bytes[7]))),
-    };
-    let end = start.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or_else(|| bad("truncated header".into()))?;
-    let header = std::str::from_utf8(&bytes[start..end]).map_err(|_| bad("header is not text".into()))?;
-    let h = parse_header(header).map_err(|p| bad(format!("header {:?}: {p}", header.trim_end())))?;
+    decode(bytes).map_err(|e| CameraError::BadNpy { path: path.to_path_buf(), problem: e.to_string() })
+}
+
+fn decode(bytes: &[u8]) -> Result<PlaneF32, NpyError> {
+    let (header, data) = read_header(bytes)?;
+    let h = Header::of(&header);
     if h.descr != "<f4" {
-        return Err(bad(format!("dtype {:?} is not little-endian float32 ('<f4')", h.descr)));
+        return Err(NpyError::Dtype { descr: h.descr });
     }
     if h.fortran_order {
-        return Err(bad("Fortran-order arrays are not supported".into()));
+        return Err(NpyError::FortranOrder);
     }
-    let [height, width] = h.shape[..] else {
-        return Err(bad(format!("shape {:?} is not 2-D", h.shape)));
+    let shape = header.shape();
+    let &[rows, cols] = shape else {
+        return Err(NpyError::NotTwoD { shape: shape.to_vec() });
     };
-    let need = width.checked_mul(height).and_then(|n| n.checked_mul(4)).ok_or_else(|| bad("shape overflows".into()))?;
-    let data_bytes = &bytes[end..];
-    if data_bytes.len() != need {
-        return Err(bad(format!("shape ({height}, {width}) needs {need} bytes of data, found {}", data_bytes.len())));
+    let overflow = || NpyError::ShapeOverflow { shape: shape.to_vec() };
+    let (height, width) = (usize::try_from(rows).map_err(|_| overflow())?, usize::try_from(cols).map_err(|_| overflow())?);
+    let need = width.checked_mul(height).and_then(|n| n.checked_mul(4)).ok_or_else(overflow)?;
+    if data.len() != need {
+        return Err(NpyError::DataSize { height, width, need, found: data.len() });
     }
-    let data = data_bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+    let data = NpyFile::with_header(header, data).into_vec::<f32>().map_err(NpyError::Data)?;
     Ok(PlaneF32 { width, height, data })
 }
 
-/// Writes a plane as a version 1.0 `.npy` of dtype `<f4` and shape `(height, width)`.
-pub fn write_npy_f32(path: &Path, plane: &PlaneF32) -> Result<(), CameraError> {
-    let dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, {}), }}", plane.height, plane.width);
-    // Pad with spaces so that the data starts on a 64-byte boundary; the header ends in '\n'.
-    let unpadded = MAGIC.len() + 4 + dict.len() + 1;
-    let padding = (64 - unpadded % 64) % 64;
-    let header = format!("{dict}{}\n", " ".repeat(padding));
-    let mut bytes = Vec::with_capacity(unpadded + padding + plane.data.len() * 4);
-    bytes.extend_from_slice(MAGIC);
-    bytes.extend_from_slice(&[1, 0]);
-    bytes.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    bytes.extend_from_slice(header.as_bytes());
-    for v in &plane.data {
-        bytes.extend_from_slice(&v.to_le_bytes());
+/// npyz's header of `bytes` and the data after it, the dict's keys checked as numpy checks
+/// them.
+fn read_header(bytes: &[u8]) -> Result<(NpyHeader, &[u8]), NpyError> {
+    let mut rest = bytes;
+    let parsed = NpyHeader::from_reader(&mut rest);
+    // npyz reads the magic and version (8 bytes), the header length (2 bytes in version 1,
+    // 4 in versions 2 and 3), then the header text: what it has read past those is the text.
+    let read = bytes.len() - rest.len();
+    let text_start = if bytes.get(6) == Some(&1) { 10 } else { 12 };
+    let text = bytes.get(text_start..read).map(String::from_utf8_lossy);
+    match parsed {
+        Ok(header) => {
+            if let Some(text) = &text {
+                check_keys(text)?;
+            }
+            Ok((header, rest))
+        }
+        Err(e) if e.kind() == ErrorKind::UnexpectedEof => Err(NpyError::TruncatedHeader),
+        Err(source) => match text {
+            Some(text) => {
+                check_keys(&text)?;
+                Err(NpyError::Header { text: text.trim_end().to_string(), source })
+            }
+            None => Err(NpyError::Preamble(source)),
+        },
     }
-    std::fs::write(path, bytes).map_err(|e| IoError::file(path, e).into())
 }
 
+/// numpy's rule, which npyz does not keep: the dict holds exactly [`KEYS`], each once. Text
+/// that is not a dict passes here; npyz says what is wrong with it.
+fn check_keys(text: &str) -> Result<(), NpyError> {
+    let Ok(Value::Dict(pairs)) = text.trim_end().parse::<Value>() else {
+        return Ok(());
+    };
+    let mut seen = [false; KEYS.len()];
+    for (key, _) in &pairs {
+        let slot = match key {
+            Value::String(k) => KEYS.iter().position(|&known| known == k),
+            _ => None,
+        };
+        match slot {
+            Some(i) if !seen[i] => seen[i] = true,
+            _ => {
+                let key = match key {
+                    Value::String(k) => k.clone(),
+                    other => other.to_string(),
+                };
+                return Err(NpyError::Key { text: text.trim_end().to_string(), key });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Writes a plane as a `.npy` of dtype `<f4` and shape `(height, width)` (format version 1.0,
+/// the data aligned to 64 bytes, as numpy writes it).
+pub fn write_npy_f32(path: &Path, plane: &PlaneF32) -> Result<(), CameraError> {
+    let io = |e| CameraError::from(IoError::file(path, e));
+    let f4: TypeStr = "<f4".parse().expect("'<f4' is a numpy type string");
+    let shape = [plane.height as u64, plane.width as u64];
+    let mut bytes = Vec::with_capacity(128 + 4 * plane.data.len());
+    let mut writer = npyz::WriteOptions::<f32>::new().dtype(DType::new_scalar(f4)).shape(&shape).writer(&mut bytes).begin_nd().map_err(io)?;
+    writer.extend(plane.data.iter().copied()).map_err(io)?;
+    writer.finish().map_err(io)?;
+    std::fs::write(path, bytes).map_err(io)
+}
+
+/// What this module needs of a header: npyz's dtype (as its type string), order and shape.
 #[derive(Debug, PartialEq)]
 struct Header {
     descr: String,
     fortran_order: bool,
-    shape: Vec<usize>,
+    shape: Vec<u64>,
 }
 
-/// Parses the header dict: `{'descr': '<f4', 'fortran_order': False, 'shape': (h, w), }`.
-fn parse_header(text: &str) -> Result<Header, String> {
-    let mut p = Cursor { s: text.as_bytes(), i: 0 };
-    p.expect(b'{')?;
-    let (mut descr, mut fortran_order, mut shape) = (None, None, None);
-    loop {
-        p.ws();
-        if p.eat(b'}') {
-            break;
-        }
-        let key = p.string()?;
-        p.ws();
-        p.expect(b':')?;
-        p.ws();
-        match key.as_str() {
-            "descr" if descr.is_none() => descr = Some(p.string()?),
-            "fortran_order" if fortran_order.is_none() => fortran_order = Some(p.boolean()?),
-            "shape" if shape.is_none() => shape = Some(p.tuple()?),
-            other => return Err(format!("unexpected or repeated key {other:?}")),
-        }
-        p.ws();
-        if !p.eat(b',') {
-            p.ws();
-            p.expect(b'}')?;
-            break;
-        }
-    }
-    p.ws();
-    if p.i != p.s.len() {
-        return Err("text after the closing brace".into());
-    }
-    Ok(Header {
-        descr: descr.ok_or("no 'descr'")?,
-        fortran_order: fortran_order.ok_or("no 'fortran_order'")?,
-        shape: shape.ok_or("no 'shape'")?,
-    })
-}
-
-struct Cursor<'a> {
-    s: &'a [u8],
-    i: usize,
-}
-
-impl Cursor<'_> {
-    fn ws(&mut self) {
-        while self.i < self.s.len() && self.s[self.i].is_ascii_whitespace() {
-            self.i += 1;
-        }
-    }
-    fn eat(&mut self, c: u8) -> bool {
-        let hit = self.s.get(self.i) == Some(&c);
-        if hit {
-            self.i += 1;
-        }
-        hit
-    }
-    fn expect(&mut self, c: u8) -> Result<(), String> {
-        if self.eat(c) {
-            Ok(())
-        } else {
-            Err(format!("expected {:?} at byte {}", c as char, self.i))
-        }
-    }
-    fn string(&mut self) -> Result<String, String> {
-        let q = match self.s.get(self.i) {
-            Some(&q @ (b'\'' | b'"')) => q,
-            _ => return Err(format!("expected a quoted string at byte {}", self.i)),
+impl Header {
+    fn of(h: &NpyHeader) -> Header {
+        let descr = match h.dtype() {
+            DType::Plain(ty) => ty.to_string(),
+            other => other.descr(),
         };
-        self.i += 1;
-        let start = self.i;
-        while self.i < self.s.len() && self.s[self.i] != q {
-            self.i += 1;
-        }
-        if self.i >= self.s.len() {
-            return Err("unterminated string".into());
-        }
-        let out = String::from_utf8_lossy(&self.s[start..self.i]).into_owned();
-        self.i += 1;
-        Ok(out)
-    }
-    fn boolean(&mut self) -> Result<bool, String> {
-        let rest = &self.s[self.i..];
-        if rest.starts_with(b"True") {
-            self.i += 4;
-            Ok(true)
-        } else if rest.starts_with(b"False") {
-            self.i += 5;
-            Ok(false)
-        } else {
-            Err(format!("expected True or False at byte {}", self.i))
-        }
-    }
-    fn tuple(&mut self) -> Result<Vec<usize>, String> {
-        self.expect(b'(')?;
-        let mut dims = Vec::new();
-        loop {
-            self.ws();
-            if self.eat(b')') {
-                return Ok(dims);
-            }
-            let start = self.i;
-            while self.i < self.s.len() && self.s[self.i].is_ascii_digit() {
-                self.i += 1;
-            }
-            let digits = std::str::from_utf8(&self.s[start..self.i]).unwrap_or("");
-            dims.push(digits.parse::<usize>().map_err(|_| format!("expected a dimension at byte {start}"))?);
-            self.ws();
-            if !self.eat(b',') {
-                self.ws();
-                self.expect(b')')?;
-                return Ok(dims);
-            }
-        }
+        Header { descr, fortran_order: h.order() == Order::Fortran, shape: h.shape().to_vec() }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Reads a header dict's text through npyz, framed as a version 1.0 file.
+    fn parse_header(text: &str) -> Result<Header, NpyError> {
+        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+        bytes.extend_from_slice(&(text.len() as u16).to_le_bytes());
+        bytes.extend_from_slice(text.as_bytes());
+        read_header(&bytes).map(|(h, _)| Header::of(&h))
+    }
 
     #[test]
     fn round_trip_and_numpy_header() {
@@ -227,10 +208,11 @@ mod tests {
             b[at..at + to.len()].copy_from_slice(to.as_bytes());
             b
         };
+        // npyz writes the shape as numpy writes a tuple's repr in Python 2: `(2, 2, )`.
         let cases: Vec<(Vec<u8>, &str)> = vec![
             (swap("<f4", "<f8"), "dtype \"<f8\" is not little-endian float32"),
             (swap("False", "True "), "Fortran-order"),
-            (swap("(2, 2)", "(4,)  "), "shape [4] is not 2-D"),
+            (swap("(2, 2, )", "(4,)    "), "shape [4] is not 2-D"),
             (good[..good.len() - 1].to_vec(), "needs 16 bytes of data, found 15"),
             (b"PK\x03\x04".to_vec(), "magic"),
             (swap("'descr'", "'dtype'"), "unexpected or repeated key"),
@@ -239,5 +221,34 @@ mod tests {
             let e = parse_npy_f32(p, &bytes).unwrap_err().to_string();
             assert!(e.starts_with("x.npy: not a readable .npy array") && e.contains(want), "want {want:?}: {e}");
         }
+    }
+
+    #[test]
+    fn header_keys_versions_and_lengths_are_checked() {
+        // An extra key (npyz alone ignores it) and a repeated one (npyz alone keeps the last).
+        let extra = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), 'extra': 1, }";
+        let repeated = "{'descr': '<f8', 'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }";
+        for (text, want) in [(extra, "extra"), (repeated, "descr")] {
+            let e = parse_header(text).unwrap_err();
+            assert!(matches!(&e, NpyError::Key { key, .. } if key == want), "{e}");
+        }
+        // A key missing: npyz's message, with the header.
+        let e = parse_header("{'descr': '<f4', 'fortran_order': False}").unwrap_err();
+        assert!(matches!(e, NpyError::Header { .. }) && e.to_string().contains("'shape'"), "{e}");
+        // A header length past the end of the file.
+        let mut cut = b"\x93NUMPY\x01\x00".to_vec();
+        cut.extend_from_slice(&100u16.to_le_bytes());
+        cut.extend_from_slice(b"{'descr': '<f4'");
+        assert!(matches!(read_header(&cut), Err(NpyError::TruncatedHeader)));
+        // Format version 2.0 (a 4-byte header length) reads like 1.0; version 4 is refused.
+        let text = "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 2), }\n";
+        let mut v2 = b"\x93NUMPY\x02\x00".to_vec();
+        v2.extend_from_slice(&(text.len() as u32).to_le_bytes());
+        v2.extend_from_slice(text.as_bytes());
+        v2.extend_from_slice(&1.5f32.to_le_bytes());
+        v2.extend_from_slice(&(-2.0f32).to_le_bytes());
+        assert_eq!(decode(&v2).unwrap(), PlaneF32 { width: 2, height: 1, data: vec![1.5, -2.0] });
+        v2[6] = 4;
+        assert!(matches!(decode(&v2), Err(NpyError::Preamble(_))));
     }
 }
