@@ -1,11 +1,13 @@
-//! Fixed GPU memory: one `VkBuffer` over one `VkDeviceMemory`, allocated once at start-up
-//! with the board's budget, persistently mapped (host-visible, coherent; device-local too
-//! where the device offers such a type, as integrated GPUs, lavapipe and resizable-BAR
-//! discrete GPUs do). Buffers are ranges of it handed out by a bump allocator that never
-//! grows: a request past the budget is [`GpuError::ArenaFull`]. The high-water mark is the
-//! peak GPU memory the mapper used.
+//! Fixed GPU memory: one `VkBuffer` over one `VkDeviceMemory` (`ArenaMemory`), allocated
+//! once at start-up with the board's budget: persistently mapped where device-local memory is
+//! also host-cached (integrated GPUs, lavapipe), else device-local and reached by the host
+//! through a staging buffer (the context's transfers). Buffers are ranges of it handed out by a
+//! bump allocator that never grows: a request past the budget is [`GpuError::ArenaFull`]. The
+//! high-water mark is the peak GPU memory the mapper used.
 
 use std::marker::PhantomData;
+
+use ash::vk;
 
 use super::GpuError;
 
@@ -102,6 +104,45 @@ impl Arena {
     /// a start-up phase. Buffers handed out after the mark must not be used again.
     pub(crate) fn reset_to(&mut self, mark: u64) {
         self.top = self.top.min(mark);
+    }
+}
+
+/// The arena's Vulkan objects and its allocator: the part of a `GpuContext` every binding,
+/// fill, copy and host transfer points into. Created by the context's start-up (`select`),
+/// destroyed by its drop with the other parts, before the device.
+pub(crate) struct ArenaMemory {
+    /// The byte ranges handed out.
+    pub(crate) arena: Arena,
+    pub(crate) buffer: vk::Buffer,
+    pub(crate) memory: vk::DeviceMemory,
+    /// The whole of `memory`, mapped; null when host transfers are staged.
+    pub(crate) mapped: *mut u8,
+}
+
+impl ArenaMemory {
+    /// No Vulkan objects yet (null handles), an allocator of `capacity` bytes.
+    pub(crate) fn new(capacity: u64) -> Self {
+        ArenaMemory { arena: Arena::new(capacity, 256), buffer: vk::Buffer::null(), memory: vk::DeviceMemory::null(), mapped: std::ptr::null_mut() }
+    }
+
+    /// The host reads and writes the arena in place (else through the staging buffer).
+    pub(crate) fn is_mapped(&self) -> bool {
+        !self.mapped.is_null()
+    }
+
+    /// Unmaps and frees the arena.
+    ///
+    /// # Safety
+    /// `device` made these objects and no pending command uses them.
+    pub(crate) unsafe fn destroy(&mut self, device: &ash::Device) {
+        unsafe {
+            if self.is_mapped() {
+                device.unmap_memory(self.memory);
+            }
+            device.destroy_buffer(self.buffer, None);
+            device.free_memory(self.memory, None);
+        }
+        (self.buffer, self.memory, self.mapped) = (vk::Buffer::null(), vk::DeviceMemory::null(), std::ptr::null_mut());
     }
 }
 

@@ -7,9 +7,13 @@
 //!   `crates/duv-map/build.rs`. This crate names no kernel.
 //! - [`GpuContext`] ([`device`]): instance and device selection (discrete, then integrated,
 //!   then virtual, then CPU devices such as lavapipe; `DUV_VULKAN_DEVICE` picks one by index
-//!   or name substring), one compute queue, one command buffer and fence, every pipeline built
-//!   once at start-up through an on-disk pipeline cache keyed by vendor, device, driver and
-//!   cache UUID, push descriptors, timestamp queries per dispatch ([`KernelProfile`]).
+//!   or name substring), one compute queue, three command buffers and fences (one recording,
+//!   up to two submissions running), every pipeline built once at start-up through an on-disk
+//!   pipeline cache keyed by vendor, device, driver and cache UUID, push descriptors, host
+//!   transfers (mapped, or staged through a host-cached buffer), timestamp queries per
+//!   dispatch ([`KernelProfile`]). The context is a few parts, one per concern (selection,
+//!   pipelines, arena memory, transfers, recording, submission, profiling), each defined in
+//!   its file of `device/` with the methods that use it.
 //! - [`arena`]: all GPU memory is one buffer allocated once at start-up from the board's
 //!   budget (`budgets.gpu_mb`); [`GpuBuffer`]s are ranges of it; the peak used is reported
 //!   and an allocation past the budget is an error, never a reallocation.

@@ -10,19 +10,22 @@
 //! `VK_KHR_push_descriptor` (no descriptor pools, no allocation per dispatch); small
 //! parameters go in the kernel's immediate (push-constant) block.
 //!
-//! [`GpuContext`] and its fields live here; its methods are in one file per concern:
-//! `select` (opening a device), `pipelines`, `transfer` (host reads and writes), `record`
-//! (dispatches and barriers), `submit` (submissions in flight) and `profile` (timestamps and
-//! host counters).
+//! [`GpuContext`] lives here as a handful of parts, one per concern; each part is defined, with
+//! its methods and the context's methods of that concern, in the concern's file: `select`
+//! (`Selected`: opening a device), `pipelines` (`Pipelines`), `transfer` (`Transfers`: host
+//! reads and writes, the staging buffer), `record` (`Recorder`: dispatches and barriers),
+//! `submit` (`Submission`: fences, submissions in flight) and `profile` (`Profiler`:
+//! timestamps and host counters); the arena's memory is `ArenaMemory` in `crate::arena`.
 
+use std::cell::{Cell, RefCell};
 use std::path::PathBuf;
-use std::time::Instant;
 use std::sync::{Mutex, MutexGuard, OnceLock};
+use std::time::Instant;
 
 use ash::vk;
 use bytemuck::Pod;
 
-use super::arena::{Arena, GpuBuffer, GpuRange};
+use super::arena::{Arena, ArenaMemory, GpuBuffer, GpuRange};
 
 mod pipelines;
 mod profile;
@@ -33,6 +36,13 @@ mod transfer;
 
 pub use profile::{HostStats, KernelProfile};
 pub use record::Hazards;
+
+use pipelines::{Pipeline, Pipelines};
+use profile::Profiler;
+use record::Recorder;
+use select::Selected;
+use submit::Submission;
+use transfer::{Prefetched, Transfers};
 
 use super::kernels::{BindingKind, KernelId, KernelInfo, MAX_KERNELS};
 use super::GpuError;
@@ -66,12 +76,6 @@ pub struct GpuOptions {
     pub host_staging: Option<u64>,
 }
 
-/// What a staged transfer moves: host bytes to the arena, or arena bytes to the host.
-enum Staged<'a> {
-    Write(&'a [u8]),
-    Read(&'a mut [u8]),
-}
-
 /// Staging buffer of a discrete GPU's host transfers (host memory, outside the GPU budget);
 /// larger transfers go in chunks of this size.
 pub const STAGING_BYTES: u64 = 64 << 20;
@@ -82,14 +86,6 @@ pub const DEFERRED_WRITE_BYTES: usize = 64 << 10;
 const MAX_DEFERRED_WRITES: usize = 64;
 /// Prefetched ranges per submission; more are read the ordinary way.
 const MAX_PREFETCHES: usize = 16;
-/// How a dispatch's workgroup count is given.
-#[derive(Clone, Copy, Debug)]
-enum Launch {
-    Groups([u32; 3]),
-    /// Three u32 in the arena, read by the device.
-    Indirect(GpuRange),
-}
-
 
 impl GpuOptions {
     /// An arena of `gpu_mb` MiB, the device from [`DEVICE_ENV`], the pipeline cache in
@@ -129,7 +125,7 @@ pub struct DeviceInfo {
 impl DeviceInfo {
     /// A device that runs on the CPU (lavapipe): some kernels have a variant for it.
     pub fn is_cpu(&self) -> bool {
-        self.device_type == type_name(vk::PhysicalDeviceType::CPU)
+        self.device_type == select::type_name(vk::PhysicalDeviceType::CPU)
     }
 }
 
@@ -148,129 +144,36 @@ impl std::fmt::Display for DeviceInfo {
 /// Command buffers and fences: one recording, up to two submissions running.
 const SLOTS: usize = 3;
 
-/// One timed stretch of the queue: its dispatch count and `(kernel, start, end)` ticks.
-type Stretch = (usize, [(KernelId, u64, u64); MAX_DISPATCHES]);
-
-/// A copy for the host recorded by [`GpuContext::prefetch`].
-#[derive(Clone, Copy, Debug)]
-struct Prefetched {
-    /// src_offset: arena, dst_offset: staging.
-    copy: vk::BufferCopy,
-    /// A later command writes the range: the copy is still what [`GpuContext::read_prefetched`]
-    /// wants (that moment's values), no longer what [`GpuContext::read`] does (the arena's).
-    overwritten: bool,
-}
-
-impl Prefetched {
-    /// Where in the staging buffer arena bytes `start..end` are, if this copy holds them.
-    fn holds(&self, start: u64, end: u64) -> Option<u64> {
-        let c = &self.copy;
-        (c.src_offset <= start && end <= c.src_offset + c.size).then(|| c.dst_offset + (start - c.src_offset))
-    }
-}
-
-/// A submission left running ([`GpuContext::submit`]).
-#[derive(Clone, Copy, Debug)]
-struct Flight {
-    /// Its command buffer and fence (`GpuContext::slots`).
-    slot: usize,
-    /// When it was submitted (host stats).
-    since: Instant,
-    /// The prefetched copies it and the earlier ones made (`GpuContext::prefetched`).
-    prefetch_len: usize,
-}
-
-
-struct Pipeline {
-    set_layout: vk::DescriptorSetLayout,
-    layout: vk::PipelineLayout,
-    pipeline: vk::Pipeline,
-}
-
 /// The open device with its arena and pipelines. One per mapper; not shared between threads.
+///
+/// Its state is split by concern, one part per file of `device/`; a method borrows the parts
+/// it works on (destructuring `self` where it needs several), so what touches what is written
+/// in the code and checked by the borrow checker:
+///
+/// - `Selected` (`select`): loader, instance, device, queue, what was learned of the device
+///   (`DeviceInfo`, workgroup limits) and the deterministic mode;
+/// - `Pipelines` (`pipelines`): the kernel table, the pipeline cache, a pipeline per kernel;
+/// - `ArenaMemory` (`arena`): the arena's buffer, memory and mapping, and its allocator;
+/// - `Transfers` (`transfer`): the staging buffer of staged transfers, the deferred small
+///   writes and the prefetched copies in it;
+/// - `Recorder` (`record`): command pool and buffers, the slot being recorded, what was
+///   recorded into it and its hazards;
+/// - `Submission` (`submit`): a fence per slot, the submissions in flight and what they
+///   hold, waiting;
+/// - `Profiler` (`profile`): the timestamp query pool, the kernel profile and timeline, the
+///   host counters.
+///
+/// Destruction ([`Drop`]): every Vulkan object of the other parts first (after
+/// `vkDeviceWaitIdle`), then the device, then the instance, all of it under the process-wide
+/// lifecycle lock; the loader (`ash::Entry`) is never unloaded.
 pub struct GpuContext {
-    _entry: ash::Entry,
-    instance: ash::Instance,
-    device: ash::Device,
-    push_descriptor: ash::khr::push_descriptor::Device,
-    queue: vk::Queue,
-    command_pool: vk::CommandPool,
-    /// The command buffer and fence being recorded next (`slots[current]`); the other slots
-    /// belong to submissions [`GpuContext::submit`] left running (`in_flight`) or are free.
-    command_buffer: vk::CommandBuffer,
-    fence: vk::Fence,
-    slots: [(vk::CommandBuffer, vk::Fence); SLOTS],
-    current: usize,
-    /// Submissions running that nothing waited for yet, oldest first (at most two: the
-    /// device has the next one queued while the host waits for the older's results).
-    in_flight: std::cell::Cell<[Option<Flight>; SLOTS - 1]>,
-    /// When the open recording began and whether a submission was running then (HostStats).
-    recording_since: Option<(Instant, bool)>,
-    /// When a wait left the queue idle ([`HostStats::idle_ns`]).
-    idle_since: std::cell::Cell<Option<Instant>>,
-    /// Waits poll the fence instead of sleeping in the driver ([`Self::set_spin_wait`]).
-    spin_wait: bool,
-    /// The timestamps of the dispatches recorded so far are not yet in the profile.
-    untimed: bool,
-    /// Dispatches in submitted command buffers since the queue was last idle at a `begin`, and
-    /// the prefetch list's length and bytes then (what a running submission will fill).
-    submitted: usize,
-    prefetch_submitted: (usize, u64),
-    query_pool: Option<vk::QueryPool>,
-    memory: vk::DeviceMemory,
-    buffer: vk::Buffer,
-    /// The arena's mapping, null when transfers are staged.
-    mapped: *mut u8,
-    /// Staged transfers: a host-visible, coherent (cached where the device has it) buffer of
-    /// `staging_bytes`, mapped at `staging_mapped`; null handles when the arena is mapped.
-    staging_memory: vk::DeviceMemory,
-    staging_buffer: vk::Buffer,
-    staging_mapped: *mut u8,
-    staging_bytes: u64,
-    /// Staged transfers: the tail of the staging buffer (from `deferred_at`, `deferred_bytes`
-    /// long) holds small writes not yet copied; `deferred` lists their copies, recorded at
-    /// the start of the next submission (see [`GpuContext::write`]).
-    deferred_at: u64,
-    deferred_bytes: u64,
-    deferred: std::cell::RefCell<Vec<vk::BufferCopy>>,
-    deferred_used: std::cell::Cell<u64>,
-    /// Staged transfers: after the deferred writes, `prefetch_bytes` of the staging buffer
-    /// from `prefetch_at` take the copies [`GpuContext::prefetch`] records into a submission;
-    /// `prefetched` lists them (src_offset: arena, dst_offset: staging) until the next
-    /// `begin` or write.
-    prefetch_at: u64,
-    prefetch_bytes: u64,
-    prefetched: std::cell::RefCell<Vec<Prefetched>>,
-    prefetch_used: u64,
-    /// The first this many of `prefetched` were made by submissions that finished
-    /// ([`GpuContext::read_prefetched`] serves them while a later one runs).
-    prefetch_done: std::cell::Cell<usize>,
-    arena: Arena,
-    pipeline_cache: vk::PipelineCache,
-    pipelines: Vec<Pipeline>,
-    max_groups: [u32; 3],
-    info: DeviceInfo,
-    /// Reductions instead of float atomics ([`GpuOptions::deterministic`]).
-    deterministic: bool,
-    recording: bool,
-    recorded: usize,
-    /// The kernel table this context was built with ([`GpuContext::new`]).
-    kernels: &'static [KernelInfo],
-    recorded_kernels: [KernelId; MAX_DISPATCHES],
-    /// The dispatches of the last two timed stretches ([`Self::last_timeline`]): count and
-    /// `(kernel, start, end)` ticks.
-    timeline: Box<[Stretch; 2]>,
-    /// What the commands since the last barrier of the open submission touched.
-    hazards: Hazards,
-    /// Timestamp queries wanted ([`GpuContext::set_timestamps`]) and, latched at `begin`,
-    /// taken in the open submission.
-    timestamps_wanted: bool,
-    timing: bool,
-    timestamps: Box<[u64; 2 * MAX_DISPATCHES]>,
-    profile: KernelProfile,
-    /// Host-side counters; a `Cell` because reads take `&self`.
-    host: std::cell::Cell<HostStats>,
-    last_kernel: Option<KernelId>,
+    selected: Selected,
+    pipelines: Pipelines,
+    memory: ArenaMemory,
+    transfers: Transfers,
+    recorder: Recorder,
+    submission: Submission,
+    profiler: Profiler,
 }
 
 // SAFETY: the context owns its Vulkan objects and the arena mapping; every use goes through
@@ -282,40 +185,13 @@ fn vk_err(call: &'static str) -> impl Fn(vk::Result) -> GpuError {
     move |result| GpuError::Vulkan { call, result }
 }
 
-fn type_rank(t: vk::PhysicalDeviceType) -> u32 {
-    match t {
-        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
-        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
-        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
-        vk::PhysicalDeviceType::CPU => 3,
-        _ => 4,
-    }
-}
-
-fn type_name(t: vk::PhysicalDeviceType) -> &'static str {
-    match t {
-        vk::PhysicalDeviceType::DISCRETE_GPU => "discrete GPU",
-        vk::PhysicalDeviceType::INTEGRATED_GPU => "integrated GPU",
-        vk::PhysicalDeviceType::VIRTUAL_GPU => "virtual GPU",
-        vk::PhysicalDeviceType::CPU => "CPU",
-        _ => "other",
-    }
-}
-
-struct Candidate {
-    index: usize,
-    physical: vk::PhysicalDevice,
-    name: String,
-    rank: u32,
-    queue_family: u32,
-    timestamp_bits: u32,
-    /// VK_EXT_shader_atomic_float with `shaderBufferFloat32AtomicAdd`.
-    float_atomics: bool,
-}
-
 /// The Vulkan loader, loaded once per process and never unloaded. Loading and unloading
 /// `libvulkan` (and with it the ICDs and implicit layers) per context raced with contexts being
 /// created on other threads: the parallel GPU test binaries crashed with SIGSEGV on lavapipe.
+///
+/// A failed load is kept as its text: `ash::LoadingError` is not `Clone` (nor is
+/// [`GpuError`], which holds an `io::Error`), and every call after the first must return an
+/// error of its own; the text becomes the typed [`GpuError::NoLoader`] here, at the seam.
 fn loader() -> Result<&'static ash::Entry, GpuError> {
     static ENTRY: OnceLock<Result<ash::Entry, String>> = OnceLock::new();
     ENTRY
@@ -338,82 +214,71 @@ impl GpuContext {
     /// Deterministic mode: the kernels that would add with float atomics use reductions in a
     /// fixed order instead. Always true on a device without float atomics.
     pub fn deterministic(&self) -> bool {
-        self.deterministic
+        self.selected.deterministic
     }
 
     /// Switches deterministic mode (see [`GpuOptions::deterministic`]); returns the mode in
     /// effect, which stays deterministic on a device without float atomics.
     pub fn set_deterministic(&mut self, on: bool) -> bool {
-        self.deterministic = on || !self.info.float_atomics;
-        self.deterministic
+        self.selected.set_deterministic(on)
     }
 
-
     pub fn info(&self) -> &DeviceInfo {
-        &self.info
+        &self.selected.info
     }
 
     /// Allocates `len` elements from the arena (start-up only: the arena never grows).
     pub fn alloc<T: Pod>(&mut self, what: &'static str, len: usize) -> Result<GpuBuffer<T>, GpuError> {
-        self.arena.alloc(what, len)
+        self.memory.arena.alloc(what, len)
     }
     /// Bytes of the arena in use, the peak so far and the capacity (the budget).
     pub fn arena_used_bytes(&self) -> u64 {
-        self.arena.used()
+        self.memory.arena.used()
     }
     pub fn arena_peak_bytes(&self) -> u64 {
-        self.arena.peak()
+        self.memory.arena.peak()
     }
     pub fn arena_capacity_bytes(&self) -> u64 {
-        self.arena.capacity()
+        self.memory.arena.capacity()
     }
     /// Frees every buffer allocated after `mark` (an earlier [`GpuContext::arena_used_bytes`]).
     pub fn arena_reset_to(&mut self, mark: u64) {
-        self.arena.reset_to(mark)
+        self.memory.arena.reset_to(mark)
     }
 
+    /// Destroys every Vulkan object of the parts, then the device (not the instance: [`Drop`],
+    /// or the caller of a failed [`GpuContext::open`], destroys it after). Runs once: on drop, or
+    /// on a failed start-up before the context is forgotten. Objects never created are null
+    /// handles, which Vulkan's destroy and free calls ignore.
     fn destroy_device_objects(&mut self) {
+        let GpuContext { selected, pipelines, memory, transfers, recorder, submission, profiler } = self;
+        let d = &selected.device;
+        // SAFETY: after `vkDeviceWaitIdle` no command uses these objects; each part destroys
+        // only its own, children of `d`, and the device goes last.
         unsafe {
-            let d = &self.device;
             let _ = d.device_wait_idle();
-            for p in self.pipelines.drain(..) {
-                d.destroy_pipeline(p.pipeline, None);
-                d.destroy_pipeline_layout(p.layout, None);
-                d.destroy_descriptor_set_layout(p.set_layout, None);
-            }
-            d.destroy_pipeline_cache(self.pipeline_cache, None);
-            if !self.mapped.is_null() {
-                d.unmap_memory(self.memory);
-            }
-            if !self.staging_mapped.is_null() {
-                d.unmap_memory(self.staging_memory);
-            }
-            d.destroy_buffer(self.staging_buffer, None);
-            d.free_memory(self.staging_memory, None);
-            d.destroy_buffer(self.buffer, None);
-            d.free_memory(self.memory, None);
-            if let Some(q) = self.query_pool.take() {
-                d.destroy_query_pool(q, None);
-            }
-            for &(_, fence) in &self.slots {
-                if fence != vk::Fence::null() {
-                    d.destroy_fence(fence, None);
-                }
-            }
-            d.destroy_command_pool(self.command_pool, None);
+            pipelines.destroy(d);
+            transfers.destroy(d);
+            memory.destroy(d);
+            profiler.destroy(d);
+            submission.destroy(d);
+            recorder.destroy(d);
             d.destroy_device(None);
         }
     }
 }
 
 impl Drop for GpuContext {
+    /// The pipeline cache to disk, then, under the lifecycle lock: every part's Vulkan objects,
+    /// the device (`destroy_device_objects`), the instance. The Rust fields drop
+    /// after (host memory only; the loader they reference stays loaded).
     fn drop(&mut self) {
         if let Err(e) = self.save_pipeline_cache() {
             tracing::warn!("gpu: {e}");
         }
         let _lifecycle = lifecycle_lock();
         self.destroy_device_objects();
-        unsafe { self.instance.destroy_instance(None) };
+        unsafe { self.selected.instance.destroy_instance(None) };
     }
 }
 

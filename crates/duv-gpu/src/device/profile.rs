@@ -3,6 +3,28 @@
 
 use super::*;
 
+/// One timed stretch of the queue: its dispatch count and `(kernel, start, end)` ticks.
+type Stretch = (usize, [(KernelId, u64, u64); MAX_DISPATCHES]);
+
+/// Timestamp queries and what they and the host counters summed: the part of a [`GpuContext`]
+/// that measures.
+pub(super) struct Profiler {
+    /// Two timestamps per dispatch of a submission; `None` when the queue has none.
+    pub(super) query_pool: Option<vk::QueryPool>,
+    /// Timestamp queries wanted ([`GpuContext::set_timestamps`]) and, latched at `begin`,
+    /// taken in the open submission.
+    pub(super) timestamps_wanted: bool,
+    pub(super) timing: bool,
+    /// The timestamps of the dispatches submitted so far are not yet in the profile.
+    pub(super) untimed: bool,
+    timestamps: Box<[u64; 2 * MAX_DISPATCHES]>,
+    /// The dispatches of the last two timed stretches ([`GpuContext::last_timeline`]).
+    timeline: Box<[Stretch; 2]>,
+    profile: KernelProfile,
+    /// Host-side counters; a `Cell` because reads take `&self`.
+    pub(super) host: Cell<HostStats>,
+}
+
 /// Host-side cost of driving the device, summed since start or [`GpuContext::reset_profile`]:
 /// what the kernel timestamps do not show (submission latency, transfers, host copies).
 #[derive(Clone, Copy, Debug, Default)]
@@ -114,21 +136,55 @@ impl KernelProfile {
     }
 }
 
-impl GpuContext {
+impl Profiler {
+    /// No query pool yet; an empty profile of the kernels of `kernels`.
+    pub(super) fn new(kernels: &'static [KernelInfo]) -> Self {
+        Profiler {
+            query_pool: None,
+            timestamps_wanted: true,
+            timing: false,
+            untimed: false,
+            timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
+            timeline: Box::new([(0, [(KernelId::default(), 0, 0); MAX_DISPATCHES]); 2]),
+            profile: KernelProfile::new(kernels),
+            host: Cell::new(HostStats::default()),
+        }
+    }
+
+    /// The query pool, when the open submission takes timestamps.
+    pub(super) fn timing_pool(&self) -> Option<vk::QueryPool> {
+        self.query_pool.filter(|_| self.timing)
+    }
+
+    /// At a `begin` on an idle queue: the submissions up to the next idle one take timestamps
+    /// when they are wanted and the queue has them.
+    pub(super) fn latch_timing(&mut self) {
+        self.timing = self.timestamps_wanted && self.query_pool.is_some();
+    }
+
+    /// Records into `cb` the reset of the queries from dispatch `first_dispatch` on (those of
+    /// submissions still running before it are kept), when timing.
+    pub(super) fn reset_queries(&self, device: &ash::Device, cb: vk::CommandBuffer, first_dispatch: usize) {
+        if let Some(q) = self.timing_pool() {
+            let first = 2 * first_dispatch as u32;
+            unsafe { device.cmd_reset_query_pool(cb, q, first, 2 * MAX_DISPATCHES as u32 - first) };
+        }
+    }
+
     /// Adds the timestamps of the submissions since the last collection to the profile (the
-    /// queue is idle).
-    pub(super) fn collect_timestamps(&mut self) -> Result<(), GpuError> {
+    /// queue is idle): `kernels[i]` is the kernel of dispatch `i`, `period_ns` the tick.
+    pub(super) fn collect(&mut self, device: &ash::Device, period_ns: Option<f32>, kernels: &[KernelId]) -> Result<(), GpuError> {
         if !std::mem::take(&mut self.untimed) {
             return Ok(());
         }
-        if let (Some(q), Some(period), true) = (self.query_pool, self.info.timestamp_period_ns, self.timing) {
-            let n = self.submitted;
+        if let (Some(q), Some(period), true) = (self.query_pool, period_ns, self.timing) {
+            let n = kernels.len();
             if n > 0 {
                 let ts = &mut self.timestamps[..2 * n];
-                unsafe { self.device.get_query_pool_results(q, 0, ts, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
+                unsafe { device.get_query_pool_results(q, 0, ts, vk::QueryResultFlags::TYPE_64 | vk::QueryResultFlags::WAIT) }
                     .map_err(vk_err("vkGetQueryPoolResults"))?;
-                for i in 0..n {
-                    let k = self.recorded_kernels[i].index();
+                for (i, k) in kernels.iter().enumerate() {
+                    let k = k.index();
                     let ticks = self.timestamps[2 * i + 1].wrapping_sub(self.timestamps[2 * i]);
                     self.profile.dispatches[k] += 1;
                     self.profile.total_ns[k] += ticks as f64 * period as f64;
@@ -139,8 +195,8 @@ impl GpuContext {
                 self.profile.spans += 1;
                 // The last two stretches for `last_timeline` (a mapper step's two).
                 self.timeline.swap(0, 1);
-                for i in 0..n {
-                    self.timeline[1].1[i] = (self.recorded_kernels[i], self.timestamps[2 * i], self.timestamps[2 * i + 1]);
+                for (i, &k) in kernels.iter().enumerate() {
+                    self.timeline[1].1[i] = (k, self.timestamps[2 * i], self.timestamps[2 * i + 1]);
                 }
                 self.timeline[1].0 = n;
             }
@@ -148,17 +204,36 @@ impl GpuContext {
         Ok(())
     }
 
+    /// Destroys the query pool.
+    ///
+    /// # Safety
+    /// `device` made it and no pending command uses it.
+    pub(super) unsafe fn destroy(&mut self, device: &ash::Device) {
+        if let Some(q) = self.query_pool.take() {
+            unsafe { device.destroy_query_pool(q, None) };
+        }
+    }
+}
+
+impl GpuContext {
+    /// Adds the timestamps of the submissions since the last collection to the profile (the
+    /// queue is idle).
+    pub(super) fn collect_timestamps(&mut self) -> Result<(), GpuError> {
+        let GpuContext { selected, recorder, submission, profiler, .. } = self;
+        profiler.collect(&selected.device, selected.info.timestamp_period_ns, &recorder.kernels[..submission.submitted])
+    }
+
     /// Timestamp queries around every dispatch from the next [`Self::begin`] on (`on`, the
     /// default) or none (they cost the device a little per dispatch, and the host a read per
     /// submission). Returns whether the device can take them at all.
     pub fn set_timestamps(&mut self, on: bool) -> bool {
-        self.timestamps_wanted = on;
-        self.query_pool.is_some()
+        self.profiler.timestamps_wanted = on;
+        self.profiler.query_pool.is_some()
     }
 
     /// Per-kernel times so far.
     pub fn profile(&self) -> &KernelProfile {
-        &self.profile
+        &self.profiler.profile
     }
 
     /// The dispatches of the last two timed stretches of the queue (see
@@ -166,18 +241,19 @@ impl GpuContext {
     /// `(kernel, start ms, end ms)` from the earliest dispatch's start. Empty without
     /// timestamps.
     pub fn last_timeline(&self) -> impl Iterator<Item = (&'static KernelInfo, f64, f64)> + '_ {
-        let entries = || self.timeline.iter().flat_map(|(n, e)| e[..*n].iter());
+        let timeline = &self.profiler.timeline;
+        let entries = || timeline.iter().flat_map(|(n, e)| e[..*n].iter());
         let first = entries().map(|e| e.1).min().unwrap_or(0);
-        let period = self.info.timestamp_period_ns.unwrap_or(0.0) as f64 * 1e-6;
-        let kernels = self.kernels;
+        let period = self.selected.info.timestamp_period_ns.unwrap_or(0.0) as f64 * 1e-6;
+        let kernels = self.pipelines.kernels;
         entries().map(move |&(k, start, end)| (&kernels[k.index()], start.wrapping_sub(first) as f64 * period, end.wrapping_sub(first) as f64 * period))
     }
     pub fn reset_profile(&mut self) {
-        self.profile = KernelProfile::new(self.kernels);
-        self.host.set(HostStats::default());
+        self.profiler.profile = KernelProfile::new(self.pipelines.kernels);
+        self.profiler.host.set(HostStats::default());
     }
     /// Host-side counters so far ([`HostStats`]).
     pub fn host_stats(&self) -> HostStats {
-        self.host.get()
+        self.profiler.host.get()
     }
 }

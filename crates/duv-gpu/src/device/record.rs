@@ -3,6 +3,38 @@
 
 use super::*;
 
+/// How a dispatch's workgroup count is given.
+#[derive(Clone, Copy, Debug)]
+pub(super) enum Launch {
+    Groups([u32; 3]),
+    /// Three u32 in the arena, read by the device.
+    Indirect(GpuRange),
+}
+
+/// Command buffers and the recording: the part of a [`GpuContext`] that `begin` opens and
+/// dispatches, fills and copies write into.
+pub(super) struct Recorder {
+    pub(super) pool: vk::CommandPool,
+    /// A command buffer per slot: `buffers[current]` is recorded next; the other slots belong
+    /// to submissions [`GpuContext::submit`] left running (`Submission::in_flight`) or are
+    /// free. The slot's fence is `Submission::fences[current]`.
+    pub(super) buffers: [vk::CommandBuffer; SLOTS],
+    pub(super) current: usize,
+    /// Between `begin` and a submit.
+    pub(super) recording: bool,
+    /// When the open recording began and whether a submission was running then (HostStats).
+    pub(super) since: Option<(Instant, bool)>,
+    /// Dispatches in the command buffers since the queue was last idle at a `begin` (those of
+    /// running submissions included), and their kernels (timestamp query pair `i` times
+    /// `kernels[i]`).
+    pub(super) recorded: usize,
+    pub(super) kernels: [KernelId; MAX_DISPATCHES],
+    /// The last kernel recorded (named when a submission fails).
+    pub(super) last_kernel: Option<KernelId>,
+    /// What the commands since the last barrier of the open submission touched.
+    pub(super) hazards: Hazards,
+}
+
 /// Arena ranges [`Hazards`] remembers between barriers; one more is a barrier.
 pub(super) const MAX_HAZARD_RANGES: usize = 48;
 
@@ -60,105 +92,150 @@ impl Hazards {
     }
 }
 
+impl Recorder {
+    /// No command pool or buffers yet (null handles).
+    pub(super) fn new() -> Self {
+        Recorder {
+            pool: vk::CommandPool::null(),
+            buffers: [vk::CommandBuffer::null(); SLOTS],
+            current: 0,
+            recording: false,
+            since: None,
+            recorded: 0,
+            kernels: [KernelId::default(); MAX_DISPATCHES],
+            last_kernel: None,
+            hazards: Hazards::default(),
+        }
+    }
+
+    /// The command buffer being recorded next.
+    pub(super) fn command_buffer(&self) -> vk::CommandBuffer {
+        self.buffers[self.current]
+    }
+
+    /// `NotRecording` for `what` unless a recording is open.
+    pub(super) fn check_recording(&self, what: &'static str) -> Result<(), GpuError> {
+        if !self.recording {
+            return Err(GpuError::NotRecording { what });
+        }
+        Ok(())
+    }
+
+    /// `NotRecording` for `what` while a recording is open (host transfers need the queue).
+    pub(super) fn check_idle(&self, what: &'static str) -> Result<(), GpuError> {
+        if self.recording {
+            return Err(GpuError::NotRecording { what });
+        }
+        Ok(())
+    }
+
+    /// A full compute and transfer barrier into the command buffer being recorded.
+    pub(super) fn barrier(&self, device: &ash::Device) {
+        barrier(device, self.command_buffer());
+    }
+
+    /// Orders a command touching `accesses` (`(range, written)`) after the earlier commands
+    /// of the submission where it must ([`Hazards`]; counted in `host`), then remembers its
+    /// accesses.
+    pub(super) fn order(&mut self, device: &ash::Device, host: &Cell<HostStats>, accesses: &[(GpuRange, bool)]) {
+        if self.hazards.needs_barrier(accesses) {
+            self.barrier(device);
+            self.hazards.clear();
+            let mut h = host.get();
+            h.barriers += 1;
+            host.set(h);
+        }
+        self.hazards.record(accesses);
+    }
+
+    /// Destroys the command pool and with it the command buffers.
+    ///
+    /// # Safety
+    /// `device` made it and no command buffer of it is pending.
+    pub(super) unsafe fn destroy(&mut self, device: &ash::Device) {
+        unsafe { device.destroy_command_pool(self.pool, None) };
+        self.pool = vk::CommandPool::null();
+        self.buffers = [vk::CommandBuffer::null(); SLOTS];
+    }
+}
+
+/// Records into `cb` a barrier that orders every earlier compute shader and transfer write
+/// before every later compute, transfer and indirect-argument access.
+pub(super) fn barrier(device: &ash::Device, cb: vk::CommandBuffer) {
+    let mb = [vk::MemoryBarrier::default()
+        .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
+        .dst_access_mask(
+            vk::AccessFlags::SHADER_READ
+                | vk::AccessFlags::SHADER_WRITE
+                | vk::AccessFlags::TRANSFER_READ
+                | vk::AccessFlags::TRANSFER_WRITE
+                | vk::AccessFlags::INDIRECT_COMMAND_READ,
+        )];
+    let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
+    let dst = stages | vk::PipelineStageFlags::DRAW_INDIRECT;
+    unsafe { device.cmd_pipeline_barrier(cb, stages, dst, vk::DependencyFlags::empty(), &mb, &[], &[]) };
+}
+
 impl GpuContext {
     /// Starts recording a submission.
     pub fn begin(&mut self) -> Result<(), GpuError> {
-        let mut running = self.in_flight.get()[0].is_some();
-        if running && (2 * self.submitted > MAX_DISPATCHES || 4 * self.prefetch_submitted.1 > 3 * self.prefetch_bytes) {
+        let mut running = !self.submission.idle();
+        if running && (2 * self.submission.submitted > MAX_DISPATCHES || 4 * self.submission.prefetch_submitted.1 > 3 * self.transfers.prefetch_bytes) {
             // A chain of submissions, each left running while the next was recorded, has used
             // half of the timestamp queries (a recording past them all is an error) or three
             // quarters of the room for copies to the host (past it, reads wait for the
             // device): this one starts on an idle queue, where they start over.
-            self.wait_in_flight()?;
+            self.submission.wait_in_flight(&self.selected.device, &self.profiler.host)?;
             running = false;
         }
-        self.recording_since = Some((Instant::now(), running));
+        self.recorder.since = Some((Instant::now(), running));
         if !running {
             self.collect_timestamps()?;
         }
-        let d = &self.device;
+        let GpuContext { selected, memory, transfers, recorder, submission, profiler, .. } = self;
+        let d = &selected.device;
+        let cb = recorder.command_buffer();
         unsafe {
-            d.reset_command_buffer(self.command_buffer, vk::CommandBufferResetFlags::empty()).map_err(vk_err("vkResetCommandBuffer"))?;
-            d.begin_command_buffer(
-                self.command_buffer,
-                &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT),
-            )
-            .map_err(vk_err("vkBeginCommandBuffer"))?;
+            d.reset_command_buffer(cb, vk::CommandBufferResetFlags::empty()).map_err(vk_err("vkResetCommandBuffer"))?;
+            d.begin_command_buffer(cb, &vk::CommandBufferBeginInfo::default().flags(vk::CommandBufferUsageFlags::ONE_TIME_SUBMIT))
+                .map_err(vk_err("vkBeginCommandBuffer"))?;
         }
         if running {
             // After a submission still running: its queries, prefetched copies and deferred
             // copies are kept (what a recording abandoned since added is dropped), and this one
             // starts with a barrier that orders it after that one's commands.
-            self.recorded = self.submitted;
-            let (len, used) = self.prefetch_submitted;
-            self.prefetched.get_mut().truncate(len);
-            self.prefetch_done.set(self.prefetch_done.get().min(len));
-            self.prefetch_used = used;
-            if let (Some(q), true) = (self.query_pool, self.timing) {
-                let first = 2 * self.recorded as u32;
-                unsafe { d.cmd_reset_query_pool(self.command_buffer, q, first, 2 * MAX_DISPATCHES as u32 - first) };
-            }
-            self.barrier();
+            recorder.recorded = submission.submitted;
+            let (len, used) = submission.prefetch_submitted;
+            transfers.prefetched.get_mut().truncate(len);
+            submission.prefetch_done.set(submission.prefetch_done.get().min(len));
+            transfers.prefetch_used = used;
+            profiler.reset_queries(d, cb, recorder.recorded);
+            recorder.barrier(d);
         } else {
-            self.timing = self.timestamps_wanted && self.query_pool.is_some();
-            if let (Some(q), true) = (self.query_pool, self.timing) {
-                unsafe { d.cmd_reset_query_pool(self.command_buffer, q, 0, 2 * MAX_DISPATCHES as u32) };
-            }
-            self.prefetched.get_mut().clear();
-            self.prefetch_done.set(0);
-            self.prefetch_used = 0;
-            self.recorded = 0;
-            self.submitted = 0;
+            profiler.latch_timing();
+            profiler.reset_queries(d, cb, 0);
+            transfers.prefetched.get_mut().clear();
+            submission.prefetch_done.set(0);
+            transfers.prefetch_used = 0;
+            recorder.recorded = 0;
+            submission.submitted = 0;
         }
-        self.hazards.clear();
-        if !self.deferred.borrow().is_empty() {
-            self.record_deferred(self.command_buffer);
-            self.barrier();
+        recorder.hazards.clear();
+        if !transfers.deferred.borrow().is_empty() {
+            transfers.record_deferred(d, cb, memory.buffer);
+            recorder.barrier(d);
         }
-        self.recording = true;
-        self.last_kernel = None;
+        recorder.recording = true;
+        recorder.last_kernel = None;
         Ok(())
     }
 
     /// Orders a command touching `accesses` (`(range, written)`) after the earlier commands
-    /// of the submission where it must ([`Hazards`]), then remembers its accesses.
+    /// of the submission where it must ([`Hazards`]), then remembers its accesses; a copy for
+    /// the host taken before it no longer is the arena's where it writes.
     pub(super) fn order(&mut self, accesses: &[(GpuRange, bool)]) {
-        if self.hazards.needs_barrier(accesses) {
-            self.barrier();
-            self.hazards.clear();
-            let mut h = self.host.get();
-            h.barriers += 1;
-            self.host.set(h);
-        }
-        self.hazards.record(accesses);
-        // A copy for the host taken before this command no longer is the arena's where it
-        // writes.
-        for (range, written) in accesses {
-            if *written {
-                let (start, end) = (range.offset, range.offset + range.size);
-                for p in self.prefetched.get_mut().iter_mut() {
-                    let c = &p.copy;
-                    if start < c.src_offset + c.size && c.src_offset < end {
-                        p.overwritten = true;
-                    }
-                }
-            }
-        }
-    }
-
-    pub(super) fn barrier(&self) {
-        let mb = [vk::MemoryBarrier::default()
-            .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
-            .dst_access_mask(
-                vk::AccessFlags::SHADER_READ
-                    | vk::AccessFlags::SHADER_WRITE
-                    | vk::AccessFlags::TRANSFER_READ
-                    | vk::AccessFlags::TRANSFER_WRITE
-                    | vk::AccessFlags::INDIRECT_COMMAND_READ,
-            )];
-        let stages = vk::PipelineStageFlags::COMPUTE_SHADER | vk::PipelineStageFlags::TRANSFER;
-        let dst = stages | vk::PipelineStageFlags::DRAW_INDIRECT;
-        unsafe { self.device.cmd_pipeline_barrier(self.command_buffer, stages, dst, vk::DependencyFlags::empty(), &mb, &[], &[]) };
+        self.recorder.order(&self.selected.device, &self.profiler.host, accesses);
+        self.transfers.overwritten_by(accesses);
     }
 
     /// Records `kernel` over `groups` workgroups with `buffers` bound in the order of the
@@ -178,18 +255,10 @@ impl GpuContext {
         self.record_dispatch(kernel.into(), buffers, immediates, Launch::Indirect(args))
     }
 
-    /// The table entry of `kernel`.
-    pub fn kernel_info(&self, kernel: impl Into<KernelId>) -> Result<&'static KernelInfo, GpuError> {
-        let kernel = kernel.into();
-        self.kernels.get(kernel.index()).ok_or(GpuError::UnknownKernel { index: kernel.index(), table: self.kernels.len() })
-    }
-
     pub(super) fn record_dispatch(&mut self, kernel: KernelId, buffers: &[GpuRange], immediates: &[u8], launch: Launch) -> Result<(), GpuError> {
-        let info = self.kernel_info(kernel)?;
+        let info = self.pipelines.kernel_info(kernel)?;
         let name = info.name;
-        if !self.recording {
-            return Err(GpuError::NotRecording { what: name });
-        }
+        self.recorder.check_recording(name)?;
         if buffers.len() != info.bindings.len() {
             return Err(GpuError::BindingCount { kernel: name, expected: info.bindings.len(), got: buffers.len() });
         }
@@ -197,13 +266,13 @@ impl GpuContext {
             return Err(GpuError::Immediates { kernel: name, expected: info.immediate_bytes, got: immediates.len() });
         }
         if let Launch::Groups(groups) = launch {
-            for (g, max) in groups.iter().zip(self.max_groups) {
+            for (g, max) in groups.iter().zip(self.selected.max_groups) {
                 if *g > max {
                     return Err(GpuError::TooManyWorkgroups { kernel: name, groups: *g, max });
                 }
             }
         }
-        if self.recorded >= MAX_DISPATCHES {
+        if self.recorder.recorded >= MAX_DISPATCHES {
             return Err(GpuError::TooManyDispatches { kernel: name, capacity: MAX_DISPATCHES });
         }
         if matches!(launch, Launch::Groups(g) if g.contains(&0)) {
@@ -215,7 +284,7 @@ impl GpuContext {
             if range.size == 0 {
                 return Err(GpuError::EmptyBinding { kernel: name, binding: b.binding, name: b.name });
             }
-            *slot = vk::DescriptorBufferInfo { buffer: self.buffer, offset: range.offset, range: range.size };
+            *slot = vk::DescriptorBufferInfo { buffer: self.memory.buffer, offset: range.offset, range: range.size };
             *access = (*range, b.kind == BindingKind::StorageReadWrite);
         }
         let mut writes = [vk::WriteDescriptorSet::default(); MAX_BINDINGS];
@@ -228,7 +297,7 @@ impl GpuContext {
                 })
                 .buffer_info(std::slice::from_ref(&infos[i]));
         }
-        if self.pipelines[kernel.index()].pipeline == vk::Pipeline::null() {
+        if self.pipelines.list[kernel.index()].pipeline == vk::Pipeline::null() {
             return Err(GpuError::NoFloatAtomics { kernel: name });
         }
         let mut n_access = info.bindings.len();
@@ -237,30 +306,32 @@ impl GpuContext {
             n_access += 1;
         }
         self.order(&accesses[..n_access]);
-        let p = &self.pipelines[kernel.index()];
-        let cb = self.command_buffer;
-        let slot = self.recorded as u32;
-        let timing = self.query_pool.filter(|_| self.timing);
+        let GpuContext { selected, pipelines, memory, recorder, profiler, .. } = self;
+        let d = &selected.device;
+        let p = &pipelines.list[kernel.index()];
+        let cb = recorder.command_buffer();
+        let slot = recorder.recorded as u32;
+        let timing = profiler.timing_pool();
         unsafe {
             if let Some(q) = timing {
-                self.device.cmd_write_timestamp(cb, vk::PipelineStageFlags::TOP_OF_PIPE, q, 2 * slot);
+                d.cmd_write_timestamp(cb, vk::PipelineStageFlags::TOP_OF_PIPE, q, 2 * slot);
             }
-            self.device.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, p.pipeline);
-            self.push_descriptor.cmd_push_descriptor_set(cb, vk::PipelineBindPoint::COMPUTE, p.layout, 0, &writes[..info.bindings.len()]);
+            d.cmd_bind_pipeline(cb, vk::PipelineBindPoint::COMPUTE, p.pipeline);
+            selected.push_descriptor.cmd_push_descriptor_set(cb, vk::PipelineBindPoint::COMPUTE, p.layout, 0, &writes[..info.bindings.len()]);
             if !immediates.is_empty() {
-                self.device.cmd_push_constants(cb, p.layout, vk::ShaderStageFlags::COMPUTE, 0, immediates);
+                d.cmd_push_constants(cb, p.layout, vk::ShaderStageFlags::COMPUTE, 0, immediates);
             }
             match launch {
-                Launch::Groups(g) => self.device.cmd_dispatch(cb, g[0], g[1], g[2]),
-                Launch::Indirect(args) => self.device.cmd_dispatch_indirect(cb, self.buffer, args.offset),
+                Launch::Groups(g) => d.cmd_dispatch(cb, g[0], g[1], g[2]),
+                Launch::Indirect(args) => d.cmd_dispatch_indirect(cb, memory.buffer, args.offset),
             }
             if let Some(q) = timing {
-                self.device.cmd_write_timestamp(cb, vk::PipelineStageFlags::BOTTOM_OF_PIPE, q, 2 * slot + 1);
+                d.cmd_write_timestamp(cb, vk::PipelineStageFlags::BOTTOM_OF_PIPE, q, 2 * slot + 1);
             }
         }
-        self.recorded_kernels[self.recorded] = kernel;
-        self.recorded += 1;
-        self.last_kernel = Some(kernel);
+        recorder.kernels[recorder.recorded] = kernel;
+        recorder.recorded += 1;
+        recorder.last_kernel = Some(kernel);
         Ok(())
     }
 
@@ -269,7 +340,7 @@ impl GpuContext {
     /// `lookup` does not know is [`GpuError::UnknownBinding`].
     pub fn dispatch_named(&mut self, kernel: impl Into<KernelId>, lookup: impl Fn(&str) -> Option<GpuRange>, immediates: &[u8], groups: [u32; 3]) -> Result<(), GpuError> {
         let kernel = kernel.into();
-        let info = self.kernel_info(kernel)?;
+        let info = self.pipelines.kernel_info(kernel)?;
         let mut ranges = [GpuRange { offset: 0, size: 0 }; MAX_BINDINGS];
         for (slot, b) in ranges.iter_mut().zip(info.bindings) {
             *slot = lookup(b.name).ok_or(GpuError::UnknownBinding { kernel: info.name, name: b.name })?;
@@ -279,11 +350,9 @@ impl GpuContext {
 
     /// Records filling `range` with the u32 `value` (size a multiple of 4).
     pub fn fill(&mut self, range: GpuRange, value: u32) -> Result<(), GpuError> {
-        if !self.recording {
-            return Err(GpuError::NotRecording { what: "fill" });
-        }
+        self.recorder.check_recording("fill")?;
         self.order(&[(range, true)]);
-        unsafe { self.device.cmd_fill_buffer(self.command_buffer, self.buffer, range.offset, range.size, value) };
+        unsafe { self.selected.device.cmd_fill_buffer(self.recorder.command_buffer(), self.memory.buffer, range.offset, range.size, value) };
         Ok(())
     }
 
@@ -293,41 +362,40 @@ impl GpuContext {
     /// transfers only (a mapped arena is read in place); a range that does not fit what is
     /// left of the prefetch space is read the ordinary way.
     pub fn prefetch(&mut self, range: GpuRange) -> Result<(), GpuError> {
-        if !self.recording {
-            return Err(GpuError::NotRecording { what: "prefetch" });
-        }
+        self.recorder.check_recording("prefetch")?;
         let size = range.size.next_multiple_of(4);
-        if !self.mapped.is_null() || size == 0 {
+        if self.memory.is_mapped() || size == 0 {
             return Ok(());
         }
-        if self.prefetch_used + size > self.prefetch_bytes || self.prefetched.get_mut().len() == MAX_PREFETCHES {
+        let transfers = &mut self.transfers;
+        if transfers.prefetch_used + size > transfers.prefetch_bytes || transfers.prefetched.get_mut().len() == MAX_PREFETCHES {
             // No room: a read takes the range from the arena, not from an older copy.
-            self.forget_prefetched(range.offset, range.offset + range.size);
+            transfers.forget_prefetched(&mut self.submission, range.offset, range.offset + range.size);
             return Ok(());
         }
-        let copy = vk::BufferCopy { src_offset: range.offset, dst_offset: self.prefetch_at + self.prefetch_used, size: range.size };
+        let copy = vk::BufferCopy { src_offset: range.offset, dst_offset: transfers.prefetch_at + transfers.prefetch_used, size: range.size };
         self.order(&[(range, false)]);
-        let d = &self.device;
-        let cb = self.command_buffer;
+        let GpuContext { selected, memory, transfers, recorder, .. } = self;
+        let d = &selected.device;
+        let cb = recorder.command_buffer();
         unsafe {
-            d.cmd_copy_buffer(cb, self.buffer, self.staging_buffer, &[copy]);
+            d.cmd_copy_buffer(cb, memory.buffer, transfers.buffer, &[copy]);
             let to_host = [vk::MemoryBarrier::default().src_access_mask(vk::AccessFlags::TRANSFER_WRITE).dst_access_mask(vk::AccessFlags::HOST_READ)];
             d.cmd_pipeline_barrier(cb, vk::PipelineStageFlags::TRANSFER, vk::PipelineStageFlags::HOST, vk::DependencyFlags::empty(), &to_host, &[], &[]);
         }
-        self.prefetch_used += size;
-        self.prefetched.get_mut().push(Prefetched { copy, overwritten: false });
+        transfers.prefetch_used += size;
+        transfers.prefetched.get_mut().push(Prefetched { copy, overwritten: false });
         Ok(())
     }
 
     /// Records a copy of `src` into `dst` (the smaller of the two sizes).
     pub fn copy(&mut self, src: GpuRange, dst: GpuRange) -> Result<(), GpuError> {
-        if !self.recording {
-            return Err(GpuError::NotRecording { what: "copy" });
-        }
+        self.recorder.check_recording("copy")?;
         let size = src.size.min(dst.size);
         let region = [vk::BufferCopy { src_offset: src.offset, dst_offset: dst.offset, size }];
         self.order(&[(GpuRange { offset: src.offset, size }, false), (GpuRange { offset: dst.offset, size }, true)]);
-        unsafe { self.device.cmd_copy_buffer(self.command_buffer, self.buffer, self.buffer, &region) };
+        let buffer = self.memory.buffer;
+        unsafe { self.selected.device.cmd_copy_buffer(self.recorder.command_buffer(), buffer, buffer, &region) };
         Ok(())
     }
 }

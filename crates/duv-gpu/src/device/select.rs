@@ -1,7 +1,125 @@
 //! Opening a device: the loader, instance and device choice (discrete, integrated, virtual, then
-//! CPU devices; `DUV_VULKAN_DEVICE`), the queue, the arena and the staging buffer.
+//! CPU devices; `DUV_VULKAN_DEVICE`), the queue, and at start-up every other part's Vulkan
+//! objects: command buffers, fences, queries, the arena and the staging buffer, the pipelines.
 
 use super::*;
+
+/// The opened device: the part of a [`GpuContext`] every other part's Vulkan objects belong
+/// to. Created first; its device and instance are destroyed last (the context's `Drop`), the
+/// device before the instance.
+pub(super) struct Selected {
+    /// The process's loader (never unloaded, see `loader`).
+    _entry: ash::Entry,
+    pub(super) instance: ash::Instance,
+    pub(super) device: ash::Device,
+    pub(super) push_descriptor: ash::khr::push_descriptor::Device,
+    /// The one compute queue.
+    pub(super) queue: vk::Queue,
+    pub(super) info: DeviceInfo,
+    /// `maxComputeWorkGroupCount`.
+    pub(super) max_groups: [u32; 3],
+    /// Reductions instead of float atomics ([`GpuOptions::deterministic`]).
+    pub(super) deterministic: bool,
+}
+
+impl Selected {
+    fn new(entry: ash::Entry, instance: ash::Instance, device: ash::Device, cand: &Candidate) -> Self {
+        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
+        let queue = unsafe { device.get_device_queue(cand.queue_family, 0) };
+        Selected {
+            _entry: entry,
+            instance,
+            device,
+            push_descriptor,
+            queue,
+            info: DeviceInfo {
+                name: cand.name.clone(),
+                device_type: String::new(),
+                vendor_id: 0,
+                device_id: 0,
+                driver_version: 0,
+                driver: String::new(),
+                api_version: (0, 0, 0),
+                timestamp_period_ns: None,
+                subgroup_size: 0,
+                float_atomics: cand.float_atomics,
+                pipeline_cache_file: None,
+                host_transfers: "mapped",
+            },
+            max_groups: [0; 3],
+            deterministic: !cand.float_atomics,
+        }
+    }
+
+    /// Switches deterministic mode; returns the mode in effect (always on without float
+    /// atomics).
+    pub(super) fn set_deterministic(&mut self, on: bool) -> bool {
+        self.deterministic = on || !self.info.float_atomics;
+        self.deterministic
+    }
+
+    /// Fills [`DeviceInfo`] and the limits from the device's properties (1.1 subgroup, 1.2
+    /// driver) and returns them.
+    fn learn(&mut self, cand: &Candidate) -> vk::PhysicalDeviceProperties {
+        let mut driver_props = vk::PhysicalDeviceDriverProperties::default();
+        let mut subgroup_props = vk::PhysicalDeviceSubgroupProperties::default();
+        let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut driver_props).push_next(&mut subgroup_props);
+        unsafe { self.instance.get_physical_device_properties2(cand.physical, &mut props2) };
+        let props = props2.properties;
+        let limits = props.limits;
+        let driver = format!(
+            "{} {}",
+            driver_props.driver_name_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default(),
+            driver_props.driver_info_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default()
+        )
+        .trim()
+        .to_owned();
+        self.info.device_type = type_name(props.device_type).to_owned();
+        self.info.vendor_id = props.vendor_id;
+        self.info.device_id = props.device_id;
+        self.info.driver_version = props.driver_version;
+        self.info.driver = driver;
+        self.info.api_version =
+            (vk::api_version_major(props.api_version), vk::api_version_minor(props.api_version), vk::api_version_patch(props.api_version));
+        self.info.subgroup_size = subgroup_props.subgroup_size;
+        let timestamps = cand.timestamp_bits > 0 && limits.timestamp_period > 0.0;
+        self.info.timestamp_period_ns = timestamps.then_some(limits.timestamp_period);
+        self.max_groups = limits.max_compute_work_group_count;
+        props
+    }
+}
+
+fn type_rank(t: vk::PhysicalDeviceType) -> u32 {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => 0,
+        vk::PhysicalDeviceType::INTEGRATED_GPU => 1,
+        vk::PhysicalDeviceType::VIRTUAL_GPU => 2,
+        vk::PhysicalDeviceType::CPU => 3,
+        _ => 4,
+    }
+}
+
+pub(super) fn type_name(t: vk::PhysicalDeviceType) -> &'static str {
+    match t {
+        vk::PhysicalDeviceType::DISCRETE_GPU => "discrete GPU",
+        vk::PhysicalDeviceType::INTEGRATED_GPU => "integrated GPU",
+        vk::PhysicalDeviceType::VIRTUAL_GPU => "virtual GPU",
+        vk::PhysicalDeviceType::CPU => "CPU",
+        _ => "other",
+    }
+}
+
+/// A usable device [`GpuContext::pick`] found.
+pub(super) struct Candidate {
+    index: usize,
+    pub(super) physical: vk::PhysicalDevice,
+    name: String,
+    rank: u32,
+    pub(super) queue_family: u32,
+    pub(super) timestamp_bits: u32,
+    /// VK_EXT_shader_atomic_float with `shaderBufferFloat32AtomicAdd`.
+    pub(super) float_atomics: bool,
+}
 
 impl GpuContext {
     /// Opens the device, allocates the arena and builds a pipeline for every kernel of
@@ -125,7 +243,7 @@ impl GpuContext {
             Ok(()) => Ok(ctx),
             Err(e) => {
                 // Destroy everything but the instance, which the caller destroys.
-                let instance = ctx.instance.clone();
+                let instance = ctx.selected.instance.clone();
                 ctx.destroy_device_objects();
                 std::mem::forget(ctx);
                 Err((instance, e))
@@ -133,109 +251,29 @@ impl GpuContext {
         }
     }
 
+    /// The context with its device and queue, every other Vulkan object a null handle (what
+    /// [`Self::init`] creates; `destroy_device_objects` destroys whatever exists by then).
     pub(super) fn skeleton(entry: ash::Entry, instance: ash::Instance, device: ash::Device, cand: &Candidate, arena_bytes: u64, kernels: &'static [KernelInfo]) -> Self {
-        let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
-        let queue = unsafe { device.get_device_queue(cand.queue_family, 0) };
         GpuContext {
-            _entry: entry,
-            instance,
-            device,
-            push_descriptor,
-            queue,
-            command_pool: vk::CommandPool::null(),
-            command_buffer: vk::CommandBuffer::null(),
-            fence: vk::Fence::null(),
-            slots: [(vk::CommandBuffer::null(), vk::Fence::null()); SLOTS],
-            current: 0,
-            in_flight: std::cell::Cell::new([None; SLOTS - 1]),
-            recording_since: None,
-            idle_since: std::cell::Cell::new(None),
-            spin_wait: false,
-            untimed: false,
-            submitted: 0,
-            prefetch_submitted: (0, 0),
-            query_pool: None,
-            memory: vk::DeviceMemory::null(),
-            buffer: vk::Buffer::null(),
-            mapped: std::ptr::null_mut(),
-            staging_memory: vk::DeviceMemory::null(),
-            staging_buffer: vk::Buffer::null(),
-            staging_mapped: std::ptr::null_mut(),
-            staging_bytes: 0,
-            deferred_at: 0,
-            deferred_bytes: 0,
-            deferred: std::cell::RefCell::new(Vec::with_capacity(MAX_DEFERRED_WRITES)),
-            deferred_used: std::cell::Cell::new(0),
-            prefetch_at: 0,
-            prefetch_bytes: 0,
-            prefetched: std::cell::RefCell::new(Vec::with_capacity(MAX_PREFETCHES)),
-            prefetch_used: 0,
-            prefetch_done: std::cell::Cell::new(0),
-            arena: Arena::new(arena_bytes, 256),
-            pipeline_cache: vk::PipelineCache::null(),
-            pipelines: Vec::with_capacity(kernels.len()),
-            max_groups: [0; 3],
-            info: DeviceInfo {
-                name: cand.name.clone(),
-                device_type: String::new(),
-                vendor_id: 0,
-                device_id: 0,
-                driver_version: 0,
-                driver: String::new(),
-                api_version: (0, 0, 0),
-                timestamp_period_ns: None,
-                subgroup_size: 0,
-                float_atomics: cand.float_atomics,
-                pipeline_cache_file: None,
-                host_transfers: "mapped",
-            },
-            deterministic: !cand.float_atomics,
-            recording: false,
-            recorded: 0,
-            hazards: Hazards::default(),
-            timestamps_wanted: true,
-            timing: false,
-            kernels,
-            recorded_kernels: [KernelId::default(); MAX_DISPATCHES],
-            timeline: Box::new([(0, [(KernelId::default(), 0, 0); MAX_DISPATCHES]); 2]),
-            timestamps: Box::new([0; 2 * MAX_DISPATCHES]),
-            profile: KernelProfile::new(kernels),
-            host: std::cell::Cell::new(HostStats::default()),
-            last_kernel: None,
+            selected: Selected::new(entry, instance, device, cand),
+            pipelines: Pipelines::new(kernels),
+            memory: ArenaMemory::new(arena_bytes),
+            transfers: Transfers::new(),
+            recorder: Recorder::new(),
+            submission: Submission::new(),
+            profiler: Profiler::new(kernels),
         }
     }
 
     pub(super) fn init(&mut self, cand: &Candidate, options: &GpuOptions) -> Result<(), GpuError> {
-        let (instance, device) = (&self.instance, &self.device);
-        // Properties (1.1 subgroup, 1.2 driver).
-        let mut driver_props = vk::PhysicalDeviceDriverProperties::default();
-        let mut subgroup_props = vk::PhysicalDeviceSubgroupProperties::default();
-        let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut driver_props).push_next(&mut subgroup_props);
-        unsafe { instance.get_physical_device_properties2(cand.physical, &mut props2) };
-        let props = props2.properties;
+        let props = self.selected.learn(cand);
+        let GpuContext { selected, pipelines, memory, transfers, recorder, submission, profiler } = self;
+        let (instance, device) = (&selected.instance, &selected.device);
         let limits = props.limits;
-        let driver = format!(
-            "{} {}",
-            driver_props.driver_name_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default(),
-            driver_props.driver_info_as_c_str().map(|c| c.to_string_lossy().into_owned()).unwrap_or_default()
-        )
-        .trim()
-        .to_owned();
-        self.info.device_type = type_name(props.device_type).to_owned();
-        self.info.vendor_id = props.vendor_id;
-        self.info.device_id = props.device_id;
-        self.info.driver_version = props.driver_version;
-        self.info.driver = driver;
-        self.info.api_version =
-            (vk::api_version_major(props.api_version), vk::api_version_minor(props.api_version), vk::api_version_patch(props.api_version));
-        self.info.subgroup_size = subgroup_props.subgroup_size;
-        let timestamps = cand.timestamp_bits > 0 && limits.timestamp_period > 0.0;
-        self.info.timestamp_period_ns = timestamps.then_some(limits.timestamp_period);
-        self.max_groups = limits.max_compute_work_group_count;
-        self.arena = Arena::new(self.arena.capacity(), limits.min_storage_buffer_offset_alignment.max(256));
+        memory.arena = Arena::new(memory.arena.capacity(), limits.min_storage_buffer_offset_alignment.max(256));
 
-        // Command pool, buffer, fence, queries.
-        self.command_pool = unsafe {
+        // Command pool, buffers, fences, queries.
+        recorder.pool = unsafe {
             device.create_command_pool(
                 &vk::CommandPoolCreateInfo::default()
                     .queue_family_index(cand.queue_family)
@@ -247,19 +285,21 @@ impl GpuContext {
         let cbs = unsafe {
             device.allocate_command_buffers(
                 &vk::CommandBufferAllocateInfo::default()
-                    .command_pool(self.command_pool)
+                    .command_pool(recorder.pool)
                     .level(vk::CommandBufferLevel::PRIMARY)
                     .command_buffer_count(SLOTS as u32),
             )
         }
         .map_err(vk_err("vkAllocateCommandBuffers"))?;
-        for (slot, cb) in self.slots.iter_mut().zip(cbs) {
-            *slot = (cb, unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?);
+        for (buffer, cb) in recorder.buffers.iter_mut().zip(cbs) {
+            *buffer = cb;
         }
-        self.current = 0;
-        (self.command_buffer, self.fence) = self.slots[0];
-        if timestamps {
-            self.query_pool = Some(
+        for fence in &mut submission.fences {
+            *fence = unsafe { device.create_fence(&vk::FenceCreateInfo::default(), None) }.map_err(vk_err("vkCreateFence"))?;
+        }
+        recorder.current = 0;
+        if selected.info.timestamp_period_ns.is_some() {
+            profiler.query_pool = Some(
                 unsafe {
                     device.create_query_pool(
                         &vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(2 * MAX_DISPATCHES as u32),
@@ -271,11 +311,11 @@ impl GpuContext {
         }
 
         // The arena: one buffer, one allocation, mapped once.
-        let capacity = self.arena.capacity();
+        let capacity = memory.arena.capacity();
         if capacity > limits.max_storage_buffer_range as u64 * 16 {
             return Err(GpuError::ArenaTooLarge { requested: capacity, limit: limits.max_storage_buffer_range as u64 * 16 });
         }
-        self.buffer = unsafe {
+        memory.buffer = unsafe {
             device.create_buffer(
                 &vk::BufferCreateInfo::default()
                     .size(capacity.max(256))
@@ -285,7 +325,7 @@ impl GpuContext {
             )
         }
         .map_err(vk_err("vkCreateBuffer (arena)"))?;
-        let req = unsafe { device.get_buffer_memory_requirements(self.buffer) };
+        let req = unsafe { device.get_buffer_memory_requirements(memory.buffer) };
         let mem_props = unsafe { instance.get_physical_device_memory_properties(cand.physical) };
         let find = |bits: u32, size: u64, flags: vk::MemoryPropertyFlags| {
             (0..mem_props.memory_type_count).find(|&i| {
@@ -311,14 +351,14 @@ impl GpuContext {
                 }
             },
         };
-        self.memory = unsafe {
+        memory.memory = unsafe {
             device.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(req.size).memory_type_index(type_index), None)
         }
         .map_err(vk_err("vkAllocateMemory (arena)"))?;
-        unsafe { device.bind_buffer_memory(self.buffer, self.memory, 0) }.map_err(vk_err("vkBindBufferMemory (arena)"))?;
+        unsafe { device.bind_buffer_memory(memory.buffer, memory.memory, 0) }.map_err(vk_err("vkBindBufferMemory (arena)"))?;
         if staged {
             let bytes = options.host_staging.unwrap_or(STAGING_BYTES).min(capacity.max(256)).max(256);
-            self.staging_buffer = unsafe {
+            transfers.buffer = unsafe {
                 device.create_buffer(
                     &vk::BufferCreateInfo::default()
                         .size(bytes)
@@ -328,30 +368,23 @@ impl GpuContext {
                 )
             }
             .map_err(vk_err("vkCreateBuffer (staging)"))?;
-            let sreq = unsafe { device.get_buffer_memory_requirements(self.staging_buffer) };
+            let sreq = unsafe { device.get_buffer_memory_requirements(transfers.buffer) };
             let stype = find(sreq.memory_type_bits, sreq.size, host | F::HOST_CACHED)
                 .or_else(|| find(sreq.memory_type_bits, sreq.size, host))
                 .ok_or(GpuError::NoMemoryType)?;
-            self.staging_memory = unsafe {
+            transfers.memory = unsafe {
                 device.allocate_memory(&vk::MemoryAllocateInfo::default().allocation_size(sreq.size).memory_type_index(stype), None)
             }
             .map_err(vk_err("vkAllocateMemory (staging)"))?;
-            unsafe { device.bind_buffer_memory(self.staging_buffer, self.staging_memory, 0) }.map_err(vk_err("vkBindBufferMemory (staging)"))?;
-            self.staging_mapped = unsafe { device.map_memory(self.staging_memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
+            unsafe { device.bind_buffer_memory(transfers.buffer, transfers.memory, 0) }.map_err(vk_err("vkBindBufferMemory (staging)"))?;
+            transfers.mapped = unsafe { device.map_memory(transfers.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
                 .map_err(vk_err("vkMapMemory (staging)"))? as *mut u8;
-            // The last eighth (at most 2 MiB): half for deferred small writes, half for
-            // prefetched reads; the rest for chunks.
-            let tail = (bytes / 8).min(2 << 20) & !7;
-            self.deferred_bytes = tail / 2;
-            self.prefetch_bytes = tail - self.deferred_bytes;
-            self.staging_bytes = bytes - tail;
-            self.deferred_at = self.staging_bytes;
-            self.prefetch_at = self.deferred_at + self.deferred_bytes;
-            self.info.host_transfers = "staged";
+            transfers.lay_out(bytes);
+            selected.info.host_transfers = "staged";
         } else {
-            self.mapped = unsafe { device.map_memory(self.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
+            memory.mapped = unsafe { device.map_memory(memory.memory, 0, vk::WHOLE_SIZE, vk::MemoryMapFlags::empty()) }
                 .map_err(vk_err("vkMapMemory (arena)"))? as *mut u8;
-            self.info.host_transfers = "mapped";
+            selected.info.host_transfers = "mapped";
         }
 
         // Pipeline cache keyed by vendor, device, driver version and the cache UUID.
@@ -361,30 +394,30 @@ impl GpuContext {
         });
         let initial = cache_file.as_ref().and_then(|f| std::fs::read(f).ok()).unwrap_or_default();
         let cache_info = vk::PipelineCacheCreateInfo::default().initial_data(&initial);
-        self.pipeline_cache = match unsafe { device.create_pipeline_cache(&cache_info, None) } {
+        pipelines.cache = match unsafe { device.create_pipeline_cache(&cache_info, None) } {
             Ok(c) => c,
             // A corrupt or foreign cache file: start empty.
             Err(_) => unsafe { device.create_pipeline_cache(&vk::PipelineCacheCreateInfo::default(), None) }
                 .map_err(vk_err("vkCreatePipelineCache"))?,
         };
-        self.info.pipeline_cache_file = cache_file;
+        selected.info.pipeline_cache_file = cache_file;
 
-        self.deterministic = options.deterministic || !self.info.float_atomics;
-        for info in self.kernels {
+        selected.deterministic = options.deterministic || !selected.info.float_atomics;
+        for info in pipelines.kernels {
             // A kernel with float atomics has no pipeline on a device without them (a null
             // pipeline; dispatching it is an error).
-            let p = if info.float_atomics && !self.info.float_atomics {
+            let p = if info.float_atomics && !selected.info.float_atomics {
                 Pipeline { set_layout: vk::DescriptorSetLayout::null(), layout: vk::PipelineLayout::null(), pipeline: vk::Pipeline::null() }
             } else {
-                self.build_pipeline(info)?
+                pipelines.build(device, info)?
             };
-            self.pipelines.push(p);
+            pipelines.list.push(p);
         }
         // A cache that cannot be written costs start-up time only: warn, go on.
         if let Err(e) = self.save_pipeline_cache() {
             tracing::warn!("gpu: {e}");
         }
-        tracing::info!(device = %self.info, arena_mb = capacity / (1024 * 1024), "gpu: device open");
+        tracing::info!(device = %self.selected.info, arena_mb = capacity / (1024 * 1024), "gpu: device open");
         Ok(())
     }
 }
