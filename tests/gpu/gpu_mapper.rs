@@ -219,7 +219,8 @@ fn restored_mapping_stage_keeps_the_vulkan_renderer() {
     let dir = tempfile::tempdir().unwrap();
     let budget = MappingBudget { iterations_per_keyframe: 3, millis_per_keyframe: 0 };
     let stage = MappingStage::new(MapperConfig::default(), MapperCapacity { max_gaussians: 3000, max_keyframes: 8, width: W, height: H }, budget).unwrap();
-    let mut mapping = StageMapping::new(stage, dir.path().join("keyframes"), dir.path().join("scratch.ckpt"), 0, 0);
+    let folder = duv_pipeline::KeyframeFolder::open(dir.path()).unwrap();
+    let mut mapping = StageMapping::new(stage, folder, dir.path().join("scratch.ckpt"), 0, 0);
     let what = mapping.use_device(MapperDevice::Vulkan, gpu_options()).unwrap();
     assert!(what.starts_with("Vulkan on "), "no Vulkan device: {what}");
     for k in &kfs[..2] {

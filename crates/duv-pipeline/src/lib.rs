@@ -12,11 +12,18 @@
 //! full. The caller's thread publishes health and watches the shutdown flag.
 //! `deterministic` runs every stage in order on the caller's thread (no drops, no timing):
 //! the same input gives bit-identical output.
+//!
+//! [`run`] is the pipeline; [`run_dive`] ([`dive_run`]) is a whole run around it, what `duv run`
+//! does below its command line: the run folder's lock, resume, the mapping stage, the
+//! end-of-run keyframe catch-up, the outputs and `dive.json`. The keyframe folder has one
+//! writer, [`KeyframeFolder`].
 
 pub mod budget;
 pub mod checkpoints;
 pub mod dive;
+pub mod dive_run;
 mod handoff;
+pub mod keyframe_folder;
 pub mod lock;
 pub mod mapping;
 pub mod outputs;
@@ -26,6 +33,8 @@ pub mod resume;
 pub mod source;
 pub mod stop;
 
+pub use dive_run::{run_dive, DiveError, DiveOptions, DiveOutcome, Progress};
+pub use keyframe_folder::KeyframeFolder;
 pub use stop::Stop;
 
 use duv_camera::FrameSource;
@@ -83,11 +92,12 @@ pub enum MapStageError {
     /// The mapper's device could not be opened ([`mapping::StageMapping::use_device`]).
     #[error(transparent)]
     Device(#[from] duv_map::mapper::MapperError),
-    /// Writing the keyframe folder or a checkpoint's scratch file.
+    /// Writing a checkpoint's scratch file.
     #[error(transparent)]
     Io(#[from] duv_core::io::IoError),
-    #[error("creating {path}: {source}")]
-    CreateDir { path: PathBuf, source: std::io::Error },
+    /// Writing the keyframe folder.
+    #[error(transparent)]
+    KeyframeFolder(#[from] keyframe_folder::KeyframeFolderError),
     #[error("mapping keyframe {id}: {source}")]
     Keyframe { id: u64, source: duv_map::stage::StageError },
     #[error("exporting the map to {path}: {source}")]

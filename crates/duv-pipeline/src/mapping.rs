@@ -2,8 +2,9 @@
 //! [`StageMapping::use_device`]) bound to the pipeline's mapping thread through [`MapStage`].
 //!
 //! - A keyframe from tracking is written into the run's keyframe folder (`keyframes/NNNNNN.png`,
-//!   `_invdepth.pfm`, `_variance.pfm`, the layout `duv refine --keyframes` reads) and handed to
-//!   the stage, which optimises within its per-keyframe budget.
+//!   `_invdepth.pfm`, `_variance.pfm`, the layout `duv refine --keyframes` reads; its one writer
+//!   is [`KeyframeFolder`]) and handed to the stage, which optimises within its per-keyframe
+//!   budget.
 //! - While no keyframe waits, `step` runs one more iteration, at most `idle_iterations` after
 //!   each keyframe (so a deterministic run, which steps until idle, ends).
 //! - Checkpoints are the mapper's own checkpoint bytes (Gaussians, medium weights, Adam moments,
@@ -12,10 +13,9 @@
 //! - `finish` sets the final keyframe poses, optimises `final_iterations` more and exports
 //!   `map.ply`, `map.ckpt`, `medium.json` and `renders/`.
 
+use super::keyframe_folder::KeyframeFolder;
 use super::{MapCheckpoint, MapStage, MapStageError};
 use duv_core::{Keyframe, Se3};
-use duv_core::io::pfm::write_pfm;
-use duv_core::io::png_io::write_rgb8;
 use duv_map::GpuOptions;
 use duv_map::checkpoint::KeyframePixels;
 use duv_map::stage::{MappingBudget, MappingStage};
@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 pub struct StageMapping {
     stage: MappingStage,
     budget: MappingBudget,
-    keyframe_dir: PathBuf,
+    keyframe_folder: KeyframeFolder,
     scratch: PathBuf,
     idle_iterations: u64,
     idle_left: u64,
@@ -42,11 +42,11 @@ pub struct StageMapping {
 }
 
 impl StageMapping {
-    /// `keyframe_dir` receives every keyframe handed over; `scratch` is a file path the
+    /// `keyframe_folder` receives every keyframe handed over; `scratch` is a file path the
     /// checkpoint bytes pass through.
-    pub fn new(stage: MappingStage, keyframe_dir: PathBuf, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
+    pub fn new(stage: MappingStage, keyframe_folder: KeyframeFolder, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
         let budget = stage.budget();
-        StageMapping { stage, budget, keyframe_dir, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0 }
+        StageMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0 }
     }
 
     /// Renders with `device` from now on, also after a `restore` (see
@@ -70,15 +70,9 @@ impl StageMapping {
 impl MapStage for StageMapping {
     fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError> {
         let id = kf.index;
-        let dir = &self.keyframe_dir;
         // The keyframe folder is written as keyframes arrive; a write that fails (a full disk)
         // is reported once and mapping goes on (the keyframes are in the log).
-        let written = std::fs::create_dir_all(dir)
-            .map_err(|source| MapStageError::CreateDir { path: dir.clone(), source })
-            .and_then(|()| write_rgb8(&dir.join(format!("{id:06}.png")), &kf.image).map_err(MapStageError::from))
-            .and_then(|()| write_pfm(&dir.join(format!("{id:06}_invdepth.pfm")), &kf.inv_depth).map_err(MapStageError::from))
-            .and_then(|()| write_pfm(&dir.join(format!("{id:06}_variance.pfm")), &kf.inv_depth_variance).map_err(MapStageError::from));
-        if let Err(e) = written {
+        if let Err(e) = self.keyframe_folder.write_keyframe(kf) {
             self.folder_failures += 1;
             if self.folder_failures == 1 {
                 tracing::error!("keyframe folder not written: {e}; mapping goes on");
@@ -181,12 +175,12 @@ pub struct Refed {
 
 /// Feeds `map` the keyframes logged in `log_dir` that it does not cover: those after
 /// `newest_fed` (a restored checkpoint's newest; `None`: all when the stage holds none) and
-/// those whose image is not in `keyframe_dir` (every keyframe mapping receives is written
-/// there; the missing ones were dropped by a full keyframe queue, or came after the newest
-/// checkpoint of a stopped run). One keyframe at a time from the log: the map then covers
-/// every logged keyframe.
-pub fn feed_unmapped_keyframes(map: &mut dyn MapStage, log_dir: &Path, keyframe_dir: &Path, newest_fed: Option<u64>) -> Refed {
-    let unmapped = |id: u64| newest_fed.is_none_or(|n| id > n) || !keyframe_dir.join(format!("{id:06}.png")).exists();
+/// those whose image `keyframe_folder` does not hold (every keyframe mapping receives is
+/// written there; the missing ones were dropped by a full keyframe queue, or came after the
+/// newest checkpoint of a stopped run). One keyframe at a time from the log: the map then
+/// covers every logged keyframe.
+pub fn feed_unmapped_keyframes(map: &mut dyn MapStage, log_dir: &Path, keyframe_folder: &KeyframeFolder, newest_fed: Option<u64>) -> Refed {
+    let unmapped = |id: u64| newest_fed.is_none_or(|n| id > n) || !keyframe_folder.has_image(id);
     feed_logged_keyframes(map, log_dir, unmapped)
 }
 

@@ -1,10 +1,10 @@
 //! The files a finished run leaves in its folder, written in one place: `trajectory.txt`
 //! (every frame, TUM), `keyframes.txt`, the keyframes' full-resolution inverse depth and
-//! variance (PFM), `states.txt`. A resumed dive's poses are put in the recorded frame here,
+//! variance (PFM, through the keyframe folder's writer, [`KeyframeFolder`]), `states.txt`. A resumed dive's poses are put in the recorded frame here,
 //! once ([`finish_trajectory`]), and merged with what earlier processes of the dive logged
 //! ([`DiveHistory`]): the files describe the whole dive.
 
-use duv_core::io::pfm::write_pfm;
+use super::keyframe_folder::{KeyframeFolder, KeyframeFolderError};
 use duv_core::pose::se3_to_tum;
 use duv_core::{PlaneF32, Sim3, Timestamp};
 use super::dive::DiveHistory;
@@ -20,6 +20,8 @@ use std::time::Duration;
 pub enum OutputError {
     #[error(transparent)]
     Io(#[from] duv_core::io::IoError),
+    #[error(transparent)]
+    KeyframeFolder(#[from] KeyframeFolderError),
     #[error("keyframe {id}: upsampling its depth: {source}")]
     Upsample { id: u64, source: TrackError },
 }
@@ -63,22 +65,20 @@ pub struct WrittenOutputs {
 }
 
 /// Writes the full-resolution inverse depth and variance (PFM) of the tracker's live keyframes
-/// into `out/keyframes/`: large files, written after the dive's small ones (a full disk then
+/// into the keyframe folder: large files, written after the dive's small ones (a full disk then
 /// costs these, not the record). `inv`/`var` are full-resolution scratch planes.
-pub fn write_keyframe_depths(out: &Path, tracker: &Tracker, inv: &mut PlaneF32, var: &mut PlaneF32) -> Result<(), OutputError> {
-    let kf_dir = out.join("keyframes");
+pub fn write_keyframe_depths(folder: &KeyframeFolder, tracker: &Tracker, inv: &mut PlaneF32, var: &mut PlaneF32) -> Result<(), OutputError> {
     let live: Vec<u64> = tracker.keyframes().map(|k: KeyframeView| k.id).collect();
     for id in live {
         tracker.upsample_keyframe(id, inv, var).map_err(|source| OutputError::Upsample { id, source })?;
-        write_pfm(&kf_dir.join(format!("{id:06}_invdepth.pfm")), inv)?;
-        write_pfm(&kf_dir.join(format!("{id:06}_variance.pfm")), var)?;
+        folder.write_depth(id, inv, var)?;
     }
     Ok(())
 }
 
-/// Writes `trajectory.txt`, `keyframes.txt` (with `mapped`, only the keyframes whose image the
-/// mapping stage wrote into `keyframes/`, so `duv refine --keyframes` reads the folder) and
-/// `states.txt`
+/// Writes `trajectory.txt`, `keyframes.txt` (with `mapped`, the run's keyframe folder: only the
+/// keyframes whose image it holds, those the mapping stage received, so `duv refine
+/// --keyframes` reads the folder) and `states.txt`
 /// (`frames` and `latencies` as the tracking thread recorded them), for the whole dive: this
 /// process's final poses over what `history` (earlier processes, from the log) holds. The
 /// keyframes' depth files are [`write_keyframe_depths`]'s.
@@ -88,10 +88,9 @@ pub fn write_tracking_outputs(
     frames: &[RecordedFrame],
     latencies: &[Duration],
     tracker: &Tracker,
-    mapped: bool,
+    mapped: Option<&KeyframeFolder>,
     history: Option<&DiveHistory>,
 ) -> Result<WrittenOutputs, OutputError> {
-    let kf_dir = out.join("keyframes");
     // seq -> (pose, state, tracker ms): the log's first, this process's over them.
     // seq -> (pose, state, tracker ms, note).
     let mut dive: BTreeMap<u64, (StampedPose, String, Option<f64>, String)> = BTreeMap::new();
@@ -121,7 +120,7 @@ pub fn write_tracking_outputs(
     for (id, (t_ns, pose)) in &keyframes {
         // With mapping on, the keyframe folder lists the keyframes mapping received (their
         // images are written as they arrive), so `duv refine --keyframes` can read it.
-        if mapped && !kf_dir.join(format!("{id:06}.png")).exists() {
+        if mapped.is_some_and(|folder| !folder.has_image(*id)) {
             continue;
         }
         let _ = writeln!(kf_text, "{id} {}", tum_line(*t_ns, pose));
