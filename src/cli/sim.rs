@@ -1,8 +1,8 @@
 //! `duv sim`: generate an underwater sequence with exact ground truth (TUM RGB-D layout plus
-//! the water-free images, the medium and the config).
+//! the water-free images, the medium, the config and the navigation sensors' `nav.csv`).
 
 use anyhow::Context;
-use duv_sim::{write_sequence, SimConfig, TrajectoryKind, WaterPreset};
+use duv_sim::{write_sequence_with, NavNoise, SimConfig, TrajectoryKind, WaterPreset};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -65,6 +65,10 @@ pub struct SimArgs {
     /// Random seed of the scene, the wobble and the noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Do not write nav.csv (the simulated depth sensor, altimeter, DVL and AHRS), for a
+    /// camera-only dataset; one left by an earlier run in --out is removed.
+    #[arg(long)]
+    no_nav: bool,
     /// Do not show a progress bar.
     #[arg(long)]
     no_progress: bool,
@@ -124,7 +128,8 @@ impl SimArgs {
 
 pub fn run(args: SimArgs) -> anyhow::Result<()> {
     let cfg = args.config()?;
-    let report = write_sequence(&cfg, &args.out, !args.no_progress).with_context(|| format!("generating a sequence into {}", args.out.display()))?;
+    let nav = (!args.no_nav).then(NavNoise::default);
+    let report = write_sequence_with(&cfg, &args.out, !args.no_progress, nav.as_ref()).with_context(|| format!("generating a sequence into {}", args.out.display()))?;
     println!(
         "wrote {} frames ({}x{}, {} water, {}{}) to {} in {:.2} s: {:.1} frames/s, path {:.2} m",
         report.frames,

@@ -559,3 +559,92 @@ fn dataset_command_summarises_and_checks() {
     let out = run(&["dataset", "nope:/x"]);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("unknown source"));
 }
+
+// ---- Navigation sensors (nav.csv) ----
+
+const NAV_HEADER: &str = "t_s,depth_m,altitude_m,vel_x_mps,vel_y_mps,vel_z_mps,qx,qy,qz,qw\n";
+
+#[test]
+fn nav_csv_beside_a_dataset_is_read_with_its_rejections() {
+    let dir = tempfile::tempdir().unwrap();
+    write_tum(dir.path());
+    // No nav.csv: no nav data.
+    assert!(open_dataset(&spec("tum", dir.path())).unwrap().nav().is_none());
+    // Depth and attitude at every frame, altitude and velocity at one; a NaN depth and a
+    // repeated time are rejected and counted, not fatal.
+    let nav = format!(
+        "{NAV_HEADER}1.000000,23.25,2.5,0.0,0.1,0.5,0,0,0,1\n1.05,NaN,,,,,,,,\n1.100000,23.5,,,,,0,0,{S},{S}\n1.1,23.4,,,,,,,,\n1.200000,23.75,,,,,,,,\n"
+    );
+    std::fs::write(dir.path().join("nav.csv"), nav).unwrap();
+    let d = open_dataset(&spec("tum", dir.path())).unwrap();
+    let track = d.nav().unwrap();
+    assert_eq!(track.len(), 3);
+    assert_eq!((track.rejected.non_finite, track.rejected.duplicate_time, track.rejected.total()), (1, 1, 2));
+    let ts: Vec<i64> = track.samples.iter().map(|s| s.t_ns.t_ns()).collect();
+    assert_eq!(ts, d.frames.iter().map(|f| f.t_ns.t_ns()).collect::<Vec<_>>(), "on the clock of rgb.txt");
+    let s0 = &track.samples[0];
+    assert_eq!((s0.depth_m, s0.altitude_m, s0.vel_cam_mps), (Some(23.25), Some(2.5), Some(Vector3::new(0.0, 0.1, 0.5))));
+    let q = track.samples[1].world_from_cam_rot.unwrap();
+    assert!((q.angle() - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    assert_eq!(track.samples[2].depth_m, Some(23.75));
+    assert!((track.depth_at(Timestamp::from_secs_f64(1.15), 200_000_000).unwrap() - 23.625).abs() < 1e-12);
+    // Frame times bracket their samples.
+    assert_eq!(track.between(d.frames[1].t_ns, d.frames[2].t_ns).len(), 1);
+}
+
+#[test]
+fn nav_option_names_the_file_for_any_layout() {
+    let dir = tempfile::tempdir().unwrap();
+    write_tum(dir.path());
+    std::fs::write(dir.path().join("nav.csv"), format!("{NAV_HEADER}1.0,10,,,,,,,,\n")).unwrap();
+    let other = dir.path().join("vehicle_nav.csv");
+    std::fs::write(&other, format!("{NAV_HEADER}1.0,20,,,,,,,,\n1.1,20.5,,,,,,,,\n")).unwrap();
+    // nav=FILE wins over DIR/nav.csv.
+    let d = open_dataset(&format!("{},nav={}", spec("tum", dir.path()), other.display())).unwrap();
+    assert_eq!(d.nav().unwrap().samples.iter().map(|s| s.depth_m.unwrap()).collect::<Vec<_>>(), [20.0, 20.5]);
+    // EuRoC and the plain folder take it too; EuRoC also finds DIR/nav.csv.
+    let eu = tempfile::tempdir().unwrap();
+    write_euroc(eu.path());
+    let d = open_dataset(&format!("{},nav={}", spec("euroc", eu.path()), other.display())).unwrap();
+    assert_eq!(d.nav().unwrap().len(), 2);
+    std::fs::write(eu.path().join("nav.csv"), format!("{NAV_HEADER}0.5,3,,,,,,,,\n")).unwrap();
+    assert_eq!(open_dataset(&spec("euroc", eu.path())).unwrap().nav().unwrap().samples[0].depth_m, Some(3.0));
+    let folder = tempfile::tempdir().unwrap();
+    std::fs::write(folder.path().join("calibration.txt"), "4 4 3.5 2.5 8 6\n").unwrap();
+    write_rgb8(&folder.path().join("1.000000.png"), &rgb(0)).unwrap();
+    let d = open_dataset(&format!("{},nav={}", spec("folder", folder.path()), other.display())).unwrap();
+    assert_eq!(d.nav().unwrap().len(), 2);
+    // A named file that does not exist is an error naming it.
+    let e = open_dataset(&format!("{},nav={}", spec("tum", dir.path()), dir.path().join("nope.csv").display())).unwrap_err();
+    assert!(matches!(e, CameraError::Nav(_)), "{e}");
+    assert_err_contains(&e, &["nope.csv"]);
+    let e = open_dataset(&format!("{},nav=", spec("tum", dir.path()))).unwrap_err();
+    assert!(matches!(e, CameraError::BadSpec { .. }), "{e}");
+}
+
+#[test]
+fn bad_nav_file_is_an_error_naming_file_line_and_column() {
+    let dir = tempfile::tempdir().unwrap();
+    write_tum(dir.path());
+    let nav = dir.path().join("nav.csv");
+    std::fs::write(&nav, "t,depth\n1.0,5\n").unwrap();
+    let e = open_dataset(&spec("tum", dir.path())).unwrap_err();
+    assert_err_contains(&e, &["nav.csv, line 1", "expected the header `t_s,depth_m,altitude_m,"]);
+    std::fs::write(&nav, format!("# vehicle 7\n{NAV_HEADER}1.0,5,,,,,,,,\n1.1,5.1,1.5 m,,,,,,,\n")).unwrap();
+    let e = open_dataset(&spec("tum", dir.path())).unwrap_err();
+    assert_eq!(e.to_string(), format!("{}, line 4, column altitude_m: \"1.5 m\" is not a number", nav.display()));
+    std::fs::write(&nav, format!("{NAV_HEADER}1.0,5,,0.1,0.2,,,,,\n")).unwrap();
+    let e = open_dataset(&spec("tum", dir.path())).unwrap_err();
+    assert_err_contains(&e, &["nav.csv, line 2", "vel_x_mps,vel_y_mps,vel_z_mps", "vel_z_mps is empty"]);
+    // A depth spike of 100 m and a sensor that stops are not errors.
+    let mut rows = NAV_HEADER.to_string();
+    for k in 0..30 {
+        let depth = if k == 12 { 120.0 } else { 20.0 + 0.01 * k as f64 };
+        let alt = if k < 10 { "2.0" } else { "" };
+        writeln!(rows, "{:.1},{depth},{alt},,,,,,,", 1.0 + 0.1 * k as f64).unwrap();
+    }
+    std::fs::write(&nav, rows).unwrap();
+    let track = open_dataset(&spec("tum", dir.path())).unwrap().nav.unwrap();
+    assert_eq!((track.len(), track.rejected.depth_spike, track.rejected.total()), (29, 1, 1));
+    assert_eq!(track.samples.iter().filter(|s| s.altitude_m.is_some()).count(), 10);
+}

@@ -6,6 +6,7 @@ pub mod alloc;
 pub mod camera;
 pub mod frame;
 pub mod keyframe;
+pub mod nav;
 pub mod pose;
 pub mod rng;
 pub mod source;

@@ -18,6 +18,9 @@ pub enum CameraError {
     Dataset { path: PathBuf, problem: String },
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
+    /// A navigation file (`nav.csv`) that cannot be read; the error names it.
+    #[error(transparent)]
+    Nav(#[from] crate::nav::NavError),
     #[error("{path}: calibration: {source}")]
     Calibration { path: PathBuf, source: crate::CameraModelError },
     /// A required calibration file is absent; `hint` says how to provide one.

@@ -17,6 +17,7 @@
 pub mod heightfield;
 pub mod keyframes;
 pub mod materials;
+pub mod nav;
 pub mod noise;
 pub mod render;
 pub mod scene;
@@ -27,7 +28,8 @@ pub mod water;
 pub mod writer;
 
 pub use render::{SimFrame, SimRenderer};
-pub use writer::{write_sequence, SimManifest, SimReport};
+pub use nav::NavNoise;
+pub use writer::{write_sequence, write_sequence_with, SimManifest, SimReport};
 
 use duv_core::{MediumParams, PinholeCamera};
 use std::path::PathBuf;

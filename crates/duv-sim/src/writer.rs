@@ -10,15 +10,20 @@
 //! calibration.txt    "fx fy cx cy width height"
 //! medium.json        {"beta_D":[r,g,b],"beta_B":[r,g,b],"B_inf":[r,g,b]}
 //! sim.json           the full configuration, camera and medium (SimManifest)
+//! nav.csv            navigation sensors, one row per frame at the rgb.txt times: pressure
+//!                    depth, altitude, DVL velocity (camera frame), AHRS attitude, with the
+//!                    noise and dropouts of super::nav (format: duv_core::nav)
 //! ```
 //!
 //! Frames render and encode in parallel; every file depends only on the config, so the same
 //! config gives byte-identical files.
 
+use super::nav::{self, NavNoise};
 use super::render::SimRenderer;
 use super::{SimConfig, SimError};
 use duv_core::{ImageGray16, MediumParams, PinholeCamera, PlaneF32};
 use duv_core::io::{png_io, tum, write_atomic, IoError};
+use duv_core::nav::format_nav_csv;
 use rayon::prelude::*;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -94,14 +99,24 @@ fn image_list(title: &str, folder: &str, renderer: &SimRenderer) -> String {
 }
 
 /// Generates the sequence of `cfg` into `out_dir` (created if needed; existing files of the
-/// same names are replaced). Shows a progress bar on a terminal when `progress` is set.
+/// same names are replaced), `nav.csv` with the default sensor noise ([`NavNoise::default`]).
+/// Shows a progress bar on a terminal when `progress` is set.
 pub fn write_sequence(cfg: &SimConfig, out_dir: &Path, progress: bool) -> Result<SimReport, SimError> {
+    write_sequence_with(cfg, out_dir, progress, Some(&NavNoise::default()))
+}
+
+/// [`write_sequence`] with the navigation sensors' noise, or `None` for no `nav.csv` (one left
+/// in `out_dir` by an earlier run is removed, so the folder reads as a camera-only dataset).
+pub fn write_sequence_with(cfg: &SimConfig, out_dir: &Path, progress: bool, nav_noise: Option<&NavNoise>) -> Result<SimReport, SimError> {
     let _span = tracing::info_span!("sim.write").entered();
     cfg.validate()?;
     let started = std::time::Instant::now();
     create_dir(out_dir)?;
     for sub in ["rgb", "depth", "clear"] {
         create_dir(&out_dir.join(sub))?;
+    }
+    if let Some(noise) = nav_noise {
+        noise.validate()?;
     }
     let renderer = SimRenderer::new(cfg)?;
     let n = renderer.len();
@@ -131,6 +146,14 @@ pub fn write_sequence(cfg: &SimConfig, out_dir: &Path, progress: bool) -> Result
     write_atomic(&out_dir.join("rgb.txt"), image_list("color images", "rgb", &renderer).as_bytes())?;
     write_atomic(&out_dir.join("depth.txt"), image_list("depth maps (metres x 5000, 0 = no hit)", "depth", &renderer).as_bytes())?;
     tum::write_trajectory(&out_dir.join("groundtruth.txt"), renderer.poses())?;
+    let nav_path = out_dir.join("nav.csv");
+    match nav_noise {
+        Some(noise) => write_atomic(&nav_path, format_nav_csv(&nav::simulate(&renderer, noise, cfg.seed)?).as_bytes())?,
+        None => match std::fs::remove_file(&nav_path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(SimError::Io(IoError::file(&nav_path, e))),
+            _ => {}
+        },
+    }
     let cam = renderer.camera();
     let calibration = format!("{} {} {} {} {} {}\n", cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height);
     write_atomic(&out_dir.join("calibration.txt"), calibration.as_bytes())?;

@@ -56,6 +56,7 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         body_from_cam: Some(sensor.body_from_cam),
         downsample: 1,
         source_size: None,
+        nav: None, // read by open_spec, the same for every layout
     })
 }
 

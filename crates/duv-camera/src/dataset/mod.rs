@@ -4,7 +4,8 @@
 //! reads every list, calibration and ground-truth file and checks that every image it names
 //! exists; images themselves are decoded lazily, one per [`FrameSource::next_frame`] of a
 //! [`DatasetSource`]. Every pose is `world_from_cam` with the camera x right, y down, z forward,
-//! whatever convention the dataset stores.
+//! whatever convention the dataset stores. Navigation-sensor data (`nav.csv`, see
+//! [`duv_core::nav`]) is read beside any layout, or from `nav=FILE`.
 
 mod calib;
 mod euroc;
@@ -19,6 +20,7 @@ pub use tartanair::{ned_to_cam, TARTANAIR_DEFAULT_FPS};
 
 use super::{CameraError, FrameSource};
 use duv_core::io::IoError;
+use duv_core::nav::{read_nav_csv, NavTrack};
 use duv_core::{Frame, FrameImage, MediumParams, PinholeCamera, PlaneF32, Se3, StampedPose, Timestamp};
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -63,10 +65,10 @@ impl DatasetKind {
     /// The options a spec of this kind accepts.
     fn options(self) -> &'static [&'static str] {
         match self {
-            DatasetKind::Tum => &["calib", "depth_scale", "fov", "downsample"],
-            DatasetKind::Euroc => &["cam"],
-            DatasetKind::TartanAir => &["calib", "fps"],
-            DatasetKind::Folder => &["calib", "fps", "fov", "downsample"],
+            DatasetKind::Tum => &["calib", "depth_scale", "fov", "downsample", "nav"],
+            DatasetKind::Euroc => &["cam", "nav"],
+            DatasetKind::TartanAir => &["calib", "fps", "nav"],
+            DatasetKind::Folder => &["calib", "fps", "fov", "downsample", "nav"],
         }
     }
 }
@@ -126,6 +128,9 @@ pub struct Dataset {
     /// `downsample=N` (1: frames as stored) and the stored image size it applies to.
     pub downsample: usize,
     pub source_size: Option<(usize, usize)>,
+    /// Navigation-sensor samples (depth, altitude, DVL velocity, AHRS attitude) from
+    /// `nav=FILE` or `DIR/nav.csv`, on the clock of the images, with what was rejected.
+    pub nav: Option<NavTrack>,
 }
 
 /// A parsed spec `KIND:DIR[,OPTION=VALUE]...`; see [`open_dataset`] for the syntax.
@@ -148,6 +153,9 @@ pub struct DatasetSpec {
     /// `downsample=N`: frames averaged over N x N pixel blocks (and the camera scaled to
     /// match), for footage larger than the board's tracking resolution.
     pub downsample: Option<usize>,
+    /// `nav=FILE`: navigation-sensor file in the `nav.csv` format (default: `DIR/nav.csv`
+    /// when present).
+    pub nav: Option<PathBuf>,
 }
 
 impl DatasetSpec {
@@ -163,7 +171,7 @@ impl DatasetSpec {
         if dir.is_empty() {
             return Err(bad("no directory after the kind".into()));
         }
-        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None, fov_deg: None, downsample: None };
+        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None, fov_deg: None, downsample: None, nav: None };
         let mut seen: Vec<&str> = Vec::new();
         for part in parts {
             let (key, value) = part
@@ -189,6 +197,7 @@ impl DatasetSpec {
             };
             match key {
                 "calib" => out.calib = Some(PathBuf::from(value)),
+                "nav" => out.nav = Some(PathBuf::from(value)),
                 "fps" => out.fps = Some(positive("fps")?),
                 "depth_scale" => out.depth_scale = Some(positive("depth_scale")?),
                 "downsample" => match value.parse::<usize>() {
@@ -248,6 +257,12 @@ impl DatasetSpec {
 ///
 /// Images are PNG (8-bit, or 16-bit reduced to 8) or JPEG in every layout. `tum:` and `folder:`
 /// also take `downsample=N` (1-8): frames averaged over N x N blocks, the camera scaled.
+///
+/// Every kind takes `nav=FILE`: navigation-sensor samples in the `nav.csv` format
+/// ([`duv_core::nav`]: `t_s,depth_m,altitude_m,vel_x_mps,vel_y_mps,vel_z_mps,qx,qy,qz,qw`, times
+/// on the clock of the images); without it `DIR/nav.csv` is read when present. A file that
+/// cannot be read (missing when named, wrong header, a cell that is not a number) is an error
+/// naming it; bad values in it are rejected and counted in [`NavTrack::rejected`].
 pub fn open_dataset(spec: &str) -> Result<Dataset, CameraError> {
     open_spec(&DatasetSpec::parse(spec)?)
 }
@@ -260,6 +275,7 @@ pub fn open_spec(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         DatasetKind::TartanAir => tartanair::open(spec),
         DatasetKind::Folder => folder::open(spec),
     }?;
+    dataset.nav = optional_nav(spec)?;
     if let Some(n) = spec.downsample.filter(|&n| n > 1) {
         let c = dataset.camera;
         if c.distortion.is_some() {
@@ -273,6 +289,7 @@ pub fn open_spec(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
     tracing::debug!(
         depth = dataset.depth.is_some(),
         ground_truth = dataset.ground_truth.is_some(),
+        nav_samples = dataset.nav.as_ref().map_or(0, NavTrack::len),
         "opened {}",
         dataset.describe()
     );
@@ -371,6 +388,11 @@ impl Dataset {
             Some(k) => self.load_depth(k).map(Some),
             None => Ok(None),
         }
+    }
+
+    /// The navigation-sensor samples, where the dataset has them.
+    pub fn nav(&self) -> Option<&NavTrack> {
+        self.nav.as_ref()
     }
 
     /// A frame source over this dataset, starting at the first frame.
@@ -554,6 +576,26 @@ fn optional_medium(dir: &Path) -> Result<Option<MediumParams>, CameraError> {
     }
 }
 
+/// The navigation file a spec names (`nav=FILE`, which must exist) or else `DIR/nav.csv` when
+/// present. Rejected values are counted in the track and logged once.
+fn optional_nav(spec: &DatasetSpec) -> Result<Option<NavTrack>, CameraError> {
+    let path = match &spec.nav {
+        Some(p) => p.clone(),
+        None => {
+            let p = spec.dir.join("nav.csv");
+            if !p.exists() {
+                return Ok(None);
+            }
+            p
+        }
+    };
+    let track = read_nav_csv(&path)?;
+    if track.rejected.total() > 0 {
+        tracing::warn!("{}: {} navigation value(s) rejected ({}); {} samples kept", path.display(), track.rejected.total(), track.rejected.describe(), track.len());
+    }
+    Ok(Some(track))
+}
+
 /// A TUM trajectory file, when present.
 fn optional_trajectory(path: &Path) -> Result<Option<Vec<StampedPose>>, CameraError> {
     if path.exists() {
@@ -606,6 +648,7 @@ mod tests {
             body_from_cam: None,
             downsample: 1,
             source_size: None,
+            nav: None,
         };
         assert_eq!(ds.depth_index_for(Timestamp(140), 50), Some(1));
         assert_eq!(ds.depth_index_for(Timestamp(160), 50), Some(2));

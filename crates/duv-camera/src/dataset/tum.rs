@@ -1,6 +1,7 @@
 //! TUM RGB-D layout: `rgb.txt` / `depth.txt` (`TIMESTAMP PATH` lines after `#` comments, paths
 //! relative to the folder), `groundtruth.txt` (TUM trajectory), `calibration.txt` (required,
-//! ours), `medium.json` (optional, ours).
+//! ours), `medium.json` (optional, ours), `nav.csv` (optional, ours: navigation sensors, read
+//! by `open_spec` for every layout).
 
 use super::{
     check_exists, check_increasing, optional_medium, optional_trajectory, required_calibration, Dataset, DatasetFrame,
@@ -40,6 +41,7 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         body_from_cam: None,
         downsample: 1,
         source_size: None,
+        nav: None, // read by open_spec, the same for every layout
     })
 }
 
