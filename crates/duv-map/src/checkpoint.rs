@@ -81,6 +81,18 @@ pub enum CheckpointError {
     Payload { path: String, source: PayloadError },
     #[error("restoring the mapper: {0}")]
     Mapper(#[from] MapperError),
+    /// The mapper's state could not be encoded ([`Mapper::checkpoint_bytes`]).
+    #[error("{path}: {source}")]
+    Encode { path: String, source: EncodeError },
+}
+
+/// Why a checkpoint could not be made from the mapper ([`Mapper::checkpoint_bytes`]).
+#[derive(Debug, thiserror::Error)]
+pub enum EncodeError {
+    #[error("syncing the optimiser state from the device: {0}")]
+    Device(#[from] MapperError),
+    #[error("encoding the mapper config as TOML: {0}")]
+    Config(#[from] toml::ser::Error),
 }
 
 /// What is wrong inside a binary payload ([`CheckpointError::Payload`]).
@@ -332,23 +344,23 @@ fn decode_binary(body: &[u8], version: u32) -> Result<Payload, PayloadError> {
 impl Mapper {
     /// Writes the complete state to `path` (temporary file, fsync, rename).
     pub fn save_checkpoint(&mut self, path: &Path) -> Result<(), CheckpointError> {
-        let bytes = self.checkpoint_bytes().map_err(|why| CheckpointError::BadPayload { path: path.display().to_string(), why })?;
+        let bytes = self.checkpoint_bytes().map_err(|source| CheckpointError::Encode { path: path.display().to_string(), source })?;
         write_atomic(path, &bytes)?;
         Ok(())
     }
 
     /// The complete state as checkpoint file bytes (header, binary payload, checksum), written
     /// from the mapper's buffers into one buffer of the exact size.
-    pub fn checkpoint_bytes(&mut self) -> Result<Vec<u8>, String> {
+    pub fn checkpoint_bytes(&mut self) -> Result<Vec<u8>, EncodeError> {
         self.checkpoint_bytes_with(KeyframePixels::Embedded)
     }
 
     /// [`Mapper::checkpoint_bytes`] with the keyframes' pixels embedded or referenced (the
     /// device's optimiser state is synced first, [`Mapper::sync_from_device`]).
-    pub fn checkpoint_bytes_with(&mut self, pixels: KeyframePixels) -> Result<Vec<u8>, String> {
-        self.sync_from_device().map_err(|e| e.to_string())?;
+    pub fn checkpoint_bytes_with(&mut self, pixels: KeyframePixels) -> Result<Vec<u8>, EncodeError> {
+        self.sync_from_device()?;
         let embed = pixels == KeyframePixels::Embedded;
-        let config_toml = toml::to_string(&self.config).map_err(|e| e.to_string())?;
+        let config_toml = toml::to_string(&self.config)?;
         let kf_bytes: usize = self
             .keyframes
             .iter()

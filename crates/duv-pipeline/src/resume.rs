@@ -417,17 +417,33 @@ fn is_tracker_start(pose: &Se3) -> bool {
     pose.translation.vector.norm() < 1e-9 && pose.rotation.angle() < 1e-9
 }
 
+/// Why a logged tracker window cannot seed the tracker (the resume then uses the logged
+/// keyframes, and says why).
+#[derive(Debug, thiserror::Error)]
+pub enum WindowSeedError {
+    #[error(transparent)]
+    Log(#[from] duv_log::LogError),
+    #[error("keyframe {id}: its frame {seq} is not in the log")]
+    FrameMissing { id: u64, seq: u64 },
+    #[error("keyframe {id}: frame {seq}: {source}")]
+    Frame { id: u64, seq: u64, source: duv_log::DecodeError },
+    #[error("keyframe {id}: frame {seq} is {width}x{height}, the calibration {expected_width}x{expected_height}")]
+    FrameSize { id: u64, seq: u64, width: usize, height: usize, expected_width: usize, expected_height: usize },
+    #[error("keyframe {id}: depth grid {grid_width}x{grid_height} does not fit {width}x{height}")]
+    GridSize { id: u64, grid_width: usize, grid_height: usize, width: usize, height: usize },
+}
+
 /// The keyframes of a logged tracker window as whole [`Keyframe`]s for [`Tracker::seed`]: each
 /// image is the logged frame it was (from `frames`, or read again from the segments, newest
 /// first, when the byte budget let it go), its depth grid repeated over each cell at the input
 /// resolution (the seed takes cell means again, so the grid comes back as it was logged).
-fn window_keyframes(w: &TrackerWindow, camera: &PinholeCamera, frames: &BTreeMap<u64, (Vec<u8>, u64)>, log_dir: &Path, limits: ReadLimits) -> Result<Vec<(u64, Keyframe)>, String> {
+fn window_keyframes(w: &TrackerWindow, camera: &PinholeCamera, frames: &BTreeMap<u64, (Vec<u8>, u64)>, log_dir: &Path, limits: ReadLimits) -> Result<Vec<(u64, Keyframe)>, WindowSeedError> {
     let mut found: BTreeMap<u64, (Vec<u8>, u64)> = BTreeMap::new();
     let missing: Vec<u64> = w.keyframes.iter().map(|k| k.seq).filter(|s| !frames.contains_key(s)).collect();
     if !missing.is_empty() {
-        let segments = list_segments(log_dir).map_err(|e| e.to_string())?;
+        let segments = list_segments(log_dir)?;
         for (_, path) in segments.iter().rev() {
-            let mut r = SegmentReader::open(path, limits).map_err(|e| e.to_string())?;
+            let mut r = SegmentReader::open(path, limits)?;
             while let Some(e) = r.next_event() {
                 let OwnedEvent::Message { channel_id, sequence, log_time_ns, data, .. } = e else { continue };
                 let seq = sequence as u64;
@@ -443,14 +459,14 @@ fn window_keyframes(w: &TrackerWindow, camera: &PinholeCamera, frames: &BTreeMap
     let (width, height) = (camera.width, camera.height);
     let mut out = Vec::with_capacity(w.keyframes.len());
     for k in &w.keyframes {
-        let (data, t) = frames.get(&k.seq).or(found.get(&k.seq)).ok_or_else(|| format!("keyframe {}: its frame {} is not in the log", k.id, k.seq))?;
-        let frame = decode_frame(data, k.seq, *t).map_err(|e| format!("keyframe {}: frame {}: {e}", k.id, k.seq))?;
+        let (data, t) = frames.get(&k.seq).or(found.get(&k.seq)).ok_or(WindowSeedError::FrameMissing { id: k.id, seq: k.seq })?;
+        let frame = decode_frame(data, k.seq, *t).map_err(|source| WindowSeedError::Frame { id: k.id, seq: k.seq, source })?;
         if frame.image.width() != width || frame.image.height() != height {
-            return Err(format!("keyframe {}: frame {} is {}x{}, the calibration {width}x{height}", k.id, k.seq, frame.image.width(), frame.image.height()));
+            return Err(WindowSeedError::FrameSize { id: k.id, seq: k.seq, width: frame.image.width(), height: frame.image.height(), expected_width: width, expected_height: height });
         }
         let (gw, gh) = (k.inv_depth.width, k.inv_depth.height);
         if gw == 0 || gh == 0 || gw > width || gh > height {
-            return Err(format!("keyframe {}: depth grid {gw}x{gh} does not fit {width}x{height}", k.id));
+            return Err(WindowSeedError::GridSize { id: k.id, grid_width: gw, grid_height: gh, width, height });
         }
         let cell = (width / gw).min(height / gh).max(1);
         let spread = |grid: Option<&PlaneF32>| {
