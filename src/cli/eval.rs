@@ -44,6 +44,10 @@ pub struct EvalArgs {
     /// Alignment of the estimate before ATE/RPE.
     #[arg(long, value_enum, default_value_t = AlignArg::Sim3)]
     align: AlignArg,
+    /// With `--align se3` or `none`: compare an estimate in map units (its folder's
+    /// `metric.json` says so, or it has none) against the metric ground truth anyway.
+    #[arg(long)]
+    allow_map_units: bool,
     /// Largest time-stamp difference of an associated pose pair, seconds.
     #[arg(long, default_value_t = 0.01, value_name = "SECS")]
     max_dt: f64,
@@ -93,6 +97,23 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     };
     let gt = read_trajectory(&gt_path)?;
     let est = read_trajectory(&est_path)?;
+    // Without a scale in the alignment, an unscaled estimate cannot be compared with metres.
+    if !matches!(args.align, AlignArg::Sim3) {
+        let dir = est_path.parent().unwrap_or(std::path::Path::new("."));
+        let units = duv_pipeline::metric::MetricRecord::read(dir)?;
+        let metric = units.as_ref().is_some_and(|m| m.length_unit == "m");
+        if !metric {
+            let why = match &units {
+                Some(m) => format!("{} says it is in map units ({})", dir.join("metric.json").display(), m.why_not_metric.as_deref().unwrap_or("")),
+                None => format!("{} has no metric.json beside it, so it is taken to be in map units", est_path.display()),
+            };
+            if args.allow_map_units {
+                eprintln!("comparing map units with the metric ground truth (--allow-map-units): {why}");
+            } else {
+                anyhow::bail!("--align {} keeps the estimate's scale, but {why}; use --align sim3, a run with navigation input, or --allow-map-units", if matches!(args.align, AlignArg::Se3) { "se3" } else { "none" });
+            }
+        }
+    }
 
     let mut images: Vec<ImagePair> = Vec::new();
     let mut images_source = None;

@@ -55,6 +55,10 @@ pub struct RefineArgs {
     /// (with --keyframes or --mcap; --sim knows its own).
     #[arg(long, value_name = "FILE")]
     medium_truth: Option<PathBuf>,
+    /// Compare with --medium-truth (per metre) even when the keyframes are in map units (a run
+    /// without navigation input, or a log's keyframes): the figures then mean little.
+    #[arg(long, requires = "medium_truth")]
+    allow_map_units: bool,
     /// Instead of a folder: generated keyframes with ground-truth poses and depth in this water.
     #[arg(long, value_enum)]
     sim: Option<WaterPreset>,
@@ -256,7 +260,24 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
         };
         let n = k.len();
         let truth = match &a.medium_truth {
-            Some(p) => Some(serde_json::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?),
+            Some(p) => {
+                // The truth is per metre: the keyframes must be metric too (issue 40).
+                let units = match (&a.mcap, &a.keyframes) {
+                    (Some(_), _) => Err("the keyframes of a log are in the tracker's map units (metric.json applies to the run folder's outputs; use --keyframes RUN)".to_string()),
+                    (None, Some(dir)) => match duv_pipeline::metric::MetricRecord::read(dir)? {
+                        Some(m) if m.length_unit == "m" => Ok(()),
+                        Some(m) => Err(format!("{} says the run is in map units: {}", dir.join("metric.json").display(), m.why_not_metric.unwrap_or_default())),
+                        None => Err(format!("{} has no metric.json: its keyframes are taken to be in map units", dir.display())),
+                    },
+                    (None, None) => Ok(()),
+                };
+                match units {
+                    Ok(()) => {}
+                    Err(why) if a.allow_map_units => eprintln!("--medium-truth compared against map units (--allow-map-units): {why}"),
+                    Err(why) => anyhow::bail!("--medium-truth is per metre, but {why}; run with navigation input for metric keyframes, or pass --allow-map-units"),
+                }
+                Some(serde_json::from_str(&duv_core::io::read_text(p)?).with_context(|| format!("{}", p.display()))?)
+            }
             None => None,
         };
         (k, vec![None; n], truth)

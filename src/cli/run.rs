@@ -10,7 +10,7 @@
 use anyhow::Context;
 use duv_core::{PlaneF32, StampedPose};
 use duv_eval::report::AuseInput;
-use duv_eval::{build_report, write_report, EvalInputs, EvalOptions};
+use duv_eval::{build_report, write_report, Alignment, EvalInputs, EvalOptions, TrajectoryOptions};
 use duv_map::backend::MapperDevice;
 use duv_map::stage::MappingBudget;
 use duv_pipeline::dive_run::{percentile_ms, BoardFile, MappingOptions, WrittenDive};
@@ -24,10 +24,12 @@ use std::time::Duration;
 pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
     /// in `duv dataset`), `mcap:LOG`, a live camera (`v4l2:`, `aravis:`), or
-    /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none]` generated in memory,
-    /// e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3` (water: clear, coastal, turbid;
-    /// trajectory: survey, loop, hover; `frames`/`seed` as --frames/--seed; `pace=realtime` is
-    /// --speed 1).
+    /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on]` generated in
+    /// memory, e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3` (water: clear, coastal,
+    /// turbid; trajectory: survey, loop, hover; `frames`/`seed` as --frames/--seed;
+    /// `pace=realtime` is --speed 1; `nav=on` adds the generator's navigation sensors).
+    /// With navigation input (a dataset's `nav.csv`, `nav=FILE`, `nav=on`) the outputs are in
+    /// metres; `metric.json` says which unit a run folder is in.
     #[arg(long)]
     source: String,
     /// Output folder (created if missing).
@@ -78,6 +80,9 @@ pub struct RunArgs {
     /// Track only: no map, no map exports.
     #[arg(long)]
     pub no_map: bool,
+    /// Ignore the source's navigation sensors: outputs in map units, as a camera alone gives.
+    #[arg(long)]
+    pub no_nav: bool,
     /// Mapper iterations after each keyframe handed to mapping.
     #[arg(long, default_value_t = MappingBudget::default().iterations_per_keyframe)]
     pub map_iterations: u64,
@@ -238,6 +243,21 @@ fn evaluate(args: &RunArgs, source: &Source, tracker: &Tracker, gt: &[StampedPos
         let base = EvalInputs { gt_name, est_name, gt, est: frames, images: &[], images_source: None, ause: &[], ause_source: None, options };
         let first = build_report(&base)?;
         let scale = first.report.trajectory.alignment.scale;
+        // Metric outputs (metric.json): the trajectory is in metres, the tracker's depth is not.
+        let units = duv_pipeline::metric::MetricRecord::read(&args.out)?;
+        let metres_per_unit = units.as_ref().and_then(|m| m.metres_per_map_unit).unwrap_or(1.0);
+        if units.as_ref().is_some_and(|m| m.length_unit == "m") {
+            let o = base.options;
+            let se3 = build_report(&EvalInputs { options: EvalOptions { trajectory: TrajectoryOptions { alignment: Alignment::Se3, ..o.trajectory }, ..o }, ..base.clone() })?;
+            let t = &se3.report.trajectory;
+            println!(
+                "metric: ATE with SE(3) alignment (no scale) {:.4} m RMSE, {} of path; scale error (the Sim(3) scale - 1) {:+.2} %",
+                t.ate.stats_m.rmse,
+                t.ate_rmse_percent_of_path.map_or("n/a".into(), |p| format!("{p:.3} %")),
+                100.0 * (scale - 1.0)
+            );
+        }
+        let scale = scale * metres_per_unit;
         let mut ause: Vec<AuseInput> = Vec::new();
         for &(id, seq) in live {
             let Some(depth) = source.depth(seq) else { continue };
@@ -289,6 +309,7 @@ impl RunArgs {
             resume: !self.no_resume,
             continue_dive: self.continue_dive,
             announce: self.announce,
+            use_nav: !self.no_nav,
             mapping: (!self.no_map).then(|| MappingOptions {
                 config: self.map_config.clone(),
                 iterations_per_keyframe: self.map_iterations,
@@ -319,6 +340,7 @@ impl RunArgs {
             continue_dive: false,
             announce: false,
             no_map: true,
+            no_nav: false,
             map_iterations: MappingBudget::default().iterations_per_keyframe,
             map_idle_iterations: 30,
             map_final_iterations: 100,

@@ -14,6 +14,7 @@ mod datasets;
 mod eval_reference;
 mod map_gradients;
 mod mapper;
+mod metric;
 mod render;
 mod sim;
 mod tracker;

@@ -3,5 +3,6 @@
 
 mod cli;
 mod cli_bench;
+mod cli_metric;
 mod cli_run;
 mod eval_cli;

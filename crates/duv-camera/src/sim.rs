@@ -54,6 +54,9 @@ pub struct SimSpec {
     pub seed: Option<u64>,
     /// `pace=`, when given ([`SimSource`] paces in real time unless told otherwise).
     pub pace: Option<SimPace>,
+    /// `nav=on`: the run also gets the generator's navigation sensors (`duv_sim::nav`, the
+    /// noise `duv sim` writes into `nav.csv`); off unless asked for.
+    pub nav: bool,
 }
 
 impl SimSpec {
@@ -62,7 +65,7 @@ impl SimSpec {
         let bad = |problem: String| CameraError::BadSpec { spec: spec.to_string(), problem };
         let mut parts = rest.split(',');
         let (water, trajectory) = parse_sim_preset(spec, parts.next().unwrap_or("").trim())?;
-        let mut parsed = SimSpec { water, trajectory, frames: None, seed: None, pace: None };
+        let mut parsed = SimSpec { water, trajectory, frames: None, seed: None, pace: None, nav: false };
         for part in parts {
             let (key, value) = part.split_once('=').map(|(k, v)| (k.trim(), v.trim())).ok_or_else(|| bad(format!("option {part:?} is not KEY=VALUE")))?;
             let number = || value.parse::<u64>().map_err(|_| bad(format!("{key}={value:?} is not a whole number")));
@@ -76,7 +79,14 @@ impl SimSpec {
                         _ => return Err(bad(format!("pace={value:?} (expected realtime or none)"))),
                     })
                 }
-                _ => return Err(bad(format!("unknown option {key:?} (accepted: frames, seed, pace)"))),
+                "nav" => {
+                    parsed.nav = match value {
+                        "on" => true,
+                        "off" => false,
+                        _ => return Err(bad(format!("nav={value:?} (expected on or off)"))),
+                    }
+                }
+                _ => return Err(bad(format!("unknown option {key:?} (accepted: frames, seed, pace, nav)"))),
             }
         }
         Ok(parsed)

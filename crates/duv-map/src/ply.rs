@@ -41,9 +41,44 @@ fn to_record(p: &GaussianParam<f32>) -> [f32; 26] {
     r
 }
 
+/// `p` moved by the similarity `to_from_map` (`x -> s R x + t`): the mean moved, the log
+/// scales raised by `ln s`, the rotation turned by `R`, and the degree-1 colour coefficients
+/// turned with the view direction (their basis `(-y, z, -x)` is a vector: `v = (-f2, -f0, f1)`
+/// per channel becomes `R v`). Opacity and base colour do not change.
+pub fn transform_gaussian(p: &GaussianParam<f32>, to_from_map: &duv_core::Sim3) -> GaussianParam<f32> {
+    let mut q = p.clone();
+    let s = to_from_map.scaling();
+    let r = to_from_map.isometry.rotation;
+    let m = to_from_map.transform_point(&nalgebra::Point3::new(p.mean[0] as f64, p.mean[1] as f64, p.mean[2] as f64));
+    q.mean = [m.x as f32, m.y as f32, m.z as f32];
+    for v in &mut q.log_scale {
+        *v += s.ln() as f32;
+    }
+    let rot = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(p.rotation[0] as f64, p.rotation[1] as f64, p.rotation[2] as f64, p.rotation[3] as f64));
+    let turned = r * rot;
+    q.rotation = [turned.w as f32, turned.i as f32, turned.j as f32, turned.k as f32];
+    for c in 0..3 {
+        let v = nalgebra::Vector3::new(-(p.f_rest[6 + c] as f64), -(p.f_rest[c] as f64), p.f_rest[3 + c] as f64);
+        let w = r * v;
+        q.f_rest[c] = -w.y as f32;
+        q.f_rest[3 + c] = w.z as f32;
+        q.f_rest[6 + c] = -w.x as f32;
+    }
+    q
+}
+
 /// Encodes the map as a binary little-endian 3DGS PLY.
 pub fn encode_ply(gaussians: &Gaussians) -> Vec<u8> {
+    encode_ply_in(gaussians, None)
+}
+
+/// [`encode_ply`] with every Gaussian moved by `to_from_map` ([`transform_gaussian`]), e.g.
+/// into metres; a `comment` line in the header says so.
+pub fn encode_ply_in(gaussians: &Gaussians, to_from_map: Option<&duv_core::Sim3>) -> Vec<u8> {
     let mut out = String::from("ply\nformat binary_little_endian 1.0\n");
+    if let Some(a) = to_from_map {
+        out.push_str(&format!("comment duv-slam: metric (metres), {:.6} m per map unit\n", a.scaling()));
+    }
     out.push_str(&format!("element vertex {}\n", gaussians.len()));
     for name in PLY_PROPERTIES {
         out.push_str(&format!("property float {name}\n"));
@@ -52,7 +87,12 @@ pub fn encode_ply(gaussians: &Gaussians) -> Vec<u8> {
     let mut bytes = out.into_bytes();
     bytes.reserve(gaussians.len() * 26 * 4);
     for i in 0..gaussians.len() {
-        for v in to_record(&gaussians.get(i)) {
+        let g = gaussians.get(i);
+        let g = match to_from_map {
+            Some(a) => transform_gaussian(&g, a),
+            None => g,
+        };
+        for v in to_record(&g) {
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
@@ -62,6 +102,11 @@ pub fn encode_ply(gaussians: &Gaussians) -> Vec<u8> {
 /// Writes the map to `path` (temporary file, fsync, rename).
 pub fn write_ply(path: &Path, gaussians: &Gaussians) -> Result<(), IoError> {
     write_atomic(path, &encode_ply(gaussians))
+}
+
+/// [`write_ply`] with every Gaussian moved by `to_from_map` ([`encode_ply_in`]).
+pub fn write_ply_in(path: &Path, gaussians: &Gaussians, to_from_map: Option<&duv_core::Sim3>) -> Result<(), IoError> {
+    write_atomic(path, &encode_ply_in(gaussians, to_from_map))
 }
 
 /// Decodes a 3DGS PLY into a map of the given capacity (an error when it holds more).

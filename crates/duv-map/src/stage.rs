@@ -25,7 +25,7 @@ use serde::{Deserialize, Serialize};
 
 use super::checkpoint::CheckpointError;
 use super::mapper::{IterationReport, Mapper, MapperCapacity, MapperConfig, MapperError};
-use super::ply::write_ply;
+use super::ply::write_ply_in;
 use super::render::RenderOutput;
 use duv_core::config::Board;
 use duv_core::{ImageRgb8, Keyframe, MediumParams, PlaneF32, Se3};
@@ -194,12 +194,24 @@ impl MappingStage {
     /// [`Self::export`], the keyframe renders only when `renders` (a stopped run leaves them
     /// out: rendering every keyframe takes seconds on a CPU).
     pub fn export_with(&mut self, dir: &Path, with_renders: bool) -> Result<(), StageError> {
+        self.export_in(dir, with_renders, None)
+    }
+
+    /// [`Self::export_with`] with `map.ply` and `medium.json` in the frame and unit of
+    /// `to_from_map` (e.g. metres from the navigation sensors): the Gaussians moved
+    /// ([`crate::ply::transform_gaussian`]), the medium's coefficients (per unit length) divided
+    /// by its scale. `map.ckpt` stays in the map's own frame (it is the mapper's state).
+    pub fn export_in(&mut self, dir: &Path, with_renders: bool, to_from_map: Option<&duv_core::Sim3>) -> Result<(), StageError> {
         let _span = tracing::debug_span!("map.export").entered();
         // The device map's values (Vulkan) come to the host first.
         self.mapper.sync_from_device()?;
-        write_ply(&dir.join("map.ply"), self.mapper.gaussians())?;
+        write_ply_in(&dir.join("map.ply"), self.mapper.gaussians(), to_from_map)?;
         self.mapper.save_checkpoint(&dir.join("map.ckpt"))?;
-        let medium = self.medium_summary();
+        let mut medium = self.medium_summary();
+        if let Some(a) = to_from_map {
+            let s = a.scaling();
+            medium.beta_d.iter_mut().chain(medium.beta_b.iter_mut()).for_each(|b| *b /= s);
+        }
         let json = serde_json::to_string_pretty(&medium).map_err(|e| StageError::Json(e.to_string()))?;
         write_atomic(&dir.join("medium.json"), json.as_bytes())?;
         if !with_renders {

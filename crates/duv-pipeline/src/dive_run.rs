@@ -20,6 +20,7 @@
 use super::dive::{part_metadata, unix_now_s, DivePart, DiveRecord, PART_METADATA};
 use super::keyframe_folder::{KeyframeFolder, KeyframeFolderError};
 use super::lock::{LockError, RunFolderLock};
+use super::metric::MetricRecord;
 use super::mapping::{feed_logged_keyframes, feed_unmapped_keyframes, Refed, StageMapping};
 use super::outputs::{finish_trajectory, init_summary, write_keyframe_depths, write_tracking_outputs, DiskReserve, OutputError, WrittenOutputs};
 use super::resume::{self, Relocalisation};
@@ -106,6 +107,9 @@ pub struct DiveOptions {
     pub announce: bool,
     /// The mapping stage; `None`: track only, no map.
     pub mapping: Option<MappingOptions>,
+    /// Use the source's navigation sensors for metric outputs (`metric.json`, [`super::metric`]);
+    /// `false`: map units, as without them.
+    pub use_nav: bool,
 }
 
 /// Why a dive run failed. The messages are the ones the command line prints.
@@ -227,6 +231,10 @@ pub enum Progress<'a> {
     MapExported { summary: &'a str },
     /// The map export failed.
     MapNotExported { error: &'a MapStageError },
+    /// The unit of the outputs ([`MetricRecord::summary`]).
+    Units { summary: &'a str },
+    /// `metric.json` could not be written.
+    MetricNotWritten { error: &'a duv_core::io::IoError },
 }
 
 impl Progress<'_> {
@@ -240,6 +248,7 @@ impl Progress<'_> {
                 | Progress::LogRate { .. }
                 | Progress::CaughtUp { .. }
                 | Progress::MapExported { .. }
+                | Progress::Units { .. }
         )
     }
 }
@@ -332,6 +341,8 @@ impl std::fmt::Display for Progress<'_> {
             Progress::DepthFilesNotWritten { error } => write!(f, "KEYFRAME DEPTH FILES NOT ALL WRITTEN: {error}"),
             Progress::MapExported { summary } => f.write_str(summary),
             Progress::MapNotExported { error } => write!(f, "MAP NOT EXPORTED: {error}"),
+            Progress::Units { summary } => write!(f, "{summary}"),
+            Progress::MetricNotWritten { error } => write!(f, "metric.json not written: {error}"),
         }
     }
 }
@@ -665,8 +676,27 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     // The room kept since the start, for the dive's record (small files first).
     reserve.release();
     let fin = finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
+    // Metres when the source has navigation input and a sensor observed the scale.
+    let nav = if opts.use_nav { source.nav()? } else { None };
+    let units = match &nav {
+        None if !opts.use_nav => MetricRecord::map_units("navigation input turned off (--no-nav)", 0),
+        None => MetricRecord::map_units("the source has no navigation input (nav.csv beside a dataset, nav=FILE, or sim:...,nav=on)", 0),
+        Some(samples) => match super::metric::estimate_for_dive(samples, &fin, history, &tracker, pcfg.world_from_tracker.as_ref()) {
+            Ok(a) => MetricRecord::metric(&a, samples.len()),
+            Err(e) => MetricRecord::map_units(e.to_string(), samples.len()),
+        },
+    };
+    let metric_from_world: Option<duv_core::Sim3> = units.metric_from_map.map(|m| {
+        let r = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(m.rotation_xyzw[3], m.rotation_xyzw[0], m.rotation_xyzw[1], m.rotation_xyzw[2]));
+        duv_core::Sim3::from_parts(nalgebra::Translation3::new(m.translation_m[0], m.translation_m[1], m.translation_m[2]), r, m.scale)
+    });
+    progress(&Progress::Units { summary: &units.summary() });
+    if let Err(e) = units.write(&opts.out) {
+        progress(&Progress::MetricNotWritten { error: &e });
+    }
+    map.set_output_frame(metric_from_world);
     let mapped = opts.mapping.is_some().then_some(&keyframe_folder);
-    let written = write_tracking_outputs(&opts.out, &fin, recorder.frames(), &track_times, &tracker, mapped, history)?;
+    let written = write_tracking_outputs(&opts.out, &fin, recorder.frames(), &track_times, &tracker, mapped, history, metric_from_world.as_ref())?;
     // dive.json: the parts of the dive and how each ended.
     let end = match stop.signal() {
         Some(sig) if result.interrupted => format!("stopped by signal {sig}"),
@@ -705,7 +735,12 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     }
     // A full disk here is reported, not an error: the files above are the dive's record.
     let (mut inv, mut var) = (PlaneF32::new(camera.width, camera.height), PlaneF32::new(camera.width, camera.height));
-    if let Err(e) = write_keyframe_depths(&keyframe_folder, &tracker, &mut inv, &mut var) {
+    // The keyframes' depth is the tracker's; metric, it takes the resume's scale too.
+    let depth_to_metric = metric_from_world.map(|m| {
+        let s = m.scaling() * pcfg.world_from_tracker.map_or(1.0, |a| a.scaling());
+        duv_core::Sim3::from_parts(nalgebra::Translation3::identity(), nalgebra::UnitQuaternion::identity(), s)
+    });
+    if let Err(e) = write_keyframe_depths(&keyframe_folder, &tracker, &mut inv, &mut var, depth_to_metric.as_ref()) {
         progress(&Progress::DepthFilesNotWritten { error: &e });
     }
     // The map: final keyframe poses, a last optimisation, the exports.

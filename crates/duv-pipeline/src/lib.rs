@@ -26,6 +26,7 @@ mod handoff;
 pub mod keyframe_folder;
 pub mod lock;
 pub mod mapping;
+pub mod metric;
 pub mod outputs;
 pub mod pool;
 pub mod queue;
@@ -123,6 +124,10 @@ pub trait MapStage: Send {
     fn newest_keyframe(&self) -> Option<u64> {
         None
     }
+    /// The frame and unit the exports of [`MapStage::finish`] are written in: `to_from_map`
+    /// takes the map's frame there (e.g. metres from the navigation sensors); `None`, the
+    /// map's own frame (the default).
+    fn set_output_frame(&mut self, _to_from_map: Option<Sim3>) {}
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
     /// optimisation and the exports into `out` (with `optimise` false, a stopped run: no
     /// optimisation and no keyframe renders, the map as it is); a one-line summary for the operator.

@@ -15,7 +15,7 @@
 
 use super::keyframe_folder::KeyframeFolder;
 use super::{MapCheckpoint, MapStage, MapStageError};
-use duv_core::{Keyframe, Se3};
+use duv_core::{Keyframe, Se3, Sim3};
 use duv_map::GpuOptions;
 use duv_map::checkpoint::KeyframePixels;
 use duv_map::stage::{MappingBudget, MappingStage};
@@ -39,6 +39,8 @@ pub struct StageMapping {
     device: Option<(MapperDevice, GpuOptions)>,
     /// Keyframe folder writes that failed (reported once).
     folder_failures: u64,
+    /// The frame the exports are written in ([`MapStage::set_output_frame`]).
+    output_frame: Option<Sim3>,
 }
 
 impl StageMapping {
@@ -46,7 +48,7 @@ impl StageMapping {
     /// checkpoint bytes pass through.
     pub fn new(stage: MappingStage, keyframe_folder: KeyframeFolder, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
         let budget = stage.budget();
-        StageMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0 }
+        StageMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0, output_frame: None }
     }
 
     /// Renders with `device` from now on, also after a `restore` (see
@@ -134,6 +136,10 @@ impl MapStage for StageMapping {
         Ok(())
     }
 
+    fn set_output_frame(&mut self, to_from_map: Option<Sim3>) {
+        self.output_frame = to_from_map;
+    }
+
     fn finish(&mut self, final_poses: &[(u64, Se3)], out: &Path, optimise: bool) -> Result<Option<String>, MapStageError> {
         if self.fed == 0 {
             return Ok(Some("mapped 0 keyframes: no map exported".into()));
@@ -146,18 +152,26 @@ impl MapStage for StageMapping {
             self.stage.optimise(self.final_iterations, None)?;
         }
         self.time += t0.elapsed();
-        self.stage.export_with(out, optimise).map_err(|source| MapStageError::Export { path: out.to_path_buf(), source })?;
+        self.stage.export_in(out, optimise, self.output_frame.as_ref()).map_err(|source| MapStageError::Export { path: out.to_path_buf(), source })?;
         let iterations = self.stage.mapper().iteration();
-        let m = self.stage.medium_summary();
+        let mut m = self.stage.medium_summary();
+        let unit = match &self.output_frame {
+            Some(a) => {
+                m.beta_d.iter_mut().chain(m.beta_b.iter_mut()).for_each(|b| *b /= a.scaling());
+                "per metre"
+            }
+            None => "per map unit",
+        };
         let f = |v: [f64; 3]| format!("[{:.3} {:.3} {:.3}]", v[0], v[1], v[2]);
         Ok(Some(format!(
-            "mapped {} keyframes: {} iterations in {:.2} s ({:.1} ms per iteration), {} Gaussians (cap {}); medium along the last keyframe's axis: beta_D {} beta_B {} B_inf {}",
+            "mapped {} keyframes: {} iterations in {:.2} s ({:.1} ms per iteration), {} Gaussians (cap {}); medium along the last keyframe's axis ({}): beta_D {} beta_B {} B_inf {}",
             self.fed,
             iterations,
             self.time.as_secs_f64(),
             self.time.as_secs_f64() * 1e3 / iterations.max(1) as f64,
             self.stage.mapper().gaussians().len(),
             self.stage.mapper().capacity().max_gaussians,
+            unit,
             f(m.beta_d),
             f(m.beta_b),
             f(m.b_inf)

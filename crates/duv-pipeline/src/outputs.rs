@@ -67,10 +67,18 @@ pub struct WrittenOutputs {
 /// Writes the full-resolution inverse depth and variance (PFM) of the tracker's live keyframes
 /// into the keyframe folder: large files, written after the dive's small ones (a full disk then
 /// costs these, not the record). `inv`/`var` are full-resolution scratch planes.
-pub fn write_keyframe_depths(folder: &KeyframeFolder, tracker: &Tracker, inv: &mut PlaneF32, var: &mut PlaneF32) -> Result<(), OutputError> {
+/// With `metric` (metric outputs, [`super::metric`]), inverse depth is in 1/m: divided by the
+/// scale, the variance by its square.
+pub fn write_keyframe_depths(folder: &KeyframeFolder, tracker: &Tracker, inv: &mut PlaneF32, var: &mut PlaneF32, metric: Option<&Sim3>) -> Result<(), OutputError> {
     let live: Vec<u64> = tracker.keyframes().map(|k: KeyframeView| k.id).collect();
     for id in live {
         tracker.upsample_keyframe(id, inv, var).map_err(|source| OutputError::Upsample { id, source })?;
+        if let Some(a) = metric {
+            let s = a.scaling() as f32;
+            inv.data.iter_mut().for_each(|d| *d /= s);
+            // Pixels without a variance hold f32::MAX: they stay so.
+            var.data.iter_mut().filter(|v| **v < f32::MAX).for_each(|v| *v /= s * s);
+        }
         folder.write_depth(id, inv, var)?;
     }
     Ok(())
@@ -90,6 +98,7 @@ pub fn write_tracking_outputs(
     tracker: &Tracker,
     mapped: Option<&KeyframeFolder>,
     history: Option<&DiveHistory>,
+    metric: Option<&Sim3>,
 ) -> Result<WrittenOutputs, OutputError> {
     // seq -> (pose, state, tracker ms): the log's first, this process's over them.
     // seq -> (pose, state, tracker ms, note).
@@ -108,6 +117,11 @@ pub fn write_tracking_outputs(
             replaced += 1;
         }
     }
+    // Metric outputs: every pose, logged or final, moved once ([`super::metric`]).
+    let to_output = |pose: &duv_core::Se3| metric.map_or(*pose, |a| duv_core::pose::sim3_apply_to_pose(a, pose));
+    for v in dive.values_mut() {
+        v.0.world_from_cam = to_output(&v.0.world_from_cam);
+    }
     let trajectory: Vec<StampedPose> = dive.values().map(|v| v.0).collect();
     duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &trajectory)?;
     // Keyframes: the logged poses, this process's final ones over them.
@@ -123,7 +137,7 @@ pub fn write_tracking_outputs(
         if mapped.is_some_and(|folder| !folder.has_image(*id)) {
             continue;
         }
-        let _ = writeln!(kf_text, "{id} {}", tum_line(*t_ns, pose));
+        let _ = writeln!(kf_text, "{id} {}", tum_line(*t_ns, &to_output(pose)));
         kf_written += 1;
     }
     duv_core::io::write_atomic(&out.join("keyframes.txt"), kf_text.as_bytes())?;

@@ -63,7 +63,8 @@ pub struct SourceOptions {
 
 /// Where frames come from, with what ground truth.
 pub enum Source {
-    Sim { renderer: Box<SimRenderer>, next: usize, count: usize },
+    /// `nav`: the spec asked for the generator's navigation sensors (`nav=on`).
+    Sim { renderer: Box<SimRenderer>, next: usize, count: usize, nav: bool },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
     Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>> },
     /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
@@ -125,7 +126,7 @@ impl Source {
             cfg.seed = sim.seed.unwrap_or(options.seed);
             let renderer = SimRenderer::new(&cfg).map_err(|source| RunSourceError::Sim { spec: spec.to_string(), source })?;
             let count = renderer.len();
-            return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count });
+            return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count, nav: sim.nav });
         }
         if options.width.is_some() || options.height.is_some() {
             return Err(RunSourceError::Options("--width/--height apply to sim: sources only".into()));
@@ -164,7 +165,7 @@ impl Source {
     /// reported and skipped.
     pub fn next(&mut self) -> Result<Option<Frame>, RunSourceError> {
         match self {
-            Source::Sim { renderer, next, count } => {
+            Source::Sim { renderer, next, count, .. } => {
                 if *next >= *count {
                     return Ok(None);
                 }
@@ -223,6 +224,20 @@ impl Source {
                 *next += 1;
                 Ok(source.next_frame()?)
             }
+        }
+    }
+
+    /// The vehicle's navigation samples, sorted by time, where the source has them: a
+    /// dataset's `nav.csv` (or `nav=FILE`), the generator's sensors for `sim:...,nav=on`
+    /// (seeded like its images). `Ok(None)`: no navigation input.
+    pub fn nav(&self) -> Result<Option<Vec<duv_core::nav::NavSample>>, RunSourceError> {
+        match self {
+            Source::Sim { renderer, nav: true, .. } => {
+                let seed = renderer.config().seed;
+                duv_sim::nav::simulate(renderer, &duv_sim::NavNoise::default(), seed).map(Some).map_err(|source| RunSourceError::Sim { spec: "sim: navigation sensors".into(), source })
+            }
+            Source::Dataset { dataset, .. } => Ok(dataset.nav().map(|t| t.samples.clone())),
+            _ => Ok(None),
         }
     }
 

@@ -109,6 +109,7 @@ mod consistency;
 pub mod flow;
 mod graph;
 mod keyframes;
+pub mod metric;
 mod snapshot;
 mod tracker;
 mod trajectory;
