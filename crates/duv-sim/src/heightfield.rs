@@ -25,8 +25,8 @@ const REFINE_TOLERANCE_M: f64 = 2e-6;
 const MIN_STEP_CELLS: f64 = 0.75;
 /// Fine heightfield cell, metres.
 pub const FINE_CELL_M: f64 = 0.02;
-/// Coarse heightfield cell, metres.
-pub const COARSE_CELL_M: f64 = 0.08;
+/// Coarse heightfield cell, metres (the terrain's coarse detail is cut at it).
+pub use super::terrain::COARSE_CELL_M;
 /// Acceleration block, metres (a whole number of fine and of coarse cells).
 pub const BLOCK_M: f64 = 0.64;
 const FINE_PER_BLOCK: usize = 32;

@@ -15,6 +15,7 @@
 //! z forward. Poses are `world_from_cam`.
 
 pub mod heightfield;
+pub mod hit;
 pub mod keyframes;
 pub mod materials;
 pub mod nav;

@@ -2,6 +2,7 @@
 //! sampled into a [`Heightfield`]), a pipeline and a wreck ([`super::structures`]) placed from
 //! the planned path so they come into view. Surface colours are in [`super::materials`].
 
+pub use super::hit::{Hit, Surface};
 use super::heightfield::{Heightfield, BLOCK_M};
 use super::structures::{place_structures, Pipe, StructurePlacement, Wreck, PIPE_RADIUS_M, WRECK_KEEP_OUT_M};
 use super::terrain::{KeepOut, RockField, Terrain};
@@ -13,25 +14,6 @@ type V3 = Vector3<f64>;
 
 /// At most this many heightfield cells (fine plus coarse) for one scene.
 pub const MAX_CELLS: usize = 60_000_000;
-
-/// What a ray hit, with the texture coordinates its material needs.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Surface {
-    Seabed,
-    /// Distance along the pipe and around its circumference, metres.
-    Pipe { along_m: f64, around_m: f64 },
-    /// Face coordinates in metres on a wreck part (0 hull, 1 wheelhouse, 2 mast).
-    Wreck { part: u8, u: f64, v: f64 },
-}
-
-/// A ray hit: distance along the (unit) ray, point, unit normal facing the ray, surface.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Hit {
-    pub t: f64,
-    pub point: V3,
-    pub normal: V3,
-    pub surface: Surface,
-}
 
 /// The whole scene: seabed heightfield, pipe, wreck.
 #[derive(Clone, Debug)]

@@ -3,7 +3,7 @@
 //! tilted, half-buried hull with a wheelhouse and a fallen mast).
 
 use super::noise::lerp;
-use super::scene::{Hit, Surface};
+use super::hit::{Hit, Surface};
 use super::terrain::Terrain;
 use super::trajectory::Layout;
 use nalgebra::{Rotation3, Vector3};

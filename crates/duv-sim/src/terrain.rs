@@ -2,8 +2,11 @@
 //! reference of the vehicle), mounds, sand ripples in patches, gravel beds, scattered rocks and
 //! a few boulders, all a pure function of the seed.
 
-use super::heightfield::COARSE_CELL_M;
 use super::noise::{floor_i32, gnoise, hash2, rehash, smoothstep, unit};
+
+/// Coarse heightfield cell, metres: the heightfield's coarse grid ([`super::heightfield`]) and
+/// the size below which its rocks leave their detail out.
+pub const COARSE_CELL_M: f64 = 0.08;
 
 /// Sand ripple wavelength and amplitude, metres.
 const RIPPLE_LAMBDA_M: f64 = 0.12;
