@@ -160,8 +160,26 @@ fn median_mad(v: &[f64]) -> (f64, f64) {
     (m, 1.4826 * median(&mut dev))
 }
 
+/// How many times the standard error of a mean of `v` (in time order) must grow because its
+/// samples are not independent: `sqrt((1 + r) / (1 - r))` for the lag-1 autocorrelation `r`
+/// (the tracker's errors drift slowly along the path, so neighbouring frames err alike).
+fn correlation_inflation(v: &[f64]) -> f64 {
+    let n = v.len();
+    if n < 3 {
+        return 1.0;
+    }
+    let mean = v.iter().sum::<f64>() / n as f64;
+    let var: f64 = v.iter().map(|x| (x - mean) * (x - mean)).sum();
+    if var <= 0.0 {
+        return 1.0;
+    }
+    let cov: f64 = v.windows(2).map(|w| (w[0] - mean) * (w[1] - mean)).sum();
+    let r = (cov / var).clamp(0.0, 0.99);
+    ((1.0 + r) / (1.0 - r)).sqrt()
+}
+
 /// A robust ratio: the median of `ratios` after those beyond 3 robust sigmas are dropped,
-/// with the standard error of the mean of the rest.
+/// with the standard error of the mean of the rest (grown for their correlation).
 fn robust_ratio(ratios: &[f64]) -> Option<ScaleEstimate> {
     let finite: Vec<f64> = ratios.iter().copied().filter(|r| r.is_finite() && *r > 0.0).collect();
     if finite.is_empty() {
@@ -173,7 +191,8 @@ fn robust_ratio(ratios: &[f64]) -> Option<ScaleEstimate> {
     let mean = keep.iter().sum::<f64>() / n as f64;
     let var = if n > 1 { keep.iter().map(|r| (r - mean) * (r - mean)).sum::<f64>() / (n - 1) as f64 } else { mean * mean };
     let (median_kept, _) = median_mad(&keep);
-    Some(ScaleEstimate { metres_per_unit: median_kept, sigma: (var / n as f64).sqrt() * 1.2533, used: n, rejected: ratios.len() - n })
+    let sigma = (var / n as f64).sqrt() * 1.2533 * correlation_inflation(&keep);
+    Some(ScaleEstimate { metres_per_unit: median_kept, sigma, used: n, rejected: ratios.len() - n })
 }
 
 /// Estimates the map-to-metric similarity from the tracked `frames`, the `keyframes`' depth and
@@ -380,7 +399,8 @@ fn depth_line(heights: &[f64], horizontal: &[[f64; 2]], depths: &[f64], opts: &M
         (x, c, inv, m) = solve(&keep, x.x, sigma_d)?;
     }
     let s = x.x;
-    let sigma = sigma_d * inv[(0, 0)].sqrt();
+    let kept_residuals: Vec<f64> = residuals(&x, c).into_iter().zip(&keep).filter(|(_, k)| **k).map(|(r, _)| r).collect();
+    let sigma = sigma_d * inv[(0, 0)].sqrt() * correlation_inflation(&kept_residuals);
     if !(s > 0.0) || sigma > opts.max_relative_sigma * s {
         return None;
     }
