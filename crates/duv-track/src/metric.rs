@@ -178,6 +178,9 @@ fn correlation_inflation(v: &[f64]) -> f64 {
     ((1.0 + r) / (1.0 - r)).sqrt()
 }
 
+/// Contiguous blocks of the path the depth line's jackknife leaves out one at a time.
+const JACKKNIFE_BLOCKS: usize = 10;
+
 /// A robust ratio: the median of `ratios` after those beyond 3 robust sigmas are dropped,
 /// with the standard error of the mean of the rest (grown for their correlation).
 fn robust_ratio(ratios: &[f64]) -> Option<ScaleEstimate> {
@@ -400,7 +403,33 @@ fn depth_line(heights: &[f64], horizontal: &[[f64; 2]], depths: &[f64], opts: &M
     }
     let s = x.x;
     let kept_residuals: Vec<f64> = residuals(&x, c).into_iter().zip(&keep).filter(|(_, k)| **k).map(|(r, _)| r).collect();
-    let sigma = sigma_d * inv[(0, 0)].sqrt() * correlation_inflation(&kept_residuals);
+    let formal = sigma_d * inv[(0, 0)].sqrt() * correlation_inflation(&kept_residuals);
+    // The tracker's height errors drift along the path under the sensor's white noise, where
+    // the residuals' correlation does not show them: the spread of the slope with each tenth
+    // of the path left out (a delete-a-block jackknife) does.
+    let blocks = JACKKNIFE_BLOCKS.min(m / 5);
+    let mut slopes = Vec::with_capacity(blocks);
+    if blocks >= 3 {
+        let kept_index: Vec<usize> = (0..n).filter(|&i| keep[i]).collect();
+        for b in 0..blocks {
+            let (lo, hi) = (b * kept_index.len() / blocks, (b + 1) * kept_index.len() / blocks);
+            let mut k2 = keep.clone();
+            for &i in &kept_index[lo..hi] {
+                k2[i] = false;
+            }
+            if let Some((xb, ..)) = solve(&k2, s, sigma_d) {
+                slopes.push(xb.x);
+            }
+        }
+    }
+    let jackknife = if slopes.len() >= 3 {
+        let k = slopes.len() as f64;
+        let mean = slopes.iter().sum::<f64>() / k;
+        ((k - 1.0) / k * slopes.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>()).sqrt()
+    } else {
+        0.0
+    };
+    let sigma = formal.max(jackknife);
     if !(s > 0.0) || sigma > opts.max_relative_sigma * s {
         return None;
     }
