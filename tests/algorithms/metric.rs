@@ -149,6 +149,11 @@ fn what_no_sensor_observes_is_an_error_that_says_why() {
     let late: Vec<NavSample> = nav.iter().map(|n| NavSample { t_ns: duv_core::Timestamp::from_ns(n.t_ns.t_ns() + 3_600_000_000_000), ..*n }).collect();
     let e = estimate_metric_alignment(&s.frames, &s.keyframes(), &late, &MetricOptions::default()).unwrap_err();
     assert!(matches!(e, MetricError::NoOverlap { .. }), "{e}");
+    // A path that does not follow the vehicle (the positions played backwards): refused, not
+    // scaled.
+    let backwards: Vec<MapFrame> = s.frames.iter().zip(s.frames.iter().rev()).map(|(f, b)| MapFrame { t_ns: f.t_ns, world_from_cam: Se3::from_parts(b.world_from_cam.translation, f.world_from_cam.rotation) }).collect();
+    let e = estimate_metric_alignment(&backwards, &[], &nav, &MetricOptions::default()).unwrap_err();
+    assert!(matches!(e, MetricError::Inconsistent { .. } | MetricError::NoScale { .. }), "{e}");
     // Too few attitudes.
     let e = estimate_metric_alignment(&s.frames[..3], &[], &nav, &MetricOptions::default()).unwrap_err();
     assert!(matches!(e, MetricError::TooFewAttitudes { n: 3, .. }), "{e}");

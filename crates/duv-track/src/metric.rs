@@ -37,6 +37,10 @@ pub enum MetricError {
     TooFewAttitudes { n: usize, needed: usize },
     #[error("metric alignment: no sensor observed the scale ({why})")]
     NoScale { why: String },
+    /// The aligned path does not follow the depth sensor: the tracking itself went wrong (the
+    /// scale of a wrong path is no scale).
+    #[error("metric alignment: the aligned camera heights miss the pressure depth by {rms_m:.2} m RMS over {frames} frames (at most {limit_m:.2} m): the tracked path does not follow the vehicle")]
+    Inconsistent { rms_m: f64, frames: usize, limit_m: f64 },
 }
 
 /// Settings of the alignment.
@@ -59,11 +63,14 @@ pub struct MetricOptions {
     pub min_altitudes: usize,
     /// Keyframe pairs with DVL velocity needed for a velocity scale.
     pub min_velocity_pairs: usize,
+    /// The aligned heights must follow the pressure depth within this RMS (m), or the
+    /// alignment is refused ([`MetricError::Inconsistent`]).
+    pub max_depth_rms_m: f64,
 }
 
 impl Default for MetricOptions {
     fn default() -> Self {
-        MetricOptions { max_dt_ns: 100_000_000, min_attitudes: 5, max_relative_sigma: 0.05, depth_sigma_floor_m: 0.01, tilt_prior_deg: 1.0, min_altitudes: 3, min_velocity_pairs: 3 }
+        MetricOptions { max_dt_ns: 100_000_000, min_attitudes: 5, max_relative_sigma: 0.05, depth_sigma_floor_m: 0.01, tilt_prior_deg: 1.0, min_altitudes: 3, min_velocity_pairs: 3, max_depth_rms_m: 0.25 }
     }
 }
 
@@ -324,6 +331,17 @@ pub fn estimate_metric_alignment(frames: &[MapFrame], keyframes: &[MapKeyframe<'
     let first = frames.first().map(|f| rot * f.world_from_cam.translation.vector * s).unwrap_or_default();
     let mut z_off: Vec<f64> = heights.iter().zip(&depths).map(|(h, d)| -d - s * h).collect();
     let tz = if z_off.is_empty() { -first.z } else { median(&mut z_off) };
+    // Check: the aligned heights against the depth sensor.
+    // A long path's tilt error leaks into its heights (1 % of its extent is half a degree).
+    if !heights.is_empty() {
+        let rms_m = (heights.iter().zip(&depths).map(|(h, d)| (s * h + tz + d).powi(2)).sum::<f64>() / heights.len() as f64).sqrt();
+        let (lo, hi) = horizontal.iter().fold(([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]), |(lo, hi), a| ([lo[0].min(a[0]), lo[1].min(a[1])], [hi[0].max(a[0]), hi[1].max(a[1])]));
+        let extent_m = s * ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2)).sqrt();
+        let limit_m = opts.max_depth_rms_m.max(0.01 * extent_m);
+        if !(rms_m <= limit_m) {
+            return Err(MetricError::Inconsistent { rms_m, frames: heights.len(), limit_m });
+        }
+    }
     let metric_from_map = Sim3::from_parts(Translation3::new(-first.x, -first.y, tz), rot, s);
     Ok(MetricAlignment { metric_from_map, scale, from_depth, from_altitude, from_velocity, attitudes: ups.len(), tilt_rms_deg })
 }
