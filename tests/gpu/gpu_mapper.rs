@@ -213,14 +213,14 @@ fn tile_overflow_prunes_instead_of_failing_on_both_renderers() {
 #[test]
 fn restored_mapping_stage_keeps_the_vulkan_renderer() {
     use duv_map::stage::{MappingBudget, MappingStage};
-    use duv_pipeline::mapping::StageMapping;
+    use duv_pipeline::mapping::GaussianMapping;
     use duv_pipeline::MapStage;
     let kfs = sequence(WaterPreset::Coastal);
     let dir = tempfile::tempdir().unwrap();
     let budget = MappingBudget { iterations_per_keyframe: 3, millis_per_keyframe: 0 };
     let stage = MappingStage::new(MapperConfig::default(), MapperCapacity { max_gaussians: 3000, max_keyframes: 8, width: W, height: H }, budget).unwrap();
     let folder = duv_pipeline::KeyframeFolder::open(dir.path()).unwrap();
-    let mut mapping = StageMapping::new(stage, folder, dir.path().join("scratch.ckpt"), 0, 0);
+    let mut mapping = GaussianMapping::new(stage, folder, dir.path().join("scratch.ckpt"), 0, 0);
     let what = mapping.use_device(MapperDevice::Vulkan, gpu_options()).unwrap();
     assert!(what.starts_with("Vulkan on "), "no Vulkan device: {what}");
     for k in &kfs[..2] {

@@ -21,7 +21,7 @@ use super::dive::{part_metadata, unix_now_s, DivePart, DiveRecord, PART_METADATA
 use super::keyframe_folder::{KeyframeFolder, KeyframeFolderError};
 use super::lock::{LockError, RunFolderLock};
 use super::metric::MetricRecord;
-use super::mapping::{feed_logged_keyframes, feed_unmapped_keyframes, Refed, StageMapping};
+use super::mapping::{feed_logged_keyframes, feed_unmapped_keyframes, Refed, GaussianMapping};
 use super::outputs::{finish_trajectory, init_summary, write_keyframe_depths, write_tracking_outputs, DiskReserve, OutputError, WrittenOutputs};
 use super::resume::{self, Relocalisation};
 use super::source::{RunSource, RunSourceError, Source, SourceOptions};
@@ -506,7 +506,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
             let stage = MappingStage::new(map_config, MapperCapacity::from_board(&board, camera.width, camera.height), budget)?;
             let scratch = opts.out.join("checkpoints").join("map-scratch.ckpt");
             std::fs::create_dir_all(opts.out.join("checkpoints")).map_err(DiveError::Folder)?;
-            let mut mapping = StageMapping::new(stage, keyframe_folder.clone(), scratch, m.idle_iterations, m.final_iterations);
+            let mut mapping = GaussianMapping::new(stage, keyframe_folder.clone(), scratch, m.idle_iterations, m.final_iterations);
             let gpu = GpuOptions { deterministic: opts.deterministic, ..GpuOptions::with_budget_mb(board.budgets.gpu_mb) };
             let renderer = mapping.use_device(m.device, gpu).map_err(|error| DiveError::MapperDevice { device: m.device, error })?;
             progress(&Progress::MapperRenders { renderer: &renderer });

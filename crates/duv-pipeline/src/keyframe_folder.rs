@@ -4,7 +4,7 @@
 //! its variance).
 //!
 //! - The mapping stage writes a keyframe's three files as it receives the keyframe
-//!   ([`KeyframeFolder::write_keyframe`], [`mapping::StageMapping`](super::mapping::StageMapping)).
+//!   ([`KeyframeFolder::write_keyframe`], [`mapping::GaussianMapping`](super::mapping::GaussianMapping)).
 //! - At the end of the run the tracker's live keyframes get their final depth files
 //!   ([`KeyframeFolder::write_depth`], [`outputs::write_keyframe_depths`](super::outputs::write_keyframe_depths)).
 //! - The folder remembers which keyframe images it holds: those there when it was opened (a

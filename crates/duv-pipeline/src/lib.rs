@@ -90,7 +90,7 @@ pub enum MapStageError {
     /// The mapper failed (its error names what).
     #[error(transparent)]
     Mapper(#[from] duv_map::stage::StageError),
-    /// The mapper's device could not be opened ([`mapping::StageMapping::use_device`]).
+    /// The mapper's device could not be opened ([`mapping::GaussianMapping::use_device`]).
     #[error(transparent)]
     Device(#[from] duv_map::mapper::MapperError),
     /// Writing a checkpoint's scratch file.

@@ -1,5 +1,5 @@
 //! The mapper (`map::stage::MappingStage`; it renders on the Vulkan kernels or the CPU reference, see
-//! [`StageMapping::use_device`]) bound to the pipeline's mapping thread through [`MapStage`].
+//! [`GaussianMapping::use_device`]) bound to the pipeline's mapping thread through [`MapStage`].
 //!
 //! - A keyframe from tracking is written into the run's keyframe folder (`keyframes/NNNNNN.png`,
 //!   `_invdepth.pfm`, `_variance.pfm`, the layout `duv refine --keyframes` reads; its one writer
@@ -23,8 +23,10 @@ use duv_map::backend::MapperDevice;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-/// [`MappingStage`] as the pipeline's mapping stage.
-pub struct StageMapping {
+/// The Gaussian-splat map as the pipeline's mapping stage: duv-map's [`MappingStage`] (the
+/// mapper with its budget) behind [`MapStage`] (the pipeline's seam; [`super::NoMapping`] is
+/// the other side of it), with the keyframe folder, the checkpoint scratch and idle iterations.
+pub struct GaussianMapping {
     stage: MappingStage,
     budget: MappingBudget,
     keyframe_folder: KeyframeFolder,
@@ -43,12 +45,12 @@ pub struct StageMapping {
     output_frame: Option<Sim3>,
 }
 
-impl StageMapping {
+impl GaussianMapping {
     /// `keyframe_folder` receives every keyframe handed over; `scratch` is a file path the
     /// checkpoint bytes pass through.
     pub fn new(stage: MappingStage, keyframe_folder: KeyframeFolder, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
         let budget = stage.budget();
-        StageMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0, output_frame: None }
+        GaussianMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0, output_frame: None }
     }
 
     /// Renders with `device` from now on, also after a `restore` (see
@@ -69,7 +71,7 @@ impl StageMapping {
     }
 }
 
-impl MapStage for StageMapping {
+impl MapStage for GaussianMapping {
     fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError> {
         let id = kf.index;
         // The keyframe folder is written as keyframes arrive; a write that fails (a full disk)
