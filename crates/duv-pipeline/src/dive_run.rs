@@ -678,18 +678,14 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     let fin = finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
     // Metres when the source has navigation input and a sensor observed the scale.
     let nav = if opts.use_nav { source.nav()? } else { None };
-    let units = match &nav {
-        None if !opts.use_nav => MetricRecord::map_units("navigation input turned off (--no-nav)", 0),
-        None => MetricRecord::map_units("the source has no navigation input (nav.csv beside a dataset, nav=FILE, or sim:...,nav=on)", 0),
+    let (units, metric_from_world) = match &nav {
+        None if !opts.use_nav => (MetricRecord::map_units("navigation input turned off (--no-nav)", 0), None),
+        None => (MetricRecord::map_units("the source has no navigation input (nav.csv beside a dataset, nav=FILE, or sim:...,nav=on)", 0), None),
         Some(samples) => match super::metric::estimate_for_dive(samples, &fin, history, &tracker, pcfg.world_from_tracker.as_ref()) {
-            Ok(a) => MetricRecord::metric(&a, samples.len()),
-            Err(e) => MetricRecord::map_units(e.to_string(), samples.len()),
+            Ok(a) => (MetricRecord::metric(&a, samples.len()), Some(a.metric_from_map)),
+            Err(e) => (MetricRecord::map_units(e.to_string(), samples.len()), None),
         },
     };
-    let metric_from_world: Option<duv_core::Sim3> = units.metric_from_map.map(|m| {
-        let r = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(m.rotation_xyzw[3], m.rotation_xyzw[0], m.rotation_xyzw[1], m.rotation_xyzw[2]));
-        duv_core::Sim3::from_parts(nalgebra::Translation3::new(m.translation_m[0], m.translation_m[1], m.translation_m[2]), r, m.scale)
-    });
     progress(&Progress::Units { summary: &units.summary() });
     if let Err(e) = units.write(&opts.out) {
         progress(&Progress::MetricNotWritten { error: &e });

@@ -150,15 +150,21 @@ pub fn estimate_for_dive(nav: &[NavSample], fin: &FinalTrajectory, history: Opti
     let s = world_from_tracker.map_or(1.0, |a| a.scaling()) as f32;
     let scaled: Vec<(duv_core::Timestamp, duv_core::Se3, PlaneF32)> = tracker
         .keyframes()
+        .filter(|_| s != 1.0)
         .map(|k| {
             let mut inv = k.inv_depth.clone();
-            if s != 1.0 {
-                inv.data.iter_mut().for_each(|d| *d /= s);
-            }
-            let pose = world_from_tracker.map_or(k.world_from_cam, |a| duv_core::pose::sim3_apply_to_pose(a, &k.world_from_cam));
-            (k.t_ns, pose, inv)
+            inv.data.iter_mut().for_each(|d| *d /= s);
+            (k.t_ns, duv_core::pose::sim3_apply_to_pose(world_from_tracker.expect("s != 1 only with an alignment"), &k.world_from_cam), inv)
         })
         .collect();
-    let keyframes: Vec<MapKeyframe<'_>> = scaled.iter().map(|(t_ns, pose, inv)| MapKeyframe { t_ns: *t_ns, world_from_cam: *pose, inv_depth: inv, camera: grid }).collect();
+    // Without a resume's scale the tracker's own planes are read as they are (no copies).
+    let keyframes: Vec<MapKeyframe<'_>> = if s != 1.0 {
+        scaled.iter().map(|(t_ns, pose, inv)| MapKeyframe { t_ns: *t_ns, world_from_cam: *pose, inv_depth: inv, camera: grid }).collect()
+    } else {
+        tracker
+            .keyframes()
+            .map(|k| MapKeyframe { t_ns: k.t_ns, world_from_cam: world_from_tracker.map_or(k.world_from_cam, |a| duv_core::pose::sim3_apply_to_pose(a, &k.world_from_cam)), inv_depth: k.inv_depth, camera: grid })
+            .collect()
+    };
     estimate_metric_alignment(&frames, &keyframes, nav, &MetricOptions::default())
 }
