@@ -24,10 +24,13 @@ use std::time::Duration;
 pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
     /// in `duv dataset`), `mcap:LOG`, a live camera (`v4l2:`, `aravis:`), or
-    /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on]` generated in
-    /// memory, e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3` (water: clear, coastal,
-    /// turbid; trajectory: survey, loop, hover; `frames`/`seed` as --frames/--seed;
-    /// `pace=realtime` is --speed 1; `nav=on` adds the generator's navigation sensors).
+    /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on][,lamps=on]
+    /// [,backscatter=S][,snow=N][,burst=START:DURATION[:FACTOR]][,night=on]` generated in
+    /// memory, e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3`,
+    /// `sim:coastal-loop,night=on` (water: clear, coastal, turbid; trajectory: survey, loop,
+    /// hover; `frames`/`seed` as --frames/--seed; `pace=realtime` is --speed 1; `nav=on` adds
+    /// the generator's navigation sensors; the scene options as `duv sim`'s --lamps,
+    /// --lamp-backscatter, --snow, --burst, --night).
     /// With navigation input (a dataset's `nav.csv`, `nav=FILE`, `nav=on`) the outputs are in
     /// metres; `metric.json` says which unit a run folder is in.
     #[arg(long)]

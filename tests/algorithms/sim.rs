@@ -5,7 +5,7 @@
 use duv_core::{MediumParams, Timestamp};
 use duv_core::io::{png_io, tum};
 use duv_sim::writer::{depth_to_u16, SimManifest};
-use duv_sim::{write_sequence, SimConfig, SimError, SimRenderer, TrajectoryKind, WaterPreset};
+use duv_sim::{write_sequence, Burst, SimConfig, SimError, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::{Point3, Vector2};
 use std::path::Path;
 
@@ -323,4 +323,23 @@ fn cli_writes_a_sequence_and_reports_errors() {
     let bad = run(&["--out", out.to_str().unwrap(), "--frames", "0", "--no-progress"]);
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("frames"), "{}", String::from_utf8_lossy(&bad.stderr));
+
+    // --night is --lamps --lamp-backscatter 1 --snow 150, each overridable; sim.json records
+    // the burst, medium.json keeps the base medium.
+    let night_out = dir.path().join("night");
+    let night = run(&["--out", night_out.to_str().unwrap(), "--frames", "3", "--width", "40", "--height", "30", "--night", "--snow", "20", "--burst", "0.1,0.2", "--no-progress"]);
+    assert!(night.status.success(), "{}", String::from_utf8_lossy(&night.stderr));
+    assert!(String::from_utf8_lossy(&night.stdout).contains("lamps, backscatter 1, snow 20/m3, burst 0.1+0.2 s x8"), "{}", String::from_utf8_lossy(&night.stdout));
+    let manifest: SimManifest = serde_json::from_str(&std::fs::read_to_string(night_out.join("sim.json")).unwrap()).unwrap();
+    let c = &manifest.config;
+    assert!(c.lamps && c.lamp_backscatter == 1.0 && c.snow_per_m3 == 20.0, "{c:?}");
+    assert_eq!(c.burst, Some(Burst { start_s: 0.1, duration_s: 0.2, factor: 8.0 }));
+    let medium: MediumParams = serde_json::from_str(&std::fs::read_to_string(night_out.join("medium.json")).unwrap()).unwrap();
+    let base = c.medium();
+    let close = |a: [f64; 3], b: [f64; 3]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() < 1e-9);
+    assert!(close(medium.beta_d, base.beta_d) && close(medium.beta_b, base.beta_b) && close(medium.b_inf, base.b_inf), "{medium:?} vs {base:?}");
+    // The glow is the lamps' light: refused without them, by name.
+    let glow = run(&["--out", dir.path().join("glow").to_str().unwrap(), "--frames", "2", "--lamp-backscatter", "1", "--no-progress"]);
+    assert!(!glow.status.success());
+    assert!(String::from_utf8_lossy(&glow.stderr).contains("lamp_backscatter"), "{}", String::from_utf8_lossy(&glow.stderr));
 }

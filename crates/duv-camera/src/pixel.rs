@@ -116,7 +116,7 @@ pub fn ycbcr601_to_rgb(y: u8, cb: u8, cr: u8) -> [u8; 3] {
 
 /// YUYV (`Y0 Cb Y1 Cr` per pixel pair) to RGB.
 pub fn yuyv_to_rgb8(src: &[u8], width: usize, height: usize, stride_bytes: usize, dst: &mut ImageRgb8) -> Result<(), PixelError> {
-    if width % 2 != 0 {
+    if !width.is_multiple_of(2) {
         return Err(PixelError::OddSize { format: "YUYV", width, height });
     }
     check_layout(RawFormat::Yuyv, src, width, height, stride_bytes)?;
@@ -158,7 +158,7 @@ pub fn rgb24_to_rgb8(src: &[u8], width: usize, height: usize, stride_bytes: usiz
 /// mean of its two G and its B. Colour at half resolution, no interpolation across cells
 /// (no zipper artefacts at edges, which matter more to dense flow than colour resolution).
 pub fn bayer_rg8_to_rgb8(src: &[u8], width: usize, height: usize, stride_bytes: usize, dst: &mut ImageRgb8) -> Result<(), PixelError> {
-    if width % 2 != 0 || height % 2 != 0 {
+    if !width.is_multiple_of(2) || !height.is_multiple_of(2) {
         return Err(PixelError::OddSize { format: "BayerRG8", width, height });
     }
     check_layout(RawFormat::BayerRg8, src, width, height, stride_bytes)?;

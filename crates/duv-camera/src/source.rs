@@ -15,8 +15,9 @@ pub const SOURCE_KINDS: &str = "v4l2, aravis, tum, euroc, tartanair, folder, sim
 ///   fake camera) or `127.0.0.1` (feature `aravis`);
 /// - `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` with the dataset options of
 ///   [`super::dataset::open_dataset`];
-/// - `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none]`: the generator at the
-///   board's resolution and frame rate;
+/// - `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on][,lamps=on]`
+///   `[,backscatter=S][,snow=N][,burst=START:DURATION[:FACTOR]][,night=on]`: the generator at
+///   the board's resolution and frame rate (see [`super::sim::SimSpec`]);
 /// - `mcap:FILE` is the replay module's: this returns [`CameraError::HandledByReplay`].
 ///
 /// Live cameras take resolution, frame rate, pixel format, exposure and driver buffer count

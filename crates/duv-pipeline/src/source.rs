@@ -124,6 +124,7 @@ impl Source {
                 (None, None) => {}
             }
             cfg.seed = sim.seed.unwrap_or(options.seed);
+            sim.apply(&mut cfg);
             let renderer = SimRenderer::new(&cfg).map_err(|source| RunSourceError::Sim { spec: spec.to_string(), source })?;
             let count = renderer.len();
             return Ok(Source::Sim { renderer: Box::new(renderer), next: start, count, nav: sim.nav });

@@ -7,6 +7,10 @@
 //!
 //! `I = J exp(-beta_D r) + B_inf (1 - exp(-beta_B r))`, `r` the range along the ray.
 //!
+//! The hard cases of a real dive are options: the lamps' light scattered back by the water in
+//! front of the camera (a glow fixed in the image, [`water::LampsInWorld::scatter_profile`]),
+//! marine snow fixed in the world ([`snow`]) and a turbidity burst ([`Burst`]).
+//!
 //! Everything is a pure function of the [`SimConfig`] (seeded with [`duv_core::rng::Rng`]
 //! and our own lattice noise), so the same config gives byte-identical files. The output
 //! folder uses the TUM RGB-D layout (see [`writer`]).
@@ -22,6 +26,7 @@ pub mod nav;
 pub mod noise;
 pub mod render;
 pub mod scene;
+pub mod snow;
 pub mod structures;
 pub mod terrain;
 pub mod trajectory;
@@ -149,6 +154,19 @@ pub struct SimConfig {
     pub wobble: Wobble,
     /// Vehicle lamps instead of sunlight (a deep dive: darker veiling light).
     pub lamps: bool,
+    /// Strength of the lamps' light scattered back by the water in front of the camera (0 =
+    /// only the uniform veiling light; 1 = the calibrated glow of [`water::LAMP_SCATTER_PHASE`]).
+    /// Needs `lamps`. The glow is fixed in the image as the vehicle moves.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub lamp_backscatter: f64,
+    /// Marine snow, particles per cubic metre (0 = none): world-fixed specks 1-4 mm across
+    /// drifting a few cm/s, drawn in `rgb` only (see [`snow`]).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub snow_per_m3: f64,
+    /// A turbidity burst: the attenuation and backscatter coefficients rise and fall over a
+    /// time window (`medium.json` keeps the base medium).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub burst: Option<Burst>,
     /// Gaussian sensor noise, standard deviation as a fraction of full scale (0.004 ~ 1 DN).
     pub noise_sigma: f64,
     /// Vignetting strength in [0, 1]: gain `1 - v rho^2` with `rho` 1 at the image corners.
@@ -192,6 +210,9 @@ impl SimConfig {
             pitch_down_deg,
             wobble: Wobble::DEFAULT,
             lamps: false,
+            lamp_backscatter: 0.0,
+            snow_per_m3: 0.0,
+            burst: None,
             noise_sigma: 0.006,
             vignetting: 0.3,
             seed: 1,
@@ -219,6 +240,49 @@ impl SimConfig {
     /// The medium the images are formed with (as written to `medium.json`).
     pub fn medium(&self) -> MediumParams {
         water::medium(self.water, self.lamps)
+    }
+
+    /// The medium of the frame at `t_s` seconds: [`SimConfig::medium`] with `beta_D` and
+    /// `beta_B` times the burst's [`Burst::multiplier`] (exactly the base medium outside it).
+    pub fn medium_at(&self, t_s: f64) -> MediumParams {
+        let mut m = self.medium();
+        if let Some(burst) = &self.burst {
+            let k = burst.multiplier(t_s);
+            if k != 1.0 {
+                for c in 0..3 {
+                    m.beta_d[c] *= k;
+                    m.beta_b[c] *= k;
+                }
+            }
+        }
+        m
+    }
+
+    /// The `--night` shorthand: lamps, lamp-lit backscatter [`NIGHT_LAMP_BACKSCATTER`] and
+    /// marine snow [`NIGHT_SNOW_PER_M3`].
+    pub fn apply_night(&mut self) {
+        self.lamps = true;
+        self.lamp_backscatter = NIGHT_LAMP_BACKSCATTER;
+        self.snow_per_m3 = NIGHT_SNOW_PER_M3;
+    }
+
+    /// The lighting and water events in words, e.g. `lamps, backscatter 1, snow 150/m3, burst
+    /// 10+6 s x8` (empty under plain sunlight).
+    pub fn conditions(&self) -> String {
+        let mut parts = Vec::new();
+        if self.lamps {
+            parts.push("lamps".to_string());
+        }
+        if self.lamp_backscatter > 0.0 {
+            parts.push(format!("backscatter {}", self.lamp_backscatter));
+        }
+        if self.snow_per_m3 > 0.0 {
+            parts.push(format!("snow {}/m3", self.snow_per_m3));
+        }
+        if let Some(b) = &self.burst {
+            parts.push(format!("burst {}+{} s x{}", b.start_s, b.duration_s, b.factor));
+        }
+        parts.join(", ")
     }
 
     /// Duration from the first to the last frame, seconds.
@@ -276,6 +340,26 @@ impl SimConfig {
         if !(w.period_s.is_finite() && w.period_s >= 0.1 && w.period_s <= 1000.0) {
             return bad("wobble.period_s", w.period_s, "a period in [0.1, 1000] s");
         }
+        if !finite_in(self.lamp_backscatter, 0.0, 100.0) {
+            return bad("lamp_backscatter", self.lamp_backscatter, "a strength in [0, 100]");
+        }
+        if self.lamp_backscatter > 0.0 && !self.lamps {
+            return bad("lamp_backscatter", self.lamp_backscatter, "0 without lamps (it is the lamps' light scattered back: turn the lamps on)");
+        }
+        if !finite_in(self.snow_per_m3, 0.0, MAX_SNOW_PER_M3) {
+            return bad("snow_per_m3", self.snow_per_m3, "a density in [0, 5000] particles per cubic metre");
+        }
+        if let Some(b) = &self.burst {
+            if !finite_in(b.start_s, 0.0, 1e7) {
+                return bad("burst.start_s", b.start_s, "a start time in [0, 1e7] s");
+            }
+            if !(b.duration_s.is_finite() && b.duration_s > 0.0 && b.duration_s <= 1e7) {
+                return bad("burst.duration_s", b.duration_s, "a duration in (0, 1e7] s");
+            }
+            if !finite_in(b.factor, 1.0, 100.0) {
+                return bad("burst.factor", b.factor, "a factor in [1, 100] on beta_D and beta_B");
+            }
+        }
         if !finite_in(self.noise_sigma, 0.0, 0.5) {
             return bad("noise_sigma", self.noise_sigma, "a standard deviation in [0, 0.5] of full scale");
         }
@@ -296,6 +380,84 @@ impl SimConfig {
 }
 
 const MAX_FRAMES: usize = 1_000_000;
+const MAX_SNOW_PER_M3: f64 = 5000.0;
+
+/// Lamp-lit backscatter strength of `--night`.
+pub const NIGHT_LAMP_BACKSCATTER: f64 = 1.0;
+/// Marine snow density of `--night`, particles per cubic metre.
+pub const NIGHT_SNOW_PER_M3: f64 = 150.0;
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
+/// A turbidity burst (sediment stirred up, a plume drifting through): `beta_D` and `beta_B` of
+/// every channel are multiplied by `1 + (factor - 1) envelope(t)`, the envelope a raised
+/// cosine that rises over the first [`Burst::RISE`] of the duration, holds at 1 and falls over
+/// the last [`Burst::FALL`]; the view fades into the veiling light and returns.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Burst {
+    /// Start, seconds from the first frame.
+    pub start_s: f64,
+    /// Whole duration (rise, hold, fall), seconds.
+    pub duration_s: f64,
+    /// Peak multiplier of the coefficients (>= 1).
+    #[serde(default = "default_burst_factor")]
+    pub factor: f64,
+}
+
+fn default_burst_factor() -> f64 {
+    Burst::DEFAULT_FACTOR
+}
+
+impl Burst {
+    pub const DEFAULT_FACTOR: f64 = 8.0;
+    /// Fraction of the duration spent rising (and, [`Burst::FALL`], falling).
+    pub const RISE: f64 = 0.2;
+    pub const FALL: f64 = 0.2;
+
+    /// 0 before and after, 1 in the hold, a raised cosine in between.
+    pub fn envelope(&self, t_s: f64) -> f64 {
+        let x = (t_s - self.start_s) / self.duration_s;
+        if !(x > 0.0 && x < 1.0) {
+            0.0
+        } else if x < Self::RISE {
+            0.5 - 0.5 * (std::f64::consts::PI * x / Self::RISE).cos()
+        } else if x <= 1.0 - Self::FALL {
+            1.0
+        } else {
+            0.5 + 0.5 * (std::f64::consts::PI * (x - (1.0 - Self::FALL)) / Self::FALL).cos()
+        }
+    }
+
+    /// The coefficients' multiplier at `t_s`: `1 + (factor - 1) envelope(t_s)`.
+    pub fn multiplier(&self, t_s: f64) -> f64 {
+        let e = self.envelope(t_s);
+        if e == 0.0 {
+            1.0
+        } else {
+            1.0 + (self.factor - 1.0) * e
+        }
+    }
+}
+
+impl std::str::FromStr for Burst {
+    type Err = SimError;
+
+    /// `START_S,DURATION_S[,FACTOR]` (or with `:` between the numbers, as in a `sim:` spec);
+    /// the factor defaults to [`Burst::DEFAULT_FACTOR`]. Values are checked by
+    /// [`SimConfig::validate`].
+    fn from_str(text: &str) -> Result<Burst, SimError> {
+        let bad = |problem: &'static str| SimError::BadBurst { text: text.to_string(), problem };
+        let numbers: Vec<&str> = text.split([',', ':']).map(str::trim).collect();
+        if !(2..=3).contains(&numbers.len()) {
+            return Err(bad("expected START_S,DURATION_S[,FACTOR]"));
+        }
+        let parse = |s: &str| s.parse::<f64>().map_err(|_| bad("every part must be a number"));
+        Ok(Burst { start_s: parse(numbers[0])?, duration_s: parse(numbers[1])?, factor: numbers.get(2).map(|s| parse(s)).transpose()?.unwrap_or(Burst::DEFAULT_FACTOR) })
+    }
+}
 
 fn default_altitude_period_s() -> f64 {
     20.0
@@ -307,6 +469,8 @@ const MAX_SIDE: usize = 16_384;
 pub enum SimError {
     #[error("invalid sim config: {field} = {value}, expected {expected}")]
     InvalidConfig { field: &'static str, value: String, expected: &'static str },
+    #[error("invalid turbidity burst {text:?}: {problem}")]
+    BadBurst { text: String, problem: &'static str },
     #[error("invalid sim camera: {0}")]
     Camera(#[from] duv_core::CameraModelError),
     #[error("the seabed for this trajectory needs {cells} heightfield cells ({width_m:.0} m x {height_m:.0} m), more than the limit of {limit}; use fewer frames, a lower speed or a shorter max range")]
@@ -343,6 +507,17 @@ mod tests {
             (SimConfig { altitude_swing_m: 1.8, ..base.clone() }, "altitude_swing_m"),
             (SimConfig { altitude_swing_m: -0.1, ..base.clone() }, "altitude_swing_m"),
             (SimConfig { altitude_period_s: 0.0, ..base.clone() }, "altitude_period_s"),
+            (SimConfig { lamps: true, lamp_backscatter: f64::NAN, ..base.clone() }, "lamp_backscatter"),
+            (SimConfig { lamps: true, lamp_backscatter: -0.5, ..base.clone() }, "lamp_backscatter"),
+            (SimConfig { lamp_backscatter: 1.0, ..base.clone() }, "lamp_backscatter"),
+            (SimConfig { snow_per_m3: -1.0, ..base.clone() }, "snow_per_m3"),
+            (SimConfig { snow_per_m3: f64::NAN, ..base.clone() }, "snow_per_m3"),
+            (SimConfig { snow_per_m3: 1e6, ..base.clone() }, "snow_per_m3"),
+            (SimConfig { burst: Some(Burst { start_s: 1.0, duration_s: 2.0, factor: 0.5 }), ..base.clone() }, "burst.factor"),
+            (SimConfig { burst: Some(Burst { start_s: 1.0, duration_s: 2.0, factor: f64::NAN }), ..base.clone() }, "burst.factor"),
+            (SimConfig { burst: Some(Burst { start_s: 1.0, duration_s: 0.0, factor: 8.0 }), ..base.clone() }, "burst.duration_s"),
+            (SimConfig { burst: Some(Burst { start_s: f64::NAN, duration_s: 2.0, factor: 8.0 }), ..base.clone() }, "burst.start_s"),
+            (SimConfig { burst: Some(Burst { start_s: -1.0, duration_s: 2.0, factor: 8.0 }), ..base.clone() }, "burst.start_s"),
         ];
         for (cfg, field) in cases {
             let e = cfg.validate().unwrap_err();
@@ -367,5 +542,51 @@ mod tests {
         let back: SimConfig = serde_json::from_value(old).unwrap();
         assert_eq!((back.altitude_swing_m, back.altitude_period_s), (0.0, 20.0));
         back.validate().unwrap();
+        // Without the night options their keys are left out (sim.json as before them), and a
+        // file without them reads as no glow, no snow, no burst.
+        for key in ["lamp_backscatter", "snow_per_m3", "burst"] {
+            assert!(!text.contains(key), "{text}");
+        }
+        assert_eq!((back.lamp_backscatter, back.snow_per_m3, back.burst), (0.0, 0.0, None));
+        // With them they round-trip; a burst without a factor takes the default.
+        let mut night = SimConfig { burst: Some(Burst { start_s: 2.0, duration_s: 5.0, factor: 4.0 }), ..cfg.clone() };
+        night.apply_night();
+        let text = serde_json::to_string(&night).unwrap();
+        assert!(text.contains("\"burst\":{\"start_s\":2.0,\"duration_s\":5.0,\"factor\":4.0}") && text.contains("\"snow_per_m3\":150.0"), "{text}");
+        assert_eq!(serde_json::from_str::<SimConfig>(&text).unwrap(), night);
+        let b: Burst = serde_json::from_str(r#"{"start_s":1,"duration_s":3}"#).unwrap();
+        assert_eq!(b.factor, 8.0);
+    }
+
+    #[test]
+    fn burst_envelope_rises_holds_and_falls() {
+        let b = Burst { start_s: 10.0, duration_s: 10.0, factor: 5.0 };
+        let at = |t: f64| b.envelope(t);
+        for (t, e) in [(0.0, 0.0), (10.0, 0.0), (11.0, 0.5), (12.0, 1.0), (15.0, 1.0), (18.0, 1.0), (19.0, 0.5), (20.0, 0.0), (30.0, 0.0)] {
+            assert!((at(t) - e).abs() < 1e-12, "envelope({t}) = {} not {e}", at(t));
+        }
+        // Smooth: no jump anywhere, monotonic in the rise.
+        let samples: Vec<f64> = (0..=2000).map(|k| at(9.0 + k as f64 * 0.006)).collect();
+        assert!(samples.windows(2).all(|w| (w[1] - w[0]).abs() < 0.01));
+        assert!(samples[167..=500].windows(2).all(|w| w[1] >= w[0]));
+        assert_eq!((b.multiplier(5.0), b.multiplier(15.0), b.multiplier(11.0)), (1.0, 5.0, 3.0));
+        // The frame medium: the base one outside, beta_D and beta_B times the factor in the
+        // hold, the veiling light unchanged.
+        let cfg = SimConfig { burst: Some(b), ..SimConfig::default() };
+        let (base, hold) = (cfg.medium(), cfg.medium_at(15.0));
+        assert_eq!(cfg.medium_at(9.9), base);
+        assert_eq!(cfg.medium_at(20.0), base);
+        for c in 0..3 {
+            assert_eq!((hold.beta_d[c], hold.beta_b[c], hold.b_inf[c]), (base.beta_d[c] * 5.0, base.beta_b[c] * 5.0, base.b_inf[c]));
+        }
+        // Parsed from the command line (commas) or a sim: spec (colons).
+        assert_eq!("3,4".parse::<Burst>().unwrap(), Burst { start_s: 3.0, duration_s: 4.0, factor: 8.0 });
+        assert_eq!("3:4:2.5".parse::<Burst>().unwrap(), Burst { start_s: 3.0, duration_s: 4.0, factor: 2.5 });
+        for bad in ["3", "3,4,5,6", "a,4", ""] {
+            let e = bad.parse::<Burst>().unwrap_err();
+            assert!(matches!(e, SimError::BadBurst { .. }) && e.to_string().contains(&format!("{bad:?}")), "{bad}: {e}");
+        }
+        assert_eq!(cfg.conditions(), "burst 10+10 s x5");
+        assert_eq!(SimConfig::default().conditions(), "");
     }
 }

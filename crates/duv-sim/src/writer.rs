@@ -8,7 +8,8 @@
 //! depth.txt          "TIMESTAMP depth/NNNNNN.png"
 //! groundtruth.txt    TUM trajectory, world_from_cam, one pose per frame
 //! calibration.txt    "fx fy cx cy width height"
-//! medium.json        {"beta_D":[r,g,b],"beta_B":[r,g,b],"B_inf":[r,g,b]}
+//! medium.json        {"beta_D":[r,g,b],"beta_B":[r,g,b],"B_inf":[r,g,b]} (the base medium; a
+//!                    turbidity burst is in sim.json, SimConfig::medium_at gives a frame's)
 //! sim.json           the full configuration, camera and medium (SimManifest)
 //! nav.csv            navigation sensors, one row per frame at the rgb.txt times: pressure
 //!                    depth, altitude, DVL velocity (camera frame), AHRS attitude, with the
