@@ -136,11 +136,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         Ok(DiveOutcome::Written(dive)) => dive,
         Ok(DiveOutcome::AlreadyFinished { record: rec }) => {
             println!(
-                "{} holds a finished dive: {} frames ({}..{}), {} keyframes, {} part(s), {}; nothing changed (--continue tracks the source further)",
+                "{} holds a finished dive: {} frames ({}..{}, {} with a pose estimate), {} keyframes, {} part(s), {}; nothing changed (--continue tracks the source further)",
                 args.out.display(),
                 rec.frames,
                 rec.first_seq.map_or("-".into(), |s| s.to_string()),
                 rec.last_seq.map_or("-".into(), |s| s.to_string()),
+                rec.frames_with_pose,
                 rec.keyframes,
                 rec.parts.len(),
                 rec.end
@@ -160,9 +161,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Held until the evaluation report is written.
     let WrittenDive { folder_lock: _lock, source, tracker, outputs: written, record, part, frames_tracked: frames_done, track_times: latencies, interrupted, stop, log_error } = *dive;
     println!(
-        "dive: {} frames in trajectory.txt ({} from earlier parts), {} keyframes, part {part} of {}",
+        "dive: {} frames ({} from earlier parts), {} with a pose estimate in trajectory.txt{}, {} keyframes, part {part} of {}",
         written.frames,
         written.frames_from_log,
+        written.frames_with_pose,
+        if written.frames_with_pose < written.frames { " (the others: pose none in states.txt)" } else { "" },
         written.keyframes,
         record.parts.len()
     );

@@ -258,6 +258,51 @@ fn initialising_frames_say_what_the_tracker_waits_for() {
     assert!(k >= 2 && n == 8, "{k} of {n}");
 }
 
+/// An initialisation that started on a view the vehicle never sees again (here the first
+/// frame of another seabed) starts again from the current frame after `init_restart_after`
+/// unmatched frames, initialises, and leaves the frames before the restart without a pose
+/// (`PoseSource::None`, out of the trajectory); without the restart it waits for ever.
+#[test]
+fn an_initialisation_that_cannot_match_its_first_view_starts_again() {
+    let (renderer, mut frames) = survey(60);
+    let other_cfg = duv_sim::SimConfig { seed: 7, ..track_sim::sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 1, 160, 120, 0.5) };
+    let alien = SimRenderer::new(&other_cfg).unwrap().render(0);
+    frames[0].image = FrameImage::Rgb8(alien.rgb);
+    let run = |restart_after: usize| {
+        let cfg = duv_track::TrackerConfig { init_restart_after: restart_after, ..small_tracker_config() };
+        let mut t = Tracker::new(renderer.camera(), &cfg, capacity(1)).unwrap();
+        let mut rec = duv_track::TrajectoryRecorder::new();
+        let outs: Vec<_> = frames.iter().map(|f| t.track(f).unwrap()).collect();
+        outs.iter().for_each(|o| rec.record(o));
+        let fin = rec.finish(&t);
+        (outs, fin, t.counters())
+    };
+    let (outs, fin, counters) = run(3);
+    let restart = outs.iter().position(|o| matches!(o.note, TrackNote::InitRestarted { .. })).expect("a restart");
+    let TrackNote::InitRestarted { failed_frames, dropped_keyframes } = outs[restart].note else { unreachable!() };
+    assert_eq!((restart, failed_frames, dropped_keyframes), (3, 3, 1), "{:?}", outs[restart].note);
+    assert!(outs[restart].note.to_string().contains("restarted"));
+    assert_eq!(counters.init_restarts, 1);
+    let first_tracked = outs.iter().position(|o| o.state == TrackingState::Tracking).expect("initialised after the restart");
+    // As many frames after the restart as an initialisation from frame 0 takes.
+    let mut plain = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(1)).unwrap();
+    let (_, clean) = survey(60);
+    let plain_first = clean.iter().position(|f| plain.track(f).unwrap().state == TrackingState::Tracking).expect("initialises");
+    assert!(first_tracked - restart <= plain_first + 2, "initialised {} frames after the restart, {plain_first} from frame 0", first_tracked - restart);
+    // Frames before the restart have no pose; the restart frame on is estimated.
+    assert!(fin.sources[..restart].iter().all(|s| *s == duv_track::PoseSource::None), "{:?}", &fin.sources[..restart]);
+    assert!(fin.sources[restart..].iter().all(|s| s.has_pose()), "{:?}", &fin.sources[restart..]);
+    let estimated: Vec<_> = fin.frames.iter().zip(&fin.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+    let (_, percent, _) = track_sim::ate(&renderer.poses()[restart..], &estimated);
+    assert!(percent < 2.0 * SURVEY_ATE_PERCENT, "ATE after the restart {percent:.3} %");
+    // Without the restart it never leaves the first view.
+    let (outs, fin, counters) = run(0);
+    assert_eq!(counters.init_restarts, 0);
+    assert!(outs.iter().all(|o| o.state == TrackingState::Initializing), "{:?}", outs.iter().map(|o| o.state).collect::<Vec<_>>());
+    assert!(outs[1..].iter().all(|o| matches!(o.note, TrackNote::InitLowConfidence { .. } | TrackNote::InitPoseFailed)));
+    assert!(fin.sources.iter().all(|s| *s == duv_track::PoseSource::None));
+}
+
 #[test]
 fn wrong_frame_size_is_an_error_not_a_panic() {
     let (renderer, frames) = survey(2);

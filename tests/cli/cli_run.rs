@@ -249,8 +249,18 @@ fn sim_spec_options_set_the_frames_and_the_seed() {
         assert!(res.status.success(), "{source}: {}", String::from_utf8_lossy(&res.stderr));
         out
     };
+    // states.txt without the tracker's time per frame: every frame's state, pose source and
+    // why it waited (12 frames do not initialise at 160x120, so trajectory.txt is empty).
+    let states = |dir: &std::path::Path| -> Vec<String> {
+        std::fs::read_to_string(dir.join("states.txt"))
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| l.split_whitespace().enumerate().filter(|(i, _)| *i != 4).map(|(_, w)| w).collect::<Vec<_>>().join(" "))
+            .collect()
+    };
     let a = run("sim:coastal,frames=12,seed=3", "a");
-    assert_eq!(duv_core::io::tum::read_trajectory(&a.join("trajectory.txt")).unwrap().len(), 12);
+    assert_eq!(states(&a).len(), 12);
     // The seed reaches the generator: seed 3 and the flag's seed 3 give the same dive, seed 4 another.
     let b = dir.path().join("b");
     let res = duv()
@@ -260,9 +270,9 @@ fn sim_spec_options_set_the_frames_and_the_seed() {
         .output()
         .unwrap();
     assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
-    assert_eq!(std::fs::read(a.join("trajectory.txt")).unwrap(), std::fs::read(b.join("trajectory.txt")).unwrap());
+    assert_eq!(states(&a), states(&b));
     let c = run("sim:coastal,frames=12,seed=4", "c");
-    assert_ne!(std::fs::read(a.join("trajectory.txt")).unwrap(), std::fs::read(c.join("trajectory.txt")).unwrap());
+    assert_ne!(states(&a), states(&c));
     for (source, needle) in [("sim:coastal,frames=x", "not a whole number"), ("sim:coastal,depth=3", "unknown option"), ("sim:coastal,frames=5", "disagree")] {
         let res = duv().args(["run", "--source", source, "--frames", "4", "--no-progress", "--no-map"]).arg("--out").arg(dir.path().join("bad")).output().unwrap();
         assert!(!res.status.success(), "{source}");

@@ -142,8 +142,11 @@ pub struct DiveRecord {
     pub finished: bool,
     /// How the last process ended.
     pub end: String,
-    /// Frames in `trajectory.txt`.
+    /// Frames of the dive (`states.txt`).
     pub frames: u64,
+    /// Of them, frames with a pose estimate (`trajectory.txt`).
+    #[serde(default)]
+    pub frames_with_pose: u64,
     pub first_seq: Option<u64>,
     pub last_seq: Option<u64>,
     /// Keyframes in `keyframes.txt`.

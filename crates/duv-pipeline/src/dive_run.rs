@@ -718,6 +718,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         finished: !result.interrupted,
         end,
         frames: written.frames,
+        frames_with_pose: written.frames_with_pose,
         first_seq: written.first_seq,
         last_seq: written.last_seq,
         keyframes: written.keyframes,

@@ -90,6 +90,10 @@ impl Handoff {
         mut log: impl FnMut(LogItem),
         mut keyframe: impl FnMut(Arc<Keyframe>) -> Result<(), PipelineError>,
     ) -> Result<(), PipelineError> {
+        if let duv_track::TrackNote::InitRestarted { .. } = out.note {
+            // The keyframes collected before the restart will never be emitted: their frames go.
+            self.frames.retain(|(id, _)| tracker.keyframes_waiting().any(|w| w == *id));
+        }
         if let Some(id) = out.new_keyframe {
             self.frames.push_back((id, Arc::clone(frame)));
         }

@@ -1,5 +1,6 @@
 //! The files a finished run leaves in its folder, written in one place: `trajectory.txt`
-//! (every frame, TUM), `keyframes.txt`, the keyframes' full-resolution inverse depth and
+//! (every frame with a pose estimate, TUM; `states.txt` lists every frame with its state and
+//! where its pose comes from), `keyframes.txt`, the keyframes' full-resolution inverse depth and
 //! variance (PFM, through the keyframe folder's writer, [`KeyframeFolder`]), `states.txt`. A resumed dive's poses are put in the recorded frame here,
 //! once ([`finish_trajectory`]), and merged with what earlier processes of the dive logged
 //! ([`DiveHistory`]): the files describe the whole dive.
@@ -9,7 +10,7 @@ use duv_core::pose::se3_to_tum;
 use duv_core::{PlaneF32, Sim3, Timestamp};
 use super::dive::DiveHistory;
 use duv_core::StampedPose;
-use duv_track::{FinalKeyframe, FinalTrajectory, KeyframeView, RecordedFrame, TrackError, Tracker, TrajectoryRecorder};
+use duv_track::{FinalKeyframe, FinalTrajectory, KeyframeView, PoseSource, RecordedFrame, TrackError, Tracker, TrajectoryRecorder};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -52,8 +53,10 @@ pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &Tracker, world
 pub struct WrittenOutputs {
     /// The tracker's live keyframes, `(id, frame seq)`.
     pub live: Vec<(u64, u64)>,
-    /// Frames in `trajectory.txt` (the whole dive) and the first and last frame number.
+    /// Frames in `states.txt` (the whole dive) and the first and last frame number.
     pub frames: u64,
+    /// Of them, frames with a pose estimate: those in `trajectory.txt`.
+    pub frames_with_pose: u64,
     pub first_seq: Option<u64>,
     pub last_seq: Option<u64>,
     /// Of them, poses logged by earlier processes of the dive (not tracked by this one).
@@ -100,20 +103,31 @@ pub fn write_tracking_outputs(
     history: Option<&DiveHistory>,
     metric: Option<&Sim3>,
 ) -> Result<WrittenOutputs, OutputError> {
-    // seq -> (pose, state, tracker ms): the log's first, this process's over them.
-    // seq -> (pose, state, tracker ms, note).
-    let mut dive: BTreeMap<u64, (StampedPose, String, Option<f64>, String)> = BTreeMap::new();
+    // seq -> (pose, state, where the pose comes from, tracker ms, note): the log's first, this
+    // process's over them.
+    let mut dive: BTreeMap<u64, (StampedPose, String, &'static str, Option<f64>, String)> = BTreeMap::new();
     if let Some(h) = history {
         for (&seq, f) in &h.frames {
             let state = f.state.clone().unwrap_or_else(|| "unknown".into()).replace(' ', "_");
-            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, None, f.note.clone().unwrap_or_default()));
+            // A logged pose is an estimate when its frame was tracked (or its state record
+            // was lost with the power); initialising and lost frames' logged poses were
+            // guesses.
+            let source = if state == "tracking" || state == "relocalised" {
+                PoseSource::Measured.name()
+            } else if state == "unknown" {
+                "logged"
+            } else {
+                PoseSource::None.name()
+            };
+            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, source, None, f.note.clone().unwrap_or_default()));
         }
     }
     let from_log = dive.len() as u64;
     let mut replaced = 0u64;
-    for (((f, pose), s), dt) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))) {
+    let sources = fin.sources.iter().copied().chain(std::iter::repeat(PoseSource::None));
+    for ((((f, pose), s), source), dt) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(sources).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))) {
         let state = s.name().replace(' ', "_");
-        if dive.insert(f.seq, (*pose, state, dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string())).is_some() {
+        if dive.insert(f.seq, (*pose, state, source.name(), dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string())).is_some() {
             replaced += 1;
         }
     }
@@ -122,7 +136,8 @@ pub fn write_tracking_outputs(
     for v in dive.values_mut() {
         v.0.world_from_cam = to_output(&v.0.world_from_cam);
     }
-    let trajectory: Vec<StampedPose> = dive.values().map(|v| v.0).collect();
+    // Only estimated poses: a frame without one is in `states.txt` with pose `none`.
+    let trajectory: Vec<StampedPose> = dive.values().filter(|v| v.2 != PoseSource::None.name()).map(|v| v.0).collect();
     duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &trajectory)?;
     // Keyframes: the logged poses, this process's final ones over them.
     let mut keyframes: BTreeMap<u64, (Timestamp, duv_core::Se3)> = history.map(|h| h.keyframes.clone()).unwrap_or_default();
@@ -142,9 +157,11 @@ pub fn write_tracking_outputs(
     }
     duv_core::io::write_atomic(&out.join("keyframes.txt"), kf_text.as_bytes())?;
     let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
-    let mut states_text = String::from("# seq timestamp state tracker_ms [why, while initialising] (tracker_ms nan: tracked by an earlier process of the dive, see dive.json)\n");
-    for (seq, (pose, state, ms, note)) in &dive {
-        let _ = write!(states_text, "{seq} {:.9} {state} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
+    let mut states_text = String::from(
+        "# seq timestamp state pose tracker_ms [why, while initialising] (pose: measured, interpolated between measured poses, none: not in trajectory.txt, logged: an earlier process's pose whose state was lost; tracker_ms nan: tracked by an earlier process of the dive, see dive.json)\n",
+    );
+    for (seq, (pose, state, source, ms, note)) in &dive {
+        let _ = write!(states_text, "{seq} {:.9} {state} {source} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
         if !note.is_empty() {
             let _ = write!(states_text, " {note}");
         }
@@ -155,6 +172,7 @@ pub fn write_tracking_outputs(
     Ok(WrittenOutputs {
         live,
         frames: dive.len() as u64,
+        frames_with_pose: trajectory.len() as u64,
         first_seq: dive.keys().next().copied(),
         last_seq: dive.keys().next_back().copied(),
         frames_from_log: from_log - replaced,

@@ -92,6 +92,12 @@ pub struct TrackerConfig {
     /// turbid; generator seeds 1-4; 320x240 and 640x480) the collected start ended at
     /// 0.030-0.047 px where it was right and at 0.066-0.22 px where it had bent.
     pub init_level_start_rms_px: f32,
+    /// Initialisation starts again from the current frame after this many frames in a row
+    /// could not be matched to the reference keyframe (flow confident on too few pixels, or no
+    /// pose against it): the vehicle has moved on from the view it started on (a dark or
+    /// snowy start, a turbidity burst, a low frame rate), and waiting would hang for ever. The
+    /// keyframes collected so far are dropped with their provisional poses. 0 never restarts.
+    pub init_restart_after: usize,
     /// Flow/BA rounds per keyframe insertion (the recurrent updates of the paper). One by
     /// default: the seed from the BA estimate already carries the previous keyframes' solve
     /// into the edges; a second round cost a quarter more CPU per frame (58 against 47 ms
@@ -271,6 +277,7 @@ impl Default for TrackerConfig {
             init_iterations: 15,
             init_level_start: true,
             init_level_start_rms_px: 0.05,
+            init_restart_after: 3,
             local_rounds: 1,
             local_iterations: 4,
             defer_rounds: true,

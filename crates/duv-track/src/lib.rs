@@ -53,7 +53,11 @@
 //!   is kept (the other one's poses, depths and measurements are
 //!   restored from a [`snapshot`]): incremental growth from constant depth over a near-planar
 //!   seabed can settle in the other two-view solution, a camera pitching steadily over a
-//!   seabed bent to match, which later keyframes continue.
+//!   seabed bent to match, which later keyframes continue. An initialisation cannot hang:
+//!   after `init_restart_after` frames in a row that do not match the reference keyframe (flow
+//!   confident on too few pixels, or no pose), the keyframes collected so far are dropped and
+//!   the current frame starts it again ([`TrackNote::InitRestarted`]); until the initial BA
+//!   has run no keyframe is handed on and no pose counts as measured ([`PoseSource`]).
 //! - *Capacity*: `max_keyframes` slots; when full, the most redundant keyframe outside the
 //!   window (its neighbours closest by induced flow) is evicted and re-expressed relative to
 //!   its predecessor ([`EvictedKeyframe`]).
@@ -120,4 +124,4 @@ pub use tracker::{
     depth_grid_camera, EvictedKeyframe, FrameAnchor, KeyframeView, LostReason, ResumePoint, SeedFrame, SeedKeyframe, StageTimes, TrackError,
     TrackNote, TrackOutput, Tracker, TrackerCounters, TrackerSeed, TrackingState,
 };
-pub use trajectory::{FinalKeyframe, FinalTrajectory, RecordedFrame, TrajectoryRecorder};
+pub use trajectory::{FinalKeyframe, FinalTrajectory, PoseSource, RecordedFrame, TrajectoryRecorder, MAX_INTERPOLATION_GAP_S};

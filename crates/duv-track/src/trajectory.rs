@@ -1,7 +1,9 @@
 //! The caller's record of a run: every frame's output, kept to write the final trajectory once
 //! the graph has settled. A frame's pose is re-expressed through its anchor keyframe (so loop
 //! closures and global BA move it too); frames without an anchor (initialisation, lost) are
-//! interpolated in time between their anchored neighbours. This grows with the run, so it
+//! interpolated in time between their anchored neighbours when those are at most
+//! [`MAX_INTERPOLATION_GAP_S`] apart, and have no pose otherwise ([`PoseSource`]): a pose
+//! that was not estimated is never passed off as one. This grows with the run, so it
 //! belongs to offline runs and evaluation (`duv run`), not to the fixed-memory tracker.
 
 use super::tracker::{EvictedKeyframe, FrameAnchor, TrackNote, Tracker, TrackingState, TrackOutput};
@@ -33,12 +35,50 @@ pub struct FinalKeyframe {
     pub live: bool,
 }
 
+/// Longest time between two measured poses across which the frames in between are
+/// interpolated, seconds: the keyframes collected while initialising are closer than this at
+/// any usual speed; a longer gap (lost, an initialisation that started again) leaves its
+/// frames without a pose.
+pub const MAX_INTERPOLATION_GAP_S: f64 = 2.0;
+
+/// Where a frame's final pose comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PoseSource {
+    /// Measured: through the keyframe it was tracked against.
+    Measured,
+    /// Interpolated in time between two measured poses at most [`MAX_INTERPOLATION_GAP_S`]
+    /// apart (frames between the keyframes collected while initialising, short losses).
+    Interpolated,
+    /// No estimate: before the first or after the last measured pose, across a longer gap, or
+    /// its keyframe was dropped (an initialisation that started again). The pose held is the
+    /// tracker's live guess and is not an output.
+    None,
+}
+
+impl PoseSource {
+    /// Short name (`states.txt`'s pose column).
+    pub fn name(self) -> &'static str {
+        match self {
+            PoseSource::Measured => "measured",
+            PoseSource::Interpolated => "interpolated",
+            PoseSource::None => "none",
+        }
+    }
+    /// Whether the frame has a pose estimate (measured or interpolated).
+    pub fn has_pose(self) -> bool {
+        self != PoseSource::None
+    }
+}
+
 /// Final poses of a run.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FinalTrajectory {
-    /// Every frame, in the order tracked.
+    /// Every frame, in the order tracked (those without an estimate hold the live guess; see
+    /// `sources`).
     pub frames: Vec<StampedPose>,
     pub states: Vec<TrackingState>,
+    /// Where each frame's pose comes from.
+    pub sources: Vec<PoseSource>,
     /// Every keyframe kept (pruned ones excluded), by id.
     pub keyframes: Vec<FinalKeyframe>,
 }
@@ -108,7 +148,12 @@ impl TrajectoryRecorder {
     /// Final poses: anchored frames through their keyframe's current pose, the rest
     /// interpolated.
     pub fn finish(&self, tracker: &Tracker) -> FinalTrajectory {
-        let live: BTreeMap<u64, (Se3, f64)> = tracker.keyframes().map(|k| (k.id, (k.world_from_cam, k.scale_correction))).collect();
+        // Before the initial BA the keyframes' poses are provisional: nothing is measured yet.
+        let live: BTreeMap<u64, (Se3, f64)> = if tracker.is_initialised() {
+            tracker.keyframes().map(|k| (k.id, (k.world_from_cam, k.scale_correction))).collect()
+        } else {
+            BTreeMap::new()
+        };
         let resolved: Vec<Option<Se3>> = self
             .frames
             .iter()
@@ -119,9 +164,11 @@ impl TrajectoryRecorder {
             })
             .collect();
         let mut frames = Vec::with_capacity(self.frames.len());
+        let mut sources = Vec::with_capacity(self.frames.len());
+        let max_gap_ns = MAX_INTERPOLATION_GAP_S * 1e9;
         for (i, f) in self.frames.iter().enumerate() {
-            let pose = match resolved[i] {
-                Some(p) => p,
+            let (pose, source) = match resolved[i] {
+                Some(p) => (p, PoseSource::Measured),
                 None => {
                     let before = (0..i).rev().find(|&j| resolved[j].is_some());
                     let after = (i + 1..self.frames.len()).find(|&j| resolved[j].is_some());
@@ -129,15 +176,19 @@ impl TrajectoryRecorder {
                         (Some(b), Some(a)) => {
                             let (tb, ta) = (self.frames[b].t_ns.0 as f64, self.frames[a].t_ns.0 as f64);
                             let u = if ta > tb { ((f.t_ns.0 as f64 - tb) / (ta - tb)).clamp(0.0, 1.0) } else { 0.0 };
-                            interpolate(&resolved[b].unwrap_or(f.live), &resolved[a].unwrap_or(f.live), u)
+                            let pose = interpolate(&resolved[b].unwrap_or(f.live), &resolved[a].unwrap_or(f.live), u);
+                            if ta - tb <= max_gap_ns {
+                                (pose, PoseSource::Interpolated)
+                            } else {
+                                (pose, PoseSource::None)
+                            }
                         }
-                        (Some(b), None) => resolved[b].unwrap_or(f.live),
-                        (None, Some(a)) => resolved[a].unwrap_or(f.live),
-                        (None, None) => f.live,
+                        _ => (f.live, PoseSource::None),
                     }
                 }
             };
             frames.push(StampedPose { t_ns: f.t_ns, world_from_cam: pose });
+            sources.push(source);
         }
         let keyframes = self
             .keyframes
@@ -147,7 +198,7 @@ impl TrajectoryRecorder {
                 Some(FinalKeyframe { id, t_ns, seq, world_from_cam: pose, live: live.contains_key(&id) })
             })
             .collect();
-        FinalTrajectory { frames, states: self.frames.iter().map(|f| f.state).collect(), keyframes }
+        FinalTrajectory { frames, states: self.frames.iter().map(|f| f.state).collect(), sources, keyframes }
     }
 }
 

@@ -38,6 +38,11 @@ impl Emission {
         }
         self.waiting.push_back(id);
     }
+
+    /// Keeps the waiting ids `keep` accepts.
+    pub(super) fn retain(&mut self, keep: impl Fn(u64) -> bool) {
+        self.waiting.retain(|&id| keep(id));
+    }
 }
 
 impl Tracker {
@@ -64,9 +69,14 @@ impl Tracker {
     /// not: the end of the stream), written into `out` (`index`, `t_ns`, `world_from_cam` in the
     /// tracker's frame, `camera`, `inv_depth` and `inv_depth_variance` at the input
     /// resolution) without allocating once `out`'s planes have that size; `None` when none is
-    /// due. Keyframes the tracker no longer holds, or without depth yet, are skipped.
+    /// due, and always before the tracker is initialised. Keyframes the tracker no longer holds, or without depth yet, are skipped.
     pub fn next_final_keyframe(&mut self, flush: bool, out: &mut Keyframe) -> Option<u64> {
         let lag = self.emit.lag?;
+        // Before the initial BA the poses are provisional and the initialisation may start
+        // again without them: nothing is handed on yet.
+        if self.st.init.phase != Phase::Running {
+            return None;
+        }
         while self.emit.waiting.len() > if flush { 0 } else { lag } {
             let id = self.emit.waiting.pop_front()?;
             let Some(view) = self.keyframes().find(|k| k.id == id) else { continue };

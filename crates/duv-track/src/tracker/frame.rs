@@ -83,15 +83,8 @@ impl State {
         self.stats.times.flow += t0.elapsed();
         let mut out = match self.init.phase {
             Phase::Empty => {
-                let pose = Se3::identity();
-                let s = self.insert_keyframe_slot(frame, &pose);
-                self.graph.kfs.slots[s].inv_depth.data.fill(self.cfg.initial_inv_depth);
-                self.motion.ref_slot = s;
-                self.init.phase = Phase::Collecting;
-                self.motion.state = TrackingState::Initializing;
-                self.motion.last_pose = pose;
-                self.motion.last_seq = frame.seq;
-                out.world_from_cam = pose;
+                let s = self.start_first_keyframe(frame);
+                out.world_from_cam = Se3::identity();
                 out.state = TrackingState::Initializing;
                 out.new_keyframe = Some(self.graph.kfs.slots[s].id);
                 out.anchor = Some(FrameAnchor { keyframe: self.graph.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: 1.0 });

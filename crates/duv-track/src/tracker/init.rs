@@ -7,6 +7,8 @@ use super::*;
 pub(super) struct Init {
     pub(super) phase: Phase,
     pub(super) init_snapshot: WindowSnapshot,
+    /// Frames in a row, while collecting, that did not match the reference keyframe.
+    pub(super) failed_in_a_row: usize,
 }
 
 impl State {
@@ -21,16 +23,17 @@ impl State {
         self.flow_ref_to_current(r, self.work.have_prev_flow, true)?;
         let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
         if conf < self.cfg.min_confident_fraction {
-            // Nothing to trust: wait for a better frame (the first keyframe stays).
+            // Nothing to trust: wait for a better frame, or start again from this one.
             self.work.have_prev_flow = false;
             out.note = TrackNote::InitLowConfidence { confident: conf, needed: self.cfg.min_confident_fraction };
-            return Ok(out);
+            return Ok(self.init_failed_frame(frame, out));
         }
         self.work.prev_flow.dx.data.copy_from_slice(&self.work.res.pooled.flow.dx.data);
         self.work.prev_flow.dy.data.copy_from_slice(&self.work.res.pooled.flow.dy.data);
         self.work.have_prev_flow = true;
         let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
         if mean_flow <= self.cfg.keyframe_flow_px {
+            self.init.failed_in_a_row = 0;
             out.note = TrackNote::InitSmallFlow { flow_px: mean_flow * self.factor as f32, needed_px: self.cfg.keyframe_flow_px * self.factor as f32 };
             return Ok(out);
         }
@@ -42,8 +45,9 @@ impl State {
         if self.motion_only(r, &mut pose).is_err() {
             self.stats.counters.ba_failures += 1;
             out.note = TrackNote::InitPoseFailed;
-            return Ok(out);
+            return Ok(self.init_failed_frame(frame, out));
         }
+        self.init.failed_in_a_row = 0;
         let prev = r;
         let s = self.insert_keyframe_slot(frame, &pose);
         self.splat_depth(prev, s);
@@ -86,6 +90,50 @@ impl State {
         out.world_from_cam = self.graph.kfs.slots[s].world_from_cam;
         self.motion.last_pose = out.world_from_cam;
         Ok(out)
+    }
+
+    /// A collecting frame that did not match the reference keyframe: after
+    /// `init_restart_after` of them in a row, the keyframes collected so far are dropped and
+    /// this frame becomes the first keyframe of a new start.
+    fn init_failed_frame(&mut self, frame: &Frame, mut out: TrackOutput) -> TrackOutput {
+        self.init.failed_in_a_row += 1;
+        let failed = self.init.failed_in_a_row;
+        if self.cfg.init_restart_after == 0 || failed < self.cfg.init_restart_after {
+            return out;
+        }
+        let dropped = self.graph.kfs.len();
+        tracing::info!(seq = frame.seq, failed, dropped, "track: initialisation restarted ({failed} frames in a row did not match the reference keyframe)");
+        self.insert.pending = None;
+        while let Some(&s) = self.graph.kfs.order.first() {
+            self.graph.edges.remove_touching(s);
+            self.graph.kfs.remove_at(0);
+        }
+        self.graph.new_edges.clear();
+        self.win.window.clear();
+        self.init.failed_in_a_row = 0;
+        self.stats.counters.init_restarts += 1;
+        let s = self.start_first_keyframe(frame);
+        out.world_from_cam = Se3::identity();
+        out.new_keyframe = Some(self.graph.kfs.slots[s].id);
+        out.anchor = Some(FrameAnchor { keyframe: self.graph.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: 1.0 });
+        out.note = TrackNote::InitRestarted { failed_frames: failed, dropped_keyframes: dropped };
+        out
+    }
+
+    /// The current frame as the first keyframe (identity pose, constant inverse depth):
+    /// collecting starts.
+    pub(super) fn start_first_keyframe(&mut self, frame: &Frame) -> usize {
+        let pose = Se3::identity();
+        let s = self.insert_keyframe_slot(frame, &pose);
+        self.graph.kfs.slots[s].inv_depth.data.fill(self.cfg.initial_inv_depth);
+        self.motion.ref_slot = s;
+        self.init.phase = Phase::Collecting;
+        self.motion.state = TrackingState::Initializing;
+        self.motion.last_pose = pose;
+        self.motion.velocity = Se3::identity();
+        self.motion.last_seq = frame.seq;
+        self.work.have_prev_flow = false;
+        s
     }
 
     /// Monocular initialisation: link the collected keyframes, then alternate flow and BA with

@@ -184,6 +184,11 @@ impl Tracker {
             let st = &mut self.st;
             self.pool.install(|| st.track(frame))?
         };
+        if let TrackNote::InitRestarted { .. } = out.note {
+            // The keyframes collected before the restart are gone: none is handed on.
+            let kfs = &self.st.graph.kfs;
+            self.emit.retain(|id| kfs.slot_of(id).is_some());
+        }
         if let Some(id) = out.new_keyframe {
             self.emit.inserted(id);
         }
@@ -229,6 +234,11 @@ impl Tracker {
     }
     pub fn capacity(&self) -> TrackerCapacity {
         self.st.cap
+    }
+    /// Whether the initial BA has run (before it, keyframe poses are provisional and the
+    /// initialisation may start again without them).
+    pub fn is_initialised(&self) -> bool {
+        self.st.init.phase == Phase::Running
     }
     pub fn state(&self) -> TrackingState {
         self.st.motion.state
@@ -524,7 +534,7 @@ impl State {
             },
             graph: Graph { kfs, edges: EdgeStore::new(max_edges, lw, lh), new_edges: Vec::with_capacity(max_edges) },
             win: WindowBa { ba, window: Vec::with_capacity(cap.max_keyframes) },
-            init: Init { phase: Phase::Empty, init_snapshot: WindowSnapshot::new(cap.ba_window, init_edges, lw, lh) },
+            init: Init { phase: Phase::Empty, init_snapshot: WindowSnapshot::new(cap.ba_window, init_edges, lw, lh), failed_in_a_row: 0 },
             loops: Loops {
                 gba,
                 pg: PoseGraph::new(cap.max_keyframes, 2 * cap.max_keyframes + 8),

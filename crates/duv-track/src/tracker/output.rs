@@ -78,6 +78,10 @@ pub enum TrackNote {
     InitPoseFailed,
     /// A keyframe was added; `keyframes` of the `needed` the initialisation takes.
     InitKeyframe { keyframes: usize, needed: usize },
+    /// The initialisation started again from this frame: `failed_frames` frames in a row
+    /// could not be matched to the reference keyframe (`init_restart_after`); the
+    /// `dropped_keyframes` collected before were dropped.
+    InitRestarted { failed_frames: usize, dropped_keyframes: usize },
 }
 
 impl TrackNote {
@@ -89,6 +93,7 @@ impl TrackNote {
             TrackNote::InitSmallFlow { .. } => Some("init_small_flow"),
             TrackNote::InitPoseFailed => Some("init_pose_failed"),
             TrackNote::InitKeyframe { .. } => Some("init_keyframe"),
+            TrackNote::InitRestarted { .. } => Some("init_restarted"),
         }
     }
 
@@ -98,6 +103,7 @@ impl TrackNote {
             TrackNote::InitLowConfidence { confident, needed } => Some((confident as f64, needed as f64)),
             TrackNote::InitSmallFlow { flow_px, needed_px } => Some((flow_px as f64, needed_px as f64)),
             TrackNote::InitKeyframe { keyframes, needed } => Some((keyframes as f64, needed as f64)),
+            TrackNote::InitRestarted { failed_frames, .. } => Some((failed_frames as f64, failed_frames as f64)),
             TrackNote::None | TrackNote::InitPoseFailed => None,
         }
     }
@@ -113,6 +119,9 @@ impl std::fmt::Display for TrackNote {
             TrackNote::InitSmallFlow { flow_px, needed_px } => write!(f, "mean flow to the reference keyframe {flow_px:.2} px <= {needed_px:.2} px (waiting for parallax)"),
             TrackNote::InitPoseFailed => f.write_str("pose against the reference keyframe did not converge"),
             TrackNote::InitKeyframe { keyframes, needed } => write!(f, "keyframe {keyframes} of the {needed} the initialisation takes"),
+            TrackNote::InitRestarted { failed_frames, dropped_keyframes } => {
+                write!(f, "initialisation restarted from this frame: {failed_frames} frame(s) in a row did not match the reference keyframe ({dropped_keyframes} keyframe(s) dropped)")
+            }
         }
     }
 }
@@ -195,6 +204,8 @@ pub struct TrackerCounters {
     pub ba_failures: u64,
     /// The initial BA kept its level start (`init_level_start`) over the collected estimate.
     pub init_level_start: bool,
+    /// Times the initialisation started again (`init_restart_after`).
+    pub init_restarts: u64,
 }
 
 /// A read-only view of a keyframe.
