@@ -14,7 +14,7 @@ use anyhow::Context;
 use duv_core::{Frame, FrameImage, PlaneF32};
 use duv_eval::{ause, evaluate_trajectory, AuseOptions, TrajectoryOptions};
 use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
-use duv_track::{Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
+use duv_track::{PoseSource, Tracker, TrackerCapacity, TrackerConfig, TrackingState, TrajectoryRecorder};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::HashMap;
@@ -24,7 +24,11 @@ use std::time::{Duration, Instant};
 
 #[derive(clap::Args)]
 pub struct BenchTrackArgs {
-    /// Sequences: `survey` (coastal survey), `loop` (coastal loop), `turbid` (turbid survey).
+    /// Sequences: `survey` (coastal survey), `loop` (coastal loop), `turbid` (turbid survey), and
+    /// the hard cases: `night` (a 240-frame coastal loop lit by the vehicle's lamps, their glow
+    /// in the water, marine snow: `duv sim --night`), `snow` (the survey through 400 snow
+    /// particles per m^3 in daylight), `burst` (the survey with a turbidity burst, x8 for 4 s
+    /// from 12 s), `lowfps` (the survey at 2 frames/s, 150 frames).
     #[arg(long, value_delimiter = ',', default_value = "survey,loop,turbid")]
     sequences: Vec<String>,
     /// Input sizes, `WIDTHxHEIGHT`.
@@ -80,7 +84,15 @@ struct RunMetrics {
     fps_tracking: f64,
     latency_p99_tracking_ms: f64,
     latency_max_tracking_ms: f64,
+    /// Frames with a pose estimate (measured or interpolated between measured poses, as
+    /// `trajectory.txt` holds them); the ATE is over these.
+    frames_with_pose: u64,
+    /// Of them, measured (tracked against a keyframe).
+    frames_measured: u64,
+    /// Times the initialisation started again (`init_restart_after`).
+    init_restarts: u64,
     ate_rmse_m: f64,
+    /// Over the frames with a pose; the path is the ground truth's over the span they cover.
     ate_percent_of_path: f64,
     path_m: f64,
     keyframes_inserted: u64,
@@ -130,12 +142,27 @@ fn parse_size(s: &str) -> anyhow::Result<(usize, usize)> {
     Ok((w.trim().parse().with_context(|| format!("size {s:?}: width"))?, h.trim().parse().with_context(|| format!("size {s:?}: height"))?))
 }
 
-fn sequence_preset(name: &str) -> anyhow::Result<(WaterPreset, TrajectoryKind)> {
+/// The generated sequence a row names: water, path and the hard conditions of a real dive.
+fn sequence_config(name: &str) -> anyhow::Result<SimConfig> {
+    let survey = || SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Survey);
     Ok(match name {
-        "survey" => (WaterPreset::Coastal, TrajectoryKind::Survey),
-        "loop" => (WaterPreset::Coastal, TrajectoryKind::Loop),
-        "turbid" => (WaterPreset::Turbid, TrajectoryKind::Survey),
-        other => anyhow::bail!("unknown sequence {other:?} (expected survey, loop or turbid)"),
+        "survey" => survey(),
+        "loop" => SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Loop),
+        "turbid" => SimConfig::preset(WaterPreset::Turbid, TrajectoryKind::Survey),
+        // A lamp-lit night loop: no daylight, the lamps' pool of light and their glow in the
+        // water move with the camera, marine snow crosses the view (`duv sim --night`).
+        "night" => {
+            let mut c = SimConfig { frames: 240, ..SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Loop) };
+            c.apply_night();
+            c
+        }
+        // Daylight survey through heavy marine snow.
+        "snow" => SimConfig { snow_per_m3: 400.0, ..survey() },
+        // A turbidity burst: the view fades out for a few seconds and returns.
+        "burst" => SimConfig { burst: Some(duv_sim::Burst { start_s: 12.0, duration_s: 4.0, factor: 8.0 }), ..survey() },
+        // A low frame rate: 2 frames/s, 25 cm of travel between frames.
+        "lowfps" => SimConfig { fps: 2.0, frames: 150, ..survey() },
+        other => anyhow::bail!("unknown sequence {other:?} (expected survey, loop, turbid, night, snow, burst or lowfps)"),
     })
 }
 
@@ -180,6 +207,9 @@ fn median_metrics(runs: &[RunMetrics]) -> RunMetrics {
         fps_tracking: m(|r| r.fps_tracking),
         latency_p99_tracking_ms: m(|r| r.latency_p99_tracking_ms),
         latency_max_tracking_ms: m(|r| r.latency_max_tracking_ms),
+        frames_with_pose: mu(|r| r.frames_with_pose),
+        frames_measured: mu(|r| r.frames_measured),
+        init_restarts: mu(|r| r.init_restarts),
         ate_rmse_m: m(|r| r.ate_rmse_m),
         ate_percent_of_path: m(|r| r.ate_percent_of_path),
         path_m: m(|r| r.path_m),
@@ -238,8 +268,7 @@ struct Sequence {
 }
 
 fn generate(name: &str, width: usize, height: usize, frames: Option<usize>, seed: u64) -> anyhow::Result<Sequence> {
-    let (water, trajectory) = sequence_preset(name)?;
-    let mut cfg = SimConfig::preset(water, trajectory);
+    let mut cfg = sequence_config(name)?;
     cfg.width = width;
     cfg.height = height;
     cfg.seed = seed;
@@ -301,11 +330,18 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let rss = rss_peak_mib();
     let fin = recorder.finish(&tracker);
     let gt = &seq.renderer.poses()[..n];
-    let ev = evaluate_trajectory(gt, &fin.frames, &TrajectoryOptions::default(), "gt", "est").context("scoring the trajectory")?;
-    let report = &ev.report;
+    // Scored on the frames with a pose estimate only (as `trajectory.txt` holds them).
+    let estimated: Vec<duv_core::StampedPose> = fin.frames.iter().zip(&fin.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+    let frames_measured = fin.sources.iter().filter(|s| **s == PoseSource::Measured).count() as u64;
+    let ev = if estimated.len() >= 3 {
+        Some(evaluate_trajectory(gt, &estimated, &TrajectoryOptions::default(), "gt", "est").context("scoring the trajectory")?)
+    } else {
+        None
+    };
+    let report = ev.as_ref().map(|e| &e.report);
     let (mut ause_mean, mut ause_random) = (f64::NAN, f64::NAN);
     let (mut ause_depth_mean, mut ause_depth_random) = (f64::NAN, f64::NAN);
-    if with_ause {
+    if let (true, Some(report)) = (with_ause, report) {
         let scale = report.alignment.scale;
         let kfs: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.variance.is_some()).map(|k| (k.id, k.seq)).collect();
         let missing: Vec<u64> = kfs.iter().map(|k| k.1).filter(|s| !seq.depth.contains_key(s)).collect();
@@ -366,9 +402,12 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
         fps_tracking: steady.len() as f64 / wall_tracking.as_secs_f64().max(1e-9),
         latency_p99_tracking_ms: percentile_ms(&steady, 0.99),
         latency_max_tracking_ms: percentile_ms(&steady, 1.0),
-        ate_rmse_m: report.ate.stats_m.rmse,
-        ate_percent_of_path: report.ate_rmse_percent_of_path.unwrap_or(f64::NAN),
-        path_m: report.gt_path_length_m,
+        frames_with_pose: estimated.len() as u64,
+        frames_measured,
+        init_restarts: counters.init_restarts,
+        ate_rmse_m: report.map_or(f64::NAN, |r| r.ate.stats_m.rmse),
+        ate_percent_of_path: report.and_then(|r| r.ate_rmse_percent_of_path).unwrap_or(f64::NAN),
+        path_m: report.map_or(f64::NAN, |r| r.gt_path_length_m),
         keyframes_inserted: counters.keyframes_inserted,
         loops_closed: counters.loops_closed,
         lost_frames: counters.lost_frames,
@@ -393,13 +432,13 @@ fn markdown(report: &BenchReport) -> String {
         report.cases.first().map_or(0, |c| c.runs),
         if report.rss_reset_per_run { "peak reset before each run" } else { "peak since process start" }
     );
-    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | init frames | FPS after init | p99 ms after init | max ms after init | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | AUSE of depth | AUSE of depth, random | RSS MiB | frames MiB | tracker heap MiB |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | init frames | restarts | frames with pose | measured | FPS after init | p99 ms after init | max ms after init | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | AUSE of depth | AUSE of depth, random | RSS MiB | frames MiB | tracker heap MiB |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for c in &report.cases {
         let m = &c.median;
         let _ = writeln!(
             s,
-            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
+            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
             c.sequence,
             c.width,
             c.height,
@@ -416,6 +455,9 @@ fn markdown(report: &BenchReport) -> String {
             m.latency_p99_ms,
             m.latency_max_ms,
             m.init_frames,
+            m.init_restarts,
+            m.frames_with_pose,
+            m.frames_measured,
             m.fps_tracking,
             m.latency_p99_tracking_ms,
             m.latency_max_tracking_ms,
@@ -456,7 +498,7 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
     };
     let sizes = args.sizes.iter().map(|s| parse_size(s)).collect::<anyhow::Result<Vec<_>>>()?;
     for name in &args.sequences {
-        sequence_preset(name)?;
+        sequence_config(name)?;
     }
     let rss_reset = reset_rss_peak();
     let mut cases = Vec::new();
@@ -473,7 +515,7 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                 for r in 0..args.runs {
                     let m = run_once(&mut seq, &cfg, cap, !args.no_ause, rss_reset).with_context(|| format!("{name} {w}x{h} run {}", r + 1))?;
                     eprintln!(
-                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms; after init ({} frames): {:.1} fps, p99 {:.1} ms, max {:.1} ms; ATE {:.3}% of path, loops {}, AUSE {:.3} (random {:.3}), of depth {:.3} (random {:.3})",
+                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms; after init ({} frames): {:.1} fps, p99 {:.1} ms, max {:.1} ms; {} of {} frames with a pose ({} measured, {} init restarts), ATE {:.3}% of path over them, loops {}, AUSE {:.3} (random {:.3}), of depth {:.3} (random {:.3})",
                         if lc { "on" } else { "off" },
                         r + 1,
                         args.runs,
@@ -484,6 +526,10 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                         m.fps_tracking,
                         m.latency_p99_tracking_ms,
                         m.latency_max_tracking_ms,
+                        m.frames_with_pose,
+                        seq.frames.len(),
+                        m.frames_measured,
+                        m.init_restarts,
                         m.ate_percent_of_path,
                         m.loops_closed,
                         m.ause,

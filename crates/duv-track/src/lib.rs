@@ -10,11 +10,14 @@
 //! and per-axis confidences, the diagonal of `Sigma^-1` of Eq. 1).
 //!
 //! - *Every frame*: grey conversion into a preallocated plane, a health check (black,
-//!   saturated, contrast collapse), the pyramid, then flow from the reference keyframe seeded
+//!   saturated, contrast collapse), marine snow taken out ([`despeckle`]: small bright specks
+//!   replaced by the grey-scale opening), the pyramid, then flow from the reference keyframe seeded
 //!   by the flow the constant-velocity prediction induces (reprojecting the keyframe's depth
 //!   grid; with the forward-backward check unless `frame_forward_backward` is off), and a
 //!   motion-only BA against the keyframe: every frame gets a
-//!   pose. With `motion_depth_variance` (the default) each keyframe pixel's flow weights are
+//!   pose. When that flow is not confident (or after a loss), the prediction is tried again
+//!   turned about the camera's vertical axis (`turn_search_deg`, +-1 and +-2 steps): a fast
+//!   turn at a low frame rate that the constant-velocity model does not predict. With `motion_depth_variance` (the default) each keyframe pixel's flow weights are
 //!   deflated by its depth's Eq. 4 variance, propagated through the projection at the
 //!   predicted pose, so depth that no edge measured (the prior alone holds it) does not pull
 //!   the pose.
@@ -110,6 +113,7 @@
 pub mod ba;
 mod config;
 mod consistency;
+pub mod despeckle;
 pub mod flow;
 mod graph;
 mod keyframes;

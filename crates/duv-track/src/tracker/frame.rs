@@ -6,6 +6,8 @@ use super::*;
 pub(super) struct FrameWork {
     pub(super) flow: FlowEstimator,
     pub(super) grey: PlaneF32,
+    /// Marine snow removal (`despeckle`), its planes sized once.
+    pub(super) despeckle: Option<Despeckle>,
     pub(super) cur: PreparedFrame,
     pub(super) cur_thumb: Vec<f32>,
     pub(super) res: FlowResult,
@@ -79,6 +81,7 @@ impl State {
             return Ok(self.lost(out, reason));
         }
         let t0 = Instant::now();
+        self.despeckle_grey();
         self.work.flow.prepare_into(&self.work.grey, &mut self.work.cur)?;
         self.stats.times.flow += t0.elapsed();
         let mut out = match self.init.phase {
@@ -101,6 +104,14 @@ impl State {
         };
         out.evicted = self.insert.pending_eviction.take();
         Ok(out)
+    }
+
+    /// Marine snow out of `work.grey` (`despeckle`), as every image the flow sees.
+    pub(super) fn despeckle_grey(&mut self) {
+        if let Some(d) = self.work.despeckle.as_mut() {
+            let stats = d.apply(&mut self.work.grey.data).expect("despeckle planes are the frame's size");
+            tracing::trace!(specks = stats.speck_pixels, replaced = stats.replaced_pixels, "track: despeckle");
+        }
     }
 
     /// Constant-velocity prediction `frames` frames after the last pose.
@@ -164,11 +175,14 @@ impl State {
         self.flow_ref_to_current(r, true, self.cfg.frame_forward_backward)?;
         let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
         tracing::trace!(seq = frame.seq, keyframe = self.graph.kfs.slots[r].id, conf, mean_flow_input_px = self.work.res.stats.mean_flow_input_px, "track: frame flow");
-        if conf < self.cfg.min_confident_fraction {
-            return Ok(self.lost(out, LostReason::LowConfidence));
-        }
         let mut pose = predicted;
-        if self.motion_only(r, &mut pose).is_err() {
+        if conf < self.cfg.min_confident_fraction {
+            // A turn the motion model did not predict, or lost.
+            match self.try_turns(r, &predicted)? {
+                Some(p) => pose = p,
+                None => return Ok(self.lost(out, LostReason::LowConfidence)),
+            }
+        } else if self.motion_only(r, &mut pose).is_err() {
             return Ok(self.lost(out, LostReason::NoPose));
         }
         self.accept_pose(&pose, frame.seq, frames_since);

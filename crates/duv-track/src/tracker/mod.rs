@@ -35,6 +35,7 @@ use super::graph::{sim3_relative, sim3_split, EdgeStore, PoseConstraint, PoseGra
 use super::keyframes::{block_means, image_health, ncc, thumbnail, Keyframe, KeyframeStore, THUMB_N};
 use super::snapshot::WindowSnapshot;
 use super::consistency::{blend_consistency, consistency_grid, ConsistencyScratch};
+use super::despeckle::Despeckle;
 use super::upsample::{border_variance, joint_bilateral, texture_variance, UpsampleParams};
 use duv_core::frame::LUMA_WEIGHTS;
 use duv_core::pose::{se3_exp, se3_log};
@@ -519,6 +520,7 @@ impl State {
             low,
             work: FrameWork {
                 grey: PlaneF32::new(w, h),
+                despeckle: cfg.despeckle_radius(w).map(|r| Despeckle::new(w, h, r, cfg.despeckle_min_contrast)),
                 cur: flow.new_frame(),
                 cur_thumb: vec![0.0; THUMB_N],
                 res: flow.new_result(),

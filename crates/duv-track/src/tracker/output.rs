@@ -206,6 +206,8 @@ pub struct TrackerCounters {
     pub init_level_start: bool,
     /// Times the initialisation started again (`init_restart_after`).
     pub init_restarts: u64,
+    /// Frames whose pose was found at a turned prediction (`turn_search_deg`).
+    pub turns_found: u64,
 }
 
 /// A read-only view of a keyframe.

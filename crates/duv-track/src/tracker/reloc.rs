@@ -7,6 +7,9 @@ pub(super) struct Reloc {
     pub(super) candidates: Vec<(f32, usize)>,
 }
 
+/// Frames after the last pose during which a lost frame still tries turned predictions.
+const TURN_SEARCH_FRAMES: u64 = 3;
+
 impl State {
     /// Lost: try the reference keyframe with the predicted pose, then appearance candidates.
     pub(super) fn relocalise(&mut self, frame: &Frame, mut out: TrackOutput) -> Result<TrackOutput, TrackError> {
@@ -21,6 +24,13 @@ impl State {
         }
         if let Some(pose) = self.try_relocalise_against(r, Some(predicted))? {
             return Ok(self.relocalised(out, r, pose, frame.seq));
+        }
+        // A turn is a short failure: tried only within a few frames of the last pose (a long
+        // loss would pay four more flows a frame for nothing).
+        if frame.seq.saturating_sub(self.motion.last_seq) <= TURN_SEARCH_FRAMES {
+            if let Some(pose) = self.try_turns(r, &predicted)? {
+                return Ok(self.relocalised(out, r, pose, frame.seq));
+            }
         }
         self.rank_candidates(None, self.graph.kfs.len(), self.cfg.reloc_min_ncc);
         for k in 0..self.reloc.candidates.len() {
@@ -42,7 +52,8 @@ impl State {
         self.flow_ref_to_current(c, predicted.is_some(), true)?;
         let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
         let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
-        if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
+        let accepted = conf >= self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) && mean_flow <= self.cfg.reloc_max_flow_px;
+        if !accepted {
             return Ok(None);
         }
         let mut pose = predicted.unwrap_or(self.graph.kfs.slots[c].world_from_cam);
@@ -50,6 +61,38 @@ impl State {
             return Ok(None);
         }
         Ok(Some(pose))
+    }
+
+    /// `predicted` turned about the camera's vertical (y) axis by +-1 and +-2 `turn_search_deg`
+    /// (see its doc): the first turn whose flow from keyframe `r`, seeded by it, is confident
+    /// on `loop_min_confident_fraction` of the pixels and whose motion-only BA converges.
+    /// The measurement of the turn taken is left in the frame buffers.
+    pub(super) fn try_turns(&mut self, r: usize, predicted: &Se3) -> Result<Option<Se3>, TrackError> {
+        let step = (self.cfg.turn_search_deg as f64).to_radians();
+        if step <= 0.0 {
+            return Ok(None);
+        }
+        let need = self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction);
+        for k in [1.0, -1.0, 2.0, -2.0] {
+            let turn = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), k * step);
+            let hypothesis = Se3::from_parts(predicted.translation, predicted.rotation * turn);
+            {
+                let kf = &self.graph.kfs.slots[r];
+                induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &hypothesis, Some(&mut self.work.seed));
+            }
+            self.flow_ref_to_current(r, true, true)?;
+            let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+            if conf < need {
+                continue;
+            }
+            let mut pose = hypothesis;
+            if self.motion_only(r, &mut pose).is_ok() {
+                self.stats.counters.turns_found += 1;
+                tracing::debug!(turn_deg = k * step.to_degrees(), conf, "track: pose found at a turned prediction");
+                return Ok(Some(pose));
+            }
+        }
+        Ok(None)
     }
 
     pub(super) fn relocalised(&mut self, mut out: TrackOutput, c: usize, pose: Se3, seq: u64) -> TrackOutput {

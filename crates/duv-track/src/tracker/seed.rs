@@ -95,6 +95,7 @@ impl State {
         for sk in seeds {
             let k = sk.keyframe;
             rgb_to_grey(&k.image, &mut self.work.grey);
+            self.despeckle_grey();
             let t0 = Instant::now();
             self.work.flow.prepare_into(&self.work.grey, &mut self.work.cur)?;
             self.stats.times.flow += t0.elapsed();
@@ -113,6 +114,7 @@ impl State {
         self.graph.kfs.reserve_ids_below(seed.next_keyframe_id);
         for sf in seed.frames {
             to_grey(&sf.frame.image, &mut self.work.grey);
+            self.despeckle_grey();
             let t0 = Instant::now();
             self.work.flow.prepare_into(&self.work.grey, &mut self.work.cur)?;
             self.stats.times.flow += t0.elapsed();
