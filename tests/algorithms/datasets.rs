@@ -648,3 +648,40 @@ fn bad_nav_file_is_an_error_naming_file_line_and_column() {
     assert_eq!((track.len(), track.rejected.depth_spike, track.rejected.total()), (29, 1, 1));
     assert_eq!(track.samples.iter().filter(|s| s.altitude_m.is_some()).count(), 10);
 }
+
+/// `mask=FILE`: pixels to ignore, read at the stored size, brought down with `downsample` (a
+/// block with any masked pixel is masked); a mask of another size, or one that masks
+/// everything, is an error naming the file.
+#[test]
+fn mask_option_reads_the_pixels_to_ignore() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = dir.path();
+    std::fs::write(p.join("calibration.txt"), "4 4 3.5 2.5 8 6\n").unwrap();
+    for k in 0..2 {
+        write_rgb8(&p.join(format!("{k}.0.png")), &rgb(k)).unwrap();
+    }
+    let masks = tempfile::tempdir().unwrap();
+    // The top-left 3x1 pixels (a burned-in stamp).
+    let mut m = ImageGray8 { width: W, height: H, data: vec![0; W * H] };
+    m.data[..3].fill(255);
+    let mask = masks.path().join("mask.png");
+    write_gray8(&mask, &m).unwrap();
+    let d = open_dataset(&format!("{},mask={}", spec("folder", p), mask.display())).unwrap();
+    let ignore = d.ignore_mask.as_ref().unwrap();
+    assert_eq!(ignore.len(), W * H);
+    assert_eq!(ignore.iter().enumerate().filter(|(_, &v)| v == 1).map(|(i, _)| i).collect::<Vec<_>>(), [0, 1, 2]);
+    // Downsampled by 2: blocks (0, 0) and (1, 0) hold masked pixels.
+    let d = open_dataset(&format!("{},downsample=2,mask={}", spec("folder", p), mask.display())).unwrap();
+    assert_eq!(d.ignore_mask.as_deref().unwrap(), &[1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]);
+    // Wrong size, everything masked, missing file: errors naming it.
+    let small = masks.path().join("small.png");
+    write_gray8(&small, &ImageGray8 { width: 4, height: 3, data: vec![0; 12] }).unwrap();
+    let e = open_dataset(&format!("{},mask={}", spec("folder", p), small.display())).unwrap_err();
+    assert_err_contains(&e, &["small.png", "4x3", "8x6"]);
+    let all = masks.path().join("all.png");
+    write_gray8(&all, &ImageGray8 { width: W, height: H, data: vec![1; W * H] }).unwrap();
+    let e = open_dataset(&format!("{},mask={}", spec("folder", p), all.display())).unwrap_err();
+    assert_err_contains(&e, &["all.png", "every pixel"]);
+    let e = open_dataset(&format!("{},mask={}", spec("folder", p), masks.path().join("none.png").display())).unwrap_err();
+    assert_err_contains(&e, &["none.png"]);
+}

@@ -460,6 +460,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     let camera = source.camera();
     let plan = super::budget::plan(&board, camera.width, camera.height)?;
     let mut tracker = Tracker::new(&camera, &cfg, capacity)?;
+    if let Some(mask) = source.ignore_mask() {
+        tracker.set_ignore_mask(mask)?;
+    }
     let keyframe_folder = KeyframeFolder::open(&opts.out)?;
     let grid = tracker.depth_camera();
     progress(&Progress::Started {

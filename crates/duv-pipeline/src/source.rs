@@ -242,6 +242,15 @@ impl Source {
         }
     }
 
+    /// Pixels to ignore in every frame (a dataset's `mask=FILE`), 1 per ignored pixel at the
+    /// frames' size.
+    pub fn ignore_mask(&self) -> Option<&[u8]> {
+        match self {
+            Source::Dataset { dataset, .. } => dataset.ignore_mask.as_deref(),
+            _ => None,
+        }
+    }
+
     pub fn ground_truth(&self) -> Option<Vec<StampedPose>> {
         match self {
             Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),

@@ -65,10 +65,10 @@ impl DatasetKind {
     /// The options a spec of this kind accepts.
     fn options(self) -> &'static [&'static str] {
         match self {
-            DatasetKind::Tum => &["calib", "depth_scale", "fov", "downsample", "nav"],
-            DatasetKind::Euroc => &["cam", "nav"],
-            DatasetKind::TartanAir => &["calib", "fps", "nav"],
-            DatasetKind::Folder => &["calib", "fps", "fov", "downsample", "nav"],
+            DatasetKind::Tum => &["calib", "depth_scale", "fov", "downsample", "nav", "mask"],
+            DatasetKind::Euroc => &["cam", "nav", "mask"],
+            DatasetKind::TartanAir => &["calib", "fps", "nav", "mask"],
+            DatasetKind::Folder => &["calib", "fps", "fov", "downsample", "nav", "mask"],
         }
     }
 }
@@ -131,6 +131,10 @@ pub struct Dataset {
     /// Navigation-sensor samples (depth, altitude, DVL velocity, AHRS attitude) from
     /// `nav=FILE` or `DIR/nav.csv`, on the clock of the images, with what was rejected.
     pub nav: Option<NavTrack>,
+    /// `mask=FILE`: pixels to ignore (burned-in overlays, the vehicle's own frame in view), 1
+    /// per ignored pixel, row-major at the frames' size (after `downsample`: a block with any
+    /// ignored pixel is ignored).
+    pub ignore_mask: Option<Vec<u8>>,
 }
 
 /// A parsed spec `KIND:DIR[,OPTION=VALUE]...`; see [`open_dataset`] for the syntax.
@@ -156,6 +160,9 @@ pub struct DatasetSpec {
     /// `nav=FILE`: navigation-sensor file in the `nav.csv` format (default: `DIR/nav.csv`
     /// when present).
     pub nav: Option<PathBuf>,
+    /// `mask=FILE`: an image of the stored frames' size, non-zero (any channel) where pixels
+    /// are to be ignored.
+    pub mask: Option<PathBuf>,
 }
 
 impl DatasetSpec {
@@ -171,7 +178,7 @@ impl DatasetSpec {
         if dir.is_empty() {
             return Err(bad("no directory after the kind".into()));
         }
-        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None, fov_deg: None, downsample: None, nav: None };
+        let mut out = DatasetSpec { kind, dir: PathBuf::from(dir), calib: None, fps: None, depth_scale: None, cam: None, fov_deg: None, downsample: None, nav: None, mask: None };
         let mut seen: Vec<&str> = Vec::new();
         for part in parts {
             let (key, value) = part
@@ -198,6 +205,7 @@ impl DatasetSpec {
             match key {
                 "calib" => out.calib = Some(PathBuf::from(value)),
                 "nav" => out.nav = Some(PathBuf::from(value)),
+                "mask" => out.mask = Some(PathBuf::from(value)),
                 "fps" => out.fps = Some(positive("fps")?),
                 "depth_scale" => out.depth_scale = Some(positive("depth_scale")?),
                 "downsample" => match value.parse::<usize>() {
@@ -258,6 +266,10 @@ impl DatasetSpec {
 /// Images are PNG (8-bit, or 16-bit reduced to 8) or JPEG in every layout. `tum:` and `folder:`
 /// also take `downsample=N` (1-8): frames averaged over N x N blocks, the camera scaled.
 ///
+/// Every kind takes `mask=FILE`: an image of the stored frames' size, non-zero where pixels are
+/// to be ignored (a burned-in time stamp, the vehicle's frame in view); the tracker gives them
+/// no weight ([`Dataset::ignore_mask`]).
+///
 /// Every kind takes `nav=FILE`: navigation-sensor samples in the `nav.csv` format
 /// ([`duv_core::nav`]: `t_s,depth_m,altitude_m,vel_x_mps,vel_y_mps,vel_z_mps,qx,qy,qz,qw`, times
 /// on the clock of the images); without it `DIR/nav.csv` is read when present. A file that
@@ -286,6 +298,9 @@ pub fn open_spec(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         dataset.camera = PinholeCamera { fx: c.fx / k, fy: c.fy / k, cx: (c.cx + 0.5) / k - 0.5, cy: (c.cy + 0.5) / k - 0.5, width: c.width / n, height: c.height / n, distortion: None };
         dataset.downsample = n;
     }
+    if let Some(path) = &spec.mask {
+        dataset.ignore_mask = Some(read_ignore_mask(spec, path, &dataset)?);
+    }
     tracing::debug!(
         depth = dataset.depth.is_some(),
         ground_truth = dataset.ground_truth.is_some(),
@@ -294,6 +309,37 @@ pub fn open_spec(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         dataset.describe()
     );
     Ok(dataset)
+}
+
+/// `mask=FILE` read at the stored frames' size and brought to the frames' (see
+/// [`Dataset::ignore_mask`]); an unreadable file, a wrong size or a distorted camera is an
+/// error naming the file.
+fn read_ignore_mask(spec: &DatasetSpec, path: &Path, dataset: &Dataset) -> Result<Vec<u8>, CameraError> {
+    let bad = |problem: String| CameraError::BadSpec { spec: format!("{}:{}", spec.kind, spec.dir.display()), problem: format!("mask={}: {problem}", path.display()) };
+    if dataset.camera.distortion.is_some() {
+        return Err(bad("a mask needs a camera without distortion (give undistorted frames)".into()));
+    }
+    let image = read_image_file(path).map_err(|e| bad(e.to_string()))?.to_rgb8();
+    let (w, h) = dataset.source_size.unwrap_or((dataset.camera.width, dataset.camera.height));
+    if image.width != w || image.height != h {
+        return Err(bad(format!("{}x{}, the frames are {w}x{h} as stored", image.width, image.height)));
+    }
+    let n = dataset.downsample.max(1);
+    let (ow, oh) = (dataset.camera.width, dataset.camera.height);
+    let mut out = vec![0u8; ow * oh];
+    for y in 0..oh * n {
+        for x in 0..ow * n {
+            if image.data[(y * w + x) * 3..(y * w + x) * 3 + 3].iter().any(|&v| v > 0) {
+                out[(y / n) * ow + x / n] = 1;
+            }
+        }
+    }
+    let ignored = out.iter().filter(|&&m| m == 1).count();
+    if ignored == out.len() {
+        return Err(bad("every pixel is masked".into()));
+    }
+    tracing::info!("{}: {ignored} of {} pixels ignored ({:.1}%)", path.display(), out.len(), 100.0 * ignored as f64 / out.len() as f64);
+    Ok(out)
 }
 
 impl Dataset {
@@ -649,6 +695,7 @@ mod tests {
             downsample: 1,
             source_size: None,
             nav: None,
+            ignore_mask: None,
         };
         assert_eq!(ds.depth_index_for(Timestamp(140), 50), Some(1));
         assert_eq!(ds.depth_index_for(Timestamp(160), 50), Some(2));

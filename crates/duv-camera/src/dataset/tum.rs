@@ -42,6 +42,7 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         downsample: 1,
         source_size: None,
         nav: None, // read by open_spec, the same for every layout
+        ignore_mask: None,
     })
 }
 

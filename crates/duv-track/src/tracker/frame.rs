@@ -173,7 +173,7 @@ impl State {
             induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &predicted, Some(&mut self.work.seed));
         }
         self.flow_ref_to_current(r, true, self.cfg.frame_forward_backward)?;
-        let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+        let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
         tracing::trace!(seq = frame.seq, keyframe = self.graph.kfs.slots[r].id, conf, mean_flow_input_px = self.work.res.stats.mean_flow_input_px, "track: frame flow");
         let mut pose = predicted;
         if conf < self.cfg.min_confident_fraction {

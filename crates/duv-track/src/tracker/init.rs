@@ -21,7 +21,7 @@ impl State {
             self.work.seed.dy.data.copy_from_slice(&self.work.prev_flow.dy.data);
         }
         self.flow_ref_to_current(r, self.work.have_prev_flow, true)?;
-        let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+        let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
         if conf < self.cfg.min_confident_fraction {
             // Nothing to trust: wait for a better frame, or start again from this one.
             self.work.have_prev_flow = false;

@@ -155,7 +155,7 @@ impl State {
         self.work.flow.estimate(kc, ks, Some(&self.work.seed), &mut self.work.res)?;
         self.stats.times.flow += t0.elapsed();
         self.stats.times.flow_estimates += 1;
-        let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+        let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
         let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
         if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
             return Ok(false);

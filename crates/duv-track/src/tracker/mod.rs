@@ -62,6 +62,8 @@ pub enum TrackError {
     Ba(#[from] BaError),
     #[error("thread pool: {0}")]
     ThreadPool(String),
+    #[error("ignore mask has {len} pixels, the tracker's frames are {width}x{height}")]
+    MaskSize { len: usize, width: usize, height: usize },
     #[error("no keyframe with id {id}")]
     NoSuchKeyframe { id: u64 },
     #[error("output planes must be {expected_width}x{expected_height}, got {width}x{height}")]
@@ -123,6 +125,8 @@ struct State {
     stats: Stats,
     /// Workspace of the variance's consistency term (`upsample_keyframe` takes `&self`).
     consistency: std::sync::Mutex<ConsistencyScratch>,
+    /// Depth-grid cells whose flow gets no weight ([`Tracker::set_ignore_mask`]).
+    ignore: Option<Vec<bool>>,
 }
 
 /// The keyframes and the flow edges between them.
@@ -236,6 +240,40 @@ impl Tracker {
     pub fn capacity(&self) -> TrackerCapacity {
         self.st.cap
     }
+    /// Pixels to ignore (1) in every frame, row-major at the input size: a burned-in overlay,
+    /// the vehicle's own frame in view. Their depth-grid cells, and the cells next to them,
+    /// get no flow weight as a source or as a target, so a static overlay does not hold the
+    /// motion at zero. Allocates once.
+    pub fn set_ignore_mask(&mut self, mask: &[u8]) -> Result<(), TrackError> {
+        let (w, h) = (self.st.camera.width, self.st.camera.height);
+        if mask.len() != w * h {
+            return Err(TrackError::MaskSize { len: mask.len(), width: w, height: h });
+        }
+        let (lw, lh, f) = (self.st.low.width, self.st.low.height, self.st.factor);
+        let mut cells = vec![false; lw * lh];
+        for y in 0..(lh * f).min(h) {
+            for x in 0..(lw * f).min(w) {
+                if mask[y * w + x] != 0 {
+                    cells[(y / f) * lw + x / f] = true;
+                }
+            }
+        }
+        let mut grown = cells.clone();
+        for y in 0..lh {
+            for x in 0..lw {
+                if cells[y * lw + x] {
+                    for yy in y.saturating_sub(1)..=(y + 1).min(lh - 1) {
+                        for xx in x.saturating_sub(1)..=(x + 1).min(lw - 1) {
+                            grown[yy * lw + xx] = true;
+                        }
+                    }
+                }
+            }
+        }
+        self.st.ignore = grown.iter().any(|&c| c).then_some(grown);
+        Ok(())
+    }
+
     /// Whether the initial BA has run (before it, keyframe poses are provisional and the
     /// initialisation may start again without them).
     pub fn is_initialised(&self) -> bool {
@@ -388,7 +426,7 @@ fn induced_flow(low: &PinholeCamera, world_from_i: &Se3, inv_depth: &PlaneF32, w
 }
 
 /// Copies the pooled flow into BA measurements (targets in depth-grid pixels, weights scaled
-/// by `weight_scale`) and returns the confident fraction (mean of the two weights above
+/// by `weight_scale`; none for cells `ignore` marks, as source or target) and returns the confident fraction (mean of the two weights above
 /// `confident_weight`). Targets closer than `border_margin_px` to the border get no weight:
 /// some of the cell's pixels may have left the view, and the pooled mean of those that stayed
 /// is biased towards the smaller flows (with forward motion this stretched the map a few
@@ -397,7 +435,21 @@ fn induced_flow(low: &PinholeCamera, world_from_i: &Se3, inv_depth: &PlaneF32, w
 /// measured the flow were clipped by the border and the pooled cells partly out of view, a
 /// bias the confidences do not see. The taper only lowers BA weights; the confident fraction
 /// (tracking loss, overlap, loop checks) is counted before it.
-fn write_measurement(res: &FlowResult, cfg: &TrackerConfig, target: &mut Image<f32, 2>, weight: &mut Image<f32, 2>) -> f32 {
+fn write_measurement(res: &mut FlowResult, cfg: &TrackerConfig, ignore: Option<&[bool]>, target: &mut Image<f32, 2>, weight: &mut Image<f32, 2>) -> f32 {
+    if let Some(m) = ignore {
+        // The flow's mean (keyframe and parallax decisions) without the ignored cells: a static
+        // overlay's confident zero flow would hold it down.
+        let (mut sum, mut sw) = (0.0f64, 0.0f64);
+        for (p, _) in m.iter().enumerate().filter(|(_, &i)| !i) {
+            let wgt = (res.pooled.weight_x.data[p] + res.pooled.weight_y.data[p]) as f64;
+            let (u, v) = (res.pooled.flow.dx.data[p] as f64, res.pooled.flow.dy.data[p] as f64);
+            if wgt > 0.0 && u.is_finite() && v.is_finite() {
+                sum += wgt * (u * u + v * v).sqrt();
+                sw += wgt;
+            }
+        }
+        res.stats.mean_flow_input_px = if sw > 0.0 { (sum / sw * cfg.flow.output_factor as f64) as f32 } else { 0.0 };
+    }
     let pooled = &res.pooled;
     let (w, h) = (pooled.flow.width(), pooled.flow.height());
     let (margin, taper) = (cfg.border_margin_px, cfg.border_taper_px);
@@ -411,7 +463,9 @@ fn write_measurement(res: &FlowResult, cfg: &TrackerConfig, target: &mut Image<f
             let (mut wx, mut wy) = (pooled.weight_x.data[p], pooled.weight_y.data[p]);
             let finite = tx.is_finite() && ty.is_finite() && wx.is_finite() && wy.is_finite();
             let in_view = tx >= margin && ty >= margin && tx <= xmax && ty <= ymax;
-            if !finite || !in_view {
+            // Ignored pixels (a static overlay), as the source cell or at the target.
+            let ignored = ignore.is_some_and(|m| m[p] || (finite && in_view && m[(ty.round() as usize).min(h - 1) * w + (tx.round() as usize).min(w - 1)]));
+            if !finite || !in_view || ignored {
                 wx = 0.0;
                 wy = 0.0;
             }
@@ -550,6 +604,7 @@ impl State {
             insert: Insertion { evicted_slot: None, pending_eviction: None, pending: None },
             stats: Stats { times: StageTimes::default(), counters: TrackerCounters::default() },
             consistency: std::sync::Mutex::new(ConsistencyScratch::new(lw, lh)),
+            ignore: None,
             factor,
             cfg,
             cap,

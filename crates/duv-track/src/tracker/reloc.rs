@@ -50,7 +50,7 @@ impl State {
     /// motion-only BA; the pose when the match is verified.
     pub(super) fn try_relocalise_against(&mut self, c: usize, predicted: Option<Se3>) -> Result<Option<Se3>, TrackError> {
         self.flow_ref_to_current(c, predicted.is_some(), true)?;
-        let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+        let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
         let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
         let accepted = conf >= self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) && mean_flow <= self.cfg.reloc_max_flow_px;
         if !accepted {
@@ -81,7 +81,7 @@ impl State {
                 induced_flow(&self.low, &kf.world_from_cam, &kf.inv_depth, &hypothesis, Some(&mut self.work.seed));
             }
             self.flow_ref_to_current(r, true, true)?;
-            let conf = write_measurement(&self.work.res, &self.cfg, &mut self.work.obs_target, &mut self.work.obs_weight);
+            let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
             if conf < need {
                 continue;
             }

@@ -98,9 +98,9 @@ impl State {
         self.stats.times.flow += t0.elapsed();
         self.stats.times.flow_estimates += 2;
         let edge = &mut self.graph.edges.edges[e];
-        write_measurement(&self.work.res, &self.cfg, &mut edge.target, &mut edge.weight);
+        write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut edge.target, &mut edge.weight);
         let edge = &mut self.graph.edges.edges[r];
-        write_measurement(&self.work.res_reverse, &self.cfg, &mut edge.target, &mut edge.weight);
+        write_measurement(&mut self.work.res_reverse, &self.cfg, self.ignore.as_deref(), &mut edge.target, &mut edge.weight);
         Ok(())
     }
 
@@ -116,7 +116,7 @@ impl State {
         self.stats.times.flow += t0.elapsed();
         self.stats.times.flow_estimates += 1;
         let edge = &mut self.graph.edges.edges[e];
-        Ok(write_measurement(&self.work.res, &self.cfg, &mut edge.target, &mut edge.weight))
+        Ok(write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut edge.target, &mut edge.weight))
     }
 
     /// Loads the window, solves, writes back; returns the final cost. A failed solve leaves
