@@ -96,17 +96,19 @@ fn ate(est: &BTreeMap<u64, Se3>, gt: &[Vector3<f64>]) -> f64 {
     rms(&aligned_errors(est, gt), None)
 }
 
-/// `states.txt`: frame number -> state.
-fn read_states(p: &Path) -> BTreeMap<u64, String> {
+/// The rows of `states.txt` (`seq t state pose tracker_ms [why]`), split at whitespace.
+fn states_rows(p: &Path) -> Vec<Vec<String>> {
     std::fs::read_to_string(p)
         .unwrap()
         .lines()
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let v: Vec<&str> = l.split_whitespace().collect();
-            (v[0].parse().unwrap(), v[2].to_string())
-        })
+        .map(|l| l.split_whitespace().map(str::to_string).collect())
         .collect()
+}
+
+/// `states.txt`: frame number -> state.
+fn read_states(p: &Path) -> BTreeMap<u64, String> {
+    states_rows(p).into_iter().map(|v| (v[0].parse().unwrap(), v[2].clone())).collect()
 }
 
 /// Distinct frame numbers of the logged camera frames, and how many camera messages there are.
@@ -216,15 +218,7 @@ fn a_damaged_unfinished_segment_is_salvaged_on_resume() {
 fn read_trajectory(p: &Path) -> BTreeMap<u64, Se3> {
     // TUM lines by frame number, through the time stamps of `states.txt` beside it (frames
     // without a pose estimate are in `states.txt` only).
-    let states = std::fs::read_to_string(p.with_file_name("states.txt")).unwrap();
-    let seq_of: BTreeMap<String, u64> = states
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let v: Vec<&str> = l.split_whitespace().collect();
-            (v[1].to_string(), v[0].parse().unwrap())
-        })
-        .collect();
+    let seq_of: BTreeMap<String, u64> = states_rows(&p.with_file_name("states.txt")).into_iter().map(|v| (v[1].clone(), v[0].parse().unwrap())).collect();
     let text = std::fs::read_to_string(p).unwrap();
     text.lines()
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
@@ -238,15 +232,7 @@ fn read_trajectory(p: &Path) -> BTreeMap<u64, Se3> {
 
 /// Frame numbers of `states.txt` whose pose column says they have a pose estimate.
 fn frames_with_pose(p: &Path) -> Vec<u64> {
-    std::fs::read_to_string(p)
-        .unwrap()
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .filter_map(|l| {
-            let v: Vec<&str> = l.split_whitespace().collect();
-            (v[3] != "none").then(|| v[0].parse().unwrap())
-        })
-        .collect()
+    states_rows(p).into_iter().filter(|v| v[3] != "none").map(|v| v[0].parse().unwrap()).collect()
 }
 
 #[test]

@@ -331,7 +331,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let fin = recorder.finish(&tracker);
     let gt = &seq.renderer.poses()[..n];
     // Scored on the frames with a pose estimate only (as `trajectory.txt` holds them).
-    let estimated: Vec<duv_core::StampedPose> = fin.frames.iter().zip(&fin.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+    let estimated: Vec<duv_core::StampedPose> = fin.estimated();
     let frames_measured = fin.sources.iter().filter(|s| **s == PoseSource::Measured).count() as u64;
     let ev = if estimated.len() >= 3 {
         Some(evaluate_trajectory(gt, &estimated, &TrajectoryOptions::default(), "gt", "est").context("scoring the trajectory")?)

@@ -304,7 +304,7 @@ fn an_initialisation_that_cannot_match_its_first_view_starts_again() {
     // Frames before the restart have no pose; the restart frame on is estimated.
     assert!(fin.sources[..restart].iter().all(|s| *s == duv_track::PoseSource::None), "{:?}", &fin.sources[..restart]);
     assert!(fin.sources[restart..].iter().all(|s| s.has_pose()), "{:?}", &fin.sources[restart..]);
-    let estimated: Vec<_> = fin.frames.iter().zip(&fin.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+    let estimated: Vec<_> = fin.estimated();
     let (_, percent, _) = track_sim::ate(&renderer.poses()[restart..], &estimated);
     assert!(percent < 2.0 * SURVEY_ATE_PERCENT, "ATE after the restart {percent:.3} %");
     // Without the restart it never leaves the first view.
@@ -329,7 +329,7 @@ fn marine_snow_is_taken_out_before_the_flow() {
         // At 160x120 the automatic radius is off: one pixel (3-pixel specks) is asked for.
         let tc = duv_track::TrackerConfig { despeckle, despeckle_radius_px: 1, ..small_tracker_config() };
         let r = track_sim::run(&renderer, &frames, &tc, capacity(2));
-        let est: Vec<_> = r.trajectory.frames.iter().zip(&r.trajectory.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+        let est: Vec<_> = r.trajectory.estimated();
         assert!(est.len() >= 100, "{} of 120 frames with a pose", est.len());
         let (_, percent, _) = track_sim::ate(renderer.poses(), &est);
         percent
@@ -351,7 +351,7 @@ fn a_fast_turn_at_a_low_frame_rate_is_tracked_through() {
     let run = |turn_search_deg: f32| {
         let tc = duv_track::TrackerConfig { turn_search_deg, ..small_tracker_config() };
         let r = track_sim::run(&renderer, &frames, &tc, capacity(2));
-        let est: Vec<_> = r.trajectory.frames.iter().zip(&r.trajectory.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+        let est: Vec<_> = r.trajectory.estimated();
         let percent = if est.len() >= 3 { track_sim::ate(renderer.poses(), &est).1 } else { f64::NAN };
         (est.len(), percent, r.tracker.counters().turns_found)
     };
@@ -392,7 +392,7 @@ fn an_ignore_mask_keeps_a_static_overlay_out_of_the_flow() {
             rec.record(&t.track(f).unwrap());
         }
         let fin = rec.finish(&t);
-        let est: Vec<_> = fin.frames.iter().zip(&fin.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect();
+        let est: Vec<_> = fin.estimated();
         let percent = if est.len() >= 3 { track_sim::ate(renderer.poses(), &est).1 } else { f64::NAN };
         (est.len(), percent)
     };

@@ -105,19 +105,17 @@ pub fn write_tracking_outputs(
 ) -> Result<WrittenOutputs, OutputError> {
     // seq -> (pose, state, where the pose comes from, tracker ms, note): the log's first, this
     // process's over them.
-    let mut dive: BTreeMap<u64, (StampedPose, String, &'static str, Option<f64>, String)> = BTreeMap::new();
+    let mut dive: BTreeMap<u64, (StampedPose, String, PoseSource, Option<f64>, String)> = BTreeMap::new();
     if let Some(h) = history {
         for (&seq, f) in &h.frames {
             let state = f.state.clone().unwrap_or_else(|| "unknown".into()).replace(' ', "_");
             // A logged pose is an estimate when its frame was tracked (or its state record
             // was lost with the power); initialising and lost frames' logged poses were
             // guesses.
-            let source = if state == "tracking" || state == "relocalised" {
-                PoseSource::Measured.name()
-            } else if state == "unknown" {
-                "logged"
-            } else {
-                PoseSource::None.name()
+            let source = match state.as_str() {
+                "tracking" | "relocalised" => PoseSource::Measured,
+                "unknown" => PoseSource::Logged,
+                _ => PoseSource::None,
             };
             dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, source, None, f.note.clone().unwrap_or_default()));
         }
@@ -127,7 +125,7 @@ pub fn write_tracking_outputs(
     let sources = fin.sources.iter().copied().chain(std::iter::repeat(PoseSource::None));
     for ((((f, pose), s), source), dt) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(sources).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))) {
         let state = s.name().replace(' ', "_");
-        if dive.insert(f.seq, (*pose, state, source.name(), dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string())).is_some() {
+        if dive.insert(f.seq, (*pose, state, source, dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string())).is_some() {
             replaced += 1;
         }
     }
@@ -137,7 +135,7 @@ pub fn write_tracking_outputs(
         v.0.world_from_cam = to_output(&v.0.world_from_cam);
     }
     // Only estimated poses: a frame without one is in `states.txt` with pose `none`.
-    let trajectory: Vec<StampedPose> = dive.values().filter(|v| v.2 != PoseSource::None.name()).map(|v| v.0).collect();
+    let trajectory: Vec<StampedPose> = dive.values().filter(|v| v.2.has_pose()).map(|v| v.0).collect();
     duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &trajectory)?;
     // Keyframes: the logged poses, this process's final ones over them.
     let mut keyframes: BTreeMap<u64, (Timestamp, duv_core::Se3)> = history.map(|h| h.keyframes.clone()).unwrap_or_default();
@@ -161,7 +159,7 @@ pub fn write_tracking_outputs(
         "# seq timestamp state pose tracker_ms [why, while initialising] (pose: measured, interpolated between measured poses, none: not in trajectory.txt, logged: an earlier process's pose whose state was lost; tracker_ms nan: tracked by an earlier process of the dive, see dive.json)\n",
     );
     for (seq, (pose, state, source, ms, note)) in &dive {
-        let _ = write!(states_text, "{seq} {:.9} {state} {source} {:.3}", pose.t_ns.as_secs_f64(), ms.unwrap_or(f64::NAN));
+        let _ = write!(states_text, "{seq} {:.9} {state} {} {:.3}", pose.t_ns.as_secs_f64(), source.name(), ms.unwrap_or(f64::NAN));
         if !note.is_empty() {
             let _ = write!(states_text, " {note}");
         }

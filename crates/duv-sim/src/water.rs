@@ -150,19 +150,28 @@ impl Lamps {
 }
 
 impl LampsInWorld {
+    /// Lamp `k` seen from `point`: the unit direction from the lamp, the distance, its square
+    /// and the cone factor; `None` outside the cone. Shared by the seabed's, the particles' and
+    /// the water's lighting.
+    #[inline]
+    fn falloff(&self, k: usize, point: &Vector3<f64>) -> Option<(Vector3<f64>, f64, f64, f64)> {
+        let to_point = point - self.pos[k];
+        let d2 = to_point.norm_squared().max(1e-4);
+        let d = d2.sqrt();
+        let l = to_point / d;
+        let cone = super::noise::smoothstep(self.cos_outer[k], self.cos_inner[k], l.dot(&self.dir[k]));
+        (cone > 0.0).then_some((l, d, d2, cone))
+    }
+
     /// Irradiance factor at a surface point with its normal; `beta` attenuates the
     /// lamp-to-point path.
     #[inline]
     pub fn irradiance(&self, point: &Vector3<f64>, normal: &Vector3<f64>, beta: &[f64; 3]) -> [f64; 3] {
         let mut e = [0.0; 3];
         for k in 0..2 {
-            let to_point = point - self.pos[k];
-            let d2 = to_point.norm_squared().max(1e-4);
-            let d = d2.sqrt();
-            let l = to_point / d;
-            let cone = super::noise::smoothstep(self.cos_outer[k], self.cos_inner[k], l.dot(&self.dir[k]));
+            let Some((l, d, d2, cone)) = self.falloff(k, point) else { continue };
             let lambert = (-l).dot(normal).max(0.0);
-            if cone <= 0.0 || lambert <= 0.0 {
+            if lambert <= 0.0 {
                 continue;
             }
             let g = cone * lambert / d2;
@@ -240,13 +249,7 @@ impl LampsInWorld {
     pub fn irradiance_facing(&self, point: &Vector3<f64>, beta: &[f64; 3]) -> [f64; 3] {
         let mut e = [0.0; 3];
         for k in 0..2 {
-            let to_point = point - self.pos[k];
-            let d2 = to_point.norm_squared().max(1e-4);
-            let d = d2.sqrt();
-            let cone = super::noise::smoothstep(self.cos_outer[k], self.cos_inner[k], to_point.dot(&self.dir[k]) / d);
-            if cone <= 0.0 {
-                continue;
-            }
+            let Some((_, d, d2, cone)) = self.falloff(k, point) else { continue };
             let g = cone / d2;
             for c in 0..3 {
                 e[c] += self.rgb[k][c] * g * (-beta[c] * d).exp();
@@ -270,13 +273,7 @@ impl LampsInWorld {
             a = b;
             let p = origin + dir * t;
             for l in 0..2 {
-                let to_p = p - self.pos[l];
-                let d2 = to_p.norm_squared().max(1e-4);
-                let d = d2.sqrt();
-                let cone = super::noise::smoothstep(self.cos_outer[l], self.cos_inner[l], to_p.dot(&self.dir[l]) / d);
-                if cone <= 0.0 {
-                    continue;
-                }
+                let Some((_, d, d2, cone)) = self.falloff(l, &p) else { continue };
                 let g = cone / d2 * dt * LAMP_SCATTER_PHASE;
                 for c in 0..3 {
                     sum[c] += scattering_per_m[c] * self.rgb[l][c] * g * (-beta_d[c] * (d + t)).exp();

@@ -53,6 +53,9 @@ pub enum PoseSource {
     /// its keyframe was dropped (an initialisation that started again). The pose held is the
     /// tracker's live guess and is not an output.
     None,
+    /// A pose an earlier process of the dive logged, whose state record was lost (a power cut):
+    /// kept, as the frame may well have been tracked.
+    Logged,
 }
 
 impl PoseSource {
@@ -62,6 +65,7 @@ impl PoseSource {
             PoseSource::Measured => "measured",
             PoseSource::Interpolated => "interpolated",
             PoseSource::None => "none",
+            PoseSource::Logged => "logged",
         }
     }
     /// Whether the frame has a pose estimate (measured or interpolated).
@@ -81,6 +85,13 @@ pub struct FinalTrajectory {
     pub sources: Vec<PoseSource>,
     /// Every keyframe kept (pruned ones excluded), by id.
     pub keyframes: Vec<FinalKeyframe>,
+}
+
+impl FinalTrajectory {
+    /// The frames with a pose estimate, in order (what `trajectory.txt` holds).
+    pub fn estimated(&self) -> Vec<StampedPose> {
+        self.frames.iter().zip(&self.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect()
+    }
 }
 
 /// Collects [`TrackOutput`]s; [`finish`](Self::finish) resolves them against the tracker.

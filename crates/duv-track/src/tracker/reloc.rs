@@ -52,8 +52,7 @@ impl State {
         self.flow_ref_to_current(c, predicted.is_some(), true)?;
         let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
         let mean_flow = self.work.res.stats.mean_flow_input_px / self.factor as f32;
-        let accepted = conf >= self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) && mean_flow <= self.cfg.reloc_max_flow_px;
-        if !accepted {
+        if conf < self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction) || mean_flow > self.cfg.reloc_max_flow_px {
             return Ok(None);
         }
         let mut pose = predicted.unwrap_or(self.graph.kfs.slots[c].world_from_cam);
