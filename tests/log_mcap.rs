@@ -34,7 +34,7 @@ fn frame(seq: u64, t_ns: i64) -> Frame {
 
 fn pose(seq: u64, t_ns: i64) -> PoseRecord {
     let p = Se3::from_parts(Translation3::new(0.1 * seq as f64, 0.0, 0.02 * seq as f64), UnitQuaternion::from_euler_angles(0.0, 0.01 * seq as f64, 0.0));
-    PoseRecord { t_ns: Timestamp::from_ns(t_ns), seq, world_from_cam: p, state: "tracking", tracked: true, keyframe: Some(0), new_keyframe: None, loop_closed: false, why: None, value: None, limit: None }
+    PoseRecord { t_ns: Timestamp::from_ns(t_ns), seq, world_from_cam: p, state: "tracking", tracked: true, keyframe: Some(0), new_keyframe: None, loop_closed: false, segment: 0, why: None, value: None, limit: None }
 }
 
 fn camera() -> PinholeCamera {

@@ -91,8 +91,15 @@ struct RunMetrics {
     frames_measured: u64,
     /// Times the initialisation started again (`init_restart_after`).
     init_restarts: u64,
+    /// Map segments before merging (1 + new segments started after a loss) and after (those
+    /// holding the frames with a pose at the end).
+    segments_started: u64,
+    segments_final: u64,
+    /// Over the frames with a pose, each segment aligned on its own (Sim(3)): the RMSE over
+    /// all of them.
     ate_rmse_m: f64,
-    /// Over the frames with a pose; the path is the ground truth's over the span they cover.
+    /// That RMSE over the sum of the segments' paths (the ground truth's over the span each
+    /// covers).
     ate_percent_of_path: f64,
     path_m: f64,
     keyframes_inserted: u64,
@@ -160,9 +167,12 @@ fn sequence_config(name: &str) -> anyhow::Result<SimConfig> {
         "snow" => SimConfig { snow_per_m3: 400.0, ..survey() },
         // A turbidity burst: the view fades out for a few seconds and returns.
         "burst" => SimConfig { burst: Some(duv_sim::Burst { start_s: 12.0, duration_s: 4.0, factor: 8.0 }), ..survey() },
+        // The burst on the loop: tracking is lost in the middle, a new map segment starts, and
+        // the loop's return over its start merges it into the first.
+        "burstloop" => SimConfig { burst: Some(duv_sim::Burst { start_s: 15.0, duration_s: 4.0, factor: 8.0 }), ..SimConfig::preset(WaterPreset::Coastal, TrajectoryKind::Loop) },
         // A low frame rate: 2 frames/s, 25 cm of travel between frames.
         "lowfps" => SimConfig { fps: 2.0, frames: 150, ..survey() },
-        other => anyhow::bail!("unknown sequence {other:?} (expected survey, loop, turbid, night, snow, burst or lowfps)"),
+        other => anyhow::bail!("unknown sequence {other:?} (expected survey, loop, turbid, night, snow, burst, burstloop or lowfps)"),
     })
 }
 
@@ -210,6 +220,8 @@ fn median_metrics(runs: &[RunMetrics]) -> RunMetrics {
         frames_with_pose: mu(|r| r.frames_with_pose),
         frames_measured: mu(|r| r.frames_measured),
         init_restarts: mu(|r| r.init_restarts),
+        segments_started: mu(|r| r.segments_started),
+        segments_final: mu(|r| r.segments_final),
         ate_rmse_m: m(|r| r.ate_rmse_m),
         ate_percent_of_path: m(|r| r.ate_percent_of_path),
         path_m: m(|r| r.path_m),
@@ -330,20 +342,31 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let rss = rss_peak_mib();
     let fin = recorder.finish(&tracker);
     let gt = &seq.renderer.poses()[..n];
-    // Scored on the frames with a pose estimate only (as `trajectory.txt` holds them).
+    // Scored on the frames with a pose estimate only, each map segment on its own (their
+    // frames and scales differ until merged).
     let estimated: Vec<duv_core::StampedPose> = fin.estimated();
     let frames_measured = fin.sources.iter().filter(|s| **s == PoseSource::Measured).count() as u64;
-    let ev = if estimated.len() >= 3 {
-        Some(evaluate_trajectory(gt, &estimated, &TrajectoryOptions::default(), "gt", "est").context("scoring the trajectory")?)
-    } else {
-        None
-    };
-    let report = ev.as_ref().map(|e| &e.report);
+    let segment_counts = fin.segment_counts();
+    let (mut sq_sum, mut scored, mut path_sum) = (0.0f64, 0usize, 0.0f64);
+    // The largest segment's report (its alignment scales the AUSE below).
+    let mut ev = None;
+    for &(segment, count) in segment_counts.iter().filter(|(_, c)| *c >= 3) {
+        let e = evaluate_trajectory(gt, &fin.estimated_in(segment), &TrajectoryOptions::default(), "gt", "est").with_context(|| format!("scoring map segment {segment}"))?;
+        sq_sum += e.report.ate.stats_m.rmse.powi(2) * count as f64;
+        scored += count;
+        path_sum += e.report.gt_path_length_m;
+        if segment_counts.iter().all(|&(_, c)| c <= count) && ev.is_none() {
+            ev = Some((segment, e));
+        }
+    }
+    let largest = ev.as_ref().map(|(s, _)| *s);
+    let report = ev.as_ref().map(|(_, e)| &e.report);
+    let ate_rmse_all = if scored > 0 { (sq_sum / scored as f64).sqrt() } else { f64::NAN };
     let (mut ause_mean, mut ause_random) = (f64::NAN, f64::NAN);
     let (mut ause_depth_mean, mut ause_depth_random) = (f64::NAN, f64::NAN);
     if let (true, Some(report)) = (with_ause, report) {
         let scale = report.alignment.scale;
-        let kfs: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.variance.is_some()).map(|k| (k.id, k.seq)).collect();
+        let kfs: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.variance.is_some() && Some(k.segment) == largest).map(|k| (k.id, k.seq)).collect();
         let missing: Vec<u64> = kfs.iter().map(|k| k.1).filter(|s| !seq.depth.contains_key(s)).collect();
         let renderer = &seq.renderer;
         let rendered: Vec<(u64, PlaneF32)> = missing.par_iter().map(|&s| (s, renderer.render(s as usize).depth_m)).collect();
@@ -405,9 +428,11 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
         frames_with_pose: estimated.len() as u64,
         frames_measured,
         init_restarts: counters.init_restarts,
-        ate_rmse_m: report.map_or(f64::NAN, |r| r.ate.stats_m.rmse),
-        ate_percent_of_path: report.and_then(|r| r.ate_rmse_percent_of_path).unwrap_or(f64::NAN),
-        path_m: report.map_or(f64::NAN, |r| r.gt_path_length_m),
+        segments_started: 1 + counters.segments_started,
+        segments_final: segment_counts.len() as u64,
+        ate_rmse_m: ate_rmse_all,
+        ate_percent_of_path: if path_sum > 0.0 { 100.0 * ate_rmse_all / path_sum } else { f64::NAN },
+        path_m: if scored > 0 { path_sum } else { f64::NAN },
         keyframes_inserted: counters.keyframes_inserted,
         loops_closed: counters.loops_closed,
         lost_frames: counters.lost_frames,
@@ -432,13 +457,13 @@ fn markdown(report: &BenchReport) -> String {
         report.cases.first().map_or(0, |c| c.runs),
         if report.rss_reset_per_run { "peak reset before each run" } else { "peak since process start" }
     );
-    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | init frames | restarts | frames with pose | measured | FPS after init | p99 ms after init | max ms after init | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | AUSE of depth | AUSE of depth, random | RSS MiB | frames MiB | tracker heap MiB |");
+    let _ = writeln!(s, "| sequence | size | frames | loops | FPS | CPU ms/frame | flow | BA | cov | loop | global BA | p50 ms | p99 ms | max ms | init frames | restarts | frames with pose | measured | segments started | segments at end | FPS after init | p99 ms after init | max ms after init | ATE m | ATE % path | path m | KFs | loops closed | lost | AUSE | AUSE random | AUSE of depth | AUSE of depth, random | RSS MiB | frames MiB | tracker heap MiB |");
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for c in &report.cases {
         let m = &c.median;
         let _ = writeln!(
             s,
-            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
+            "| {} | {}x{} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.1} | {:.1} | {} | {} | {} | {} | {} | {} | {:.1} | {:.1} | {:.1} | {:.4} | {:.3} | {:.1} | {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.3} | {:.0} | {:.0} | {:.1} |",
             c.sequence,
             c.width,
             c.height,
@@ -458,6 +483,8 @@ fn markdown(report: &BenchReport) -> String {
             m.init_restarts,
             m.frames_with_pose,
             m.frames_measured,
+            m.segments_started,
+            m.segments_final,
             m.fps_tracking,
             m.latency_p99_tracking_ms,
             m.latency_max_tracking_ms,
@@ -515,7 +542,7 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                 for r in 0..args.runs {
                     let m = run_once(&mut seq, &cfg, cap, !args.no_ause, rss_reset).with_context(|| format!("{name} {w}x{h} run {}", r + 1))?;
                     eprintln!(
-                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms; after init ({} frames): {:.1} fps, p99 {:.1} ms, max {:.1} ms; {} of {} frames with a pose ({} measured, {} init restarts), ATE {:.3}% of path over them, loops {}, AUSE {:.3} (random {:.3}), of depth {:.3} (random {:.3})",
+                        "  loop closure {}: run {}/{}: {:.1} fps ({:.1} CPU ms/frame), p99 {:.1} ms; after init ({} frames): {:.1} fps, p99 {:.1} ms, max {:.1} ms; {} of {} frames with a pose ({} measured, {} init restarts, {} segments started, {} at the end), ATE {:.3}% of path over them, loops {}, AUSE {:.3} (random {:.3}), of depth {:.3} (random {:.3})",
                         if lc { "on" } else { "off" },
                         r + 1,
                         args.runs,
@@ -530,6 +557,8 @@ pub fn run(args: BenchTrackArgs) -> anyhow::Result<()> {
                         seq.frames.len(),
                         m.frames_measured,
                         m.init_restarts,
+                        m.segments_started,
+                        m.segments_final,
                         m.ate_percent_of_path,
                         m.loops_closed,
                         m.ause,

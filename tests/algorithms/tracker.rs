@@ -50,6 +50,13 @@ const LOW_FPS_TURN_ATE_PERCENT: f64 = 1.0;
 /// path (measured 0.433; unmasked it never initialises).
 const OVERLAY_MASKED_ATE_PERCENT: f64 = 1.0;
 
+/// The burst on the 100-frame loop at 160x120 (start and duration, s), the frames with a pose
+/// at least and the ATE bound over them after the merge, percent of path (measured 100 frames,
+/// 0.596 %; the loop without the burst 0.26 %).
+const BURST_LOOP: (f64, f64) = (3.5, 1.5);
+const BURST_LOOP_FRAMES: usize = 95;
+const BURST_LOOP_ATE_PERCENT: f64 = 1.0;
+
 fn survey(frames: usize) -> (SimRenderer, Vec<Frame>) {
     let r = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, frames, 160, 120, 0.5)).unwrap();
     let f = render_all(&r);
@@ -362,6 +369,54 @@ fn a_fast_turn_at_a_low_frame_rate_is_tracked_through() {
     assert!(with_pose >= 68 && turns >= 1, "{with_pose} frames with a pose, {turns} turns");
     assert!(percent < LOW_FPS_TURN_ATE_PERCENT, "ATE {percent:.3} %");
     assert!(without_pose < 60 && no_turns == 0, "without turns {without_pose} frames with a pose");
+}
+
+/// A turbidity burst in the middle of a loop: tracking is lost, relocalisation finds nothing
+/// where the vehicle came out of it, so a new map segment starts (`new_segment_after`); when
+/// the loop comes back over its start, a keyframe of the new segment matches one of the first
+/// and the two merge with the Sim(3) the match measures. The final trajectory is one segment
+/// and scores like the loop without the burst; without new segments the run never tracks again.
+#[test]
+fn a_new_segment_after_a_loss_merges_when_the_loop_returns() {
+    let cfg = duv_sim::SimConfig {
+        burst: Some(duv_sim::Burst { start_s: BURST_LOOP.0, duration_s: BURST_LOOP.1, factor: 8.0 }),
+        ..sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)
+    };
+    let renderer = SimRenderer::new(&cfg).unwrap();
+    let frames = render_all(&renderer);
+    let run_with = |new_segment_after: usize| {
+        let tc = duv_track::TrackerConfig { new_segment_after, ..small_tracker_config() };
+        track_sim::run(&renderer, &frames, &tc, capacity(2))
+    };
+    let r = run_with(3);
+    let c = r.tracker.counters();
+    let started = r.outputs.iter().position(|o| matches!(o.note, TrackNote::NewSegment { .. })).expect("a new segment");
+    let TrackNote::NewSegment { segment, failed_frames } = r.outputs[started].note else { unreachable!() };
+    assert_eq!((segment, failed_frames), (1, 3), "{:?}", r.outputs[started].note);
+    assert!(r.outputs[started].note.to_string().contains("segment 1"));
+    // Live, the frames after it are in segment 1 until the merge puts them in segment 0.
+    let merged = r.outputs.iter().position(|o| o.loop_closed && o.seq as usize > started).expect("a merge");
+    assert!(r.outputs[started..merged].iter().all(|o| o.segment == 1), "{:?}", r.outputs[started..merged].iter().map(|o| o.segment).collect::<Vec<_>>());
+    assert!(r.outputs[merged..].iter().all(|o| o.segment == 0));
+    assert!(c.segments_started >= 1 && c.segments_merged >= 1, "{c:?}");
+    assert_eq!(r.tracker.live_segments(), 1);
+    let counts = r.trajectory.segment_counts();
+    assert_eq!(counts.len(), 1, "{counts:?}");
+    let est = r.trajectory.estimated();
+    let (_, percent, _) = track_sim::ate(renderer.poses(), &est);
+    // Only frames in the burst may lack a pose (after the merge its frames lie between two
+    // measured poses of one segment, less than 2 s apart, and are interpolated).
+    let burst = (BURST_LOOP.0 * 10.0) as usize..((BURST_LOOP.0 + BURST_LOOP.1) * 10.0) as usize;
+    let without_pose: Vec<usize> = (0..frames.len()).filter(|&i| !r.trajectory.sources[i].has_pose()).collect();
+    eprintln!("loop with a burst, 100 frames at 160x120: {} frames with a pose, segments {counts:?}, {c:?}, ATE {percent:.3} % of path; without a pose {without_pose:?}", est.len());
+    assert!(est.len() >= BURST_LOOP_FRAMES, "{} frames with a pose", est.len());
+    assert!(percent < BURST_LOOP_ATE_PERCENT, "ATE {percent:.3} %");
+    // Without new segments it stays lost after the burst.
+    let r0 = run_with(0);
+    let est0 = r0.trajectory.estimated();
+    assert_eq!(r0.tracker.counters().segments_started, 0);
+    assert!(est0.len() + 20 < est.len(), "{} frames with a pose without new segments, {} with", est0.len(), est.len());
+    assert!(without_pose.iter().all(|i| burst.contains(i)), "frames outside the burst without a pose: {without_pose:?}");
 }
 
 /// A static textured overlay (a burned-in display, the vehicle's frame in view) over a

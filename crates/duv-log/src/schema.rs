@@ -103,7 +103,7 @@ pub struct TopicSchema {
     pub message_encoding: String,
 }
 
-const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
+const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"segment":{"type":"integer"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
 const HEALTH_SCHEMA: &str = r#"{"title":"duv.Health","type":"object","description":"once a second: queue depths and drops, per-stage latency, budget headroom, host memory"}"#;
 
 fn foxglove_schema<T: Encode>() -> TopicSchema {
@@ -205,6 +205,8 @@ pub struct PoseRecord {
     /// Id of the keyframe this frame became.
     pub new_keyframe: Option<u64>,
     pub loop_closed: bool,
+    /// The map segment the pose is in (a new one after a loss; 0 is the dive's first).
+    pub segment: u32,
     /// Why the frame has no measured pose yet (`init_low_confidence`, `init_small_flow`,
     /// `init_pose_failed`, `init_keyframe`), with the measured value and its threshold.
     pub why: Option<&'static str>,
@@ -222,6 +224,9 @@ pub struct StateMessage {
     pub keyframe: Option<u64>,
     pub new_keyframe: Option<u64>,
     pub loop_closed: bool,
+    /// The map segment the pose is in (logs written before segments read back as 0).
+    #[serde(default)]
+    pub segment: u32,
     /// Why the frame has no measured pose yet, with the value against its limit (logs
     /// written before these fields read back as `None`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -376,6 +381,7 @@ struct StateRef<'a> {
     keyframe: Option<u64>,
     new_keyframe: Option<u64>,
     loop_closed: bool,
+    segment: u32,
     #[serde(skip_serializing_if = "Option::is_none")]
     why: Option<&'a str>,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -514,6 +520,7 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
                 keyframe: p.keyframe,
                 new_keyframe: p.new_keyframe,
                 loop_closed: p.loop_closed,
+                segment: p.segment,
                 why: p.why,
                 value: p.value,
                 limit: p.limit,
@@ -728,7 +735,7 @@ mod tests {
         assert_eq!(decode_frame(&got[0].3, 42, 0).unwrap(), frame);
 
         let pose = Se3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
-        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false, why: None, value: None, limit: None };
+        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false, segment: 2, why: None, value: None, limit: None };
         got.clear();
         enc.encode(&LogItem::Pose(rec), |e, b| {
             got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
@@ -740,7 +747,7 @@ mod tests {
         assert!((back.translation.vector - pose.translation.vector).norm() < 1e-12);
         assert!(back.rotation.angle_to(&pose.rotation) < 1e-12);
         let state: StateMessage = serde_json::from_slice(&got[2].3).unwrap();
-        assert_eq!((state.seq, state.state.as_str(), state.keyframe), (3, "tracking", Some(1)));
+        assert_eq!((state.seq, state.state.as_str(), state.keyframe, state.segment), (3, "tracking", Some(1), 2));
         assert_eq!(Topic::from_name("/slam/pose"), Some(Topic::Pose));
         assert_eq!(Topic::CameraImage.schema().unwrap().name, "foxglove.RawImage");
         assert_eq!(Topic::Pose.schema().unwrap().name, "foxglove.PoseInFrame");

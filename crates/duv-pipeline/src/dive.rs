@@ -31,6 +31,8 @@ pub struct LoggedFrame {
     pub state: Option<String>,
     /// Why it had no measured pose yet, as logged (`init_small_flow 1.2 / 2.5`).
     pub note: Option<String>,
+    /// The map segment it was tracked in, as logged.
+    pub segment: Option<u32>,
 }
 
 /// One process's share of the dive.
@@ -103,8 +105,8 @@ impl DiveHistory {
     }
 
     pub fn add_pose(&mut self, part: u32, seq: u64, t_ns: Timestamp, world_from_cam: Se3) {
-        let (state, note) = self.frames.get(&seq).map_or((None, None), |f| (f.state.clone(), f.note.clone()));
-        self.frames.insert(seq, LoggedFrame { t_ns, world_from_cam, state, note });
+        let (state, note, segment) = self.frames.get(&seq).map_or((None, None, None), |f| (f.state.clone(), f.note.clone(), f.segment));
+        self.frames.insert(seq, LoggedFrame { t_ns, world_from_cam, state, note, segment });
         if let Some(p) = self.parts.get_mut(&part) {
             p.poses_logged += 1;
             p.first_seq = Some(p.first_seq.map_or(seq, |s| s.min(seq)));
@@ -112,10 +114,11 @@ impl DiveHistory {
         }
     }
 
-    pub fn add_state(&mut self, seq: u64, state: &str, note: Option<String>) {
+    pub fn add_state(&mut self, seq: u64, state: &str, note: Option<String>, segment: u32) {
         if let Some(f) = self.frames.get_mut(&seq) {
             f.state = Some(state.to_string());
             f.note = note;
+            f.segment = Some(segment);
         }
     }
 
@@ -144,9 +147,14 @@ pub struct DiveRecord {
     pub end: String,
     /// Frames of the dive (`states.txt`).
     pub frames: u64,
-    /// Of them, frames with a pose estimate (`trajectory.txt`).
+    /// Of them, frames with a pose estimate (every map segment's).
     #[serde(default)]
     pub frames_with_pose: u64,
+    /// Frames with a pose estimate per map segment at the end, `[segment, frames]`: segment
+    /// 0's are `trajectory.txt`, another's `trajectory-segment-N.txt` (segments that never
+    /// merged into the first; their frames and scales are their own).
+    #[serde(default)]
+    pub segments: Vec<(u32, u64)>,
     pub first_seq: Option<u64>,
     pub last_seq: Option<u64>,
     /// Keyframes in `keyframes.txt`.
@@ -202,7 +210,7 @@ mod tests {
         let mut h = DiveHistory::default();
         let p0 = h.open_segment(0, Some(&part_metadata(0, "fresh")));
         h.add_pose(p0, 0, Timestamp::from_ns(0), Se3::identity());
-        h.add_state(0, "initializing", Some("init_small_flow 1.2 <= 2.5".into()));
+        h.add_state(0, "initializing", Some("init_small_flow 1.2 <= 2.5".into()), 0);
         h.add_pose(p0, 1, Timestamp::from_ns(10), Se3::identity());
         let p1 = h.open_segment(1, Some(&part_metadata(1, "resumed")));
         let moved = Se3::from_parts(nalgebra::Translation3::new(1.0, 0.0, 0.0), nalgebra::UnitQuaternion::identity());

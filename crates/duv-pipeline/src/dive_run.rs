@@ -722,6 +722,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         end,
         frames: written.frames,
         frames_with_pose: written.frames_with_pose,
+        segments: written.segments.clone(),
         first_seq: written.first_seq,
         last_seq: written.last_seq,
         keyframes: written.keyframes,
@@ -744,7 +745,8 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         progress(&Progress::DepthFilesNotWritten { error: &e });
     }
     // The map: final keyframe poses, a last optimisation, the exports.
-    let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().map(|k| (k.id, k.world_from_cam)).collect();
+    // (Segment 0's: the map holds no other segment's keyframes.)
+    let final_poses: Vec<(u64, duv_core::Se3)> = fin.keyframes.iter().filter(|k| k.segment == 0).map(|k| (k.id, k.world_from_cam)).collect();
     // A failed export (e.g. a full disk) is reported, like a stopped log; the tracking outputs
     // and the report still follow.
     match map.finish(&final_poses, &opts.out, !result.interrupted) {

@@ -200,7 +200,9 @@ fn copy_rgb(image: &FrameImage, out: &mut ImageRgb8) {
 }
 
 /// The window records: the newest `keyframes` of the tracker, at most once per `interval_ns`
-/// of frame time, only after measured frames (not during initialisation or while lost).
+/// of frame time, only after measured frames (not during initialisation or while lost). Only
+/// map segment 0's (the dive's world frame, the one the map is built in): a resume continues
+/// in it, and a vehicle that was elsewhere starts a new segment from there.
 struct WindowLog {
     keyframes: usize,
     interval_ns: i64,
@@ -210,8 +212,8 @@ struct WindowLog {
 
 impl WindowLog {
     fn due(&mut self, tracker: &Tracker, out: &TrackOutput, align: Option<&Sim3>) -> Option<Arc<TrackerWindow>> {
-        let n = tracker.num_keyframes();
-        if self.keyframes == 0 || n < 2 || !out.state.is_tracked() {
+        let n = tracker.keyframes().filter(|k| k.segment == 0).count();
+        if self.keyframes == 0 || n < 2 || !out.state.is_tracked() || out.segment != 0 {
             return None;
         }
         let t = out.t_ns.t_ns();
@@ -234,7 +236,7 @@ impl WindowLog {
             to.data.extend(from.data.iter().map(|v| v * by));
         };
         let live = n.min(self.keyframes);
-        for (k, wk) in tracker.keyframes().skip(n - live).zip(w.keyframes.iter_mut()) {
+        for (k, wk) in tracker.keyframes().filter(|k| k.segment == 0).skip(n - live).zip(w.keyframes.iter_mut()) {
             wk.id = k.id;
             wk.seq = k.seq;
             wk.t_ns = k.t_ns;

@@ -404,6 +404,7 @@ fn pose_record(out: &TrackOutput, world_from_tracker: Option<&Sim3>) -> PoseReco
         keyframe: out.anchor.map(|a| a.keyframe),
         new_keyframe: out.new_keyframe,
         loop_closed: out.loop_closed,
+        segment: out.segment,
         why: out.note.kind(),
         value: out.note.value_and_limit().map(|v| v.0),
         limit: out.note.value_and_limit().map(|v| v.1),

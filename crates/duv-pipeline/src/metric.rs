@@ -129,18 +129,19 @@ impl MetricRecord {
 
 /// The dive's map-to-metric similarity: every tracked (or relocalised) frame of the dive, this
 /// process's over the logged history, and the tracker's live keyframes (their depth on the
-/// tracker's grid, moved into the dive's frame by `world_from_tracker`).
+/// tracker's grid, moved into the dive's frame by `world_from_tracker`); map segment 0's only
+/// (the dive's world frame: another segment's poses are in a frame and scale of their own).
 pub fn estimate_for_dive(nav: &[NavSample], fin: &FinalTrajectory, history: Option<&DiveHistory>, tracker: &Tracker, world_from_tracker: Option<&Sim3>) -> Result<MetricAlignment, duv_track::metric::MetricError> {
     let mut frames: std::collections::BTreeMap<i64, MapFrame> = std::collections::BTreeMap::new();
     if let Some(h) = history {
         for f in h.frames.values() {
-            if matches!(f.state.as_deref(), Some("tracking") | Some("relocalised")) {
+            if matches!(f.state.as_deref(), Some("tracking") | Some("relocalised")) && f.segment.unwrap_or(0) == 0 {
                 frames.insert(f.t_ns.t_ns(), MapFrame { t_ns: f.t_ns, world_from_cam: f.world_from_cam });
             }
         }
     }
-    for (pose, state) in fin.frames.iter().zip(&fin.states) {
-        if matches!(state, TrackingState::Tracking | TrackingState::Relocalised) {
+    for ((pose, state), segment) in fin.frames.iter().zip(&fin.states).zip(&fin.segments) {
+        if matches!(state, TrackingState::Tracking | TrackingState::Relocalised) && *segment == 0 {
             frames.insert(pose.t_ns.t_ns(), MapFrame { t_ns: pose.t_ns, world_from_cam: pose.world_from_cam });
         }
     }
@@ -150,7 +151,7 @@ pub fn estimate_for_dive(nav: &[NavSample], fin: &FinalTrajectory, history: Opti
     let s = world_from_tracker.map_or(1.0, |a| a.scaling()) as f32;
     let scaled: Vec<(duv_core::Timestamp, duv_core::Se3, PlaneF32)> = tracker
         .keyframes()
-        .filter(|_| s != 1.0)
+        .filter(|k| s != 1.0 && k.segment == 0)
         .map(|k| {
             let mut inv = k.inv_depth.clone();
             inv.data.iter_mut().for_each(|d| *d /= s);
@@ -163,6 +164,7 @@ pub fn estimate_for_dive(nav: &[NavSample], fin: &FinalTrajectory, history: Opti
     } else {
         tracker
             .keyframes()
+            .filter(|k| k.segment == 0)
             .map(|k| MapKeyframe { t_ns: k.t_ns, world_from_cam: world_from_tracker.map_or(k.world_from_cam, |a| duv_core::pose::sim3_apply_to_pose(a, &k.world_from_cam)), inv_depth: k.inv_depth, camera: grid })
             .collect()
     };

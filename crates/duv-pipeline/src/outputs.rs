@@ -1,6 +1,7 @@
 //! The files a finished run leaves in its folder, written in one place: `trajectory.txt`
-//! (every frame with a pose estimate, TUM; `states.txt` lists every frame with its state and
-//! where its pose comes from), `keyframes.txt`, the keyframes' full-resolution inverse depth and
+//! (every frame of map segment 0, the dive's world frame, with a pose estimate, TUM; a segment
+//! started after a loss that never merged into it goes to `trajectory-segment-N.txt`;
+//! `states.txt` lists every frame with its state, where its pose comes from and its segment), `keyframes.txt`, the keyframes' full-resolution inverse depth and
 //! variance (PFM, through the keyframe folder's writer, [`KeyframeFolder`]), `states.txt`. A resumed dive's poses are put in the recorded frame here,
 //! once ([`finish_trajectory`]), and merged with what earlier processes of the dive logged
 //! ([`DiveHistory`]): the files describe the whole dive.
@@ -34,7 +35,7 @@ pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &Tracker, world
     // Keyframes the tracker was seeded with on resume never came out of `track`: they are
     // listed from the tracker's graph.
     let known: std::collections::BTreeSet<u64> = fin.keyframes.iter().map(|k| k.id).collect();
-    let seeded: Vec<FinalKeyframe> = tracker.keyframes().filter(|k| !known.contains(&k.id)).map(|k| FinalKeyframe { id: k.id, t_ns: k.t_ns, seq: k.seq, world_from_cam: k.world_from_cam, live: true }).collect();
+    let seeded: Vec<FinalKeyframe> = tracker.keyframes().filter(|k| !known.contains(&k.id)).map(|k| FinalKeyframe { id: k.id, t_ns: k.t_ns, seq: k.seq, world_from_cam: k.world_from_cam, segment: k.segment, live: true }).collect();
     fin.keyframes.extend(seeded);
     fin.keyframes.sort_by_key(|k| k.id);
     if let Some(a) = world_from_tracker {
@@ -51,19 +52,22 @@ pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &Tracker, world
 /// What [`write_tracking_outputs`] wrote.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct WrittenOutputs {
-    /// The tracker's live keyframes, `(id, frame seq)`.
+    /// The tracker's live keyframes of map segment 0, `(id, frame seq)`.
     pub live: Vec<(u64, u64)>,
     /// Frames in `states.txt` (the whole dive) and the first and last frame number.
     pub frames: u64,
-    /// Of them, frames with a pose estimate: those in `trajectory.txt`.
+    /// Of them, frames with a pose estimate (every segment's).
     pub frames_with_pose: u64,
+    /// Frames with a pose estimate per map segment, ascending by segment: segment 0's are
+    /// `trajectory.txt`, another's `trajectory-segment-N.txt`.
+    pub segments: Vec<(u32, u64)>,
     pub first_seq: Option<u64>,
     pub last_seq: Option<u64>,
     /// Of them, poses logged by earlier processes of the dive (not tracked by this one).
     pub frames_from_log: u64,
     /// Keyframes in `keyframes.txt`.
     pub keyframes: u64,
-    /// What `trajectory.txt` holds (the whole dive, by frame number).
+    /// What `trajectory.txt` holds (segment 0 of the whole dive, by frame number).
     pub trajectory: Vec<StampedPose>,
 }
 
@@ -73,7 +77,8 @@ pub struct WrittenOutputs {
 /// With `metric` (metric outputs, [`super::metric`]), inverse depth is in 1/m: divided by the
 /// scale, the variance by its square.
 pub fn write_keyframe_depths(folder: &KeyframeFolder, tracker: &Tracker, inv: &mut PlaneF32, var: &mut PlaneF32, metric: Option<&Sim3>) -> Result<(), OutputError> {
-    let live: Vec<u64> = tracker.keyframes().map(|k: KeyframeView| k.id).collect();
+    // Segment 0's (the keyframes of `keyframes.txt`).
+    let live: Vec<u64> = tracker.keyframes().filter(|k| k.segment == 0).map(|k: KeyframeView| k.id).collect();
     for id in live {
         tracker.upsample_keyframe(id, inv, var).map_err(|source| OutputError::Upsample { id, source })?;
         if let Some(a) = metric {
@@ -103,9 +108,9 @@ pub fn write_tracking_outputs(
     history: Option<&DiveHistory>,
     metric: Option<&Sim3>,
 ) -> Result<WrittenOutputs, OutputError> {
-    // seq -> (pose, state, where the pose comes from, tracker ms, note): the log's first, this
-    // process's over them.
-    let mut dive: BTreeMap<u64, (StampedPose, String, PoseSource, Option<f64>, String)> = BTreeMap::new();
+    // seq -> (pose, state, where the pose comes from, tracker ms, note, segment): the log's
+    // first, this process's over them.
+    let mut dive: BTreeMap<u64, (StampedPose, String, PoseSource, Option<f64>, String, u32)> = BTreeMap::new();
     if let Some(h) = history {
         for (&seq, f) in &h.frames {
             let state = f.state.clone().unwrap_or_else(|| "unknown".into()).replace(' ', "_");
@@ -117,15 +122,16 @@ pub fn write_tracking_outputs(
                 "unknown" => PoseSource::Logged,
                 _ => PoseSource::None,
             };
-            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, source, None, f.note.clone().unwrap_or_default()));
+            dive.insert(seq, (StampedPose { t_ns: f.t_ns, world_from_cam: f.world_from_cam }, state, source, None, f.note.clone().unwrap_or_default(), f.segment.unwrap_or(0)));
         }
     }
     let from_log = dive.len() as u64;
     let mut replaced = 0u64;
     let sources = fin.sources.iter().copied().chain(std::iter::repeat(PoseSource::None));
-    for ((((f, pose), s), source), dt) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(sources).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))) {
+    let segments = fin.segments.iter().copied().chain(std::iter::repeat(0));
+    for (((((f, pose), s), source), dt), segment) in frames.iter().zip(&fin.frames).zip(&fin.states).zip(sources).zip(latencies.iter().map(Some).chain(std::iter::repeat(None))).zip(segments) {
         let state = s.name().replace(' ', "_");
-        if dive.insert(f.seq, (*pose, state, source, dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string())).is_some() {
+        if dive.insert(f.seq, (*pose, state, source, dt.map(|d| d.as_secs_f64() * 1e3), f.note.to_string(), segment)).is_some() {
             replaced += 1;
         }
     }
@@ -134,12 +140,34 @@ pub fn write_tracking_outputs(
     for v in dive.values_mut() {
         v.0.world_from_cam = to_output(&v.0.world_from_cam);
     }
-    // Only estimated poses: a frame without one is in `states.txt` with pose `none`.
-    let trajectory: Vec<StampedPose> = dive.values().filter(|v| v.2.has_pose()).map(|v| v.0).collect();
+    // Only estimated poses: a frame without one is in `states.txt` with pose `none`. One file
+    // per map segment (each its own frame and scale): segment 0, the dive's world frame,
+    // `trajectory.txt`, another that never merged into it `trajectory-segment-N.txt`.
+    let mut per_segment: BTreeMap<u32, Vec<StampedPose>> = BTreeMap::new();
+    for v in dive.values().filter(|v| v.2.has_pose()) {
+        per_segment.entry(v.5).or_default().push(v.0);
+    }
+    let trajectory = per_segment.get(&0).cloned().unwrap_or_default();
     duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &trajectory)?;
+    for (segment, poses) in per_segment.iter().filter(|(s, _)| **s != 0) {
+        duv_core::io::tum::write_trajectory(&out.join(format!("trajectory-segment-{segment}.txt")), poses)?;
+    }
+    // A segment file an earlier run of this folder left, that this dive does not have, goes.
+    if let Ok(dir) = std::fs::read_dir(out) {
+        for entry in dir.flatten() {
+            let name = entry.file_name();
+            let Some(n) = name.to_str().and_then(|n| n.strip_prefix("trajectory-segment-")).and_then(|n| n.strip_suffix(".txt")) else { continue };
+            if n.parse::<u32>().map_or(true, |s| s == 0 || !per_segment.contains_key(&s)) {
+                if let Err(e) = std::fs::remove_file(entry.path()) {
+                    tracing::warn!("{}: stale segment trajectory not removed: {e}", entry.path().display());
+                }
+            }
+        }
+    }
     // Keyframes: the logged poses, this process's final ones over them.
     let mut keyframes: BTreeMap<u64, (Timestamp, duv_core::Se3)> = history.map(|h| h.keyframes.clone()).unwrap_or_default();
-    for k in &fin.keyframes {
+    // Segment 0's: the dive's world frame, as `trajectory.txt`.
+    for k in fin.keyframes.iter().filter(|k| k.segment == 0) {
         keyframes.insert(k.id, (k.t_ns, k.world_from_cam));
     }
     let mut kf_text = String::from("# keyframe_id timestamp tx ty tz qx qy qz qw\n");
@@ -154,12 +182,17 @@ pub fn write_tracking_outputs(
         kf_written += 1;
     }
     duv_core::io::write_atomic(&out.join("keyframes.txt"), kf_text.as_bytes())?;
-    let live: Vec<(u64, u64)> = tracker.keyframes().map(|k: KeyframeView| (k.id, k.seq)).collect();
+    let live: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.segment == 0).map(|k: KeyframeView| (k.id, k.seq)).collect();
     let mut states_text = String::from(
-        "# seq timestamp state pose tracker_ms [why, while initialising] (pose: measured, interpolated between measured poses, none: not in trajectory.txt, logged: an earlier process's pose whose state was lost; tracker_ms nan: tracked by an earlier process of the dive, see dive.json)\n",
+        "# seq timestamp state pose tracker_ms segment [why, while initialising] (pose: measured, interpolated between measured poses, none: no pose estimate, logged: an earlier process's pose whose state was lost; tracker_ms nan: tracked by an earlier process of the dive, see dive.json; segment: the map segment of the pose, 0 in trajectory.txt, N in trajectory-segment-N.txt, - without a pose)\n",
     );
-    for (seq, (pose, state, source, ms, note)) in &dive {
+    for (seq, (pose, state, source, ms, note, segment)) in &dive {
         let _ = write!(states_text, "{seq} {:.9} {state} {} {:.3}", pose.t_ns.as_secs_f64(), source.name(), ms.unwrap_or(f64::NAN));
+        if source.has_pose() {
+            let _ = write!(states_text, " {segment}");
+        } else {
+            states_text.push_str(" -");
+        }
         if !note.is_empty() {
             let _ = write!(states_text, " {note}");
         }
@@ -170,7 +203,8 @@ pub fn write_tracking_outputs(
     Ok(WrittenOutputs {
         live,
         frames: dive.len() as u64,
-        frames_with_pose: trajectory.len() as u64,
+        frames_with_pose: per_segment.values().map(|v| v.len() as u64).sum(),
+        segments: per_segment.iter().map(|(s, v)| (*s, v.len() as u64)).collect(),
         first_seq: dive.keys().next().copied(),
         last_seq: dive.keys().next_back().copied(),
         frames_from_log: from_log - replaced,

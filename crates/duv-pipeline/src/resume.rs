@@ -83,6 +83,9 @@ pub struct ResumeState {
     /// One more than the largest keyframe id the log mentions (logged, or announced in a
     /// tracking state): the new tracker's keyframes get ids from here.
     pub next_keyframe_id: u64,
+    /// One more than the largest map segment the log mentions: the new tracker's new
+    /// segments get ids from here (segment 0, the dive's world frame, is what it continues in).
+    pub next_segment: u32,
     /// When the log holds no whole keyframe: the logged frames that were the newest keyframes
     /// (up to `seed_keyframes`, at least 3), else the newest with measured recorded poses
     /// `SEED_FRAME_SPACING` apart (at least 3); oldest first, to seed the tracker.
@@ -143,6 +146,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     let mut window_seqs: Vec<u64> = Vec::new();
     let mut keyframes: VecDeque<(u64, Keyframe)> = VecDeque::new();
     let mut next_keyframe_id = 0u64;
+    let mut next_segment = 1u32;
     let mut camera = None;
     let mut poses_recorded = 0u64;
     let mut last: Option<(u64, Timestamp)> = None;
@@ -201,14 +205,18 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                             (Some(v), Some(l)) => format!("{w} {v:.4} (limit {l:.4})"),
                             _ => w.clone(),
                         });
-                        history.add_state(s.seq, &s.state, note);
+                        history.add_state(s.seq, &s.state, note, s.segment);
+                        next_segment = next_segment.max(s.segment.saturating_add(1));
+                        // A resume continues in segment 0 (the dive's world frame): another
+                        // segment's poses are in another frame and seed nothing.
+                        let in_world = s.segment == 0;
                         if let Some(p) = poses.get_mut(&s.seq) {
                             // Lost frames hold a prediction, not a measurement.
-                            p.1 = !s.state.starts_with("lost");
+                            p.1 = !s.state.starts_with("lost") && in_world;
                         }
                         // Measured, or a keyframe of the initialisation (its pose refined by
                         // the initialisation BA; the frames between hold provisional poses).
-                        if s.tracked || (s.new_keyframe.is_some() && !s.state.starts_with("lost")) {
+                        if in_world && (s.tracked || (s.new_keyframe.is_some() && !s.state.starts_with("lost"))) {
                             measured.insert(s.seq);
                         } else {
                             measured.remove(&s.seq);
@@ -314,6 +322,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
             keyframes: Vec::new(),
             window_seq: None,
             next_keyframe_id,
+            next_segment,
             seed_frames: Vec::new(),
             restart: false,
             retrack: Vec::new(),
@@ -408,7 +417,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
     let checkpoint = CheckpointStore::new(out_dir.join("checkpoints"), 3).load_newest();
     // A logged frame that does not decode is skipped like a dropped frame.
     let restart = restart_from.is_some();
-    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, seed_frames, restart, retrack, unposed, last_frame_seq, poses, camera, checkpoint, history }))
+    Ok(Some(ResumeState { log_dir, recovered, last_seq, last_t_ns, poses_recorded, recent, keyframes, window_seq, next_keyframe_id, next_segment, seed_frames, restart, retrack, unposed, last_frame_seq, poses, camera, checkpoint, history }))
 }
 
 /// Whether `pose` is where a tracker starts (its first keyframe, the identity), so that a new
@@ -531,6 +540,7 @@ fn resume_point(poses: &BTreeMap<u64, (Se3, bool)>, seq: u64) -> Option<ResumePo
 /// Relocalises a new, empty `tracker` in the frame `state` recorded: seeded with the logged
 /// keyframes when the log holds any, else by the fallback (see the module docs).
 pub fn relocalise(tracker: &mut Tracker, state: &mut ResumeState) -> Result<Relocalisation, PipelineError> {
+    tracker.reserve_segment_ids(state.next_segment);
     if state.restart && tracker.num_keyframes() == 0 {
         let from_seq = state.retrack.first().map_or(0, |f| f.seq);
         return Ok(Relocalisation::Restarted { from_seq, retrack: std::mem::take(&mut state.retrack) });

@@ -98,6 +98,14 @@ pub struct TrackerConfig {
     /// snowy start, a turbidity burst, a low frame rate), and waiting would hang for ever. The
     /// keyframes collected so far are dropped with their provisional poses. 0 never restarts.
     pub init_restart_after: usize,
+    /// Recovery in new territory (multi-map): after this many good frames in a row (image
+    /// health passed) that could not be relocalised against any stored keyframe, a new map
+    /// segment starts from the current frame, as a new initialisation whose first pose is the
+    /// prediction and whose depth is the last reference keyframe's median. The stored keyframes
+    /// stay: when a later keyframe matches one of another segment (loop detection, or
+    /// relocalisation after a loss), the two are merged with the Sim(3) the match measures.
+    /// 0 never starts one (stays lost until relocalised).
+    pub new_segment_after: usize,
     /// Marine snow removal ([`crate::despeckle`]): bright specks up to `2 r + 1` pixels across
     /// and brighter than their surroundings by more than `despeckle_min_contrast` are replaced
     /// by the seabed around them before the flow sees the frame. `r` is
@@ -310,6 +318,7 @@ impl Default for TrackerConfig {
             init_level_start: true,
             init_level_start_rms_px: 0.05,
             init_restart_after: 3,
+            new_segment_after: 3,
             turn_search_deg: 8.0,
             despeckle: true,
             despeckle_radius_px: 0,

@@ -20,6 +20,8 @@ pub(crate) struct Keyframe {
     pub id: u64,
     pub t_ns: Timestamp,
     pub seq: u64,
+    /// Map segment (a new one starts after a loss; merged segments share the older id).
+    pub segment: u32,
     pub world_from_cam: Se3,
     /// Product of the scale corrections the pose graph applied to this keyframe (1 at birth).
     pub scale_correction: f64,
@@ -48,6 +50,7 @@ impl Keyframe {
             id: 0,
             t_ns: Timestamp(0),
             seq: 0,
+            segment: 0,
             world_from_cam: Se3::identity(),
             scale_correction: 1.0,
             inv_depth: PlaneF32::new(low_w, low_h),

@@ -76,6 +76,19 @@
 //!   make the frame [`TrackingState::Lost`] with a predicted pose; nothing of it reaches the
 //!   map. The next good frame tries the reference keyframe with the prediction, then the
 //!   stored keyframes by thumbnail NCC, verified by flow and motion-only BA.
+//! - *Map segments (multi-map)*: after `new_segment_after` good frames in a row that match no
+//!   stored keyframe, a new segment starts from the current frame as a new initialisation
+//!   (first pose the prediction, depth the last reference's median) and tracking goes on in
+//!   it ([`TrackNote::NewSegment`]). Every keyframe and [`TrackOutput`] carries its segment;
+//!   window, initialisation, pose graph, global BA, eviction anchors and depth-consistency
+//!   neighbours combine one segment's keyframes only. Loop detection ranks every other
+//!   segment's keyframes as well: a verified match across segments (unseeded flow,
+//!   motion-only pose against the other keyframe's depth, median depth ratio) merges them with
+//!   that Sim(3), the younger segment moved into the older one's frame and scale, then a
+//!   global BA over the merged segment. Relocalisation against another segment's keyframe
+//!   continues tracking in that segment. Keyframes are handed on ([`Tracker::next_final_keyframe`])
+//!   only from segment 0, the world frame the map is built in; another segment's wait until it
+//!   merges into segment 0 (`tracker/segments.rs`).
 //!
 //! - *Resume*: [`Tracker::seed`] starts a new tracker from keyframes an earlier run logged
 //!   (recorded ids, poses, images, inverse depth averaged down to the depth grid, variance),

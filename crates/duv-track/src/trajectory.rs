@@ -31,6 +31,8 @@ pub struct FinalKeyframe {
     pub t_ns: Timestamp,
     pub seq: u64,
     pub world_from_cam: Se3,
+    /// Map segment at the end (after merges).
+    pub segment: u32,
     /// Still in the graph at the end (its depth maps are available from the tracker).
     pub live: bool,
 }
@@ -83,14 +85,32 @@ pub struct FinalTrajectory {
     pub states: Vec<TrackingState>,
     /// Where each frame's pose comes from.
     pub sources: Vec<PoseSource>,
+    /// Each frame's map segment at the end (after merges; meaningful where it has a pose):
+    /// poses of different segments are in different frames and scales.
+    pub segments: Vec<u32>,
     /// Every keyframe kept (pruned ones excluded), by id.
     pub keyframes: Vec<FinalKeyframe>,
 }
 
 impl FinalTrajectory {
-    /// The frames with a pose estimate, in order (what `trajectory.txt` holds).
+    /// The frames with a pose estimate, in order, of every segment.
     pub fn estimated(&self) -> Vec<StampedPose> {
         self.frames.iter().zip(&self.sources).filter(|(_, s)| s.has_pose()).map(|(p, _)| *p).collect()
+    }
+    /// The frames of `segment` with a pose estimate, in order (`trajectory.txt` holds segment
+    /// 0's, the dive's world frame).
+    pub fn estimated_in(&self, segment: u32) -> Vec<StampedPose> {
+        (0..self.frames.len()).filter(|&i| self.sources[i].has_pose() && self.segments[i] == segment).map(|i| self.frames[i]).collect()
+    }
+    /// The segments with at least one posed frame, ascending, with their posed frame counts.
+    pub fn segment_counts(&self) -> Vec<(u32, usize)> {
+        let mut counts: BTreeMap<u32, usize> = BTreeMap::new();
+        for i in 0..self.frames.len() {
+            if self.sources[i].has_pose() {
+                *counts.entry(self.segments[i]).or_default() += 1;
+            }
+        }
+        counts.into_iter().collect()
     }
 }
 
@@ -132,14 +152,15 @@ impl TrajectoryRecorder {
         &self.frames
     }
 
-    /// Pose and current scale correction of keyframe `id`, following eviction anchors.
-    fn keyframe_pose(&self, live: &BTreeMap<u64, (Se3, f64)>, id: u64) -> Option<(Se3, f64)> {
+    /// Pose, current scale correction and segment of keyframe `id`, following eviction
+    /// anchors (an evicted keyframe is anchored to one of its segment).
+    fn keyframe_pose(&self, live: &BTreeMap<u64, (Se3, f64, u32)>, id: u64) -> Option<(Se3, f64, u32)> {
         // Walk up to a live keyframe, then compose back down.
         let mut chain: Vec<&EvictedKeyframe> = Vec::new();
         let mut cur = id;
-        let (mut pose, mut scale) = loop {
-            if let Some(&(p, s)) = live.get(&cur) {
-                break (p, s);
+        let (mut pose, mut scale, segment) = loop {
+            if let Some(&(p, s, seg)) = live.get(&cur) {
+                break (p, s, seg);
             }
             let rec = self.evicted.get(&cur)?;
             chain.push(&rec.ev);
@@ -153,63 +174,68 @@ impl TrajectoryRecorder {
             pose *= scale_translation(&ev.anchor.kf_from_cam, ratio);
             scale = ev.scale_correction * ratio;
         }
-        Some((pose, scale))
+        Some((pose, scale, segment))
     }
 
     /// Final poses: anchored frames through their keyframe's current pose, the rest
     /// interpolated.
     pub fn finish(&self, tracker: &Tracker) -> FinalTrajectory {
-        // Before the initial BA the keyframes' poses are provisional: nothing is measured yet.
-        let live: BTreeMap<u64, (Se3, f64)> = if tracker.is_initialised() {
-            tracker.keyframes().map(|k| (k.id, (k.world_from_cam, k.scale_correction))).collect()
+        // Before the initial BA the keyframes' poses are provisional: nothing is measured yet;
+        // the same holds for a later segment still collecting its first keyframes.
+        let collecting = tracker.collecting_segment();
+        let live: BTreeMap<u64, (Se3, f64, u32)> = if tracker.is_initialised() {
+            tracker.keyframes().filter(|k| Some(k.segment) != collecting).map(|k| (k.id, (k.world_from_cam, k.scale_correction, k.segment))).collect()
         } else {
             BTreeMap::new()
         };
-        let resolved: Vec<Option<Se3>> = self
+        let resolved: Vec<Option<(Se3, u32)>> = self
             .frames
             .iter()
             .map(|f| {
                 let a = f.anchor?;
-                let (kf_pose, scale) = self.keyframe_pose(&live, a.keyframe)?;
-                Some(kf_pose * scale_translation(&a.kf_from_cam, scale / a.kf_scale))
+                let (kf_pose, scale, segment) = self.keyframe_pose(&live, a.keyframe)?;
+                Some((kf_pose * scale_translation(&a.kf_from_cam, scale / a.kf_scale), segment))
             })
             .collect();
         let mut frames = Vec::with_capacity(self.frames.len());
         let mut sources = Vec::with_capacity(self.frames.len());
+        let mut segments = Vec::with_capacity(self.frames.len());
         let max_gap_ns = MAX_INTERPOLATION_GAP_S * 1e9;
         for (i, f) in self.frames.iter().enumerate() {
-            let (pose, source) = match resolved[i] {
-                Some(p) => (p, PoseSource::Measured),
+            let (pose, source, segment) = match resolved[i] {
+                Some((p, seg)) => (p, PoseSource::Measured, seg),
                 None => {
                     let before = (0..i).rev().find(|&j| resolved[j].is_some());
                     let after = (i + 1..self.frames.len()).find(|&j| resolved[j].is_some());
-                    match (before, after) {
-                        (Some(b), Some(a)) => {
+                    match (before.and_then(|b| Some((b, resolved[b]?))), after.and_then(|a| Some((a, resolved[a]?)))) {
+                        (Some((b, (pb, sb))), Some((a, (pa, sa)))) => {
                             let (tb, ta) = (self.frames[b].t_ns.0 as f64, self.frames[a].t_ns.0 as f64);
                             let u = if ta > tb { ((f.t_ns.0 as f64 - tb) / (ta - tb)).clamp(0.0, 1.0) } else { 0.0 };
-                            let pose = interpolate(&resolved[b].unwrap_or(f.live), &resolved[a].unwrap_or(f.live), u);
-                            if ta - tb <= max_gap_ns {
-                                (pose, PoseSource::Interpolated)
+                            let pose = interpolate(&pb, &pa, u);
+                            // Only between two poses of one segment (two frames otherwise).
+                            if ta - tb <= max_gap_ns && sb == sa {
+                                (pose, PoseSource::Interpolated, sb)
                             } else {
-                                (pose, PoseSource::None)
+                                (pose, PoseSource::None, sb)
                             }
                         }
-                        _ => (f.live, PoseSource::None),
+                        _ => (f.live, PoseSource::None, 0),
                     }
                 }
             };
             frames.push(StampedPose { t_ns: f.t_ns, world_from_cam: pose });
             sources.push(source);
+            segments.push(segment);
         }
         let keyframes = self
             .keyframes
             .iter()
             .filter_map(|&(id, t_ns, seq)| {
-                let (pose, _) = self.keyframe_pose(&live, id)?;
-                Some(FinalKeyframe { id, t_ns, seq, world_from_cam: pose, live: live.contains_key(&id) })
+                let (pose, _, segment) = self.keyframe_pose(&live, id)?;
+                Some(FinalKeyframe { id, t_ns, seq, world_from_cam: pose, segment, live: live.contains_key(&id) })
             })
             .collect();
-        FinalTrajectory { frames, states: self.frames.iter().map(|f| f.state).collect(), sources, keyframes }
+        FinalTrajectory { frames, states: self.frames.iter().map(|f| f.state).collect(), sources, segments, keyframes }
     }
 }
 

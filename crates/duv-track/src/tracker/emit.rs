@@ -74,13 +74,29 @@ impl Tracker {
         let lag = self.emit.lag?;
         // Before the initial BA the poses are provisional and the initialisation may start
         // again without them: nothing is handed on yet.
-        if self.st.init.phase != Phase::Running {
+        if !self.is_initialised() {
             return None;
         }
-        while self.emit.waiting.len() > if flush { 0 } else { lag } {
-            let id = self.emit.waiting.pop_front()?;
-            let Some(view) = self.keyframes().find(|k| k.id == id) else { continue };
-            let (world_from_cam, t_ns) = (view.world_from_cam, view.t_ns);
+        let collecting = self.collecting_segment();
+        // Due: the waiting keyframes with at least `lag` newer ones (all with `flush`). Only
+        // segment 0's are handed on (the map is built in its frame): another segment's wait
+        // until it merges into segment 0, and are dropped at the end if it never does.
+        let mut i = 0;
+        while i < self.emit.waiting.len().saturating_sub(if flush { 0 } else { lag }) {
+            let id = self.emit.waiting[i];
+            let Some((segment, world_from_cam, t_ns)) = self.keyframes().find(|k| k.id == id).map(|k| (k.segment, k.world_from_cam, k.t_ns)) else {
+                self.emit.waiting.remove(i);
+                continue;
+            };
+            if segment != 0 || collecting == Some(0) {
+                if flush {
+                    self.emit.waiting.remove(i);
+                } else {
+                    i += 1;
+                }
+                continue;
+            }
+            self.emit.waiting.remove(i);
             if let Err(e) = self.upsample_keyframe(id, &mut out.inv_depth, &mut out.inv_depth_variance) {
                 tracing::debug!("keyframe {id}: no depth yet: {e}");
                 continue;

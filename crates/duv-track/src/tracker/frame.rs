@@ -61,6 +61,7 @@ impl State {
             state: self.motion.state,
             anchor: None,
             new_keyframe: None,
+            segment: self.segments.current,
             evicted: None,
             loop_closed,
             note: TrackNote::None,
@@ -103,6 +104,7 @@ impl State {
             }
         };
         out.evicted = self.insert.pending_eviction.take();
+        out.segment = self.segments.current;
         Ok(out)
     }
 
@@ -186,6 +188,7 @@ impl State {
             return Ok(self.lost(out, LostReason::NoPose));
         }
         self.accept_pose(&pose, frame.seq, frames_since);
+        self.segments.failed_relocs = 0;
         self.motion.state = TrackingState::Tracking;
         out.state = TrackingState::Tracking;
         out.world_from_cam = pose;

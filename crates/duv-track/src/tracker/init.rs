@@ -53,19 +53,19 @@ impl State {
         self.splat_depth(prev, s);
         // Incremental initialisation: link the new keyframe and refine everything collected
         // so far, so that each new keyframe starts from a better map than constant depth.
+        // (Only this segment's keyframes: while collecting they are the newest ones.)
         self.graph.new_edges.clear();
-        let n = self.graph.kfs.len();
+        self.window_of_current_segment(usize::MAX);
+        let n = self.win.window.len();
         for back in 1..=self.cfg.edges_per_keyframe.min(n - 1) {
-            let c = self.graph.kfs.order[n - 1 - back];
+            let c = self.win.window[n - 1 - back];
             for (f, t) in [(s, c), (c, s)] {
                 if let Some(e) = self.graph.edges.add(f, t, false) {
                     self.graph.new_edges.push(e);
                 }
             }
         }
-        self.win.window.clear();
-        self.win.window.extend_from_slice(&self.graph.kfs.order);
-        let initialising = self.graph.kfs.len() >= self.cfg.init_keyframes;
+        let initialising = n >= self.cfg.init_keyframes;
         if self.cfg.defer_rounds && self.cfg.defer_insertion && !initialising {
             // Staged like an insertion: one edge per stage, then the solve over everything
             // collected, on the following frames. The initial BA itself is not staged.
@@ -85,7 +85,7 @@ impl State {
             self.initialise()?;
             out.state = TrackingState::Tracking;
         } else {
-            out.note = TrackNote::InitKeyframe { keyframes: self.graph.kfs.len(), needed: self.cfg.init_keyframes };
+            out.note = TrackNote::InitKeyframe { keyframes: n, needed: self.cfg.init_keyframes };
         }
         out.world_from_cam = self.graph.kfs.slots[s].world_from_cam;
         self.motion.last_pose = out.world_from_cam;
@@ -101,19 +101,31 @@ impl State {
         if self.cfg.init_restart_after == 0 || failed < self.cfg.init_restart_after {
             return out;
         }
-        let dropped = self.graph.kfs.len();
-        tracing::info!(seq = frame.seq, failed, dropped, "track: initialisation restarted ({failed} frames in a row did not match the reference keyframe)");
         self.insert.pending = None;
-        while let Some(&s) = self.graph.kfs.order.first() {
+        // This segment's keyframes (the newest ones while collecting); other segments stay.
+        let mut dropped = 0;
+        while let Some(&s) = self.graph.kfs.order.last() {
+            if !self.in_current_segment(s) {
+                break;
+            }
             self.graph.edges.remove_touching(s);
-            self.graph.kfs.remove_at(0);
+            self.graph.kfs.remove_at(self.graph.kfs.len() - 1);
+            dropped += 1;
         }
+        tracing::info!(seq = frame.seq, failed, dropped, "track: initialisation restarted ({failed} frames in a row did not match the reference keyframe)");
         self.graph.new_edges.clear();
         self.win.window.clear();
         self.init.failed_in_a_row = 0;
         self.stats.counters.init_restarts += 1;
-        let s = self.start_first_keyframe(frame);
-        out.world_from_cam = Se3::identity();
+        let s = if self.segments.current == 0 {
+            self.start_first_keyframe(frame)
+        } else {
+            // A later segment starts again where it was predicted, at its depth.
+            let inv_depth = self.segments.start_inv_depth;
+            let pose = out.world_from_cam;
+            self.start_segment_keyframe(frame, &pose, inv_depth)
+        };
+        out.world_from_cam = self.graph.kfs.slots[s].world_from_cam;
         out.new_keyframe = Some(self.graph.kfs.slots[s].id);
         out.anchor = Some(FrameAnchor { keyframe: self.graph.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: 1.0 });
         out.note = TrackNote::InitRestarted { failed_frames: failed, dropped_keyframes: dropped };
@@ -139,11 +151,13 @@ impl State {
     /// Monocular initialisation: link the collected keyframes, then alternate flow and BA with
     /// many iterations from constant inverse depth.
     pub(super) fn initialise(&mut self) -> Result<(), TrackError> {
-        let n = self.graph.kfs.len();
+        // The current segment's keyframes (every keyframe for the first segment).
+        self.window_of_current_segment(usize::MAX);
+        let n = self.win.window.len();
         self.graph.new_edges.clear();
         for pos in 1..n {
             for back in 1..=self.cfg.edges_per_keyframe.min(pos) {
-                let (a, b) = (self.graph.kfs.order[pos], self.graph.kfs.order[pos - back]);
+                let (a, b) = (self.win.window[pos], self.win.window[pos - back]);
                 for (f, t) in [(a, b), (b, a)] {
                     if let Some(e) = self.graph.edges.add(f, t, false) {
                         self.graph.new_edges.push(e);
@@ -151,8 +165,6 @@ impl State {
                 }
             }
         }
-        self.win.window.clear();
-        self.win.window.extend_from_slice(&self.graph.kfs.order);
         let collected = self.initial_rounds()?;
         let rms = self.cfg.init_level_start_rms_px as f64;
         let try_level = self.cfg.init_level_start && collected.is_none_or(|c| c > 0.5 * rms * rms);
@@ -176,11 +188,12 @@ impl State {
         }
         self.window_covariance(1);
         self.init.phase = Phase::Running;
+        self.segments.initialised_once = true;
         self.motion.state = TrackingState::Tracking;
-        let newest = self.graph.kfs.newest().expect("initialised with keyframes");
+        let newest = self.win.window[n - 1];
         self.motion.ref_slot = newest;
         let last = &self.graph.kfs.slots[newest];
-        let before = &self.graph.kfs.slots[self.graph.kfs.order[n - 2]];
+        let before = &self.graph.kfs.slots[self.win.window[n - 2]];
         let frames = last.seq.saturating_sub(before.seq).max(1) as f64;
         self.motion.velocity = se3_exp(&(se3_log(&before.world_from_cam.inv_mul(&last.world_from_cam)) / frames));
         self.motion.last_pose = last.world_from_cam;

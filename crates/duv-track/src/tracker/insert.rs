@@ -50,6 +50,7 @@ impl State {
         std::mem::swap(&mut kf.frame, &mut self.work.cur);
         kf.t_ns = t_ns;
         kf.seq = seq;
+        kf.segment = self.segments.current;
         kf.world_from_cam = *pose;
         for (g, &v) in kf.guide.iter_mut().zip(&self.work.grey.data) {
             *g = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
@@ -59,12 +60,18 @@ impl State {
     }
 
     /// Evicts the most redundant keyframe outside the window (the one whose neighbours are
-    /// closest by induced flow); it is re-expressed relative to its predecessor.
+    /// closest by induced flow); it is re-expressed relative to its predecessor, which is of
+    /// its segment.
     pub(super) fn evict(&mut self) {
         let n = self.graph.kfs.len();
         let last_candidate = n.saturating_sub(self.cap.ba_window);
+        let order = &self.graph.kfs.order;
+        let seg = |pos: usize| self.graph.kfs.slots[order[pos]].segment;
         let mut best: Option<(f32, usize)> = None;
         for pos in 1..last_candidate.min(n.saturating_sub(1)) {
+            if seg(pos - 1) != seg(pos) || seg(pos + 1) != seg(pos) {
+                continue;
+            }
             let (a, b) = (self.graph.kfs.order[pos - 1], self.graph.kfs.order[pos + 1]);
             let (ka, kb) = (&self.graph.kfs.slots[a], &self.graph.kfs.slots[b]);
             let (flow, overlap) = induced_flow(&self.low, &ka.world_from_cam, &ka.inv_depth, &kb.world_from_cam, None);
@@ -73,7 +80,9 @@ impl State {
                 best = Some((score, pos));
             }
         }
-        let pos = best.map(|(_, p)| p).unwrap_or(1.min(n - 1));
+        // Else the oldest with a predecessor of its segment, else the oldest after the first.
+        let fallback = (1..last_candidate.max(2).min(n)).find(|&pos| seg(pos - 1) == seg(pos)).unwrap_or(1.min(n - 1));
+        let pos = best.map(|(_, p)| p).unwrap_or(fallback);
         let s = self.graph.kfs.order[pos];
         let parent = self.graph.kfs.order[pos - 1];
         let (kp, ks) = (&self.graph.kfs.slots[parent], &self.graph.kfs.slots[s]);
@@ -166,9 +175,7 @@ impl State {
         let prev = self.motion.ref_slot;
         let s = self.insert_keyframe_slot(frame, &pose);
         self.splat_depth(prev, s);
-        let n = self.graph.kfs.len();
-        self.win.window.clear();
-        self.win.window.extend_from_slice(&self.graph.kfs.order[n.saturating_sub(self.cap.ba_window)..]);
+        self.window_of_current_segment(self.cap.ba_window);
         self.graph.new_edges.clear();
         let mut links = 0;
         for i in (0..self.win.window.len().saturating_sub(1)).rev() {

@@ -17,16 +17,16 @@ pub(super) struct Loops {
 }
 
 impl State {
-    /// Dense BA over every live keyframe with every stored edge (loops included).
+    /// Dense BA over every live keyframe of the current segment with every stored edge
+    /// between them (loops included).
     pub(super) fn global_ba(&mut self) -> bool {
-        let n = self.graph.kfs.len();
-        if n < 3 || self.loops.gba.capacity().max_keyframes < n {
+        self.window_of_current_segment(usize::MAX);
+        let n = self.win.window.len();
+        if n < 3 || self.loops.gba.capacity().max_keyframes < n || !self.in_current_segment(self.motion.ref_slot) {
             return false;
         }
         let t0 = Instant::now();
         let ref_before = self.graph.kfs.slots[self.motion.ref_slot].world_from_cam;
-        self.win.window.clear();
-        self.win.window.extend_from_slice(&self.graph.kfs.order);
         let cfg = self.ba_config(self.cfg.global_iterations, 1);
         let r = load_window(&mut self.loops.gba, &self.low, &mut self.graph.kfs, &self.graph.edges, &self.win.window, true)
             .and_then(|_| self.loops.gba.solve(&cfg))
@@ -86,12 +86,16 @@ impl State {
         Some(*self.work.scratch.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1 as f64)
     }
 
-    /// Ranks live keyframes among the first `upto` by thumbnail NCC with `thumb` into
+    /// Ranks live keyframes among the first `upto` (and, with `other_segments`, every
+    /// keyframe of another segment) by thumbnail NCC with `thumb` into
     /// `self.reloc.candidates` (best first, at least `min_ncc`).
-    pub(super) fn rank_candidates(&mut self, thumb_slot: Option<usize>, upto: usize, min_ncc: f32) {
+    pub(super) fn rank_candidates(&mut self, thumb_slot: Option<usize>, upto: usize, other_segments: bool, min_ncc: f32) {
         self.reloc.candidates.clear();
-        for pos in 0..upto.min(self.graph.kfs.len()) {
+        for pos in 0..self.graph.kfs.len() {
             let c = self.graph.kfs.order[pos];
+            if pos >= upto && !(other_segments && !self.in_current_segment(c)) {
+                continue;
+            }
             let t = match thumb_slot {
                 Some(s) => &self.graph.kfs.slots[s].thumb,
                 None => &self.work.cur_thumb,
@@ -109,12 +113,13 @@ impl State {
     /// was closed too recently or the graph is too short).
     pub(super) fn rank_loop_candidates(&mut self, s: usize) {
         let n = self.graph.kfs.len();
-        if self.loops.inserted_since_loop < self.cfg.loop_min_interval || n < self.cfg.loop_exclude_recent + 3 {
+        let others = self.graph.kfs.order.iter().any(|&k| !self.in_current_segment(k));
+        if self.loops.inserted_since_loop < self.cfg.loop_min_interval || (n < self.cfg.loop_exclude_recent + 3 && !others) {
             self.loops.loop_candidates.clear();
             return;
         }
         let t0 = Instant::now();
-        self.rank_candidates(Some(s), n - 1 - self.cfg.loop_exclude_recent, self.cfg.loop_min_ncc);
+        self.rank_candidates(Some(s), (n - 1).saturating_sub(self.cfg.loop_exclude_recent), true, self.cfg.loop_min_ncc);
         self.loops.loop_candidates.clear();
         let k = self.reloc.candidates.len().min(self.cfg.loop_candidates);
         self.loops.loop_candidates.extend_from_slice(&self.reloc.candidates[..k]);
@@ -135,16 +140,20 @@ impl State {
 
     pub(super) fn loop_candidate_inner(&mut self, s: usize, k: usize) -> Result<bool, TrackError> {
         let c = self.loops.loop_candidates[k].1;
+        // A candidate of another segment: the two poses are in different frames, so no seed,
+        // and a match merges the segments.
+        let cross = self.graph.kfs.slots[c].segment != self.graph.kfs.slots[s].segment;
         // Seeded by the flow the current (drifted) estimate induces: drift is small next
         // to what the pyramid recovers, and the seed only offers each patch a candidate.
-        {
+        if !cross {
             let (kc, ks) = (&self.graph.kfs.slots[c], &self.graph.kfs.slots[s]);
             induced_flow(&self.low, &kc.world_from_cam, &kc.inv_depth, &ks.world_from_cam, Some(&mut self.work.seed));
         }
+        let seed = (!cross).then_some(&self.work.seed);
         let t0 = Instant::now();
         let (kc, ks) = (&self.graph.kfs.slots[c].frame, &self.graph.kfs.slots[s].frame);
         if let Some(level) = self.loops.loop_screen_level {
-            let screen = self.work.flow.screen(kc, ks, Some(&self.work.seed), level, self.cfg.loop_screen_weight)?;
+            let screen = self.work.flow.screen(kc, ks, seed, level, self.cfg.loop_screen_weight)?;
             self.stats.times.flow += t0.elapsed();
             self.stats.times.loop_screens += 1;
             if screen.confident_fraction < self.cfg.loop_screen_min_fraction {
@@ -152,7 +161,7 @@ impl State {
             }
         }
         let t0 = Instant::now();
-        self.work.flow.estimate(kc, ks, Some(&self.work.seed), &mut self.work.res)?;
+        self.work.flow.estimate(kc, ks, seed, &mut self.work.res)?;
         self.stats.times.flow += t0.elapsed();
         self.stats.times.flow_estimates += 1;
         let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
@@ -160,13 +169,16 @@ impl State {
         if conf < self.cfg.loop_min_confident_fraction || mean_flow > self.cfg.loop_max_flow_px {
             return Ok(false);
         }
-        // Start from the current estimate (close: drift is a few percent of the loop).
-        let mut world_from_s = self.graph.kfs.slots[s].world_from_cam;
+        // Start from the current estimate (close: drift is a few percent of the loop), or
+        // across segments from the candidate's pose (the match is a near view of it).
+        let mut world_from_s = if cross { self.graph.kfs.slots[c].world_from_cam } else { self.graph.kfs.slots[s].world_from_cam };
         if self.motion_only(c, &mut world_from_s).is_err() {
             return Ok(false);
         }
         let Some(scale) = self.relative_scale(c, &world_from_s, s) else { return Ok(false) };
-        if !(0.2..5.0).contains(&scale) {
+        // A new segment's scale is a guess (its start depth), so a wider range across segments.
+        let range = if cross { 0.05..20.0 } else { 0.2..5.0 };
+        if !range.contains(&scale) {
             return Ok(false);
         }
         // The loop edge c -> s keeps this flow for the global BA.
@@ -175,8 +187,12 @@ impl State {
             ed.target.data.copy_from_slice(&self.work.obs_target.data);
             ed.weight.data.copy_from_slice(&self.work.obs_weight.data);
         }
-        let z = sim3_relative(&self.graph.kfs.slots[c].world_from_cam.inv_mul(&world_from_s), scale);
-        self.pose_graph(c, s, z);
+        if cross {
+            self.merge_segments(c, s, &world_from_s, scale);
+        } else {
+            let z = sim3_relative(&self.graph.kfs.slots[c].world_from_cam.inv_mul(&world_from_s), scale);
+            self.pose_graph(c, s, z);
+        }
         if self.cfg.loop_global_ba {
             self.global_ba();
         }
@@ -205,18 +221,21 @@ impl State {
     /// depth scale) to every keyframe.
     pub(super) fn pose_graph(&mut self, c: usize, s: usize, z: duv_core::Sim3) {
         let ref_before = self.graph.kfs.slots[self.motion.ref_slot].world_from_cam;
+        // The current segment's keyframes (a loop within one segment).
+        self.window_of_current_segment(usize::MAX);
         self.loops.pg.clear();
-        for &k in &self.graph.kfs.order {
+        for &k in &self.win.window {
             self.loops.pg.add_node(&self.graph.kfs.slots[k].world_from_cam);
         }
         for i in 1..self.loops.pg.nodes.len() {
             let z = self.loops.pg.nodes[i - 1].inverse() * self.loops.pg.nodes[i];
             self.loops.pg.add_constraint(PoseConstraint { a: i - 1, b: i, z, weight: 1.0 });
         }
-        let (Some(a), Some(b)) = (self.graph.kfs.position(c), self.graph.kfs.position(s)) else { return };
+        let pos = |slot: usize| self.win.window.iter().position(|&k| k == slot);
+        let (Some(a), Some(b)) = (pos(c), pos(s)) else { return };
         self.loops.pg.add_constraint(PoseConstraint { a, b, z, weight: 1.0 });
         self.loops.pg.optimize(self.cfg.pose_graph_iterations);
-        for (i, &k) in self.graph.kfs.order.iter().enumerate() {
+        for (i, &k) in self.win.window.iter().enumerate() {
             let (pose, scale) = sim3_split(&self.loops.pg.nodes[i]);
             let kf = &mut self.graph.kfs.slots[k];
             kf.world_from_cam = pose;
@@ -233,7 +252,7 @@ impl State {
         }
         let kr = &self.graph.kfs.slots[self.motion.ref_slot];
         let rel = ref_before.inv_mul(&self.motion.last_pose);
-        let scale = self.loops.pg.nodes[self.graph.kfs.position(self.motion.ref_slot).unwrap_or(0)].scaling();
+        let scale = self.loops.pg.nodes[self.win.window.iter().position(|&k| k == self.motion.ref_slot).unwrap_or(0)].scaling();
         self.motion.last_pose = kr.world_from_cam * scale_translation(&rel, scale);
         self.motion.velocity = scale_translation(&self.motion.velocity, scale);
     }

@@ -4,8 +4,9 @@
 //! [`Tracker`] is the public face; its working state is split by concern, one file each:
 //! [`output`] (what it reports), [`frame`] (per-frame tracking), [`init`] (initialisation),
 //! [`window`] (edges and window BA), [`insert`] (keyframe insertion and eviction), [`loops`]
-//! (loop closure and global BA), [`reloc`] (relocalisation), [`seed`] (resume seeding) and
-//! [`emit`] (keyframes handed on once their depth is final).
+//! (loop closure and global BA), [`reloc`] (relocalisation), [`segments`] (map segments after
+//! a loss and their merging), [`seed`] (resume seeding) and [`emit`] (keyframes handed on once
+//! their depth is final).
 
 mod emit;
 mod frame;
@@ -15,6 +16,7 @@ mod loops;
 mod output;
 mod reloc;
 mod seed;
+mod segments;
 mod window;
 
 pub use output::{EvictedKeyframe, FrameAnchor, KeyframeView, LostReason, StageTimes, TrackNote, TrackOutput, TrackerCounters, TrackingState};
@@ -25,6 +27,7 @@ use insert::{Insertion, Pending};
 use loops::Loops;
 use output::Stats;
 use reloc::Reloc;
+use segments::Segments;
 use window::WindowBa;
 use window::{load_window, write_back};
 
@@ -117,6 +120,8 @@ struct State {
     loops: Loops,
     /// Relocalisation.
     reloc: Reloc,
+    /// Map segments (multi-map).
+    segments: Segments,
     /// The tracking status and motion model.
     motion: Motion,
     /// Keyframe insertion and eviction.
@@ -274,10 +279,29 @@ impl Tracker {
         Ok(())
     }
 
-    /// Whether the initial BA has run (before it, keyframe poses are provisional and the
-    /// initialisation may start again without them).
+    /// Whether an initial BA has run (before it, keyframe poses are provisional and the
+    /// initialisation may start again without them). A new segment collecting its first
+    /// keyframes does not undo it: see [`collecting_segment`](Self::collecting_segment).
     pub fn is_initialised(&self) -> bool {
-        self.st.init.phase == Phase::Running
+        self.st.init.phase == Phase::Running || self.st.segments.initialised_once
+    }
+    /// The segment whose keyframes are still provisional (collecting for its initial BA), if any.
+    pub fn collecting_segment(&self) -> Option<u32> {
+        (self.st.init.phase != Phase::Running).then_some(self.st.segments.current)
+    }
+    /// New segments get ids from `next` on at least (a resume: the ids an earlier process of
+    /// the dive gave out).
+    pub fn reserve_segment_ids(&mut self, next: u32) {
+        self.st.segments.next = self.st.segments.next.max(next);
+    }
+    /// The segment new keyframes join.
+    pub fn current_segment(&self) -> u32 {
+        self.st.segments.current
+    }
+    /// Distinct map segments among the live keyframes (1 once initialised and never lost for
+    /// good, or when every segment merged).
+    pub fn live_segments(&self) -> usize {
+        self.st.live_segments()
     }
     pub fn state(&self) -> TrackingState {
         self.st.motion.state
@@ -343,7 +367,7 @@ impl Tracker {
                     // A poisoned lock only means another call panicked mid-way: the scratch is
                     // rewritten from scratch here.
                     let mut scratch = st.consistency.lock().unwrap_or_else(|e| e.into_inner());
-                    let neighbours = st.consistency_neighbours(kf.id, cfg.consistency_neighbours).map(|s| (st.graph.kfs.slots[s].world_from_cam, &st.graph.kfs.slots[s].inv_depth));
+                    let neighbours = st.consistency_neighbours(kf.id, kf.segment, cfg.consistency_neighbours).map(|s| (st.graph.kfs.slots[s].world_from_cam, &st.graph.kfs.slots[s].inv_depth));
                     consistency_grid(&st.low, &kf.world_from_cam, &kf.inv_depth, neighbours, cfg.consistency_radius_cells, &mut scratch);
                     blend_consistency(variance, &scratch.mean, st.factor, cfg.consistency_exponent);
                 }
@@ -368,6 +392,7 @@ fn view(kf: &Keyframe) -> KeyframeView<'_> {
         id: kf.id,
         t_ns: kf.t_ns,
         seq: kf.seq,
+        segment: kf.segment,
         world_from_cam: kf.world_from_cam,
         scale_correction: kf.scale_correction,
         inv_depth: &kf.inv_depth,
@@ -535,12 +560,18 @@ fn scale_translation(pose: &Se3, s: f64) -> Se3 {
 impl State {
     /// Slots of the keyframes with a variance that are up to `n` places before and after
     /// keyframe `id` in insertion order (ids grow with insertion), itself left out; `id` need
-    /// not be live (the keyframe just evicted).
-    fn consistency_neighbours(&self, id: u64, n: usize) -> impl Iterator<Item = usize> + '_ {
+    /// not be live (the keyframe just evicted). Only keyframes of `segment` (another segment's
+    /// frame is not this one's).
+    fn consistency_neighbours(&self, id: u64, segment: u32, n: usize) -> impl Iterator<Item = usize> + '_ {
         let order = &self.graph.kfs.order;
         let before = order.partition_point(|&s| self.graph.kfs.slots[s].id < id);
         let after = order.partition_point(|&s| self.graph.kfs.slots[s].id <= id);
-        order[before.saturating_sub(n)..before].iter().chain(&order[after..(after + n).min(order.len())]).copied().filter(|&s| self.graph.kfs.slots[s].has_variance)
+        let slots = &self.graph.kfs.slots;
+        order[before.saturating_sub(n)..before]
+            .iter()
+            .chain(&order[after..(after + n).min(order.len())])
+            .copied()
+            .filter(move |&s| slots[s].has_variance && slots[s].segment == segment)
     }
 
     fn new(camera: &PinholeCamera, config: &TrackerConfig, cap: TrackerCapacity) -> Result<Self, TrackError> {
@@ -600,6 +631,7 @@ impl State {
                 inserted_since_global: 0,
             },
             reloc: Reloc { candidates: Vec::with_capacity(cap.max_keyframes) },
+            segments: Segments { current: 0, next: 1, failed_relocs: 0, start_inv_depth: cfg.initial_inv_depth, initialised_once: false },
             motion: Motion { state: TrackingState::Initializing, ref_slot: 0, last_pose: Se3::identity(), velocity: Se3::identity(), last_seq: 0 },
             insert: Insertion { evicted_slot: None, pending_eviction: None, pending: None },
             stats: Stats { times: StageTimes::default(), counters: TrackerCounters::default() },

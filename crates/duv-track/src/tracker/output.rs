@@ -82,6 +82,9 @@ pub enum TrackNote {
     /// could not be matched to the reference keyframe (`init_restart_after`); the
     /// `dropped_keyframes` collected before were dropped.
     InitRestarted { failed_frames: usize, dropped_keyframes: usize },
+    /// A new map segment starts from this frame: `failed_frames` good frames in a row could
+    /// not be relocalised against any stored keyframe (`new_segment_after`).
+    NewSegment { segment: u32, failed_frames: usize },
 }
 
 impl TrackNote {
@@ -94,6 +97,7 @@ impl TrackNote {
             TrackNote::InitPoseFailed => Some("init_pose_failed"),
             TrackNote::InitKeyframe { .. } => Some("init_keyframe"),
             TrackNote::InitRestarted { .. } => Some("init_restarted"),
+            TrackNote::NewSegment { .. } => Some("new_segment"),
         }
     }
 
@@ -103,7 +107,7 @@ impl TrackNote {
             TrackNote::InitLowConfidence { confident, needed } => Some((confident as f64, needed as f64)),
             TrackNote::InitSmallFlow { flow_px, needed_px } => Some((flow_px as f64, needed_px as f64)),
             TrackNote::InitKeyframe { keyframes, needed } => Some((keyframes as f64, needed as f64)),
-            TrackNote::InitRestarted { failed_frames, .. } => Some((failed_frames as f64, failed_frames as f64)),
+            TrackNote::InitRestarted { failed_frames, .. } | TrackNote::NewSegment { failed_frames, .. } => Some((failed_frames as f64, failed_frames as f64)),
             TrackNote::None | TrackNote::InitPoseFailed => None,
         }
     }
@@ -121,6 +125,9 @@ impl std::fmt::Display for TrackNote {
             TrackNote::InitKeyframe { keyframes, needed } => write!(f, "keyframe {keyframes} of the {needed} the initialisation takes"),
             TrackNote::InitRestarted { failed_frames, dropped_keyframes } => {
                 write!(f, "initialisation restarted from this frame: {failed_frames} frame(s) in a row did not match the reference keyframe ({dropped_keyframes} keyframe(s) dropped)")
+            }
+            TrackNote::NewSegment { segment, failed_frames } => {
+                write!(f, "map segment {segment} starts from this frame: {failed_frames} good frame(s) in a row matched no stored keyframe")
             }
         }
     }
@@ -160,6 +167,9 @@ pub struct TrackOutput {
     pub anchor: Option<FrameAnchor>,
     /// Id of the keyframe this frame became.
     pub new_keyframe: Option<u64>,
+    /// The map segment the pose is expressed in, when reported (a later merge may move it
+    /// into an older segment: the final trajectory follows the anchor keyframe).
+    pub segment: u32,
     /// A keyframe evicted from the full store while inserting this one.
     pub evicted: Option<EvictedKeyframe>,
     /// A loop closure was accepted at this frame.
@@ -208,6 +218,10 @@ pub struct TrackerCounters {
     pub init_restarts: u64,
     /// Frames whose pose was found at a turned prediction (`turn_search_deg`).
     pub turns_found: u64,
+    /// New map segments started after a loss (`new_segment_after`).
+    pub segments_started: u64,
+    /// Merges of two segments.
+    pub segments_merged: u64,
 }
 
 /// A read-only view of a keyframe.
@@ -216,6 +230,8 @@ pub struct KeyframeView<'a> {
     pub id: u64,
     pub t_ns: Timestamp,
     pub seq: u64,
+    /// Map segment.
+    pub segment: u32,
     pub world_from_cam: Se3,
     /// Product of the pose-graph scale corrections applied so far.
     pub scale_correction: f64,

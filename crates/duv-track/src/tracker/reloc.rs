@@ -32,7 +32,7 @@ impl State {
                 return Ok(self.relocalised(out, r, pose, frame.seq));
             }
         }
-        self.rank_candidates(None, self.graph.kfs.len(), self.cfg.reloc_min_ncc);
+        self.rank_candidates(None, self.graph.kfs.len(), false, self.cfg.reloc_min_ncc);
         for k in 0..self.reloc.candidates.len() {
             let c = self.reloc.candidates[k].1;
             if c == r {
@@ -43,7 +43,9 @@ impl State {
             }
         }
         out.world_from_cam = predicted;
-        Ok(self.lost(out, LostReason::NotRelocalised))
+        let out = self.lost(out, LostReason::NotRelocalised);
+        // Relocalisation against every stored keyframe failed: new territory after a while.
+        self.maybe_start_segment(frame, out)
     }
 
     /// Flow from keyframe `c` (seeded by `self.work.seed` when `predicted` is given) and
@@ -95,6 +97,13 @@ impl State {
     }
 
     pub(super) fn relocalised(&mut self, mut out: TrackOutput, c: usize, pose: Se3, seq: u64) -> TrackOutput {
+        // Tracking goes on in the keyframe's segment (an older one, when the vehicle came back).
+        let segment = self.graph.kfs.slots[c].segment;
+        if segment != self.segments.current {
+            tracing::info!(seq, from = self.segments.current, to = segment, "track: relocalised into another map segment");
+            self.segments.current = segment;
+        }
+        self.segments.failed_relocs = 0;
         self.motion.ref_slot = c;
         self.motion.velocity = Se3::identity();
         self.motion.last_pose = pose;

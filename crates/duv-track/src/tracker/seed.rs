@@ -129,6 +129,7 @@ impl State {
         // Links as an insertion makes them: each keyframe to up to `edges_per_keyframe` older
         // ones that see the same scene, both directions, measured from one pair estimate.
         self.init.phase = Phase::Running;
+        self.segments.initialised_once = true;
         self.graph.new_edges.clear();
         let n = self.graph.kfs.len();
         for pos in 1..n {
