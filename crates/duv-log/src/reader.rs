@@ -347,8 +347,11 @@ impl SegmentReader {
 
     /// Whether a record chain starting at `at` is real: a chunk whose CRC holds, or small
     /// records (not messages) that parse, one after the other, up to such a chunk, the footer
-    /// or the file's end.
-    fn chain_holds(&mut self, at: u64) -> bool {
+    /// or the file's end. With `after_damage` (`at` is right after a damaged record whose
+    /// length was plausible), a chain of small records may also end at a chunk that parses but
+    /// fails its CRC: that chunk is skipped in turn, and the records before it (a channel
+    /// record written between the two chunks) are read, not lost with them.
+    fn chain_holds(&mut self, at: u64, after_damage: bool) -> bool {
         let file_bytes = self.outcome.file_bytes;
         let mut p = at;
         for _ in 0..CHAIN_RECORDS {
@@ -360,7 +363,12 @@ impl SegmentReader {
                 return false;
             }
             let ok = match opcode {
-                op::CHUNK => return matches!(mcap::parse_record(opcode, &self.body), Ok(Record::Chunk { header, data }) if chunk_records(&header, &data).is_ok()),
+                op::CHUNK => {
+                    return match mcap::parse_record(opcode, &self.body) {
+                        Ok(Record::Chunk { header, data }) => chunk_records(&header, &data).is_ok() || (after_damage && p > at),
+                        _ => false,
+                    }
+                }
                 op::FOOTER => return mcap::parse_record(opcode, &self.body).is_ok(),
                 op::MESSAGE_INDEX => message_index_ok(&self.body),
                 op::HEADER | op::SCHEMA | op::CHANNEL | op::CHUNK_INDEX | op::METADATA | op::DATA_END => mcap::parse_record(opcode, &self.body).is_ok(),
@@ -397,7 +405,7 @@ impl SegmentReader {
                 }
                 let len = u64::from_le_bytes(block[i + 1..i + 9].try_into().expect("8 bytes"));
                 let at = start + i as u64;
-                if check_head(opcode, len, at, file_bytes, self.limits.max_record_bytes).is_ok() && self.chain_holds(at) {
+                if check_head(opcode, len, at, file_bytes, self.limits.max_record_bytes).is_ok() && self.chain_holds(at, false) {
                     return Some(at);
                 }
             }
@@ -411,7 +419,7 @@ impl SegmentReader {
     fn skip_damage(&mut self, why: Bad, end: Option<u64>) {
         let from_byte = self.pos;
         let next = match end {
-            Some(e) if self.chain_holds(e) => Some(e),
+            Some(e) if self.chain_holds(e, true) => Some(e),
             _ => self.resync(from_byte + 1),
         };
         let to_byte = next.unwrap_or(self.outcome.file_bytes);
