@@ -705,3 +705,54 @@ fn a_run_killed_during_its_initialisation_resumes_as_if_never_stopped() {
     eprintln!("killed after {} poses logged; worst position difference to the uninterrupted run {worst:.3e} m", before.len());
     assert!(worst < 1e-6, "resumed run departs from the uninterrupted one by {worst} m");
 }
+
+/// Tracking lost in new territory (a turbidity burst on a survey, which never comes back over
+/// its start): a new map segment starts and tracks. Its poses go to `trajectory-segment-1.txt`
+/// (`trajectory.txt` holds segment 0's), `states.txt` and the log's state messages say which
+/// segment each pose is in, `dive.json` counts both, and `keyframes.txt` lists segment 0's
+/// keyframes only (the frame the map is built in). A re-run into the folder that does not lose
+/// tracking leaves no stale segment file behind.
+#[test]
+fn a_loss_in_new_territory_starts_a_map_segment_in_every_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let text = run_ok(duv().args(["run", "--source", "sim:coastal,frames=150,burst=6:1.5", "--width", W, "--height", H, "--no-progress", "--no-map", "--out"]).arg(&out));
+    assert!(text.contains("in trajectory-segment-1.txt"), "{text}");
+    // Columns: seq, time, state, pose, tracker ms, segment, why.
+    let rows = states_rows(&out.join("states.txt"));
+    assert_eq!(rows.len(), 150);
+    let start = rows.iter().position(|v| v[6..].join(" ").contains("map segment 1 starts")).expect("a new segment");
+    assert!(rows[..start].iter().all(|v| v[5] == "0" || (v[5] == "-" && v[3] == "none")), "{:?}", &rows[..start]);
+    assert!(rows[start..].iter().all(|v| v[5] == "1" || (v[5] == "-" && v[3] == "none")), "{:?}", &rows[start..]);
+    let in_segment = |s: &str| -> Vec<u64> { rows.iter().filter(|v| v[5] == s).map(|v| v[0].parse().unwrap()).collect() };
+    let (seg0, seg1) = (in_segment("0"), in_segment("1"));
+    assert!(seg0.len() >= 50 && seg1.len() >= 20, "{} frames in segment 0, {} in segment 1", seg0.len(), seg1.len());
+    assert_eq!(read_trajectory(&out.join("trajectory.txt")).keys().copied().collect::<Vec<_>>(), seg0);
+    assert_eq!(read_trajectory(&out.join("trajectory-segment-1.txt")).keys().copied().collect::<Vec<_>>(), seg1);
+    let dive: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("dive.json")).unwrap()).unwrap();
+    assert_eq!(dive["map_segments"], serde_json::json!([[0, seg0.len()], [1, seg1.len()]]), "{dive}");
+    assert_eq!(dive["frames_with_pose"], seg0.len() + seg1.len());
+    // The log: every state message carries its segment; the new segment's first keyframe.
+    let mut logged: BTreeMap<u64, duv_log::schema::StateMessage> = BTreeMap::new();
+    for (_, p) in list_segments(&out.join("log")).unwrap() {
+        read_segment(&p, ReadLimits::default(), |m| {
+            if m.channel.topic == Topic::State.name() {
+                let s: duv_log::schema::StateMessage = serde_json::from_slice(m.data).unwrap();
+                logged.insert(s.seq, s);
+            }
+        })
+        .unwrap();
+    }
+    assert_eq!(logged.len(), 150);
+    let first_kf_of_1 = logged[&(start as u64)].new_keyframe.expect("the segment's first keyframe");
+    assert_eq!(logged[&(start as u64)].why.as_deref(), Some("new_segment"));
+    assert!(logged.range(start as u64..).all(|(_, s)| s.segment == 1));
+    assert!(logged.range(..start as u64).all(|(_, s)| s.segment == 0));
+    let kf_ids: Vec<u64> = std::fs::read_to_string(out.join("keyframes.txt")).unwrap().lines().filter(|l| !l.starts_with('#')).map(|l| l.split_whitespace().next().unwrap().parse().unwrap()).collect();
+    assert!(!kf_ids.is_empty() && kf_ids.iter().all(|&id| id < first_kf_of_1), "{kf_ids:?}, segment 1 from keyframe {first_kf_of_1}");
+    // A run into the same folder without the burst (a fresh dive): no segment 1 file stays.
+    std::fs::remove_file(out.join("dive.json")).unwrap();
+    std::fs::remove_dir_all(out.join("log")).unwrap();
+    run_ok(duv().args(["run", "--source", "sim:coastal,frames=20", "--width", W, "--height", H, "--no-progress", "--no-map", "--out"]).arg(&out));
+    assert!(!out.join("trajectory-segment-1.txt").exists());
+}

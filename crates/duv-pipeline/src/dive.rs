@@ -154,7 +154,7 @@ pub struct DiveRecord {
     /// 0's are `trajectory.txt`, another's `trajectory-segment-N.txt` (segments that never
     /// merged into the first; their frames and scales are their own).
     #[serde(default)]
-    pub segments: Vec<(u32, u64)>,
+    pub map_segments: Vec<(u32, u64)>,
     pub first_seq: Option<u64>,
     pub last_seq: Option<u64>,
     /// Keyframes in `keyframes.txt`.

@@ -722,7 +722,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         end,
         frames: written.frames,
         frames_with_pose: written.frames_with_pose,
-        segments: written.segments.clone(),
+        map_segments: written.segments.clone(),
         first_seq: written.first_seq,
         last_seq: written.last_seq,
         keyframes: written.keyframes,
