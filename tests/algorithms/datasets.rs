@@ -377,6 +377,47 @@ fn folder_of_jpeg_frames_with_video_times_and_a_field_of_view_guess() {
     assert_err_contains(&e, &["fov", "1 to 170"]);
 }
 
+/// 16-bit TIFF frames (RGB and grey, as a scientific camera writes them) in a folder: read
+/// with each sample's high byte, the same mapping for every frame; a float TIFF is refused by
+/// name, and a truncated one is an error naming the file, not a panic.
+#[test]
+fn folder_of_16_bit_tiff_frames() {
+    use tiff::encoder::{colortype, TiffEncoder};
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (40usize, 30usize);
+    let rgb16 = |k: usize| -> Vec<u16> { (0..w * h * 3).map(|i| ((i * 97 + k * 4099) % 65536) as u16).collect() };
+    for k in 0..3 {
+        let f = std::fs::File::create(dir.path().join(format!("{k:04}.tif"))).unwrap();
+        TiffEncoder::new(f).unwrap().write_image::<colortype::RGB16>(w as u32, h as u32, &rgb16(k)).unwrap();
+    }
+    std::fs::write(dir.path().join("calibration.txt"), "30 30 19.5 14.5 40 30\n").unwrap();
+    let d = open_dataset(&spec("folder", dir.path())).unwrap();
+    assert_eq!(d.frames.len(), 3);
+    let mut src = d.into_source();
+    for k in 0..3 {
+        let f = src.next_frame().unwrap().unwrap();
+        let FrameImage::Rgb8(img) = f.image else { panic!("RGB TIFF frames decode to RGB") };
+        assert_eq!((img.width, img.height), (w, h));
+        assert!(img.data.iter().zip(rgb16(k)).all(|(&a, b)| a == (b >> 8) as u8), "frame {k}: not the high bytes");
+    }
+    // Grey 16-bit.
+    let grey_path = dir.path().join("grey.tiff");
+    let grey16: Vec<u16> = (0..w * h).map(|i| (i * 50) as u16).collect();
+    TiffEncoder::new(std::fs::File::create(&grey_path).unwrap()).unwrap().write_image::<colortype::Gray16>(w as u32, h as u32, &grey16).unwrap();
+    let FrameImage::Gray8(g) = duv_camera::dataset::read_image_file(&grey_path).unwrap() else { panic!("grey TIFF decodes to grey") };
+    assert!(g.data.iter().zip(&grey16).all(|(&a, &b)| a == (b >> 8) as u8));
+    // Float samples are refused by name; a cut file is an error naming it.
+    let float_path = dir.path().join("float.tif");
+    TiffEncoder::new(std::fs::File::create(&float_path).unwrap()).unwrap().write_image::<colortype::Gray32Float>(w as u32, h as u32, &vec![0.5f32; w * h]).unwrap();
+    let e = duv_camera::dataset::read_image_file(&float_path).unwrap_err();
+    assert_err_contains(&e, &["float.tif", "TIFF"]);
+    let bytes = std::fs::read(dir.path().join("0000.tif")).unwrap();
+    let cut = dir.path().join("cut.tif");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let e = duv_camera::dataset::read_image_file(&cut).unwrap_err();
+    assert_err_contains(&e, &["cut.tif"]);
+}
+
 /// The real SUBVO pool footage (`../shared/data/real/subvo`, Neyestani et al., I2MTC 2025, CC
 /// BY 4.0) opens as it ships: 220 JPEG frames of 1280x720 in `images/`, time stamps from the
 /// video times in the names (1-14 s gaps), the ground truth beside them.
@@ -492,7 +533,7 @@ fn empty_folders() {
     let dir = tempfile::tempdir().unwrap();
     let e = open_dataset(&spec("folder", dir.path())).unwrap_err();
     assert!(matches!(e, CameraError::Empty { .. }));
-    assert_err_contains(&e, &[&dir.path().display().to_string(), "no PNG or JPEG images (here or in images/) found"]);
+    assert_err_contains(&e, &[&dir.path().display().to_string(), "no PNG, JPEG or TIFF images (here or in images/) found"]);
     let e = open_dataset(&spec("tum", dir.path())).unwrap_err();
     assert_err_contains(&e, &["rgb.txt", "not found"]);
     std::fs::write(dir.path().join("rgb.txt"), "# nothing\n").unwrap();

@@ -1,4 +1,4 @@
-//! A plain folder of PNG or JPEG images (in the folder or its `images/`) with a calibration
+//! A plain folder of PNG, JPEG or TIFF images (in the folder or its `images/`) with a calibration
 //! file or a field-of-view guess. Time stamps come from the file stems when they all are time
 //! stamps (nanoseconds, seconds, or a video time `HH_MM_SS.mmm` after a common prefix), else
 //! from a frame rate.
@@ -20,7 +20,7 @@ pub(super) fn open(spec: &DatasetSpec) -> Result<Dataset, CameraError> {
         images = list_images(&nested)?;
     }
     if images.is_empty() {
-        return Err(CameraError::Empty { path: root.clone(), what: "PNG or JPEG images (here or in images/)" });
+        return Err(CameraError::Empty { path: root.clone(), what: "PNG, JPEG or TIFF images (here or in images/)" });
     }
     images.sort();
     let camera = required_calibration(spec, &root.join("calibration.txt"), Some(images[0].1.as_path()))?;

@@ -586,15 +586,21 @@ pub fn downsample_image(image: &FrameImage, n: usize) -> FrameImage {
     }
 }
 
-/// Whether `path` names an image the readers decode: PNG or JPEG, by extension.
+/// Whether `path` names an image the readers decode: PNG, JPEG or TIFF, by extension.
 pub fn is_image_file(path: &Path) -> bool {
-    path.extension().and_then(|e| e.to_str()).is_some_and(|e| ["png", "jpg", "jpeg"].iter().any(|x| e.eq_ignore_ascii_case(x)))
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| ["png", "jpg", "jpeg", "tif", "tiff"].iter().any(|x| e.eq_ignore_ascii_case(x)))
 }
 
-/// Decodes a PNG (8-bit grey or colour; 16-bit reduced to 8) or a baseline or progressive
-/// JPEG (to RGB, through `zune-jpeg`), chosen by the file's extension.
+/// Decodes a PNG (8-bit grey or colour; 16-bit reduced to 8), a baseline or progressive JPEG
+/// (to RGB, through `zune-jpeg`) or a TIFF (8- or 16-bit grey or colour, [`read_tiff`]), chosen
+/// by the file's extension.
 pub fn read_image_file(path: &Path) -> Result<FrameImage, CameraError> {
-    let is_jpeg = path.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("jpg") || e.eq_ignore_ascii_case("jpeg"));
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
+    let is = |x: &str| ext.eq_ignore_ascii_case(x);
+    if is("tif") || is("tiff") {
+        return read_tiff(path);
+    }
+    let is_jpeg = is("jpg") || is("jpeg");
     if !is_jpeg {
         return Ok(duv_core::io::png_io::read_image(path)?);
     }
@@ -610,6 +616,43 @@ pub fn read_image_file(path: &Path) -> Result<FrameImage, CameraError> {
         return Err(bad(format!("JPEG decoded to {} bytes, {width}x{height} RGB is {}", data.len(), width * height * 3)));
     }
     Ok(FrameImage::Rgb8(duv_core::ImageRgb8 { width, height, data }))
+}
+
+/// Decodes a TIFF through the `tiff` crate (uncompressed, LZW or Deflate): 8- or 16-bit grey,
+/// grey with alpha, RGB or RGBA, the first image of the file. 16-bit samples keep their high
+/// byte, as 16-bit PNGs do: the full range maps to 0-255, the same for every frame (a
+/// per-frame stretch would change the brightness between frames the flow compares). Float,
+/// palette and CMYK images are refused by name.
+pub fn read_tiff(path: &Path) -> Result<FrameImage, CameraError> {
+    use tiff::decoder::{Decoder, DecodingResult};
+    use tiff::ColorType;
+    let bad = |problem: String| CameraError::Dataset { path: path.to_path_buf(), problem };
+    let file = std::fs::File::open(path).map_err(|e| IoError::file(path, e))?;
+    let mut decoder = Decoder::new(std::io::BufReader::new(file)).map_err(|e| bad(format!("TIFF: {e}")))?;
+    let (w, h) = decoder.dimensions().map_err(|e| bad(format!("TIFF: {e}")))?;
+    let (width, height) = (w as usize, h as usize);
+    let colour = decoder.colortype().map_err(|e| bad(format!("TIFF: {e}")))?;
+    let channels = match colour {
+        ColorType::Gray(8 | 16) => 1,
+        ColorType::GrayA(8 | 16) => 2,
+        ColorType::RGB(8 | 16) => 3,
+        ColorType::RGBA(8 | 16) => 4,
+        other => return Err(bad(format!("TIFF colour type {other:?} is not read (8- or 16-bit grey or RGB, with or without alpha)"))),
+    };
+    let samples: Vec<u8> = match decoder.read_image().map_err(|e| bad(format!("TIFF: {e}")))? {
+        DecodingResult::U8(v) => v,
+        DecodingResult::U16(v) => v.iter().map(|s| (s >> 8) as u8).collect(),
+        _ => return Err(bad("TIFF sample format is not 8- or 16-bit unsigned".into())),
+    };
+    if samples.len() != width * height * channels {
+        return Err(bad(format!("TIFF decoded to {} samples, {width}x{height} with {channels} channel(s) is {}", samples.len(), width * height * channels)));
+    }
+    Ok(match channels {
+        1 => FrameImage::Gray8(duv_core::ImageGray8 { width, height, data: samples }),
+        2 => FrameImage::Gray8(duv_core::ImageGray8 { width, height, data: samples.chunks_exact(2).map(|p| p[0]).collect() }),
+        3 => FrameImage::Rgb8(duv_core::ImageRgb8 { width, height, data: samples }),
+        _ => FrameImage::Rgb8(duv_core::ImageRgb8 { width, height, data: samples.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect() }),
+    })
 }
 
 /// `medium.json` in `dir`, when present.
