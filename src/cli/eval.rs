@@ -38,7 +38,9 @@ pub struct EvalArgs {
     /// Estimated trajectory (TUM format: timestamp tx ty tz qx qy qz qw).
     #[arg(long, value_name = "TRAJ_FILE")]
     est: Option<PathBuf>,
-    /// A run folder: shortcut for `--est DIR/trajectory.txt`.
+    /// A run folder: shortcut for `--est DIR/trajectory.txt`; its map segments that never
+    /// merged into the first (`trajectory-segment-N.txt`) are scored too, each aligned on its
+    /// own (`segments.md`, `segments.json`).
     #[arg(long, value_name = "DIR")]
     run: Option<PathBuf>,
     /// Alignment of the estimate before ATE/RPE.
@@ -164,12 +166,78 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         ause_source,
         options,
     };
+    let trajectory_options = inputs.options.trajectory.clone();
     let evaluation = build_report(&inputs)?;
-    let written = write_report(&evaluation, &args.out).with_context(|| format!("writing the report to {}", args.out.display()))?;
+    let mut written = write_report(&evaluation, &args.out).with_context(|| format!("writing the report to {}", args.out.display()))?;
     print!("{}", evaluation.report.metrics_table());
+    if let Some(run) = &args.run {
+        let main = SegmentScore { segment: 0, file: est_path.display().to_string(), poses: est.len(), ate_rmse_m: evaluation.report.trajectory.ate.stats_m.rmse, gt_path_m: evaluation.report.trajectory.gt_path_length_m };
+        if let Some(paths) = score_segments(run, &gt, &trajectory_options, main, &args.out)? {
+            written.extend(paths);
+        }
+    }
     println!("\nwrote {}", written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", "));
     if let Some(why) = &evaluation.report.figures_not_drawn {
         println!("{why}");
     }
     Ok(())
+}
+
+/// One map segment's score.
+#[derive(serde::Serialize)]
+struct SegmentScore {
+    segment: u32,
+    file: String,
+    poses: usize,
+    ate_rmse_m: f64,
+    gt_path_m: f64,
+}
+
+/// The map segments of run folder `run` that never merged into segment 0
+/// (`trajectory-segment-N.txt`), each aligned to the ground truth on its own, with `main`
+/// (segment 0, scored above): `segments.md` and `segments.json` in `out`, and a table on
+/// stdout. `None` when the run has no such segment.
+fn score_segments(run: &std::path::Path, gt: &[duv_core::StampedPose], options: &TrajectoryOptions, main: SegmentScore, out: &std::path::Path) -> anyhow::Result<Option<Vec<PathBuf>>> {
+    let mut files: Vec<(u32, PathBuf)> = std::fs::read_dir(run)
+        .with_context(|| format!("listing {}", run.display()))?
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name();
+            let n = name.to_str()?.strip_prefix("trajectory-segment-")?.strip_suffix(".txt")?.parse().ok()?;
+            Some((n, e.path()))
+        })
+        .collect();
+    if files.is_empty() {
+        return Ok(None);
+    }
+    files.sort();
+    if options.alignment != Alignment::Sim3 {
+        println!("\nmap segments {}: not scored (each has its own frame and scale; only --align sim3 compares them)", files.iter().map(|f| f.0.to_string()).collect::<Vec<_>>().join(", "));
+        return Ok(None);
+    }
+    let mut scores = vec![main];
+    for (segment, path) in files {
+        let est = read_trajectory(&path)?;
+        if est.len() < 3 {
+            println!("{}: {} pose(s), too few to align", path.display(), est.len());
+            continue;
+        }
+        let ev = duv_eval::trajectory::evaluate_trajectory(gt, &est, options, "gt", &path.display().to_string()).with_context(|| format!("scoring {}", path.display()))?;
+        scores.push(SegmentScore { segment, file: path.display().to_string(), poses: est.len(), ate_rmse_m: ev.report.ate.stats_m.rmse, gt_path_m: ev.report.gt_path_length_m });
+    }
+    let poses: usize = scores.iter().map(|s| s.poses).sum();
+    let rmse = (scores.iter().map(|s| s.ate_rmse_m.powi(2) * s.poses as f64).sum::<f64>() / poses.max(1) as f64).sqrt();
+    let path: f64 = scores.iter().map(|s| s.gt_path_m).sum();
+    let mut md = String::from("| map segment | file | poses | ATE RMSE (m) | ground-truth path (m) |\n|---|---|---|---|---|\n");
+    for s in &scores {
+        md.push_str(&format!("| {} | {} | {} | {:.6} | {:.3} |\n", s.segment, s.file, s.poses, s.ate_rmse_m, s.gt_path_m));
+    }
+    md.push_str(&format!("| all, each aligned on its own | | {poses} | {rmse:.6} | {path:.3} |\n"));
+    print!("\n{md}");
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let (md_path, json_path) = (out.join("segments.md"), out.join("segments.json"));
+    std::fs::write(&md_path, &md).with_context(|| format!("writing {}", md_path.display()))?;
+    let json = serde_json::json!({ "segments": scores, "poses": poses, "ate_rmse_m": rmse, "gt_path_m": path, "alignment": "sim3 per segment" });
+    std::fs::write(&json_path, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", json_path.display()))?;
+    Ok(Some(vec![md_path, json_path]))
 }

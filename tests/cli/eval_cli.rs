@@ -161,3 +161,46 @@ fn bad_input_is_a_clear_error() {
     let out = duv(&["eval", "--gt", &p("dataset"), "--est", &p("nope.txt"), "--out", &p("out")]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("nope.txt"));
 }
+
+/// A run folder with a map segment that never merged (`trajectory-segment-1.txt`, another
+/// frame and scale): `duv eval --run` scores it aligned on its own, beside segment 0, and
+/// writes `segments.md` and `segments.json`; with `--align se3` it says why it does not.
+#[test]
+fn run_folder_map_segments_are_scored_each_on_its_own() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    write_trajectories(root);
+    let p = |s: &str| root.join(s).display().to_string();
+    // Split the run at frame 90: the rest in another frame and scale (segment 1).
+    let est = tum::read_trajectory(&root.join("run/trajectory.txt")).unwrap();
+    let other = sim3_from_parts(3.0, &Isometry3::from_parts(Translation3::new(-5.0, 0.0, 4.0), UnitQuaternion::from_euler_angles(-0.4, 0.1, 1.2)));
+    let seg1: Vec<StampedPose> = est[90..].iter().map(|s| StampedPose { t_ns: s.t_ns, world_from_cam: sim3_apply_to_pose(&other, &s.world_from_cam) }).collect();
+    tum::write_trajectory(&root.join("run/trajectory.txt"), &est[..90]).unwrap();
+    tum::write_trajectory(&root.join("run/trajectory-segment-1.txt"), &seg1).unwrap();
+    let out = duv(&["eval", "--gt", &p("dataset"), "--run", &p("run"), "--out", &p("out")]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root.join("out/segments.json")).unwrap()).unwrap();
+    let segs = json["segments"].as_array().unwrap();
+    assert_eq!(segs.len(), 2, "{json}");
+    assert_eq!((segs[0]["segment"].as_u64(), segs[0]["poses"].as_u64()), (Some(0), Some(90)));
+    assert_eq!((segs[1]["segment"].as_u64(), segs[1]["poses"].as_u64()), (Some(1), Some(60)));
+    // Each aligned on its own: the 5 mm noise (scaled by 0.5 into the estimate), not the split.
+    for s in segs {
+        let rmse = s["ate_rmse_m"].as_f64().unwrap();
+        assert!(rmse < 0.02, "segment {}: {rmse} m", s["segment"]);
+    }
+    assert_eq!(json["poses"].as_u64(), Some(150));
+    assert!(std::fs::read_to_string(root.join("out/segments.md")).unwrap().contains("trajectory-segment-1.txt"));
+    // Scored as one trajectory the split would show.
+    let whole: Vec<StampedPose> = est[..90].iter().copied().chain(seg1.iter().copied()).collect();
+    tum::write_trajectory(&root.join("whole.txt"), &whole).unwrap();
+    let out = duv(&["eval", "--gt", &p("dataset"), "--est", &p("whole.txt"), "--out", &p("whole")]);
+    assert!(out.status.success());
+    let report: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(root.join("whole/report.json")).unwrap()).unwrap();
+    assert!(report["trajectory"]["ate"]["stats_m"]["rmse"].as_f64().unwrap() > 0.2, "{}", report["trajectory"]["ate"]);
+    // --align se3 keeps the scale: segments are not compared, and it says so.
+    let out = duv(&["eval", "--gt", &p("dataset"), "--run", &p("run"), "--align", "se3", "--allow-map-units", "--out", &p("out-se3")]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(!root.join("out-se3/segments.json").exists());
+    assert!(text.contains("map segments 1: not scored"), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+}
