@@ -322,6 +322,49 @@ fn an_initialisation_that_cannot_match_its_first_view_starts_again() {
     assert!(fin.sources.iter().all(|s| *s == duv_track::PoseSource::None));
 }
 
+/// A frame that cannot be matched while the initialisation has collected enough keyframes
+/// (`init_min_keyframes`) runs the initial BA on them at once and is tracked as after a loss:
+/// the keyframes are kept (not dropped by a restart) and tracking goes on from the next frame.
+#[test]
+fn a_collection_interrupted_after_enough_keyframes_initialises_early() {
+    let (renderer, clean) = survey(60);
+    // Where the clean run has collected 4 keyframes.
+    let mut t = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(1)).unwrap();
+    let outs: Vec<_> = clean.iter().map(|f| t.track(f).unwrap()).collect();
+    let fourth = outs.iter().position(|o| matches!(o.note, TrackNote::InitKeyframe { keyframes: 4, .. })).expect("4 keyframes collected");
+    let plain_first = outs.iter().position(|o| o.state == TrackingState::Tracking).expect("initialises");
+    assert!(plain_first > fourth + 3, "the clean run initialises at {plain_first}, 4 keyframes at {fourth}");
+    // A featureless frame with contrast (a smooth gradient: sediment close to the lens): it
+    // passes the image checks, and no flow matches it.
+    let mut frames = clean.clone();
+    let at = fourth + 2;
+    let (w, h) = (160usize, 120usize);
+    frames[at].image = FrameImage::Rgb8(ImageRgb8 { width: w, height: h, data: (0..w * h * 3).map(|i| (40 + (i / 3 % w) * 160 / w) as u8).collect() });
+    let run = |init_min_keyframes: usize| {
+        let cfg = duv_track::TrackerConfig { init_min_keyframes, ..small_tracker_config() };
+        let mut t = Tracker::new(renderer.camera(), &cfg, capacity(1)).unwrap();
+        let mut rec = duv_track::TrajectoryRecorder::new();
+        let outs: Vec<_> = frames.iter().map(|f| t.track(f).unwrap()).collect();
+        outs.iter().for_each(|o| rec.record(o));
+        (outs, rec.finish(&t), t.counters())
+    };
+    let (outs, fin, counters) = run(4);
+    assert_eq!(counters.init_early, 1, "{:?}", outs[fourth..at + 3].iter().map(|o| (o.seq, o.state, o.note)).collect::<Vec<_>>());
+    assert!(matches!(outs[at].note, TrackNote::InitEarly { keyframes: 4, needed: 8 }), "{:?}", outs[at].note);
+    assert!(outs[at].note.to_string().contains("initialised early"));
+    assert!(matches!(outs[at].state, TrackingState::Lost(_)), "{:?}", outs[at].state);
+    assert!(outs[at + 1..].iter().all(|o| o.state.is_tracked()), "{:?}", outs[at + 1..].iter().map(|o| o.state).collect::<Vec<_>>());
+    assert_eq!(counters.init_restarts, 0);
+    let est = fin.estimated();
+    assert!(est.len() >= 58, "{} frames with a pose", est.len());
+    let (_, percent, _) = track_sim::ate(renderer.poses(), &est);
+    assert!(percent < 2.0 * SURVEY_ATE_PERCENT, "ATE {percent:.3} %");
+    // Off: the frame waits, and the collection goes on to init_keyframes.
+    let (outs, _, counters) = run(0);
+    assert_eq!(counters.init_early, 0);
+    assert!(matches!(outs[at].note, TrackNote::InitLowConfidence { .. }), "{:?}", outs[at].note);
+}
+
 /// Marine snow on a lamp-lit night loop (the generator's `--night`: lamps, their glow in the
 /// water, 150 particles per m^3 near the camera): with the specks taken out of the grey image
 /// (`despeckle`, the default) the loop tracks as it does in clear water; without, the

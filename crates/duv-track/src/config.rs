@@ -71,6 +71,13 @@ pub struct TrackerConfig {
     pub prune_flow_px: f32,
     /// Keyframes collected before the initial BA (monocular initialisation).
     pub init_keyframes: usize,
+    /// When a frame cannot be matched to the reference keyframe while at least this many
+    /// keyframes are collected, the initial BA runs on them at once (the view was matched
+    /// often enough to start from) and the frame is tracked as the first after a loss (turned
+    /// predictions, relocalisation, a new segment) instead of the collection being dropped by
+    /// `init_restart_after`: a turn at a low frame rate during the collection. 0: always wait
+    /// for `init_keyframes`.
+    pub init_min_keyframes: usize,
     /// Flow/BA rounds of the initial BA.
     pub init_rounds: usize,
     /// Gauss-Newton iterations per round of the initial BA.
@@ -313,6 +320,7 @@ impl Default for TrackerConfig {
             keyframe_min_overlap: 0.5,
             prune_flow_px: 1.0,
             init_keyframes: 8,
+            init_min_keyframes: 4,
             init_rounds: 3,
             init_iterations: 15,
             init_level_start: true,
@@ -405,6 +413,9 @@ impl TrackerConfig {
         }
         if self.despeckle_radius_px > 32 {
             return bad("despeckle_radius_px", "must be at most 32 (0: one pixel per 160 of image width)");
+        }
+        if self.init_min_keyframes != 0 && !(3..=self.init_keyframes).contains(&self.init_min_keyframes) {
+            return bad("init_min_keyframes", "must be 0 (off) or from 3 to init_keyframes");
         }
         if self.init_keyframes < 2 {
             return bad("init_keyframes", "must be at least 2");
@@ -507,6 +518,17 @@ mod tests {
         ];
         for (cfg, field) in cases {
             assert_eq!(cfg.validate().unwrap_err().field, field);
+        }
+    }
+
+    #[test]
+    fn early_initialisation_needs_3_to_init_keyframes() {
+        for (n, ok) in [(0, true), (2, false), (3, true), (8, true), (9, false)] {
+            let cfg = TrackerConfig { init_min_keyframes: n, ..TrackerConfig::default() };
+            match cfg.validate() {
+                Ok(()) => assert!(ok, "{n} accepted"),
+                Err(e) => assert!(!ok && e.field == "init_min_keyframes", "{n}: {e:?}"),
+            }
         }
     }
 }

@@ -21,12 +21,18 @@ impl State {
             self.work.seed.dy.data.copy_from_slice(&self.work.prev_flow.dy.data);
         }
         self.flow_ref_to_current(r, self.work.have_prev_flow, true)?;
-        let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
+        let mut conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
+        if conf < self.cfg.min_confident_fraction {
+            // A turn between frames (a low frame rate): the flow seeded turned.
+            if let Some(c) = self.collecting_turns(r)? {
+                conf = c;
+            }
+        }
         if conf < self.cfg.min_confident_fraction {
             // Nothing to trust: wait for a better frame, or start again from this one.
             self.work.have_prev_flow = false;
             out.note = TrackNote::InitLowConfidence { confident: conf, needed: self.cfg.min_confident_fraction };
-            return Ok(self.init_failed_frame(frame, out));
+            return self.init_failed_frame(frame, out);
         }
         self.work.prev_flow.dx.data.copy_from_slice(&self.work.res.pooled.flow.dx.data);
         self.work.prev_flow.dy.data.copy_from_slice(&self.work.res.pooled.flow.dy.data);
@@ -45,7 +51,7 @@ impl State {
         if self.motion_only(r, &mut pose).is_err() {
             self.stats.counters.ba_failures += 1;
             out.note = TrackNote::InitPoseFailed;
-            return Ok(self.init_failed_frame(frame, out));
+            return self.init_failed_frame(frame, out);
         }
         self.init.failed_in_a_row = 0;
         let prev = r;
@@ -92,14 +98,65 @@ impl State {
         Ok(out)
     }
 
+    /// While collecting there is no map to predict from: the flow from keyframe `r` is tried
+    /// again seeded by the flow a pure turn about the camera's vertical axis by +-1 and +-2
+    /// `turn_search_deg` induces (a rotation's flow does not depend on depth), added to the
+    /// previous frame's flow when there is one. The confident fraction of the first turn whose
+    /// flow is confident on `loop_min_confident_fraction` of the pixels (a guessed seed must
+    /// earn more than the plain one: below that, seeds found matches in a view never seen);
+    /// its measurement is left in the frame buffers.
+    fn collecting_turns(&mut self, r: usize) -> Result<Option<f32>, TrackError> {
+        let step = (self.cfg.turn_search_deg as f64).to_radians();
+        if step <= 0.0 {
+            return Ok(None);
+        }
+        let need = self.cfg.min_confident_fraction.max(self.cfg.loop_min_confident_fraction);
+        for k in [1.0, -1.0, 2.0, -2.0] {
+            let turn = Se3::from_parts(Translation3::identity(), nalgebra::UnitQuaternion::from_axis_angle(&Vector3::y_axis(), k * step));
+            {
+                let kf = &self.graph.kfs.slots[r];
+                induced_flow(&self.low, &Se3::identity(), &kf.inv_depth, &turn, Some(&mut self.work.seed));
+            }
+            if self.work.have_prev_flow {
+                for (s, p) in self.work.seed.dx.data.iter_mut().zip(&self.work.prev_flow.dx.data) {
+                    *s += p;
+                }
+                for (s, p) in self.work.seed.dy.data.iter_mut().zip(&self.work.prev_flow.dy.data) {
+                    *s += p;
+                }
+            }
+            self.flow_ref_to_current(r, true, true)?;
+            let conf = write_measurement(&mut self.work.res, &self.cfg, self.ignore.as_deref(), &mut self.work.obs_target, &mut self.work.obs_weight);
+            if conf >= need {
+                self.stats.counters.turns_found += 1;
+                tracing::debug!(turn_deg = k * step.to_degrees(), conf, "track: initialisation flow found at a turned seed");
+                return Ok(Some(conf));
+            }
+        }
+        Ok(None)
+    }
+
     /// A collecting frame that did not match the reference keyframe: after
     /// `init_restart_after` of them in a row, the keyframes collected so far are dropped and
     /// this frame becomes the first keyframe of a new start.
-    fn init_failed_frame(&mut self, frame: &Frame, mut out: TrackOutput) -> TrackOutput {
+    fn init_failed_frame(&mut self, frame: &Frame, mut out: TrackOutput) -> Result<TrackOutput, TrackError> {
+        // Enough keyframes to start from: the initial BA now, and this frame as after a loss.
+        let collected = self.graph.kfs.order.iter().rev().take_while(|&&s| self.in_current_segment(s)).count();
+        if self.cfg.init_min_keyframes > 0 && collected >= self.cfg.init_min_keyframes {
+            self.finish_pending()?;
+            self.initialise()?;
+            self.stats.counters.init_early += 1;
+            tracing::info!(seq = frame.seq, collected, "track: initialised early on the keyframes collected (this frame did not match the reference keyframe)");
+            let frames_since = frame.seq.saturating_sub(self.motion.last_seq).max(1);
+            out.world_from_cam = self.predict(frames_since);
+            out.note = TrackNote::InitEarly { keyframes: collected, needed: self.cfg.init_keyframes };
+            self.motion.state = TrackingState::Lost(LostReason::LowConfidence);
+            return self.relocalise(frame, out);
+        }
         self.init.failed_in_a_row += 1;
         let failed = self.init.failed_in_a_row;
         if self.cfg.init_restart_after == 0 || failed < self.cfg.init_restart_after {
-            return out;
+            return Ok(out);
         }
         self.insert.pending = None;
         // This segment's keyframes (the newest ones while collecting); other segments stay.
@@ -129,7 +186,7 @@ impl State {
         out.new_keyframe = Some(self.graph.kfs.slots[s].id);
         out.anchor = Some(FrameAnchor { keyframe: self.graph.kfs.slots[s].id, kf_from_cam: Se3::identity(), kf_scale: 1.0 });
         out.note = TrackNote::InitRestarted { failed_frames: failed, dropped_keyframes: dropped };
-        out
+        Ok(out)
     }
 
     /// The current frame as the first keyframe (identity pose, constant inverse depth):

@@ -82,6 +82,10 @@ pub enum TrackNote {
     /// could not be matched to the reference keyframe (`init_restart_after`); the
     /// `dropped_keyframes` collected before were dropped.
     InitRestarted { failed_frames: usize, dropped_keyframes: usize },
+    /// The initial BA ran early on the `keyframes` collected (of the `needed`
+    /// `init_keyframes`): this frame did not match the reference keyframe
+    /// (`init_min_keyframes`); it is tracked as the first frame after a loss.
+    InitEarly { keyframes: usize, needed: usize },
     /// A new map segment starts from this frame: `failed_frames` good frames in a row could
     /// not be relocalised against any stored keyframe (`new_segment_after`).
     NewSegment { segment: u32, failed_frames: usize },
@@ -98,6 +102,7 @@ impl TrackNote {
             TrackNote::InitKeyframe { .. } => Some("init_keyframe"),
             TrackNote::InitRestarted { .. } => Some("init_restarted"),
             TrackNote::NewSegment { .. } => Some("new_segment"),
+            TrackNote::InitEarly { .. } => Some("init_early"),
         }
     }
 
@@ -106,7 +111,7 @@ impl TrackNote {
         match self {
             TrackNote::InitLowConfidence { confident, needed } => Some((confident as f64, needed as f64)),
             TrackNote::InitSmallFlow { flow_px, needed_px } => Some((flow_px as f64, needed_px as f64)),
-            TrackNote::InitKeyframe { keyframes, needed } => Some((keyframes as f64, needed as f64)),
+            TrackNote::InitKeyframe { keyframes, needed } | TrackNote::InitEarly { keyframes, needed } => Some((keyframes as f64, needed as f64)),
             TrackNote::InitRestarted { failed_frames, .. } | TrackNote::NewSegment { failed_frames, .. } => Some((failed_frames as f64, failed_frames as f64)),
             TrackNote::None | TrackNote::InitPoseFailed => None,
         }
@@ -125,6 +130,9 @@ impl std::fmt::Display for TrackNote {
             TrackNote::InitKeyframe { keyframes, needed } => write!(f, "keyframe {keyframes} of the {needed} the initialisation takes"),
             TrackNote::InitRestarted { failed_frames, dropped_keyframes } => {
                 write!(f, "initialisation restarted from this frame: {failed_frames} frame(s) in a row did not match the reference keyframe ({dropped_keyframes} keyframe(s) dropped)")
+            }
+            TrackNote::InitEarly { keyframes, needed } => {
+                write!(f, "initialised early on {keyframes} of {needed} keyframes: this frame did not match the reference keyframe")
             }
             TrackNote::NewSegment { segment, failed_frames } => {
                 write!(f, "map segment {segment} starts from this frame: {failed_frames} good frame(s) in a row matched no stored keyframe")
@@ -218,6 +226,8 @@ pub struct TrackerCounters {
     pub init_restarts: u64,
     /// Frames whose pose was found at a turned prediction (`turn_search_deg`).
     pub turns_found: u64,
+    /// Initial BAs run early on fewer than `init_keyframes` (`init_min_keyframes`).
+    pub init_early: u64,
     /// New map segments started after a loss (`new_segment_after`).
     pub segments_started: u64,
     /// Merges of two segments.
