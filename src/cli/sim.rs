@@ -69,6 +69,10 @@ pub struct SimArgs {
     /// haze and returns; medium.json keeps the base medium [FACTOR default: 8].
     #[arg(long, value_name = "START_S,DURATION_S[,FACTOR]")]
     burst: Option<Burst>,
+    /// Contrast of the seabed's texture around a mid sand tint, in [0, 1]: 0.1 is nearly
+    /// featureless sand (the relief's shading stays; pipe and wreck keep theirs) [default: 1].
+    #[arg(long, value_name = "C")]
+    seabed_texture: Option<f64>,
     /// A lamp-lit night dive with marine snow: --lamps --lamp-backscatter 1 --snow 150, each
     /// still overridable (coastal loop at 320x240: mean grey 49, the lamp-lit seabed below a
     /// dark green glow, some 0.1 % of the pixels saturated by near snow).
@@ -143,6 +147,9 @@ impl SimArgs {
             cfg.snow_per_m3 = v;
         }
         cfg.burst = self.burst;
+        if let Some(v) = self.seabed_texture {
+            cfg.seabed_texture = v;
+        }
         if let Some(v) = self.noise {
             cfg.noise_sigma = v;
         }

@@ -70,6 +70,8 @@ pub struct SimSpec {
     pub backscatter: Option<f64>,
     /// `snow=N`: marine snow particles per cubic metre, when given.
     pub snow: Option<f64>,
+    /// `seabed=C`: contrast of the seabed texture (`SimConfig::seabed_texture`).
+    pub seabed: Option<f64>,
     /// `burst=START:DURATION[:FACTOR]`: a turbidity burst, seconds.
     pub burst: Option<Burst>,
 }
@@ -80,7 +82,7 @@ impl SimSpec {
         let bad = |problem: String| CameraError::BadSpec { spec: spec.to_string(), problem };
         let mut parts = rest.split(',');
         let (water, trajectory) = parse_sim_preset(spec, parts.next().unwrap_or("").trim())?;
-        let mut parsed = SimSpec { water, trajectory, frames: None, seed: None, pace: None, nav: false, night: false, lamps: None, backscatter: None, snow: None, burst: None };
+        let mut parsed = SimSpec { water, trajectory, frames: None, seed: None, pace: None, nav: false, night: false, lamps: None, backscatter: None, snow: None, seabed: None, burst: None };
         for part in parts {
             let (key, value) = part.split_once('=').map(|(k, v)| (k.trim(), v.trim())).ok_or_else(|| bad(format!("option {part:?} is not KEY=VALUE")))?;
             let number = || value.parse::<u64>().map_err(|_| bad(format!("{key}={value:?} is not a whole number")));
@@ -105,8 +107,9 @@ impl SimSpec {
                 "lamps" => parsed.lamps = Some(on_off()?),
                 "backscatter" => parsed.backscatter = Some(real()?),
                 "snow" => parsed.snow = Some(real()?),
+                "seabed" => parsed.seabed = Some(real()?),
                 "burst" => parsed.burst = Some(value.parse::<Burst>().map_err(|e| bad(format!("{e} (in a spec: burst=START:DURATION[:FACTOR])")))?),
-                _ => return Err(bad(format!("unknown option {key:?} (accepted: frames, seed, pace, nav, night, lamps, backscatter, snow, burst)"))),
+                _ => return Err(bad(format!("unknown option {key:?} (accepted: frames, seed, pace, nav, night, lamps, backscatter, snow, seabed, burst)"))),
             }
         }
         Ok(parsed)
@@ -127,6 +130,9 @@ impl SimSpec {
         }
         if let Some(n) = self.snow {
             cfg.snow_per_m3 = n;
+        }
+        if let Some(c) = self.seabed {
+            cfg.seabed_texture = c;
         }
         if self.burst.is_some() {
             cfg.burst = self.burst;
@@ -250,6 +256,10 @@ mod tests {
         assert_eq!(cfg.burst, Some(Burst { start_s: 3.0, duration_s: 4.0, factor: 8.0 }));
         let spec = parse("clear,lamps=on,burst=1.5:2:3").unwrap();
         assert_eq!((spec.lamps, spec.burst.map(|b| b.factor)), (Some(true), Some(3.0)));
+        // seabed=C is --seabed-texture C.
+        let mut sand = SimConfig::default();
+        parse("coastal,seabed=0.05").unwrap().apply(&mut sand);
+        assert_eq!(sand.seabed_texture, 0.05);
 
         // lamps=off after night=on leaves a glow without lamps: the config refuses it by name.
         let mut cfg = SimConfig::default();
@@ -267,7 +277,7 @@ mod tests {
             ("coastal,burst=3", "invalid turbidity burst \"3\""),
             ("coastal,burst=3:x", "every part must be a number"),
             ("coastal,backscatter=NaN", "backscatter=\"NaN\""),
-            ("coastal,fog=on", "accepted: frames, seed, pace, nav, night, lamps, backscatter, snow, burst"),
+            ("coastal,fog=on", "accepted: frames, seed, pace, nav, night, lamps, backscatter, snow, seabed, burst"),
         ] {
             let e = parse(rest).unwrap_err().to_string();
             assert!(e.contains(needle) && e.contains(&format!("sim:{rest}")), "{rest}: {e}");

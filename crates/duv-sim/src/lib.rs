@@ -167,6 +167,11 @@ pub struct SimConfig {
     /// time window (`medium.json` keeps the base medium).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub burst: Option<Burst>,
+    /// Contrast of the seabed's texture (sand grain, film, rocks, algae) around a mid sand
+    /// tint, in [0, 1]: 1 as generated, 0.1 nearly featureless sand (the relief's shading
+    /// stays). Pipe and wreck keep theirs.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub seabed_texture: f64,
     /// Gaussian sensor noise, standard deviation as a fraction of full scale (0.004 ~ 1 DN).
     pub noise_sigma: f64,
     /// Vignetting strength in [0, 1]: gain `1 - v rho^2` with `rho` 1 at the image corners.
@@ -213,6 +218,7 @@ impl SimConfig {
             lamp_backscatter: 0.0,
             snow_per_m3: 0.0,
             burst: None,
+            seabed_texture: 1.0,
             noise_sigma: 0.006,
             vignetting: 0.3,
             seed: 1,
@@ -282,6 +288,9 @@ impl SimConfig {
         if let Some(b) = &self.burst {
             parts.push(format!("burst {}+{} s x{}", b.start_s, b.duration_s, b.factor));
         }
+        if self.seabed_texture != 1.0 {
+            parts.push(format!("seabed texture x{}", self.seabed_texture));
+        }
         parts.join(", ")
     }
 
@@ -346,6 +355,9 @@ impl SimConfig {
         if self.lamp_backscatter > 0.0 && !self.lamps {
             return bad("lamp_backscatter", self.lamp_backscatter, "0 without lamps (it is the lamps' light scattered back: turn the lamps on)");
         }
+        if !finite_in(self.seabed_texture, 0.0, 1.0) {
+            return bad("seabed_texture", self.seabed_texture, "a contrast in [0, 1] (1: as generated)");
+        }
         if !finite_in(self.snow_per_m3, 0.0, MAX_SNOW_PER_M3) {
             return bad("snow_per_m3", self.snow_per_m3, "a density in [0, 5000] particles per cubic metre");
         }
@@ -389,6 +401,14 @@ pub const NIGHT_SNOW_PER_M3: f64 = 150.0;
 
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
 }
 
 /// A turbidity burst (sediment stirred up, a plume drifting through): `beta_D` and `beta_B` of
@@ -511,6 +531,8 @@ mod tests {
             (SimConfig { lamps: true, lamp_backscatter: -0.5, ..base.clone() }, "lamp_backscatter"),
             (SimConfig { lamp_backscatter: 1.0, ..base.clone() }, "lamp_backscatter"),
             (SimConfig { snow_per_m3: -1.0, ..base.clone() }, "snow_per_m3"),
+            (SimConfig { seabed_texture: 1.5, ..base.clone() }, "seabed_texture"),
+            (SimConfig { seabed_texture: f64::NAN, ..base.clone() }, "seabed_texture"),
             (SimConfig { snow_per_m3: f64::NAN, ..base.clone() }, "snow_per_m3"),
             (SimConfig { snow_per_m3: 1e6, ..base.clone() }, "snow_per_m3"),
             (SimConfig { burst: Some(Burst { start_s: 1.0, duration_s: 2.0, factor: 0.5 }), ..base.clone() }, "burst.factor"),
@@ -544,10 +566,10 @@ mod tests {
         back.validate().unwrap();
         // Without the night options their keys are left out (sim.json as before them), and a
         // file without them reads as no glow, no snow, no burst.
-        for key in ["lamp_backscatter", "snow_per_m3", "burst"] {
+        for key in ["lamp_backscatter", "snow_per_m3", "burst", "seabed_texture"] {
             assert!(!text.contains(key), "{text}");
         }
-        assert_eq!((back.lamp_backscatter, back.snow_per_m3, back.burst), (0.0, 0.0, None));
+        assert_eq!((back.lamp_backscatter, back.snow_per_m3, back.burst, back.seabed_texture), (0.0, 0.0, None, 1.0));
         // With them they round-trip; a burst without a factor takes the default.
         let mut night = SimConfig { burst: Some(Burst { start_s: 2.0, duration_s: 5.0, factor: 4.0 }), ..cfg.clone() };
         night.apply_night();

@@ -88,6 +88,13 @@ impl Scene {
                 color[ch] = lerp(color[ch], base[ch] * k, density);
             }
         }
+        if self.seabed_texture != 1.0 {
+            // Featureless sand: every variation drawn towards a mid sand tint.
+            const MID_SAND: [f64; 3] = [0.59, 0.53, 0.42];
+            for ch in 0..3 {
+                color[ch] = MID_SAND[ch] + self.seabed_texture * (color[ch] - MID_SAND[ch]);
+            }
+        }
         [color[0].clamp(0.0, 1.0), color[1].clamp(0.0, 1.0), color[2].clamp(0.0, 1.0)]
     }
 

@@ -81,7 +81,8 @@ impl SimRenderer {
         let fine_margin = (FINE_MARGIN_PER_FX * camera.fx).clamp(2.0, 20.0).min(cfg.max_range_m) + 1.0;
         let coarse_margin = cfg.max_range_m + 1.0;
         let started = std::time::Instant::now();
-        let scene = Scene::new(cfg.seed, &plan, fine_margin, coarse_margin)?;
+        let mut scene = Scene::new(cfg.seed, &plan, fine_margin, coarse_margin)?;
+        scene.set_seabed_texture(cfg.seabed_texture);
         tracing::debug!(secs = started.elapsed().as_secs_f64(), "sim: seabed built");
         let poses = trajectory::poses(cfg, &plan, |x, y| scene.ground_reference(x, y));
         // Pinhole without distortion: the ray through pixel (u, v) in closed form.
@@ -556,6 +557,26 @@ mod tests {
                 assert!(mean_rise < 5.0 && top_rise < 40.0 && saturated == 0, "sunlit snow: rise {mean_rise} levels, top ten {top_rise}, {saturated} saturated");
             }
         }
+    }
+
+    #[test]
+    fn seabed_texture_lowers_the_seabed_contrast_and_keeps_its_tint() {
+        // Detail energy (mean absolute step between neighbouring pixels, green channel of the
+        // image without water) falls with the texture; the mean tint stays; 1 is as before.
+        let base = SimConfig { width: 96, height: 72, ..small(WaterPreset::Coastal) };
+        let steps = |texture: f64| {
+            let r = SimRenderer::new(&SimConfig { seabed_texture: texture, ..base.clone() }).unwrap();
+            let f = r.render(1);
+            let g = green(&f.clear);
+            let d: Vec<f64> = g.chunks(96).flat_map(|row| row.windows(2).map(|w| (w[1] - w[0]).abs()).collect::<Vec<_>>()).collect();
+            (mean(&d), mean(&g), f.rgb)
+        };
+        let (full, tint_full, rgb_full) = steps(1.0);
+        let (tenth, tint_tenth, _) = steps(0.1);
+        assert!(tenth < 0.6 * full, "detail {tenth} at a tenth, {full} in full");
+        assert!((tint_tenth - tint_full).abs() < 0.15 * tint_full, "tint {tint_tenth} vs {tint_full}");
+        assert_eq!(SimRenderer::new(&base).unwrap().render(1).rgb, rgb_full);
+        assert!(SimRenderer::new(&SimConfig { seabed_texture: 1.2, ..base }).is_err());
     }
 
     #[test]

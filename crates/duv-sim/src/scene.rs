@@ -24,6 +24,8 @@ pub struct Scene {
     wreck: Wreck,
     placement: StructurePlacement,
     pub(super) seeds: [u32; 16],
+    /// Contrast of the seabed texture ([`crate::SimConfig::seabed_texture`]).
+    pub(super) seabed_texture: f64,
 }
 
 impl Scene {
@@ -66,7 +68,12 @@ impl Scene {
         for s in &mut seeds {
             *s = (rng.next_u64() >> 32) as u32;
         }
-        Ok(Scene { terrain, heightfield, pipe, wreck, placement, seeds })
+        Ok(Scene { terrain, heightfield, pipe, wreck, placement, seeds, seabed_texture: 1.0 })
+    }
+
+    /// Sets the contrast of the seabed texture around a mid sand tint (1: as generated).
+    pub fn set_seabed_texture(&mut self, contrast: f64) {
+        self.seabed_texture = contrast;
     }
 
     /// The seabed.
