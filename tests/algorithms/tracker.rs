@@ -322,6 +322,50 @@ fn an_initialisation_that_cannot_match_its_first_view_starts_again() {
     assert!(fin.sources.iter().all(|s| *s == duv_track::PoseSource::None));
 }
 
+/// Two more kinds of bad input: a frame filled with marine snow (a cloud of particles close to
+/// the lens, 5000 per m^3 under lamps) and a frame after a 3 s gap in the stream (the vehicle
+/// moved on). Neither writes a false pose: the snowy frame is tracked or reported lost without
+/// touching the map, and after the gap tracking goes on (relocalised, or in a new map segment)
+/// with every pose, each segment aligned on its own, close to the truth.
+#[test]
+fn a_snow_filled_frame_and_a_frame_after_a_long_gap_write_no_false_pose() {
+    let cfg = sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, 200, 160, 120, 0.5);
+    let renderer = SimRenderer::new(&cfg).unwrap();
+    let mut frames = render_all(&renderer);
+    let snowy = SimRenderer::new(&duv_sim::SimConfig { lamps: true, snow_per_m3: 5000.0, ..cfg.clone() }).unwrap();
+    let snow_at = 75;
+    frames[snow_at].image = FrameImage::Rgb8(snowy.render(snow_at).rgb);
+    // 30 frames (3 s) never arrive.
+    let gap = 100..130;
+    let kept: Vec<Frame> = frames.iter().filter(|f| !gap.contains(&(f.seq as usize))).cloned().collect();
+    let mut tracker = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
+    let mut rec = duv_track::TrajectoryRecorder::new();
+    let outs: Vec<_> = kept.iter().map(|f| tracker.track(f).unwrap()).collect();
+    outs.iter().for_each(|o| rec.record(o));
+    let fin = rec.finish(&tracker);
+    let by_seq = |seq: usize| outs.iter().position(|o| o.seq as usize == seq).unwrap();
+    // The snowy frame: tracked, or lost without touching the map.
+    let o = &outs[by_seq(snow_at)];
+    assert!(o.state.is_tracked() || (o.anchor.is_none() && o.new_keyframe.is_none()), "{:?}", o);
+    // After the gap: relocalised where the old view still overlaps, or a new segment; either
+    // way every pose, each segment aligned on its own, stays close to the truth.
+    let after = by_seq(gap.end);
+    eprintln!("after the gap: {:?}", outs[after..after + 6].iter().map(|o| (o.seq, o.state, o.segment)).collect::<Vec<_>>());
+    // (Measured: lost on the 3 frames after the gap, segment 1 from the 4th; segment 0 100
+    // frames with a pose at 0.216 % of path, segment 1 67 at 0.353 %.)
+    assert!(outs[after..after + 6].iter().any(|o| o.state.is_tracked() || matches!(o.note, TrackNote::NewSegment { .. })), "neither relocalised nor a new segment");
+    let counts = fin.segment_counts();
+    let poses = renderer.poses();
+    for &(segment, n) in &counts {
+        let est = fin.estimated_in(segment);
+        let (_, percent, _) = track_sim::ate(poses, &est);
+        eprintln!("segment {segment}: {n} frames with a pose, ATE {percent:.3} % of path");
+        assert!(percent < 2.0 * SURVEY_ATE_PERCENT, "segment {segment}: ATE {percent:.3} %");
+    }
+    let with_pose: usize = counts.iter().map(|c| c.1).sum();
+    assert!(with_pose >= kept.len() - 60, "{with_pose} of {} frames with a pose", kept.len());
+}
+
 /// A frame that cannot be matched while the initialisation has collected enough keyframes
 /// (`init_min_keyframes`) runs the initial BA on them at once and is tracked as after a loss:
 /// the keyframes are kept (not dropped by a restart) and tracking goes on from the next frame.
