@@ -718,6 +718,7 @@ fn a_loss_in_new_territory_starts_a_map_segment_in_every_output() {
     let out = dir.path().join("run");
     let text = run_ok(duv().args(["run", "--source", "sim:coastal,frames=150,burst=6:1.5", "--width", W, "--height", H, "--no-progress", "--no-map", "--out"]).arg(&out));
     assert!(text.contains("in trajectory-segment-1.txt"), "{text}");
+    assert!(text.contains("map segments: 1 started after a loss, 0 merged;"), "{text}");
     // Columns: seq, time, state, pose, tracker ms, segment, why.
     let rows = states_rows(&out.join("states.txt"));
     assert_eq!(rows.len(), 150);

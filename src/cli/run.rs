@@ -25,12 +25,12 @@ pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
     /// in `duv dataset`), `mcap:LOG`, a live camera (`v4l2:`, `aravis:`), or
     /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on][,lamps=on]
-    /// [,backscatter=S][,snow=N][,burst=START:DURATION[:FACTOR]][,night=on]` generated in
+    /// [,backscatter=S][,snow=N][,seabed=C][,burst=START:DURATION[:FACTOR]][,night=on]` generated in
     /// memory, e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3`,
     /// `sim:coastal-loop,night=on` (water: clear, coastal, turbid; trajectory: survey, loop,
     /// hover; `frames`/`seed` as --frames/--seed; `pace=realtime` is --speed 1; `nav=on` adds
     /// the generator's navigation sensors; the scene options as `duv sim`'s --lamps,
-    /// --lamp-backscatter, --snow, --burst, --night).
+    /// --lamp-backscatter, --snow, --seabed-texture, --burst, --night).
     /// With navigation input (a dataset's `nav.csv`, `nav=FILE`, `nav=on`) the outputs are in
     /// metres; `metric.json` says which unit a run folder is in.
     #[arg(long)]
@@ -214,6 +214,14 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         counters.lost_frames,
         counters.relocalisations
     );
+    if counters.segments_started > 0 {
+        println!(
+            "map segments: {} started after a loss, {} merged; {} keyframe(s) of segments other than 0 not mapped",
+            counters.segments_started,
+            counters.segments_merged,
+            tracker.keyframes_of_other_segments()
+        );
+    }
 
     if let Some(e) = &log_error {
         if stop.exit_code().is_none() {

@@ -366,6 +366,56 @@ fn a_snow_filled_frame_and_a_frame_after_a_long_gap_write_no_false_pose() {
     assert!(with_pose >= kept.len() - 60, "{with_pose} of {} frames with a pose", kept.len());
 }
 
+/// Keyframe emission across map segments: only segment 0's are handed on; another segment's
+/// is skipped when it is due, so nothing piles up waiting (a caller holds each waiting
+/// keyframe's frame: a queue that grew with an unmerged segment drained the frame pool and
+/// stopped the capture of a real dive). After the merge the keyframes are segment 0's again.
+#[test]
+fn keyframes_of_another_segment_are_skipped_not_held() {
+    let cfg = duv_sim::SimConfig {
+        burst: Some(duv_sim::Burst { start_s: BURST_LOOP.0, duration_s: BURST_LOOP.1, factor: 8.0 }),
+        ..sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)
+    };
+    let renderer = SimRenderer::new(&cfg).unwrap();
+    let frames = render_all(&renderer);
+    let lag = 2;
+    let mut t = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
+    t.emit_keyframes_after(lag);
+    let (w, h) = (160, 120);
+    let mut kf = duv_core::Keyframe {
+        index: u64::MAX,
+        t_ns: duv_core::Timestamp::from_ns(0),
+        image: ImageRgb8::new(w, h),
+        world_from_cam: duv_core::Se3::identity(),
+        camera: *renderer.camera(),
+        inv_depth: duv_core::PlaneF32::new(w, h),
+        inv_depth_variance: duv_core::PlaneF32::new(w, h),
+    };
+    let mut emitted = Vec::new();
+    let mut most_waiting = 0;
+    for f in &frames {
+        t.track(f).unwrap();
+        while let Some(id) = t.next_final_keyframe(false, &mut kf) {
+            emitted.push(id);
+        }
+        most_waiting = most_waiting.max(t.keyframes_waiting().len());
+    }
+    while let Some(id) = t.next_final_keyframe(true, &mut kf) {
+        emitted.push(id);
+    }
+    let c = t.counters();
+    assert!(c.segments_started >= 1 && c.segments_merged >= 1, "{c:?}");
+    assert!(t.keyframes_of_other_segments() >= 1, "no keyframe of segment 1 was due before the merge");
+    // Never more waiting than the initialisation's keyframes (none is final before its BA) and
+    // the lag; held back, the 37 keyframes of segment 1 would have waited for the merge.
+    assert!(most_waiting <= small_tracker_config().init_keyframes + lag, "{most_waiting} keyframes waited");
+    // Every live keyframe is segment 0's now; the emitted ones were segment 0's when due.
+    assert!(t.keyframes().all(|k| k.segment == 0));
+    assert!(emitted.windows(2).all(|w| w[0] < w[1]), "{emitted:?}");
+    assert!(emitted.len() as u64 + t.keyframes_of_other_segments() <= c.keyframes_inserted);
+    assert!(emitted.len() >= 20, "{} keyframes emitted", emitted.len());
+}
+
 /// A frame that cannot be matched while the initialisation has collected enough keyframes
 /// (`init_min_keyframes`) runs the initial BA on them at once and is tracked as after a loss:
 /// the keyframes are kept (not dropped by a restart) and tracking goes on from the next frame.

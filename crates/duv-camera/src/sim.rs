@@ -1,5 +1,5 @@
 //! The generator as a live frame source: `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=P]`
-//! `[,nav=on][,lamps=on][,backscatter=S][,snow=N][,burst=START:DURATION[:FACTOR]][,night=on]`
+//! `[,nav=on][,lamps=on][,backscatter=S][,snow=N][,seabed=C][,burst=START:DURATION[:FACTOR]][,night=on]`
 //! renders frames at the board's resolution and frame rate, with exact ground truth.
 //!
 //! `pace=realtime` (the default) releases frame `i` no earlier than `i / fps` seconds after the
@@ -44,7 +44,7 @@ pub fn parse_sim_preset(spec: &str, preset: &str) -> Result<(WaterPreset, Trajec
 }
 
 /// A parsed `sim:` spec, `WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on]`
-/// `[,lamps=on][,backscatter=S][,snow=N][,burst=START:DURATION[:FACTOR]][,night=on]`: the one
+/// `[,lamps=on][,backscatter=S][,snow=N][,seabed=C][,burst=START:DURATION[:FACTOR]][,night=on]`: the one
 /// parser of the syntax, for [`SimSource`] and for `duv run`'s in-memory generator. The scene
 /// options are `duv sim`'s (`--lamps`, `--lamp-backscatter`, `--snow`, `--burst`, `--night`);
 /// [`SimSpec::apply`] sets them on a config.

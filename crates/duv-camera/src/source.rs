@@ -16,7 +16,7 @@ pub const SOURCE_KINDS: &str = "v4l2, aravis, tum, euroc, tartanair, folder, sim
 /// - `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` with the dataset options of
 ///   [`super::dataset::open_dataset`];
 /// - `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on][,lamps=on]`
-///   `[,backscatter=S][,snow=N][,burst=START:DURATION[:FACTOR]][,night=on]`: the generator at
+///   `[,backscatter=S][,snow=N][,seabed=C][,burst=START:DURATION[:FACTOR]][,night=on]`: the generator at
 ///   the board's resolution and frame rate (see [`super::sim::SimSpec`]);
 /// - `mcap:FILE` is the replay module's: this returns [`CameraError::HandledByReplay`].
 ///

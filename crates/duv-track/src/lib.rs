@@ -87,8 +87,9 @@
 //!   that Sim(3), the younger segment moved into the older one's frame and scale, then a
 //!   global BA over the merged segment. Relocalisation against another segment's keyframe
 //!   continues tracking in that segment. Keyframes are handed on ([`Tracker::next_final_keyframe`])
-//!   only from segment 0, the world frame the map is built in; another segment's wait until it
-//!   merges into segment 0 (`tracker/segments.rs`).
+//!   only from segment 0, the world frame the map is built in; a keyframe of another segment
+//!   when it is due is not handed on, so a segment that merges into segment 0 later is mapped
+//!   from the merge on (`tracker/segments.rs`).
 //!
 //! - *Resume*: [`Tracker::seed`] starts a new tracker from keyframes an earlier run logged
 //!   (recorded ids, poses, images, inverse depth averaged down to the depth grid, variance),

@@ -4,6 +4,8 @@
 //! camera and its full-resolution inverse depth and variance into a [`Keyframe`] the caller
 //! owns (a pooled slot), so nothing downstream reaches into the keyframe store. The tracker
 //! keeps no colour image; the caller fills `image` (and may replace `t_ns` with its frame's).
+//! Only map segment 0's keyframes are handed on; another segment's is skipped when due
+//! ([`Tracker::keyframes_of_other_segments`]).
 //!
 //! Off until [`Tracker::emit_keyframes_after`] is called: a tracker used alone (benches,
 //! tests) keeps no queue. The queue is allocated with the tracker ([`TrackerCapacity`]'s
@@ -19,11 +21,13 @@ pub(super) struct Emission {
     waiting: VecDeque<u64>,
     capacity: usize,
     overflowed: u64,
+    /// Due keyframes not handed on because they were of a segment other than 0.
+    skipped_other_segment: u64,
 }
 
 impl Emission {
     pub(super) fn new(capacity: usize) -> Self {
-        Emission { lag: None, waiting: VecDeque::with_capacity(capacity + 1), capacity: capacity.max(1), overflowed: 0 }
+        Emission { lag: None, waiting: VecDeque::with_capacity(capacity + 1), capacity: capacity.max(1), overflowed: 0, skipped_other_segment: 0 }
     }
 
     /// Keyframe `id` was inserted.
@@ -77,26 +81,17 @@ impl Tracker {
         if !self.is_initialised() {
             return None;
         }
-        let collecting = self.collecting_segment();
-        // Due: the waiting keyframes with at least `lag` newer ones (all with `flush`). Only
-        // segment 0's are handed on (the map is built in its frame): another segment's wait
-        // until it merges into segment 0, and are dropped at the end if it never does.
-        let mut i = 0;
-        while i < self.emit.waiting.len().saturating_sub(if flush { 0 } else { lag }) {
-            let id = self.emit.waiting[i];
-            let Some((segment, world_from_cam, t_ns)) = self.keyframes().find(|k| k.id == id).map(|k| (k.segment, k.world_from_cam, k.t_ns)) else {
-                self.emit.waiting.remove(i);
-                continue;
-            };
-            if segment != 0 || collecting == Some(0) {
-                if flush {
-                    self.emit.waiting.remove(i);
-                } else {
-                    i += 1;
-                }
+        // Due: the waiting keyframes with at least `lag` newer ones (all with `flush`), oldest
+        // first. Only segment 0's are handed on (the map is built in its frame): a keyframe of
+        // another segment when it is due is skipped (its frame is not held back for a merge
+        // that may never come: the caller's frame pool would run dry).
+        while self.emit.waiting.len() > if flush { 0 } else { lag } {
+            let id = self.emit.waiting.pop_front()?;
+            let Some((segment, world_from_cam, t_ns)) = self.keyframes().find(|k| k.id == id).map(|k| (k.segment, k.world_from_cam, k.t_ns)) else { continue };
+            if segment != 0 {
+                self.emit.skipped_other_segment += 1;
                 continue;
             }
-            self.emit.waiting.remove(i);
             if let Err(e) = self.upsample_keyframe(id, &mut out.inv_depth, &mut out.inv_depth_variance) {
                 tracing::debug!("keyframe {id}: no depth yet: {e}");
                 continue;
@@ -113,5 +108,12 @@ impl Tracker {
     /// Waiting keyframes dropped because nobody took them (see the module docs).
     pub fn keyframes_overflowed(&self) -> u64 {
         self.emit.overflowed
+    }
+
+    /// Due keyframes not handed on because they were of a map segment other than 0 (the map
+    /// is segment 0's; a segment that merges into it later has its keyframes from then on
+    /// handed on).
+    pub fn keyframes_of_other_segments(&self) -> u64 {
+        self.emit.skipped_other_segment
     }
 }
