@@ -116,6 +116,22 @@ fn in_process_fake_camera(dir: &Path) {
         eprintln!("{format:?}: {}", src.describe());
     }
 
+    // mask=FILE at the delivered size: the source carries it (the pipeline hands it to the
+    // tracker); a mask of another size refuses the camera, naming the file.
+    let mask_path = dir.join("mask.png");
+    let mut m = duv_core::ImageRgb8::new(W as usize, H as usize);
+    m.data[..W as usize * 3 * 4].fill(255);
+    duv_core::io::png_io::write_rgb8(&mask_path, &m).unwrap();
+    let spec = format!("aravis:Fake_1,calib={},mask={}", calib.display(), mask_path.display());
+    let live = LiveSpec::parse("aravis", &spec, spec.strip_prefix("aravis:").unwrap()).unwrap();
+    let src = AravisSource::open(&live, &board(PixelFormat::Grey, 20.0, None)).unwrap();
+    let mask = src.ignore_mask().expect("the mask");
+    assert_eq!((mask.len(), mask.iter().filter(|&&v| v == 1).count()), ((W * H) as usize, 4 * W as usize));
+    drop(src);
+    duv_core::io::png_io::write_rgb8(&mask_path, &duv_core::ImageRgb8::new(8, 8)).unwrap();
+    let e = AravisSource::open(&live, &board(PixelFormat::Grey, 20.0, None)).err().expect("a mask of the wrong size");
+    assert!(e.to_string().contains("mask.png") && e.to_string().contains("8x8"), "{e}");
+
     // MJPEG is not a GenICam format: refused with the reason.
     let e = open("Fake_1", &calib, &board(PixelFormat::Mjpeg, 10.0, None)).err().expect("MJPEG refused");
     assert!(e.to_string().contains("aravis:Fake_1") && e.to_string().contains("MJPEG"), "{e}");

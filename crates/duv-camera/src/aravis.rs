@@ -84,6 +84,8 @@ pub struct AravisSource {
     timeout: Duration,
     seq: u64,
     last_t_ns: Timestamp,
+    /// `mask=FILE`: pixels to ignore.
+    mask: Option<Vec<u8>>,
 }
 
 impl AravisSource {
@@ -92,6 +94,7 @@ impl AravisSource {
         let name = spec.device_name();
         let err = |problem: String| CameraError::Device { device: name.clone(), problem };
         let camera = spec.camera_model(board)?;
+        let mask = spec.ignore_mask(&camera)?;
         let c = &board.camera;
         let format = raw_format(c.pixel_format);
         let expected_format = genicam_format(format).ok_or_else(|| err("GenICam cameras do not stream MJPEG: set camera.pixel_format to rgb24, grey, bayer_rg8 or yuyv".into()))?;
@@ -162,6 +165,7 @@ impl AravisSource {
             timeout: frame_timeout(c.fps),
             seq: 0,
             last_t_ns: Timestamp::ZERO,
+            mask,
         })
     }
 
@@ -244,6 +248,10 @@ impl FrameSource for AravisSource {
     fn describe(&self) -> String {
         let s = &self.settings;
         format!("Aravis {} ({}), {} {}x{} at {:.1} fps", self.name, s.model, s.pixel_format, s.width, s.height, s.frame_rate_hz)
+    }
+
+    fn ignore_mask(&self) -> Option<&[u8]> {
+        self.mask.as_deref()
     }
 
     fn stats(&self) -> SourceStats {

@@ -1,4 +1,4 @@
-//! What the live cameras (V4L2, Aravis) share: their spec `KIND:DEVICE[,calib=FILE]`, the
+//! What the live cameras (V4L2, Aravis) share: their spec `KIND:DEVICE[,calib=FILE][,mask=FILE]`, the
 //! camera model from the calibration file checked against the board's image size, the board's
 //! pixel format as a raw layout, decoding a driver buffer into a reused frame image, and the
 //! corrupt-frame accounting (drop and count; a long run of corrupt frames ends the stream).
@@ -15,7 +15,7 @@ use std::time::Duration;
 /// camera that sends nothing usable is as good as gone.
 pub const CORRUPT_RUN_LIMIT: u32 = 100;
 
-/// A parsed live-camera spec `KIND:DEVICE[,calib=FILE]`.
+/// A parsed live-camera spec `KIND:DEVICE[,calib=FILE][,mask=FILE]`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LiveSpec {
     /// `v4l2` or `aravis`.
@@ -24,6 +24,9 @@ pub struct LiveSpec {
     pub device: String,
     /// `calib=FILE`: intrinsics in the `calibration.txt` format (`fx fy cx cy width height`).
     pub calib: Option<PathBuf>,
+    /// `mask=FILE`: pixels to ignore (the vehicle's own frame in view, a burned-in overlay):
+    /// an image of the board's delivered size, non-zero (any channel) where they are.
+    pub mask: Option<PathBuf>,
 }
 
 impl LiveSpec {
@@ -35,15 +38,37 @@ impl LiveSpec {
         if device.is_empty() {
             return Err(bad(format!("no device after {kind}:")));
         }
-        let mut out = LiveSpec { kind, device: device.to_string(), calib: None };
+        let mut out = LiveSpec { kind, device: device.to_string(), calib: None, mask: None };
         for part in parts {
             match part.split_once('=').map(|(k, v)| (k.trim(), v.trim())) {
                 Some(("calib", v)) if !v.is_empty() && out.calib.is_none() => out.calib = Some(PathBuf::from(v)),
                 Some(("calib", _)) => return Err(bad("calib= given twice or empty".into())),
-                _ => return Err(bad(format!("unknown option {part:?} (accepted: calib=FILE)"))),
+                Some(("mask", v)) if !v.is_empty() && out.mask.is_none() => out.mask = Some(PathBuf::from(v)),
+                Some(("mask", _)) => return Err(bad("mask= given twice or empty".into())),
+                _ => return Err(bad(format!("unknown option {part:?} (accepted: calib=FILE, mask=FILE)"))),
             }
         }
         Ok(out)
+    }
+
+    /// The pixels `mask=FILE` marks, 1 each, at `camera`'s size (the frames this camera
+    /// delivers); `None` without `mask=`. An unreadable file, a wrong size or a mask of every
+    /// pixel is an error naming the file.
+    pub fn ignore_mask(&self, camera: &PinholeCamera) -> Result<Option<Vec<u8>>, CameraError> {
+        let Some(path) = &self.mask else { return Ok(None) };
+        let bad = |problem: String| CameraError::BadSpec { spec: format!("{}:{}", self.kind, self.device), problem: format!("mask={}: {problem}", path.display()) };
+        let image = super::dataset::read_image_file(path).map_err(|e| bad(e.to_string()))?.to_rgb8();
+        let (w, h) = (camera.width, camera.height);
+        if image.width != w || image.height != h {
+            return Err(bad(format!("{}x{}, the camera delivers {w}x{h}", image.width, image.height)));
+        }
+        let out: Vec<u8> = image.data.chunks_exact(3).map(|p| u8::from(p.iter().any(|&v| v > 0))).collect();
+        let ignored = out.iter().filter(|&&m| m == 1).count();
+        if ignored == out.len() {
+            return Err(bad("every pixel is masked".into()));
+        }
+        tracing::info!("{}: {ignored} of {} pixels ignored ({:.1}%)", path.display(), out.len(), 100.0 * ignored as f64 / out.len() as f64);
+        Ok(Some(out))
     }
 
     /// How errors name this camera: the device path, or `aravis:ID`.
@@ -165,6 +190,36 @@ mod tests {
         let e = LiveSpec::parse("v4l2", "v4l2:/dev/video0,fps=3", "/dev/video0,fps=3").unwrap_err();
         assert!(e.to_string().contains("unknown option \"fps=3\""), "{e}");
         assert!(LiveSpec::parse("v4l2", "x", "/dev/video0,calib=a,calib=b").is_err());
+        assert!(LiveSpec::parse("v4l2", "x", "/dev/video0,mask=a,mask=b").is_err());
+    }
+
+    #[test]
+    fn a_live_mask_is_read_at_the_delivered_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let camera = PinholeCamera { fx: 10.0, fy: 10.0, cx: 3.5, cy: 2.5, width: 8, height: 6, distortion: None };
+        let mut img = ImageRgb8::new(8, 6);
+        // The top two rows (a vehicle part in view).
+        img.data[..2 * 8 * 3].fill(255);
+        let p = dir.path().join("mask.png");
+        duv_core::io::png_io::write_rgb8(&p, &img).unwrap();
+        let rest = format!("/dev/video0,calib=c.txt,mask={}", p.display());
+        let s = LiveSpec::parse("v4l2", "v4l2:...", &rest).unwrap();
+        assert_eq!(s.mask.as_deref(), Some(p.as_path()));
+        let m = s.ignore_mask(&camera).unwrap().unwrap();
+        assert_eq!(m.len(), 48);
+        assert_eq!(m.iter().filter(|&&v| v == 1).count(), 16);
+        assert!(m[..16].iter().all(|&v| v == 1) && m[16..].iter().all(|&v| v == 0));
+        // Without mask=: none.
+        assert_eq!(LiveSpec::parse("v4l2", "x", "/dev/video0").unwrap().ignore_mask(&camera).unwrap(), None);
+        // Wrong size, all masked, missing: errors naming the file.
+        let small = PinholeCamera { width: 4, height: 3, ..camera };
+        let e = s.ignore_mask(&small).unwrap_err().to_string();
+        assert!(e.contains("mask.png") && e.contains("8x6") && e.contains("4x3"), "{e}");
+        img.data.fill(1);
+        duv_core::io::png_io::write_rgb8(&p, &img).unwrap();
+        assert!(s.ignore_mask(&camera).unwrap_err().to_string().contains("every pixel"));
+        let gone = LiveSpec::parse("v4l2", "x", "/dev/video0,mask=/nonexistent/m.png").unwrap();
+        assert!(gone.ignore_mask(&camera).unwrap_err().to_string().contains("/nonexistent/m.png"));
     }
 
     #[test]

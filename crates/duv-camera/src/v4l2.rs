@@ -86,6 +86,8 @@ pub struct V4l2Source {
     timeout: std::time::Duration,
     /// When the driver gives no time stamp: the last one, to keep time increasing.
     last_t_ns: Timestamp,
+    /// `mask=FILE`: pixels to ignore.
+    mask: Option<Vec<u8>>,
 }
 
 impl V4l2Source {
@@ -94,6 +96,7 @@ impl V4l2Source {
         let path = spec.device.clone();
         let err = |problem: String| CameraError::Device { device: path.clone(), problem };
         let camera = spec.camera_model(board)?;
+        let mask = spec.ignore_mask(&camera)?;
         let device = Device::with_path(&path).map_err(|e| err(format!("cannot open: {e}")))?;
         let caps = device.query_caps().map_err(|e| err(format!("not a V4L2 device: {e}")))?;
         if !caps.capabilities.contains(CapFlags::VIDEO_CAPTURE) || !caps.capabilities.contains(CapFlags::STREAMING) {
@@ -158,7 +161,7 @@ impl V4l2Source {
         let stride = if got.stride > 0 { got.stride as usize } else { c.width as usize * format.bytes_per_pixel().unwrap_or(0) };
         let decoder = FrameDecoder::new(format, c.width as usize, c.height as usize, stride);
         tracing::info!(device = %path, card = %caps.card, driver = %caps.driver, format = format.name(), stride, "V4L2 camera open");
-        Ok(V4l2Source { stream, device, path, card: caps.card, camera, decoder, seq: 0, timeout, last_t_ns: Timestamp::ZERO })
+        Ok(V4l2Source { stream, device, path, card: caps.card, camera, decoder, seq: 0, timeout, last_t_ns: Timestamp::ZERO, mask })
     }
 }
 
@@ -213,6 +216,10 @@ impl FrameSource for V4l2Source {
     fn describe(&self) -> String {
         let _ = &self.device;
         format!("V4L2 {} ({}), {} {}x{}", self.path, self.card, self.decoder.format.name(), self.decoder.width, self.decoder.height)
+    }
+
+    fn ignore_mask(&self) -> Option<&[u8]> {
+        self.mask.as_deref()
     }
 
     fn stats(&self) -> SourceStats {

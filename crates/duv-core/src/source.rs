@@ -105,4 +105,9 @@ pub trait FrameSource: Send {
     fn ground_truth(&self) -> Option<&[StampedPose]> {
         None
     }
+    /// Pixels to ignore in every frame, 1 each at the frames' size (a live camera's
+    /// `mask=FILE`: the vehicle's own frame in view, a burned-in overlay).
+    fn ignore_mask(&self) -> Option<&[u8]> {
+        None
+    }
 }

@@ -242,11 +242,12 @@ impl Source {
         }
     }
 
-    /// Pixels to ignore in every frame (a dataset's `mask=FILE`), 1 per ignored pixel at the
-    /// frames' size.
+    /// Pixels to ignore in every frame (a dataset's or a live camera's `mask=FILE`), 1 per
+    /// ignored pixel at the frames' size.
     pub fn ignore_mask(&self) -> Option<&[u8]> {
         match self {
             Source::Dataset { dataset, .. } => dataset.ignore_mask.as_deref(),
+            Source::Live { source, .. } => source.ignore_mask(),
             _ => None,
         }
     }
