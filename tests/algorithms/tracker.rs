@@ -57,6 +57,31 @@ const BURST_LOOP: (f64, f64) = (3.5, 1.5);
 const BURST_LOOP_FRAMES: usize = 95;
 const BURST_LOOP_ATE_PERCENT: f64 = 1.0;
 
+/// The 100-frame loop at 160x120 with the `BURST_LOOP` turbidity burst.
+fn burst_loop() -> (SimRenderer, Vec<Frame>) {
+    let cfg = duv_sim::SimConfig {
+        burst: Some(duv_sim::Burst { start_s: BURST_LOOP.0, duration_s: BURST_LOOP.1, factor: 8.0 }),
+        ..sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)
+    };
+    let renderer = SimRenderer::new(&cfg).unwrap();
+    let frames = render_all(&renderer);
+    (renderer, frames)
+}
+
+/// A keyframe buffer at `camera`'s size for `Tracker::next_final_keyframe`.
+fn blank_keyframe(camera: &duv_core::PinholeCamera) -> Keyframe {
+    let (w, h) = (camera.width, camera.height);
+    Keyframe {
+        index: u64::MAX,
+        t_ns: duv_core::Timestamp::from_ns(0),
+        image: ImageRgb8::new(w, h),
+        world_from_cam: duv_core::Se3::identity(),
+        camera: *camera,
+        inv_depth: PlaneF32::new(w, h),
+        inv_depth_variance: PlaneF32::new(w, h),
+    }
+}
+
 fn survey(frames: usize) -> (SimRenderer, Vec<Frame>) {
     let r = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Survey, frames, 160, 120, 0.5)).unwrap();
     let f = render_all(&r);
@@ -372,25 +397,11 @@ fn a_snow_filled_frame_and_a_frame_after_a_long_gap_write_no_false_pose() {
 /// stopped the capture of a real dive). After the merge the keyframes are segment 0's again.
 #[test]
 fn keyframes_of_another_segment_are_skipped_not_held() {
-    let cfg = duv_sim::SimConfig {
-        burst: Some(duv_sim::Burst { start_s: BURST_LOOP.0, duration_s: BURST_LOOP.1, factor: 8.0 }),
-        ..sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)
-    };
-    let renderer = SimRenderer::new(&cfg).unwrap();
-    let frames = render_all(&renderer);
+    let (renderer, frames) = burst_loop();
     let lag = 2;
     let mut t = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
     t.emit_keyframes_after(lag);
-    let (w, h) = (160, 120);
-    let mut kf = duv_core::Keyframe {
-        index: u64::MAX,
-        t_ns: duv_core::Timestamp::from_ns(0),
-        image: ImageRgb8::new(w, h),
-        world_from_cam: duv_core::Se3::identity(),
-        camera: *renderer.camera(),
-        inv_depth: duv_core::PlaneF32::new(w, h),
-        inv_depth_variance: duv_core::PlaneF32::new(w, h),
-    };
+    let mut kf = blank_keyframe(renderer.camera());
     let mut emitted = Vec::new();
     let mut most_waiting = 0;
     for f in &frames {
@@ -515,12 +526,7 @@ fn a_fast_turn_at_a_low_frame_rate_is_tracked_through() {
 /// and scores like the loop without the burst; without new segments the run never tracks again.
 #[test]
 fn a_new_segment_after_a_loss_merges_when_the_loop_returns() {
-    let cfg = duv_sim::SimConfig {
-        burst: Some(duv_sim::Burst { start_s: BURST_LOOP.0, duration_s: BURST_LOOP.1, factor: 8.0 }),
-        ..sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)
-    };
-    let renderer = SimRenderer::new(&cfg).unwrap();
-    let frames = render_all(&renderer);
+    let (renderer, frames) = burst_loop();
     let run_with = |new_segment_after: usize| {
         let tc = duv_track::TrackerConfig { new_segment_after, ..small_tracker_config() };
         track_sim::run(&renderer, &frames, &tc, capacity(2))
@@ -820,15 +826,7 @@ fn keyframes_are_emitted_once_final_in_insertion_order() {
     let mut t = Tracker::new(renderer.camera(), &small_tracker_config(), capacity(2)).unwrap();
     t.emit_keyframes_after(lag);
     let (w, h) = (renderer.camera().width, renderer.camera().height);
-    let mut kf = duv_core::Keyframe {
-        index: u64::MAX,
-        t_ns: duv_core::Timestamp::from_ns(0),
-        image: ImageRgb8::new(w, h),
-        world_from_cam: duv_core::Se3::identity(),
-        camera: *renderer.camera(),
-        inv_depth: duv_core::PlaneF32::new(w, h),
-        inv_depth_variance: duv_core::PlaneF32::new(w, h),
-    };
+    let mut kf = blank_keyframe(renderer.camera());
     let (mut inserted, mut emitted) = (Vec::new(), Vec::new());
     let (mut inv, mut var) = (duv_core::PlaneF32::new(w, h), duv_core::PlaneF32::new(w, h));
     for f in &frames {
