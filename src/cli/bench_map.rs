@@ -57,7 +57,7 @@ pub struct BenchMapArgs {
     #[arg(long, default_value = "out/bench-map")]
     out: PathBuf,
     /// Waters to run (`full` and `no_medium` each).
-    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [WaterPreset::Clear, WaterPreset::Turbid])]
+    #[arg(long = "water", alias = "waters", value_name = "WATER,...", value_enum, value_delimiter = ',', default_values_t = [WaterPreset::Clear, WaterPreset::Turbid])]
     waters: Vec<WaterPreset>,
     /// The water of the full ablation (all five variants).
     #[arg(long, value_enum, default_value_t = WaterPreset::Turbid)]
@@ -83,7 +83,7 @@ pub struct BenchMapArgs {
     #[arg(long, default_value_t = 50_000)]
     max_gaussians: usize,
     /// Mapper config (TOML, `MapperConfig` fields) for the `full` variant; the others change one thing.
-    #[arg(long)]
+    #[arg(long = "mapper-config", alias = "config", value_name = "FILE")]
     config: Option<PathBuf>,
     /// Seed a Gaussian every this many pixels of keyframe depth (overrides the config's
     /// `init_stride_px`; 2 as onboard by default, 1 as `duv refine` with a larger --max-gaussians).

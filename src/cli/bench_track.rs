@@ -51,7 +51,7 @@ pub struct BenchTrackArgs {
     #[arg(long, default_value = "boards/sim.toml")]
     board: PathBuf,
     /// Tracker parameters (TOML, `TrackerConfig` fields); defaults otherwise.
-    #[arg(long, value_name = "FILE")]
+    #[arg(long = "tracker-config", alias = "config", value_name = "FILE")]
     config: Option<PathBuf>,
     /// Seed of the generated sequences.
     #[arg(long, default_value_t = 1)]

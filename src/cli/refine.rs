@@ -3,7 +3,7 @@
 //! `duv_log::keyframes`: image, pose, inverse depth and variance of every logged keyframe, up
 //! to any damage; `--from-logged-map` continues the onboard map from the log's newest map
 //! checkpoint), or from generated keyframes with ground-truth poses and depth
-//! (`--sim WATER`) so that mapping is evaluated without the tracker.
+//! (`--water WATER`) so that mapping is evaluated without the tracker.
 //!
 //! Writes into `--out`: `map.ply` (3DGS PLY), `map.ckpt` (full mapper checkpoint),
 //! `medium.json` (the medium along the first keyframe's optical axis, the generator's keys),
@@ -52,7 +52,7 @@ pub struct RefineArgs {
     #[arg(long, requires = "mcap", conflicts_with = "config")]
     from_logged_map: bool,
     /// The true medium (a generator's `medium.json`) to score the recovered one against
-    /// (with --keyframes or --mcap; --sim knows its own).
+    /// (with --keyframes or --mcap; --water knows its own).
     #[arg(long, value_name = "FILE")]
     medium_truth: Option<PathBuf>,
     /// Compare with --medium-truth (per metre) even when the keyframes are in map units (a run
@@ -60,23 +60,23 @@ pub struct RefineArgs {
     #[arg(long, requires = "medium_truth")]
     allow_map_units: bool,
     /// Instead of a folder: generated keyframes with ground-truth poses and depth in this water.
-    #[arg(long, value_enum)]
+    #[arg(long = "water", alias = "sim", value_name = "WATER", value_enum)]
     sim: Option<WaterPreset>,
-    /// Generated path (with --sim).
+    /// Generated path (with --water).
     #[arg(long, value_enum, default_value_t = TrajectoryKind::Survey)]
     trajectory: TrajectoryKind,
-    /// Generated frames (with --sim); every --every-th becomes a keyframe.
+    /// Generated frames (with --water); every --every-th becomes a keyframe.
     #[arg(long, default_value_t = 40)]
     frames: usize,
-    /// Keyframe spacing in generated frames (with --sim).
+    /// Keyframe spacing in generated frames (with --water).
     #[arg(long, default_value_t = 5)]
     every: usize,
-    /// Generated image width and height (with --sim).
+    /// Generated image width and height (with --water).
     #[arg(long, default_value_t = 320)]
     width: usize,
     #[arg(long, default_value_t = 240)]
     height: usize,
-    /// Vignetting strength of the generated images (with --sim). The mapper has no vignetting
+    /// Vignetting strength of the generated images (with --water). The mapper has no vignetting
     /// model (a calibrated camera is flat-fielded first), so 0 keeps the medium identifiable.
     #[arg(long, default_value_t = 0.0)]
     vignetting: f64,
@@ -93,7 +93,7 @@ pub struct RefineArgs {
     #[arg(long, default_value_t = 64)]
     max_keyframes: usize,
     /// Mapper config (TOML, `MapperConfig` fields); defaults otherwise.
-    #[arg(long)]
+    #[arg(long = "mapper-config", alias = "config", value_name = "FILE")]
     config: Option<PathBuf>,
     /// Seed a Gaussian every this many pixels of confident keyframe depth (overrides the
     /// config's `init_stride_px`). Offshore the cap is large, so every pixel (1) by default;
@@ -121,16 +121,16 @@ pub struct RefineArgs {
     /// Pose refinement settings (TOML, `PoseRefineConfig` fields); defaults otherwise.
     #[arg(long, value_name = "FILE", requires = "refine_poses")]
     pose_config: Option<PathBuf>,
-    /// With --sim: move every keyframe but the first off its true pose by this many metres
+    /// With --water: move every keyframe but the first off its true pose by this many metres
     /// (direction drawn per keyframe, reproducible), to measure what --refine-poses recovers.
     #[arg(long, value_name = "M", requires = "sim")]
     perturb_poses_m: Option<f64>,
-    /// With --sim: and turn it by this many degrees (axis drawn per keyframe).
+    /// With --water: and turn it by this many degrees (axis drawn per keyframe).
     #[arg(long, value_name = "DEG", requires = "sim")]
     perturb_poses_deg: Option<f64>,
     /// No progress bar.
-    #[arg(long)]
-    quiet: bool,
+    #[arg(long, alias = "quiet")]
+    no_progress: bool,
 }
 
 /// A reproducible unit vector per keyframe index and purpose (splitmix64).
@@ -167,7 +167,7 @@ struct KeyframeMetrics {
     /// How far the final pose is from the input one (m, deg).
     pose_shift_m: f64,
     pose_shift_deg: f64,
-    /// With --sim: the final pose against the true one (m, deg).
+    /// With --water: the final pose against the true one (m, deg).
     pose_error_m: Option<f64>,
     pose_error_deg: Option<f64>,
 }
@@ -192,7 +192,7 @@ struct Metrics {
     iterations: u64,
     /// With --refine-poses: rounds run, corrections accepted, keyframes the map did not cover.
     pose_refinement: Option<PoseRefinementSummary>,
-    /// With --sim: mean keyframe pose error against the truth before and after (m, deg).
+    /// With --water: mean keyframe pose error against the truth before and after (m, deg).
     pose_error_before: Option<(f64, f64)>,
     pose_error_after: Option<(f64, f64)>,
 }
@@ -234,7 +234,7 @@ fn mapper_from_logged_map(map: Option<LoggedMap>, keyframes: &[Keyframe], capaci
 }
 
 pub fn run(a: RefineArgs) -> anyhow::Result<()> {
-    anyhow::ensure!(a.sim.is_some() || (a.perturb_poses_m.is_none() && a.perturb_poses_deg.is_none()), "--perturb-poses-m and --perturb-poses-deg need --sim (they are measured against the true poses)");
+    anyhow::ensure!(a.sim.is_some() || (a.perturb_poses_m.is_none() && a.perturb_poses_deg.is_none()), "--perturb-poses-m and --perturb-poses-deg need --water (they are measured against the true poses)");
     anyhow::ensure!(a.refine_poses || a.pose_config.is_none(), "--pose-config needs --refine-poses");
     let mut logged_map = None;
     let (mut keyframes, clear, truth): (Vec<Keyframe>, Vec<Option<ImageRgb8>>, Option<MediumParams>) = if let Some(water) = a.sim {
@@ -256,7 +256,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
                 k
             }
             (None, Some(dir)) => read_keyframe_folder(dir)?,
-            (None, None) => anyhow::bail!("--keyframes, --mcap or --sim is required"),
+            (None, None) => anyhow::bail!("--keyframes, --mcap or --water is required"),
         };
         let n = k.len();
         let truth = match &a.medium_truth {
@@ -308,7 +308,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     let capacity = MapperCapacity { max_gaussians: a.max_gaussians, max_keyframes: a.max_keyframes.max(keyframes.len()), width: cam.width, height: cam.height };
     let mut mapper = if a.from_logged_map { mapper_from_logged_map(logged_map, &keyframes, capacity)? } else { Mapper::new(config, capacity)? };
     let renderer = mapper.use_device(a.mapper, &GpuOptions { deterministic: a.deterministic, ..GpuOptions::with_budget_mb(a.gpu_mb) })?;
-    if !a.quiet {
+    if !a.no_progress {
         eprintln!("refine: rendering with {renderer}");
     }
     // A fresh map takes every keyframe; a restored one those it does not hold.
@@ -323,7 +323,7 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     }
     std::fs::create_dir_all(a.out.join("renders")).with_context(|| format!("creating {}", a.out.display()))?;
 
-    let bar = if a.quiet { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.iterations) };
+    let bar = if a.no_progress { indicatif::ProgressBar::hidden() } else { indicatif::ProgressBar::new(a.iterations) };
     if let Ok(style) = indicatif::ProgressStyle::with_template("refine [{elapsed_precise}] {wide_bar} {pos}/{len} it ({per_sec}, eta {eta}) {msg}") {
         bar.set_style(style);
     }

@@ -15,7 +15,9 @@ use duv_map::backend::MapperDevice;
 use duv_map::stage::MappingBudget;
 use duv_pipeline::dive_run::{percentile_ms, BoardFile, MappingOptions, WrittenDive};
 use duv_pipeline::source::{Source, SourceOptions};
-use duv_pipeline::{run_dive, DiveError, DiveOptions, DiveOutcome, Progress, Stop};
+use duv_pipeline::{run_dive, DiveError, DiveOptions, DiveOutcome, Progress, ProgressSnapshot, RunProgress, Stop};
+use std::io::IsTerminal;
+use std::sync::Arc;
 use duv_track::Tracker;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -48,7 +50,7 @@ pub struct RunArgs {
     #[arg(long)]
     no_loop_closure: bool,
     /// Tracker parameters (TOML, `TrackerConfig` fields); defaults otherwise.
-    #[arg(long, value_name = "FILE")]
+    #[arg(long = "tracker-config", alias = "config", value_name = "FILE")]
     config: Option<PathBuf>,
     /// Image width of a `sim:` source [default: the board's camera width].
     #[arg(long)]
@@ -96,7 +98,7 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 100)]
     pub map_final_iterations: u64,
     /// Mapper parameters (TOML, `MapperConfig` fields); defaults otherwise.
-    #[arg(long, value_name = "FILE")]
+    #[arg(long = "mapper-config", alias = "map-config", value_name = "FILE")]
     map_config: Option<PathBuf>,
     /// Where the mapper renders: `auto` = the Vulkan kernels on a GPU (the CPU reference when
     /// the only Vulkan device runs on the CPU, e.g. lavapipe, unless DUV_VULKAN_DEVICE names
@@ -122,16 +124,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         anyhow::ensure!(s.is_finite() && s >= MIN_SPEED, "--speed must be a finite factor >= {MIN_SPEED}, got {s}");
     }
     let no_progress = args.no_progress;
-    let outcome = run_dive(args.dive_options(), &mut |p: &Progress| {
+    let mut options = args.dive_options();
+    // The progress line: on a terminal only (never into a file or a pipe), off with --no-progress.
+    let line = (!no_progress && std::io::stderr().is_terminal()).then(|| {
+        let counters = Arc::new(RunProgress::new());
+        options.progress = Some(counters.clone());
+        ProgressLine::start(counters)
+    });
+    let outcome = run_dive(options, &mut |p: &Progress| {
         if no_progress && matches!(p, Progress::Tracking { .. }) {
             return;
         }
         if p.is_result() {
             println!("{p}");
+        } else if let Some(line) = &line {
+            line.bar.suspend(|| eprintln!("{p}"));
         } else {
             eprintln!("{p}");
         }
     });
+    if let Some(line) = line {
+        line.finish();
+    }
     let dive = match outcome {
         Ok(DiveOutcome::Written(dive)) => dive,
         Ok(DiveOutcome::AlreadyFinished { record: rec }) => {
@@ -327,6 +341,7 @@ impl RunArgs {
             continue_dive: self.continue_dive,
             announce: self.announce,
             use_nav: !self.no_nav,
+            progress: None,
             mapping: (!self.no_map).then(|| MappingOptions {
                 config: self.map_config.clone(),
                 iterations_per_keyframe: self.map_iterations,
@@ -365,5 +380,77 @@ impl RunArgs {
             mapper: MapperDevice::Auto,
             loop_for_s: None,
         }
+    }
+}
+
+/// `duv run`'s progress line on stderr: frames tracked (of how many), the tracking state and
+/// map segment, frames per second, keyframes handed to mapping and the map's Gaussians, redrawn
+/// a few times a second from the pipeline's counters while the run goes on.
+struct ProgressLine {
+    bar: indicatif::ProgressBar,
+    done: Arc<std::sync::atomic::AtomicBool>,
+    redraw: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ProgressLine {
+    fn start(counters: Arc<RunProgress>) -> Self {
+        let bar = indicatif::ProgressBar::new_spinner();
+        if let Ok(style) = indicatif::ProgressStyle::with_template("run [{elapsed_precise}] {pos}{msg}") {
+            bar.set_style(style);
+        }
+        bar.set_message(progress_text(&counters.snapshot(), Duration::ZERO));
+        let done = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (b, d) = (bar.clone(), done.clone());
+        let redraw = std::thread::Builder::new()
+            .name("progress".into())
+            .spawn(move || {
+                let started = std::time::Instant::now();
+                while !d.load(std::sync::atomic::Ordering::Relaxed) {
+                    let p = counters.snapshot();
+                    b.set_position(p.frames_tracked);
+                    b.set_message(progress_text(&p, started.elapsed()));
+                    std::thread::sleep(Duration::from_millis(250));
+                }
+            })
+            .ok();
+        ProgressLine { bar, done, redraw }
+    }
+
+    fn finish(mut self) {
+        self.done.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(h) = self.redraw.take() {
+            let _ = h.join();
+        }
+        self.bar.finish_and_clear();
+    }
+}
+
+/// The part of the progress line after the frame count, e.g. `/300 frames, tracking (segment 0),
+/// 41.3 FPS, 17 keyframes, map 12345 Gaussians`.
+fn progress_text(p: &ProgressSnapshot, elapsed: Duration) -> String {
+    let of = p.frames_expected.map_or(String::new(), |n| format!("/{n}"));
+    let segment = if p.segment > 0 { format!(" (segment {})", p.segment) } else { String::new() };
+    let fps = if elapsed.as_secs_f64() > 0.0 { p.frames_tracked as f64 / elapsed.as_secs_f64() } else { 0.0 };
+    let map = p.gaussians.map_or(String::new(), |g| format!(", map {g} Gaussians"));
+    format!("{of} frames, {}{segment}, {fps:.1} FPS, {} keyframes{map}", p.state, p.keyframes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_progress_text_names_every_figure() {
+        let counters = RunProgress::new();
+        counters.set_frames_expected(Some(300));
+        for _ in 0..60 {
+            counters.frame_tracked("tracking", 1);
+        }
+        counters.keyframe_handed_on();
+        counters.set_gaussians(12_345);
+        let text = progress_text(&counters.snapshot(), Duration::from_secs(2));
+        assert_eq!(text, "/300 frames, tracking (segment 1), 30.0 FPS, 1 keyframes, map 12345 Gaussians");
+        let none = RunProgress::new();
+        assert_eq!(progress_text(&none.snapshot(), Duration::ZERO), " frames, starting, 0.0 FPS, 0 keyframes");
     }
 }

@@ -31,8 +31,13 @@ pub struct SimArgs {
     /// Horizontal field of view in degrees [default: 70].
     #[arg(long)]
     hfov_deg: Option<f64>,
-    /// Speed along the path in m/s (drift speed for hover) [default: 0.5, hover 0.05].
-    #[arg(long)]
+    /// The vehicle's speed along the path in m/s (drift speed for hover) [default: 0.5, hover
+    /// 0.05].
+    #[arg(long, value_name = "M_PER_S")]
+    vehicle_speed: Option<f64>,
+    /// Not an option of `duv sim`: `--speed` is the playback factor of `duv run` and `duv
+    /// replay`; the generated vehicle's speed is --vehicle-speed.
+    #[arg(long, hide = true, value_name = "M_PER_S")]
     speed: Option<f64>,
     /// Camera altitude above the large-scale seabed in metres [default: 2].
     #[arg(long)]
@@ -117,7 +122,10 @@ impl SimArgs {
         if let Some(v) = self.hfov_deg {
             cfg.hfov_deg = v;
         }
-        if let Some(v) = self.speed {
+        if self.speed.is_some() {
+            anyhow::bail!("duv sim has no --speed (the playback factor of `duv run` and `duv replay`): the vehicle's speed in m/s is --vehicle-speed");
+        }
+        if let Some(v) = self.vehicle_speed {
             cfg.speed_mps = v;
         }
         if let Some(v) = self.altitude {

@@ -45,7 +45,7 @@ fn refine_with_pose_refinement_writes_the_poses_and_says_what_it_did() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("posed");
     let r = duv()
-        .args(["refine", "--sim", "coastal", "--width", "64", "--height", "48", "--frames", "16", "--every", "4", "--iterations", "20", "--quiet"])
+        .args(["refine", "--water", "coastal", "--width", "64", "--height", "48", "--frames", "16", "--every", "4", "--iterations", "20", "--no-progress"])
         .args(["--refine-poses", "--refine-poses-every", "5", "--perturb-poses-m", "0.02", "--perturb-poses-deg", "0.3", "--out"])
         .arg(&out)
         .output()
@@ -66,7 +66,7 @@ fn refine_with_pose_refinement_writes_the_poses_and_says_what_it_did() {
     let r = duv().args(["refine", "--keyframes", "nowhere", "--perturb-poses-m", "0.1", "--out"]).arg(dir.path().join("x")).output().unwrap();
     assert!(!r.status.success());
     let stderr = String::from_utf8_lossy(&r.stderr);
-    assert!(stderr.contains("--perturb-poses-m and --perturb-poses-deg need --sim") && !stderr.contains("panicked"), "{stderr}");
+    assert!(stderr.contains("--perturb-poses-m and --perturb-poses-deg need --water") && !stderr.contains("panicked"), "{stderr}");
     assert!(!dir.path().join("x").exists());
 }
 

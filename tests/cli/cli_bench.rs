@@ -49,7 +49,7 @@ fn bench_track_on_a_tiny_survey_writes_json_and_table() {
 #[test]
 fn bench_map_scores_views_from_another_altitude_with_true_poses_only() {
     let dir = tempfile::tempdir().unwrap();
-    let args = ["bench", "map", "--frames", "20", "--width", "160", "--height", "120", "--iterations", "30", "--waters", "turbid", "--ablation-water", "turbid"];
+    let args = ["bench", "map", "--frames", "20", "--width", "160", "--height", "120", "--iterations", "30", "--water", "turbid", "--ablation-water", "turbid"];
     run_ok(&[&args[..], &["--only", "full", "--mapper", "cpu", "--novel-altitude-m", "1.5"]].concat(), dir.path());
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
     let run = &json[0];
@@ -71,7 +71,7 @@ fn bench_map_scores_views_from_another_altitude_with_true_poses_only() {
 #[test]
 fn bench_map_flies_the_survey_yo_yo_and_names_a_bad_swing() {
     let dir = tempfile::tempdir().unwrap();
-    let args = ["bench", "map", "--frames", "20", "--width", "160", "--height", "120", "--iterations", "30", "--waters", "turbid", "--ablation-water", "turbid", "--only", "full", "--mapper", "cpu"];
+    let args = ["bench", "map", "--frames", "20", "--width", "160", "--height", "120", "--iterations", "30", "--water", "turbid", "--ablation-water", "turbid", "--only", "full", "--mapper", "cpu"];
     run_ok(&[&args[..], &["--altitude-swing-m", "0.6", "--altitude-period-s", "4"]].concat(), dir.path());
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
     let run = &json[0];
@@ -104,7 +104,7 @@ fn bench_track_rejects_an_unknown_sequence() {
 fn bench_map_with_tracked_poses_maps_the_trackers_keyframes() {
     let dir = tempfile::tempdir().unwrap();
     let args = ["bench", "map", "--poses", "tracked", "--frames", "64", "--width", "160", "--height", "120", "--iterations", "30"];
-    run_ok(&[&args[..], &["--waters", "clear", "--ablation-water", "clear", "--only", "full", "--mapper", "cpu"]].concat(), dir.path());
+    run_ok(&[&args[..], &["--water", "clear", "--ablation-water", "clear", "--only", "full", "--mapper", "cpu"]].concat(), dir.path());
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("report.json")).unwrap()).unwrap();
     let run = &json[0];
     assert_eq!(run["poses"], "tracked", "{run}");

@@ -29,7 +29,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     let res = duv()
         .args(["run", "--source", "sim:coastal", "--frames", &frames.to_string(), "--width", "160", "--height", "120", "--no-progress"])
         .args(["--map-iterations", "4", "--map-final-iterations", "10"])
-        .arg("--config")
+        .arg("--tracker-config")
         .arg(&cfg)
         .arg("--out")
         .arg(&out)
@@ -101,7 +101,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     assert_eq!(onboard.gaussians(), on_disk.gaussians());
     assert_eq!(onboard.keyframe_count(), on_disk.keyframe_count());
     let res = duv()
-        .args(["refine", "--iterations", "5", "--quiet", "--from-logged-map", "--mcap"])
+        .args(["refine", "--iterations", "5", "--no-progress", "--from-logged-map", "--mcap"])
         .arg(&out)
         .arg("--out")
         .arg(dir.path().join("from-logged-map"))
@@ -116,7 +116,7 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     // Offshore refinement reads the finished run, on the Vulkan mapper (lavapipe in CI).
     let refined = dir.path().join("refined");
     let res = duv()
-        .args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--quiet", "--mapper", "vulkan", "--gpu-mb", "512"])
+        .args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--no-progress", "--mapper", "vulkan", "--gpu-mb", "512"])
         .arg("--keyframes")
         .arg(&out)
         .arg("--out")
@@ -143,7 +143,7 @@ fn refine_reads_the_keyframes_of_a_run_log_around_the_damage() {
     std::fs::write(&cfg, "depth_factor = 4\n").unwrap();
     let res = duv()
         .args(["run", "--source", "sim:coastal", "--frames", "64", "--width", "160", "--height", "120", "--no-progress", "--no-map"])
-        .arg("--config")
+        .arg("--tracker-config")
         .arg(&cfg)
         .arg("--out")
         .arg(&out)
@@ -155,7 +155,7 @@ fn refine_reads_the_keyframes_of_a_run_log_around_the_damage() {
     let logged = summary.topics["/keyframe/pose"].messages as usize;
     assert!(logged >= 3, "{logged} keyframes logged");
     let refine_with = |flag: &str, from: &std::path::Path, to: &str| {
-        let r = duv().args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--quiet"]).arg(flag).arg(from).arg("--out").arg(dir.path().join(to)).output().unwrap();
+        let r = duv().args(["refine", "--iterations", "10", "--max-gaussians", "60000", "--no-progress"]).arg(flag).arg(from).arg("--out").arg(dir.path().join(to)).output().unwrap();
         (r.status.success(), String::from_utf8_lossy(&r.stdout).into_owned(), String::from_utf8_lossy(&r.stderr).into_owned())
     };
     let refine = |from: &std::path::Path, to: &str| refine_with("--mcap", from, to);
@@ -209,7 +209,7 @@ fn refine_reads_the_keyframes_of_a_run_log_around_the_damage() {
     assert_eq!(metrics("cut-out")["keyframes"].as_array().unwrap().len(), kept);
 
     // A tracking-only run logs keyframe poses, not a map: --from-logged-map says so.
-    let r = duv().args(["refine", "--iterations", "1", "--quiet", "--from-logged-map", "--mcap"]).arg(&out).arg("--out").arg(dir.path().join("no-map")).output().unwrap();
+    let r = duv().args(["refine", "--iterations", "1", "--no-progress", "--from-logged-map", "--mcap"]).arg(&out).arg("--out").arg(dir.path().join("no-map")).output().unwrap();
     let stderr = String::from_utf8_lossy(&r.stderr);
     assert!(!r.status.success() && stderr.contains("/map/checkpoint") && stderr.contains("not a mapper checkpoint") && !stderr.contains("panicked"), "{stderr}");
 
@@ -320,14 +320,14 @@ fn duv_run_works_from_any_folder_and_logs_plain_text() {
 fn each_bad_config_value_is_refused_with_its_key_and_range() {
     let dir = tempfile::tempdir().unwrap();
     let cases = [
-        ("--config", "[ba]\nfixed_poses = 0\n", "fixed_poses"),
-        ("--config", "[ba]\nhuber_threshold = -1.0\n", "huber"),
-        ("--config", "keyframe_flow_px = -1.0\n", "keyframe_flow_px: must be finite and positive"),
-        ("--config", "edge_min_overlap = 1.5\n", "edge_min_overlap: must be in [0, 1], got 1.5"),
-        ("--config", "[flow]\npatch_size = 0\n", "patch_size"),
-        ("--map-config", "window = 0\n", "window = 0 must be >= 1"),
-        ("--map-config", "prune_min_opacity = 1.5\n", "prune_min_opacity = 1.5 must be in [0, 1]"),
-        ("--map-config", "init_opacity = 1.0\n", "init_opacity = 1 must be in [1e-6, 1 - 1e-6]"),
+        ("--tracker-config", "[ba]\nfixed_poses = 0\n", "fixed_poses"),
+        ("--tracker-config", "[ba]\nhuber_threshold = -1.0\n", "huber"),
+        ("--tracker-config", "keyframe_flow_px = -1.0\n", "keyframe_flow_px: must be finite and positive"),
+        ("--tracker-config", "edge_min_overlap = 1.5\n", "edge_min_overlap: must be in [0, 1], got 1.5"),
+        ("--tracker-config", "[flow]\npatch_size = 0\n", "patch_size"),
+        ("--mapper-config", "window = 0\n", "window = 0 must be >= 1"),
+        ("--mapper-config", "prune_min_opacity = 1.5\n", "prune_min_opacity = 1.5 must be in [0, 1]"),
+        ("--mapper-config", "init_opacity = 1.0\n", "init_opacity = 1 must be in [1e-6, 1 - 1e-6]"),
     ];
     for (i, (flag, toml, needle)) in cases.iter().enumerate() {
         let cfg = dir.path().join(format!("bad-{i}.toml"));
@@ -342,7 +342,7 @@ fn each_bad_config_value_is_refused_with_its_key_and_range() {
     // A partial table: the rest from the defaults.
     let cfg = dir.path().join("partial.toml");
     std::fs::write(&cfg, "[ba]\nhuber_threshold = 2.0\n").unwrap();
-    let res = duv().args(["run", "--source", "sim:coastal", "--frames", "3", "--width", "160", "--height", "120", "--no-progress", "--no-map", "--config"]).arg(&cfg).arg("--out").arg(dir.path().join("partial")).output().unwrap();
+    let res = duv().args(["run", "--source", "sim:coastal", "--frames", "3", "--width", "160", "--height", "120", "--no-progress", "--no-map", "--tracker-config"]).arg(&cfg).arg("--out").arg(dir.path().join("partial")).output().unwrap();
     assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
 }
 

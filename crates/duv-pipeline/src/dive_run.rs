@@ -110,6 +110,8 @@ pub struct DiveOptions {
     /// Use the source's navigation sensors for metric outputs (`metric.json`, [`super::metric`]);
     /// `false`: map units, as without them.
     pub use_nav: bool,
+    /// Counters the stages set as they go (a progress line reads them); `None`: not shown.
+    pub progress: Option<Arc<super::RunProgress>>,
 }
 
 /// Why a dive run failed. The messages are the ones the command line prints.
@@ -493,6 +495,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     // Recorded and generated sources lose nothing by waiting; paced replay behaves live.
     pcfg.lossless_frames = speed.is_none();
     pcfg.announce = opts.announce;
+    if let Some(p) = &opts.progress {
+        pcfg.progress = p.clone();
+    }
     let one = |k: &str, v: String| [(k.to_string(), v)].into_iter().collect();
     pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));
     pcfg.log.metadata.push(("duv.run".into(), one("source", opts.source.clone())));
@@ -596,7 +601,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     let stop = Stop::on_signals()?;
     let total = source.len();
     let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
-    progress(&Progress::Tracking { frames: (total != usize::MAX).then(|| total.saturating_sub(start)) });
+    let frames_expected = (total != usize::MAX).then(|| total.saturating_sub(start));
+    pcfg.progress.set_frames_expected(frames_expected.map(|n| n as u64));
+    progress(&Progress::Tracking { frames: frames_expected });
     let result = match super::run(run_source, tracker, map, &pcfg, retrack, stop.clone()) {
         Err(error @ PipelineError::Aborted { .. }) => {
             return Err(DiveError::Aborted { signal: stop.signal().unwrap_or(0), exit_code: stop.exit_code().unwrap_or(130), error });

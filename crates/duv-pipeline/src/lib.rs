@@ -29,6 +29,7 @@ pub mod mapping;
 pub mod metric;
 pub mod outputs;
 pub mod pool;
+pub mod progress;
 pub mod queue;
 pub mod resume;
 pub mod source;
@@ -36,6 +37,7 @@ pub mod stop;
 
 pub use dive_run::{run_dive, DiveError, DiveOptions, DiveOutcome, Progress};
 pub use keyframe_folder::KeyframeFolder;
+pub use progress::{ProgressSnapshot, RunProgress};
 pub use stop::Stop;
 
 use duv_camera::FrameSource;
@@ -128,6 +130,10 @@ pub trait MapStage: Send {
     /// takes the map's frame there (e.g. metres from the navigation sensors); `None`, the
     /// map's own frame (the default).
     fn set_output_frame(&mut self, _to_from_map: Option<Sim3>) {}
+    /// Gaussians in the map now (`None`: the stage keeps no map).
+    fn gaussians(&self) -> Option<usize> {
+        None
+    }
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
     /// optimisation and the exports into `out` (with `optimise` false, a stopped run: no
     /// optimisation and no keyframe renders, the map as it is); a one-line summary for the operator.
@@ -243,6 +249,8 @@ pub struct PipelineConfig {
     /// stopped run had not tracked yet, or whose pose was lost to damage): their poses are
     /// logged this time.
     pub retrack_unlogged: std::collections::BTreeSet<u64>,
+    /// Counters for a progress line (frames, state, keyframes, map size), set as the stages go.
+    pub progress: Arc<RunProgress>,
 }
 
 impl PipelineConfig {
@@ -285,6 +293,7 @@ impl PipelineConfig {
             window_interval: Duration::from_millis(500),
             unlogged_keyframes: Vec::new(),
             retrack_unlogged: std::collections::BTreeSet::new(),
+            progress: Arc::new(RunProgress::new()),
         }
     }
 }
@@ -543,6 +552,7 @@ pub fn run<S: FrameSource + 'static>(
         let kq = keyframes.clone();
         let lq = log_q.clone();
         let interval = cfg.checkpoint_interval;
+        let progress = cfg.progress.clone();
         let mut map = map;
         let stop = stop.clone();
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
@@ -584,6 +594,9 @@ pub fn run<S: FrameSource + 'static>(
                         }
                         None => !map.step().map_err(PipelineError::Mapping)?,
                     };
+                    if let Some(n) = map.gaussians() {
+                        progress.set_gaussians(n);
+                    }
                     if last_ckpt.elapsed() >= interval {
                         last_ckpt = Instant::now();
                         save(&mut map, last_t)?;
@@ -621,6 +634,7 @@ pub fn run<S: FrameSource + 'static>(
         let mut handoff = Handoff::new(cfg.handoff(), &mut tracker);
         handoff.adopt(&mut tracker, &cfg.unlogged_keyframes);
         let retrack_unlogged = cfg.retrack_unlogged.clone();
+        let progress = cfg.progress.clone();
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
             let _span = tracing::info_span!("track").entered();
@@ -630,6 +644,7 @@ pub fn run<S: FrameSource + 'static>(
             let mut track_times = Vec::with_capacity(RECORD_FRAMES);
             let to_mapping = |kf: Arc<Keyframe>| {
                 sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                progress.keyframe_handed_on();
                 if let Pushed::Refused(kf) = kq.push(kf, 0) {
                     // The id, for mapping to take the keyframe from the log at the end.
                     if let Ok(mut ids) = sh.dropped_keyframes.lock() {
@@ -660,6 +675,7 @@ pub fn run<S: FrameSource + 'static>(
                     let out = tracker.track(&frame)?;
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
+                    progress.frame_tracked(out.state.name(), out.segment);
                     log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
                     handoff.after_frame(tracker, &frame, &out, |item| log_push(&lq, item), to_mapping)?;
                     let lat = arrived.elapsed();

@@ -138,6 +138,10 @@ impl MapStage for GaussianMapping {
         Ok(())
     }
 
+    fn gaussians(&self) -> Option<usize> {
+        Some(self.stage.mapper().gaussians().len())
+    }
+
     fn set_output_frame(&mut self, to_from_map: Option<Sim3>) {
         self.output_frame = to_from_map;
     }
