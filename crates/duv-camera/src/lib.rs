@@ -6,6 +6,7 @@
 pub mod aravis;
 pub mod dataset;
 pub mod live;
+pub mod mavlink_nav;
 pub mod pixel;
 pub mod sim;
 mod source;

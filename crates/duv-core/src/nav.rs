@@ -244,6 +244,41 @@ impl NavTrack {
     }
 }
 
+/// Judges samples that did not come from a file (a live autopilot stream, a bag) as
+/// [`parse_nav_csv`] judges rows: sorted by time (a repeated time keeps the first), values
+/// out of range, not finite or off unit norm rejected and counted, depth spikes cleared.
+pub fn validate_samples(mut raw: Vec<NavSample>) -> NavTrack {
+    let mut rejected = NavRejections::default();
+    raw.sort_by_key(|s| s.t_ns);
+    let mut samples: Vec<NavSample> = Vec::with_capacity(raw.len());
+    for r in raw {
+        if samples.last().is_some_and(|p| p.t_ns == r.t_ns) {
+            rejected.duplicate_time += 1;
+            continue;
+        }
+        let mut s = NavSample::empty(r.t_ns);
+        s.depth_m = r.depth_m.filter(|&d| check_finite(d, &mut rejected) && check_range(d, DEPTH_RANGE_M, &mut rejected.depth_out_of_range));
+        s.altitude_m = r.altitude_m.filter(|&a| check_finite(a, &mut rejected) && check_range(a, ALTITUDE_RANGE_M, &mut rejected.altitude_out_of_range));
+        s.vel_cam_mps = r.vel_cam_mps.filter(|v| {
+            if !v.iter().all(|x| check_finite(*x, &mut rejected)) {
+                return false;
+            }
+            if v.norm() > MAX_SPEED_MPS {
+                rejected.velocity_out_of_range += 1;
+                return false;
+            }
+            true
+        });
+        s.world_from_cam_rot = r.world_from_cam_rot.filter(|q| q.coords.iter().all(|x| check_finite(*x, &mut rejected)));
+        if !s.is_empty() {
+            samples.push(s);
+        }
+    }
+    rejected.depth_spike = reject_depth_spikes(&mut samples);
+    samples.retain(|s| !s.is_empty());
+    NavTrack { samples, rejected }
+}
+
 /// Reads `nav.csv`; see the module documentation for the format and what is rejected.
 pub fn read_nav_csv(path: &Path) -> Result<NavTrack, NavError> {
     parse_nav_csv(path, &read_text(path)?)
@@ -685,5 +720,25 @@ mod tests {
         // Half way between identity and 180 degrees about z: 90 degrees.
         let q = t.world_from_cam_rot_at(s(2.5), 3 * gap).unwrap();
         assert!((q.angle() - std::f64::consts::FRAC_PI_2).abs() < 1e-9, "{q:?}");
+    }
+
+    #[test]
+    fn live_samples_are_judged_like_file_rows() {
+        let t = |s: f64| Timestamp::from_secs_f64(s);
+        let depth = |s: f64, d: f64| NavSample { depth_m: Some(d), ..NavSample::empty(t(s)) };
+        let mut raw: Vec<NavSample> = (0..10).map(|i| depth(0.1 * i as f64, 10.0 + 0.01 * i as f64)).collect();
+        raw[4].depth_m = Some(110.0); // a spike
+        raw.push(depth(0.25, f64::NAN)); // not finite
+        raw.push(depth(0.3, 10.5)); // a repeated time: the first one stays
+        raw.push(NavSample { altitude_m: Some(-3.0), ..NavSample::empty(t(0.35)) }); // out of range
+        raw.push(NavSample { vel_cam_mps: Some(Vector3::new(30.0, 0.0, 0.0)), ..NavSample::empty(t(0.45)) });
+        raw.push(NavSample { altitude_m: Some(2.5), ..NavSample::empty(t(0.05)) }); // out of order: sorted in
+        let track = validate_samples(raw);
+        let r = track.rejected;
+        assert_eq!((r.depth_spike, r.non_finite, r.duplicate_time, r.altitude_out_of_range, r.velocity_out_of_range), (1, 1, 1, 1, 1));
+        assert_eq!(track.samples.len(), 10, "9 depths and the altitude");
+        assert_eq!(track.samples[1].altitude_m, Some(2.5));
+        assert!(track.samples.windows(2).all(|w| w[0].t_ns < w[1].t_ns));
+        assert_eq!(track.samples.iter().filter_map(|s| s.depth_m).fold(0.0, f64::max), 10.09);
     }
 }

@@ -36,6 +36,51 @@ pub struct Board {
     /// The black-box log; absent: raw frames.
     #[serde(default)]
     pub log: LogSettings,
+    /// The vehicle's navigation sensors as its autopilot reports them (MAVLink); absent: a
+    /// camera looking straight ahead along the vehicle's axis.
+    #[serde(default)]
+    pub nav: NavSettings,
+}
+
+/// The `[nav]` section: how the camera sits in the vehicle, for sensors the autopilot reports
+/// in the vehicle's body frame (MAVLink attitude and DVL velocity: x forward, y right, z down).
+/// A `nav.csv` is already in the camera frame and does not use it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NavSettings {
+    /// The camera's mounting as roll, pitch, yaw in degrees (body frame, applied in that
+    /// order about fixed axes), from a camera looking straight ahead (its x right = body y,
+    /// y down = body z, optical axis = body x): e.g. `[0, -40, 0]`, the camera pitched 40
+    /// degrees down.
+    #[serde(default)]
+    pub camera_rpy_deg: [f64; 3],
+    /// Navigation samples kept for a live dive (the receiver's buffer, allocated at start;
+    /// later samples are counted and dropped).
+    #[serde(default = "default_nav_max_samples")]
+    pub max_samples: u32,
+}
+
+/// [`NavSettings::max_samples`] when the board does not say: four hours at 50 samples a second.
+pub const DEFAULT_NAV_MAX_SAMPLES: u32 = 720_000;
+
+fn default_nav_max_samples() -> u32 {
+    DEFAULT_NAV_MAX_SAMPLES
+}
+
+impl Default for NavSettings {
+    fn default() -> Self {
+        NavSettings { camera_rpy_deg: [0.0; 3], max_samples: DEFAULT_NAV_MAX_SAMPLES }
+    }
+}
+
+impl NavSettings {
+    /// Camera-to-body rotation (body: x forward, y right, z down).
+    pub fn body_from_cam(&self) -> nalgebra::UnitQuaternion<f64> {
+        let [r, p, y] = self.camera_rpy_deg.map(f64::to_radians);
+        // Columns: the camera's x, y, z axes in the body frame, looking straight ahead.
+        let ahead = nalgebra::Rotation3::from_matrix_unchecked(nalgebra::Matrix3::new(0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0));
+        nalgebra::UnitQuaternion::from_euler_angles(r, p, y) * nalgebra::UnitQuaternion::from_rotation_matrix(&ahead)
+    }
 }
 
 /// The pixel layout a camera delivers.
@@ -220,6 +265,12 @@ impl Board {
                 return Err(invalid(key, "0".into(), "at least one thread"));
             }
         }
+        if let Some(v) = self.nav.camera_rpy_deg.iter().find(|v| !(v.is_finite() && v.abs() <= 360.0)) {
+            return Err(invalid("nav.camera_rpy_deg", v.to_string(), "must be finite degrees within [-360, 360]"));
+        }
+        if self.nav.max_samples == 0 {
+            return Err(invalid("nav.max_samples", "0".into(), "must be at least 1"));
+        }
         if !(1..=100).contains(&self.log.jpeg_quality) {
             return Err(invalid("log.jpeg_quality", self.log.jpeg_quality.to_string(), "must be in 1..=100"));
         }
@@ -326,5 +377,22 @@ mapping = 1
         assert!(e.to_string().contains("budgets.ba_window"));
         let e = Board::parse(Path::new("b.toml"), &MINIMAL.replace("fps = 10.0", "fps = nan")).unwrap_err();
         assert!(e.to_string().contains("camera.fps"), "{e}");
+    }
+
+    #[test]
+    fn the_camera_mounting_turns_camera_axes_into_the_body_frame() {
+        use nalgebra::Vector3;
+        let ahead = NavSettings::default().body_from_cam();
+        assert!((ahead * Vector3::z() - Vector3::x()).norm() < 1e-12, "optical axis = body forward");
+        assert!((ahead * Vector3::x() - Vector3::y()).norm() < 1e-12, "image right = body right");
+        assert!((ahead * Vector3::y() - Vector3::z()).norm() < 1e-12, "image down = body down");
+        let down40 = NavSettings { camera_rpy_deg: [0.0, -40.0, 0.0], ..NavSettings::default() }.body_from_cam();
+        let axis = down40 * Vector3::z();
+        let (c, s) = (40f64.to_radians().cos(), 40f64.to_radians().sin());
+        assert!((axis - Vector3::new(c, 0.0, s)).norm() < 1e-12, "pitched 40 degrees down: {axis}");
+        let b = Board::parse(Path::new("b.toml"), &format!("{MINIMAL}\n[nav]\ncamera_rpy_deg = [0.0, -40.0, 0.0]\nmax_samples = 1000\n")).unwrap();
+        assert_eq!((b.nav.camera_rpy_deg, b.nav.max_samples), ([0.0, -40.0, 0.0], 1000));
+        let e = Board::parse(Path::new("b.toml"), &format!("{MINIMAL}\n[nav]\ncamera_rpy_deg = [0.0, 400.0, 0.0]\n")).unwrap_err();
+        assert_eq!(e.to_string(), "b.toml: nav.camera_rpy_deg = 400 is invalid: must be finite degrees within [-360, 360]");
     }
 }
