@@ -86,8 +86,15 @@ pub struct RunArgs {
     #[arg(long)]
     pub no_map: bool,
     /// Ignore the source's navigation sensors: outputs in map units, as a camera alone gives.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "nav")]
     pub no_nav: bool,
+    /// Navigation input besides the source's own: the vehicle's autopilot over MAVLink,
+    /// `mavlink:udpin:HOST:PORT[,depth=auto|pressure2|pressure|global_position|vfr_hud]
+    /// [,surface_pa=101325][,density=1025][,min_confidence=0.5]` (received during the run,
+    /// stamped on arrival; the camera's mounting is the board's `[nav] camera_rpy_deg`), or a
+    /// `nav.csv` file on the frames' clock.
+    #[arg(long, value_name = "SPEC")]
+    pub nav: Option<String>,
     /// Mapper iterations after each keyframe handed to mapping.
     #[arg(long, default_value_t = MappingBudget::default().iterations_per_keyframe)]
     pub map_iterations: u64,
@@ -342,6 +349,7 @@ impl RunArgs {
             announce: self.announce,
             use_nav: !self.no_nav,
             progress: None,
+            nav_input: self.nav.clone(),
             mapping: (!self.no_map).then(|| MappingOptions {
                 config: self.map_config.clone(),
                 iterations_per_keyframe: self.map_iterations,
@@ -373,6 +381,7 @@ impl RunArgs {
             announce: false,
             no_map: true,
             no_nav: false,
+            nav: None,
             map_iterations: MappingBudget::default().iterations_per_keyframe,
             map_idle_iterations: 30,
             map_final_iterations: 100,

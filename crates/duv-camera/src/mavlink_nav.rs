@@ -254,10 +254,9 @@ impl NavReceiver {
         self.local
     }
 
-    /// Stops receiving; the samples, judged like `nav.csv` rows, with their times moved onto
-    /// the frames' clock: a sample that arrived at run time `r` is at frame time
-    /// `r - run_minus_frame_ns`.
-    pub fn finish(mut self, run_minus_frame_ns: i64) -> MavlinkNav {
+    /// Stops receiving; the samples, judged like `nav.csv` rows, with their arrival times
+    /// (run clock, ns) moved onto the frames' clock by `frame_time_ns`.
+    pub fn finish(mut self, frame_time_ns: impl Fn(i64) -> i64) -> MavlinkNav {
         self.stop.store(true, Ordering::Relaxed);
         let collected = self.thread.take().and_then(|t| t.join().ok());
         let Some(mut c) = collected else {
@@ -274,7 +273,7 @@ impl NavReceiver {
             c.samples.extend(depths.into_iter().map(|(t, d)| NavSample { depth_m: Some(d), ..NavSample::empty(Timestamp::from_ns(t)) }));
         }
         for s in &mut c.samples {
-            s.t_ns = Timestamp::from_ns(s.t_ns.t_ns() - run_minus_frame_ns);
+            s.t_ns = Timestamp::from_ns(frame_time_ns(s.t_ns.t_ns()));
         }
         MavlinkNav { track: validate_samples(c.samples), counts: c.counts, depth_source: chosen }
     }
@@ -459,7 +458,7 @@ mod tests {
             std::thread::sleep(Duration::from_millis(2));
         }
         std::thread::sleep(Duration::from_millis(150));
-        let nav = rx.finish(0);
+        let nav = rx.finish(|t| t);
         let c = nav.counts;
         assert_eq!((c.depth[0], c.depth[3], c.altitude, c.velocity, c.low_confidence), (20, 20, 20, 20, 10), "{c:?}");
         assert_eq!((c.datagrams, c.messages), (80, 100), "a damaged frame is skipped by the decoder (its CRC fails), not read: {c:?}");

@@ -112,6 +112,9 @@ pub struct DiveOptions {
     pub use_nav: bool,
     /// Counters the stages set as they go (a progress line reads them); `None`: not shown.
     pub progress: Option<Arc<super::RunProgress>>,
+    /// Navigation input besides the source's own (`--nav`): `mavlink:[udpin:]HOST:PORT[,...]`,
+    /// the autopilot's stream received during the run, or a `nav.csv` file.
+    pub nav_input: Option<String>,
 }
 
 /// Why a dive run failed. The messages are the ones the command line prints.
@@ -166,6 +169,12 @@ pub enum DiveError {
     /// A folder of the run that could not be made.
     #[error(transparent)]
     Folder(std::io::Error),
+    /// `--nav`: a MAVLink stream that cannot be received.
+    #[error("--nav {0}")]
+    NavStream(#[from] duv_camera::mavlink_nav::MavlinkNavError),
+    /// `--nav FILE`: a navigation file that does not read.
+    #[error("--nav: {0}")]
+    NavFile(#[from] duv_core::nav::NavError),
 }
 
 /// One line of what a dive run is doing, reported as it happens (its `Display` is the line;
@@ -235,6 +244,8 @@ pub enum Progress<'a> {
     MapNotExported { error: &'a MapStageError },
     /// The unit of the outputs ([`MetricRecord::summary`]).
     Units { summary: &'a str },
+    /// What a live navigation stream delivered.
+    NavStream { summary: &'a str },
     /// `metric.json` could not be written.
     MetricNotWritten { error: &'a duv_core::io::IoError },
 }
@@ -251,6 +262,7 @@ impl Progress<'_> {
                 | Progress::CaughtUp { .. }
                 | Progress::MapExported { .. }
                 | Progress::Units { .. }
+                | Progress::NavStream { .. }
         )
     }
 }
@@ -344,6 +356,7 @@ impl std::fmt::Display for Progress<'_> {
             Progress::MapExported { summary } => f.write_str(summary),
             Progress::MapNotExported { error } => write!(f, "MAP NOT EXPORTED: {error}"),
             Progress::Units { summary } => write!(f, "{summary}"),
+            Progress::NavStream { summary } => write!(f, "{summary}"),
             Progress::MetricNotWritten { error } => write!(f, "metric.json not written: {error}"),
         }
     }
@@ -495,6 +508,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     // Recorded and generated sources lose nothing by waiting; paced replay behaves live.
     pcfg.lossless_frames = speed.is_none();
     pcfg.announce = opts.announce;
+    pcfg.arrival_clock = Arc::new(super::clock::ArrivalClock::with_speed(speed.unwrap_or(1.0)));
     if let Some(p) = &opts.progress {
         pcfg.progress = p.clone();
     }
@@ -601,6 +615,17 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     let stop = Stop::on_signals()?;
     let total = source.len();
     let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
+    // `--nav`: a file is read now (its errors before any frame), a stream received from now on.
+    let mut nav_stream = None;
+    let mut nav_file = None;
+    match opts.nav_input.as_deref() {
+        Some(spec) if spec.starts_with("mavlink:") && opts.use_nav => {
+            let parsed = duv_camera::mavlink_nav::MavlinkNavSpec::parse(spec)?;
+            nav_stream = Some(duv_camera::mavlink_nav::NavReceiver::start(parsed, board.nav.body_from_cam(), board.nav.max_samples as usize, pcfg.arrival_clock.epoch())?);
+        }
+        Some(file) if opts.use_nav && !file.starts_with("mavlink:") => nav_file = Some(duv_core::nav::read_nav_csv(Path::new(file))?),
+        _ => {}
+    }
     let frames_expected = (total != usize::MAX).then(|| total.saturating_sub(start));
     pcfg.progress.set_frames_expected(frames_expected.map(|n| n as u64));
     progress(&Progress::Tracking { frames: frames_expected });
@@ -687,9 +712,30 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     reserve.release();
     let fin = finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
     // Metres when the source has navigation input and a sensor observed the scale.
-    let nav = if opts.use_nav { source.nav()? } else { None };
+    let nav = if !opts.use_nav {
+        None
+    } else if let Some(rx) = nav_stream {
+        let spec = opts.nav_input.clone().unwrap_or_default();
+        match pcfg.arrival_clock.frame_time_ns(0) {
+            Some(_) => {
+                let clock = pcfg.arrival_clock.clone();
+                let got = rx.finish(|r| clock.frame_time_ns(r).unwrap_or(r));
+                progress(&Progress::NavStream { summary: &mavlink_summary(&spec, &got) });
+                (!got.track.samples.is_empty()).then_some(got.track.samples)
+            }
+            None => None,
+        }
+    } else if let Some(track) = nav_file {
+        if track.rejected.total() > 0 {
+            progress(&Progress::NavStream { summary: &format!("--nav: {} samples, {}", track.samples.len(), track.rejected.describe()) });
+        }
+        Some(track.samples)
+    } else {
+        source.nav()?
+    };
     let (units, metric_from_world) = match &nav {
         None if !opts.use_nav => (MetricRecord::map_units("navigation input turned off (--no-nav)", 0), None),
+        None if opts.nav_input.is_some() => (MetricRecord::map_units(format!("--nav {} delivered no usable navigation sample", opts.nav_input.as_deref().unwrap_or_default()), 0), None),
         None => (MetricRecord::map_units("the source has no navigation input (nav.csv beside a dataset, nav=FILE, or sim:...,nav=on)", 0), None),
         Some(samples) => match super::metric::estimate_for_dive(samples, &fin, history, &tracker, pcfg.world_from_tracker.as_ref()) {
             Ok(a) => (MetricRecord::metric(&a, samples.len()), Some(a.metric_from_map)),
@@ -779,4 +825,29 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         stop,
         log_error: result.log_error,
     })))
+}
+
+/// One line on what a MAVLink stream delivered: messages, samples by sensor, rejections.
+fn mavlink_summary(spec: &str, got: &duv_camera::mavlink_nav::MavlinkNav) -> String {
+    let c = &got.counts;
+    let depth = match got.depth_source {
+        Some(k) => format!("depth from {k:?} ({} of {} depth messages)", got.track.samples.iter().filter(|s| s.depth_m.is_some()).count(), c.depth.iter().sum::<u64>()),
+        None => "no depth".to_string(),
+    };
+    let span = match (got.track.samples.first(), got.track.samples.last()) {
+        (Some(a), Some(b)) => format!(" ({:.2} to {:.2} s on the frames' clock)", a.t_ns.t_ns() as f64 * 1e-9, b.t_ns.t_ns() as f64 * 1e-9),
+        _ => String::new(),
+    };
+    format!(
+        "navigation stream {spec}: {} messages in {} datagrams; {depth}, {} attitudes, {} altitudes, {} DVL velocities ({} below the confidence floor); {} samples kept{span}{}{}",
+        c.messages,
+        c.datagrams,
+        c.attitude,
+        c.altitude,
+        c.velocity,
+        c.low_confidence,
+        got.track.samples.len(),
+        if got.track.rejected.total() > 0 { format!(", {}", got.track.rejected.describe()) } else { String::new() },
+        if c.over_capacity > 0 { format!(", {} past the board's [nav] max_samples", c.over_capacity) } else { String::new() },
+    )
 }

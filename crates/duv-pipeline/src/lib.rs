@@ -20,6 +20,7 @@
 
 pub mod budget;
 pub mod checkpoints;
+pub mod clock;
 pub mod dive;
 pub mod dive_run;
 mod handoff;
@@ -251,6 +252,8 @@ pub struct PipelineConfig {
     pub retrack_unlogged: std::collections::BTreeSet<u64>,
     /// Counters for a progress line (frames, state, keyframes, map size), set as the stages go.
     pub progress: Arc<RunProgress>,
+    /// The run's clock against the frames' (inputs stamped on arrival).
+    pub arrival_clock: Arc<clock::ArrivalClock>,
 }
 
 impl PipelineConfig {
@@ -294,6 +297,7 @@ impl PipelineConfig {
             unlogged_keyframes: Vec::new(),
             retrack_unlogged: std::collections::BTreeSet::new(),
             progress: Arc::new(RunProgress::new()),
+            arrival_clock: Arc::new(clock::ArrivalClock::new()),
         }
     }
 }
@@ -714,6 +718,7 @@ pub fn run<S: FrameSource + 'static>(
         let sh = shared.clone();
         let mut pacer = cfg.pace_speed.map(|speed| Pacer { speed, start: None });
         let lossless = cfg.lossless_frames;
+        let arrival_clock = cfg.arrival_clock.clone();
         spawn("capture", move || -> (S, Option<String>) {
             alloc::label_current_thread(ThreadRole::Capture);
             let _span = tracing::info_span!("capture").entered();
@@ -746,6 +751,7 @@ pub fn run<S: FrameSource + 'static>(
                         if let Some(p) = pacer.as_mut() {
                             p.wait(frame.t_ns, &sh.stop);
                         }
+                        arrival_clock.frame_arrived(frame.t_ns);
                         sh.frames_captured.fetch_add(1, Ordering::Relaxed);
                         sh.latest_t_ns.store(frame.t_ns.t_ns(), Ordering::Relaxed);
                         log_push(&lq, LogItem::Frame(Arc::clone(&frame)));
