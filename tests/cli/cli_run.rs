@@ -312,6 +312,15 @@ fn duv_run_works_from_any_folder_and_logs_plain_text() {
     assert!(dir.path().join("run/trajectory.txt").is_file());
     assert!(!stderr.contains('\u{1b}'), "ANSI codes in redirected stderr: {stderr:?}");
     assert!(stderr.contains("sim coastal water, survey path"), "{stderr}");
+    // `duv replay` and `duv demo` take the same built-in board there.
+    let here = |args: &[&str]| {
+        let res = Command::new(env!("CARGO_BIN_EXE_duv")).current_dir(dir.path()).args(args).output().unwrap();
+        assert!(res.status.success(), "{args:?}: {}", String::from_utf8_lossy(&res.stderr));
+    };
+    here(&["replay", "run/log", "--out", "replayed", "--no-progress", "--no-map"]);
+    assert!(dir.path().join("replayed/trajectory.txt").is_file());
+    here(&["demo", "--out", "demo", "--frames", "12", "--no-progress"]);
+    assert!(dir.path().join("demo/demo.md").is_file());
 }
 
 /// Each bad value in a tracker or mapper config file is refused before any frame is tracked,
