@@ -22,6 +22,7 @@ pub mod budget;
 pub mod checkpoints;
 pub mod dive;
 pub mod dive_run;
+pub mod export;
 mod handoff;
 pub mod keyframe_folder;
 pub mod lock;
