@@ -123,8 +123,10 @@ pub enum ExportError {
     NoRestored { dir: PathBuf },
     #[error("{path}: the map has no Gaussians")]
     EmptyMap { path: PathBuf },
-    #[error("max_points is 0")]
+    #[error("max_points = 0: the export needs at least 1 point")]
     NoPoints,
+    #[error("{path}: the export folder is the run folder (its map.ply would be copied onto itself); choose another")]
+    OutIsRun { path: PathBuf },
     #[error("creating {path}: {source}")]
     Create { path: PathBuf, source: std::io::Error },
     #[error("copying {from} to {to}: {source}")]
@@ -382,6 +384,9 @@ pub fn export_run(run: &Path, out: &Path, opts: &ExportOptions) -> Result<Export
     }
     if opts.max_points == 0 {
         return Err(ExportError::NoPoints);
+    }
+    if out.canonicalize().is_ok_and(|o| run.canonicalize().is_ok_and(|r| r == o)) {
+        return Err(ExportError::OutIsRun { path: out.to_path_buf() });
     }
     let camera = read_run_camera(run)?;
     let keyframes = read_run_keyframes(run)?;
@@ -745,6 +750,9 @@ mod tests {
         let msg = |e: ExportError| e.to_string();
         assert!(msg(export_run(&run, &out, &opts).unwrap_err()).contains("not a run folder"));
         let ids = write_run(&run, &camera(), &poses(), &points());
+        let e = msg(export_run(&run, &run.join("."), &opts).unwrap_err());
+        assert!(e.contains("the export folder is the run folder"), "{e}");
+        assert!(msg(export_run(&run, &out, &ExportOptions { max_points: 0, ..ExportOptions::default() }).unwrap_err()).contains("max_points = 0"));
 
         std::fs::rename(run.join("map.ply"), run.join("map.bak")).unwrap();
         let e = msg(export_run(&run, &out, &opts).unwrap_err());
