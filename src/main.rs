@@ -31,6 +31,8 @@ enum Command {
     Sim(cli::sim::SimArgs),
     /// Evaluate a trajectory / run against ground truth: ATE, RPE, PSNR, SSIM, AUSE, figures.
     Eval(cli::eval::EvalArgs),
+    /// Export a run's keyframes, poses and map for offline splatting: COLMAP text model, nerfstudio transforms.json.
+    Export(cli::export::ExportArgs),
     /// Refine a Gaussian map and the water offline from a keyframe folder, a run's MCAP log or generated keyframes.
     Refine(cli::refine::RefineArgs),
     /// Check board profiles and print the capacities they give.
@@ -71,6 +73,7 @@ fn main() -> std::process::ExitCode {
         Command::Run(a) => cli::run::run(a),
         Command::Sim(a) => cli::sim::run(a),
         Command::Eval(a) => cli::eval::run(a),
+        Command::Export(a) => cli::export::run(a),
         Command::Refine(a) => cli::refine::run(a),
         Command::Board(a) => cli::board::run(a),
         Command::Dataset(a) => cli::dataset::run(a),

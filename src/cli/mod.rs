@@ -8,6 +8,7 @@ pub mod board;
 pub mod dataset;
 pub mod demo;
 pub mod eval;
+pub mod export;
 pub mod inspect;
 pub mod refine;
 pub mod replay;

@@ -3,6 +3,7 @@
 
 mod cli;
 mod cli_bench;
+mod cli_export;
 mod cli_metric;
 mod cli_run;
 mod eval_cli;

@@ -16,13 +16,15 @@
 //! [`run`] is the pipeline; [`run_dive`] ([`dive_run`]) is a whole run around it, what `duv run`
 //! does below its command line: the run folder's lock, resume, the mapping stage, the
 //! end-of-run keyframe catch-up, the outputs and `dive.json`. The keyframe folder has one
-//! writer, [`KeyframeFolder`].
+//! writer, [`KeyframeFolder`]. [`export`] reads a finished run folder back as input for offline
+//! splatting (a COLMAP text model, a nerfstudio `transforms.json`).
 
 pub mod budget;
 pub mod checkpoints;
 pub mod clock;
 pub mod dive;
 pub mod dive_run;
+pub mod export;
 mod handoff;
 pub mod keyframe_folder;
 pub mod lock;
