@@ -207,6 +207,7 @@ fn a_live_mavlink_stream_makes_a_paced_run_metric() {
     assert_eq!(m.length_unit, "m", "{m:?}");
     assert!(m.nav_samples >= 4 * 90, "depth, altitude, DVL and attitude arrive as separate samples: {m:?}");
     let s = scale_to_truth(&run.join("trajectory.txt"), &data.join("groundtruth.txt"));
-    eprintln!("live MAVLink run: Sim(3) scale to the truth {s:.4}, {} navigation samples", m.nav_samples);
+    let metric_line = stdout.lines().find(|l| l.starts_with("metric: ")).unwrap_or("no metric line");
+    eprintln!("live MAVLink run: Sim(3) scale to the truth {s:.4}, {} navigation samples; {metric_line}", m.nav_samples);
     assert!((s - 1.0).abs() < 0.03, "Sim(3) scale to the truth {s}");
 }
