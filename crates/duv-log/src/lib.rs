@@ -22,11 +22,13 @@
 
 pub mod chunked;
 pub mod inspect;
+pub mod bag;
 pub mod jpeg;
 pub mod keyframes;
 pub mod reader;
 pub mod recover;
 pub mod replay;
+pub mod ros2;
 pub mod schema;
 pub mod window;
 pub mod writer;
@@ -35,7 +37,7 @@ pub use inspect::{inspect_log, LogSummary};
 pub use keyframes::{for_each_log_keyframe, log_files, read_log_keyframes, LogKeyframes, LoggedMap};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
-pub use schema::{DecodeError, FrameEncoding, LogItem, PoseRecord, Topic};
+pub use schema::{DecodeError, FrameEncoding, LogFormat, LogItem, PoseRecord, Topic};
 pub use window::{TrackerWindow, WindowError, WindowKeyframe};
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 
