@@ -175,7 +175,7 @@ fn a_ros2_log_is_a_bag_that_rosbags_opens_and_deserialises() {
     let types = &v["types"];
     for (topic, ty) in [
         ("/camera/image", "sensor_msgs/msg/Image"),
-        ("/camera/calibration", "sensor_msgs/msg/CameraInfo"),
+        ("/camera/camera_info", "sensor_msgs/msg/CameraInfo"),
         ("/slam/pose", "geometry_msgs/msg/PoseStamped"),
         ("/tf", "tf2_msgs/msg/TFMessage"),
         ("/slam/state", "duv_msgs/msg/TrackingState"),

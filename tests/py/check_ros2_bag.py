@@ -69,7 +69,7 @@ def main():
         f = out["fields"]
         if (m := first.get("/camera/image")) is not None:
             f["image"] = {"format": getattr(m, "format", None), "encoding": getattr(m, "encoding", None), "width": getattr(m, "width", None), "height": getattr(m, "height", None), "frame_id": m.header.frame_id, "stamp_ns": m.header.stamp.sec * 10**9 + m.header.stamp.nanosec}
-        if (m := first.get("/camera/calibration")) is not None:
+        if (m := first.get("/camera/camera_info")) is not None:
             f["camera_info"] = {"width": m.width, "height": m.height, "k": [float(x) for x in m.k], "p": [float(x) for x in m.p]}
         if (m := first.get("/slam/pose")) is not None:
             p = m.pose

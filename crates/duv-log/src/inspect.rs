@@ -61,11 +61,11 @@ impl LogSummary {
         if let Some((a, b)) = self.span_ns() {
             let _ = writeln!(s, "time span {:.3} s .. {:.3} s ({:.3} s)", a as f64 * 1e-9, b as f64 * 1e-9, (b - a) as f64 * 1e-9);
         }
-        let _ = writeln!(s, "{:<22} {:<26} {:>9} {:>12} {:>10}", "topic", "schema", "messages", "bytes", "rate Hz");
+        let _ = writeln!(s, "{:<22} {:<30} {:>9} {:>12} {:>10}", "topic", "schema", "messages", "bytes", "rate Hz");
         for (name, t) in &self.topics {
             let span = (t.last_ns.saturating_sub(t.first_ns)) as f64 * 1e-9;
             let rate = if span > 0.0 && t.messages > 1 { (t.messages - 1) as f64 / span } else { 0.0 };
-            let _ = writeln!(s, "{:<22} {:<26} {:>9} {:>12} {:>10.2}", name, t.schema, t.messages, t.bytes, rate);
+            let _ = writeln!(s, "{:<22} {:<30} {:>9} {:>12} {:>10.2}", name, t.schema, t.messages, t.bytes, rate);
         }
         if self.gaps.is_empty() {
             let _ = writeln!(s, "gaps in /camera/image: none");

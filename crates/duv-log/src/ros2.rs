@@ -6,7 +6,7 @@
 //! | topic | type |
 //! |---|---|
 //! | `/camera/image` | `sensor_msgs/msg/Image` (`rgb8`, `mono8`) or `sensor_msgs/msg/CompressedImage` (`jpeg`) |
-//! | `/camera/calibration` | `sensor_msgs/msg/CameraInfo` |
+//! | `/camera/camera_info` (the Foxglove format's `/camera/calibration`) | `sensor_msgs/msg/CameraInfo` |
 //! | `/slam/pose`, `/keyframe/pose` | `geometry_msgs/msg/PoseStamped` |
 //! | `/tf` | `tf2_msgs/msg/TFMessage` (`world` -> `camera`) |
 //! | `/slam/state` | `duv_msgs/msg/TrackingState` |

@@ -97,6 +97,9 @@ pub const WORLD_FRAME: &str = "world";
 /// Frame id of the camera.
 pub const CAMERA_FRAME: &str = "camera";
 
+/// The calibration's topic in the ROS 2 format.
+pub const CAMERA_INFO_TOPIC: &str = "/camera/camera_info";
+
 /// Every topic the log writes. `sequence` in the MCAP message header is the frame `seq` for
 /// per-frame topics and the keyframe id for keyframe topics.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -186,7 +189,21 @@ impl Topic {
         }
     }
 
+    /// The topic's name in `format`: the ROS 2 format names the calibration
+    /// `/camera/camera_info`, beside `/camera/image` as ROS tools (image_transport, rviz's
+    /// camera display) look for it; every other name is [`Topic::name`].
+    pub fn name_in(self, format: LogFormat) -> &'static str {
+        match (self, format) {
+            (Topic::CameraCalibration, LogFormat::Ros2) => CAMERA_INFO_TOPIC,
+            _ => self.name(),
+        }
+    }
+
+    /// The topic of a channel name in either format.
     pub fn from_name(name: &str) -> Option<Topic> {
+        if name == CAMERA_INFO_TOPIC {
+            return Some(Topic::CameraCalibration);
+        }
         ALL_TOPICS.into_iter().find(|t| t.name() == name)
     }
 

@@ -168,8 +168,8 @@ impl SegmentWriter {
             Some(s) => seg
                 .writer
                 .add_schema(id + 1, &s.name, &s.encoding, &s.data)
-                .and_then(|()| seg.writer.add_channel(id, id + 1, topic.name(), &s.message_encoding, &BTreeMap::new())),
-            None => seg.writer.add_channel(id, 0, topic.name(), topic.schemaless_encoding(), &BTreeMap::new()),
+                .and_then(|()| seg.writer.add_channel(id, id + 1, topic.name_in(format), &s.message_encoding, &BTreeMap::new())),
+            None => seg.writer.add_channel(id, 0, topic.name_in(format), topic.schemaless_encoding(), &BTreeMap::new()),
         };
         r.map_err(io_err(&seg.path))?;
         seg.channels[topic.index()] = true;
