@@ -17,6 +17,9 @@
 //!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
 //!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
 //!   logged for a resume (`/slam/window`).
+//! - With `[log] format = "ros2"` ([`LogFormat::Ros2`]) the same topics are written as a ROS 2
+//!   bag: [`ros2`] holds the message definitions and the CDR encoding, [`bag`] the rosbag2
+//!   `metadata.yaml`.
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 

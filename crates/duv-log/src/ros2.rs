@@ -68,7 +68,7 @@ impl<'a> CdrWriter<'a> {
     }
 
     fn align(&mut self, n: usize) {
-        while (self.out.len() - 4) % n != 0 {
+        while !(self.out.len() - 4).is_multiple_of(n) {
             self.out.push(0);
         }
     }

@@ -4,6 +4,9 @@
 //! from the `foxglove` crate, so a log opens in Foxglove with the camera, the trajectory and the
 //! Gaussian centres visible. Our own records (tracking state, health) are JSON with a JSON
 //! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
+//! In the ROS 2 format ([`LogFormat::Ros2`]) every topic has a ROS 2 type and CDR bodies
+//! ([`super::ros2`]); the decoders here read both, telling them apart by the body's first
+//! bytes (a CDR body starts `00 01 00 00`, which no protobuf, JSON or duv record does).
 
 use super::window::TrackerWindow;
 use super::jpeg::{JpegEncoder, JpegError};
