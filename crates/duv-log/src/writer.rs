@@ -102,7 +102,16 @@ impl SegmentWriter {
     /// A writer whose first segment follows the newest existing one in the folder.
     pub fn create(cfg: LogConfig) -> Result<Self, LogError> {
         std::fs::create_dir_all(&cfg.dir).map_err(io_err(&cfg.dir))?;
-        let next_index = list_segments(&cfg.dir)?.last().map(|(i, _)| i + 1).unwrap_or(0);
+        let existing = list_segments(&cfg.dir)?;
+        let next_index = existing.last().map(|(i, _)| i + 1).unwrap_or(0);
+        // A resumed run in another format than the folder's: both are read back, but a ROS 2
+        // bag lists only its ROS 2 segments.
+        if let Some(profile) = existing.last().and_then(|(_, p)| super::bag::read_profile(p).ok()) {
+            if profile != cfg.format.profile() {
+                let was = if profile == super::ros2::PROFILE { "ros2" } else { "foxglove" };
+                tracing::warn!("log: {} holds segments in the {was} format; this run's segments are {} (set [log] format or --log-format to keep one format)", cfg.dir.display(), cfg.format.name());
+            }
+        }
         let encoder = ItemEncoder::with_format(cfg.format, cfg.frame_encoding);
         // Chunks close every `chunk_interval` or at CHUNK_BYTES, so a segment holds at most
         // about this many; the chunk index table is reserved for it once.
