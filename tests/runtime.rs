@@ -316,6 +316,63 @@ fn jpeg_logged_run_resumes_inspects_and_replays() {
     assert!(replay_ate < 0.01 * path_len, "JPEG replay ATE {replay_ate} m, path {path_len} m");
 }
 
+/// `tests/py/check_ros2_bag.py` (the `rosbags` package) on a log folder: it opens as a ROS 2
+/// bag and every message deserialises; the counts per topic are our reader's. Skipped, saying
+/// so, without Python and `rosbags`; a failure under CI=true or with DUV_PYTHON set.
+fn rosbags_agrees(log_dir: &Path) {
+    let candidates: Vec<PathBuf> = std::env::var_os("DUV_PYTHON").map(PathBuf::from).into_iter().chain([root().join("target/py-mcap/bin/python"), PathBuf::from("python3")]).collect();
+    let Some(py) = candidates.into_iter().find(|py| Command::new(py).args(["-c", "import rosbags.rosbag2"]).output().is_ok_and(|o| o.status.success())) else {
+        assert!(std::env::var("CI").as_deref() != Ok("true") && std::env::var_os("DUV_PYTHON").is_none(), "no Python with the `rosbags` package (run .ci/run, or set DUV_PYTHON)");
+        eprintln!("SKIPPED the rosbags cross-check: no Python with the `rosbags` package");
+        return;
+    };
+    let out = Command::new(py).arg(root().join("tests/py/check_ros2_bag.py")).arg(log_dir).output().unwrap();
+    assert!(out.status.success(), "rosbags: {}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["errors"], serde_json::json!([]), "{v}");
+    let mut ours: BTreeMap<String, u64> = BTreeMap::new();
+    for (_, p) in list_segments(log_dir).unwrap() {
+        read_segment(&p, ReadLimits::default(), |m| *ours.entry(m.channel.topic.clone()).or_default() += 1).unwrap();
+    }
+    let theirs: BTreeMap<String, u64> = v["counts"].as_object().unwrap().iter().map(|(k, n)| (k.clone(), n.as_u64().unwrap())).collect();
+    assert_eq!(theirs, ours, "rosbags against our reader");
+}
+
+/// A run logged as a ROS 2 bag (`--log-format ros2`): `duv inspect` names the format and the
+/// ROS types, `rosbags` reads it, a deterministic replay of it tracks exactly as a replay of the
+/// same run logged in the Foxglove format (raw frames are lossless in both), and it resumes.
+#[test]
+fn a_ros2_logged_run_is_a_bag_that_replays_and_resumes_like_the_foxglove_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let (fox, ros) = (dir.path().join("fox"), dir.path().join("ros"));
+    run_ok(sim_run(&fox, 60).arg("--no-map"));
+    run_ok(sim_run(&ros, 60).args(["--no-map", "--log-format", "ros2"]));
+    let inspect = run_ok(duv().arg("inspect").arg(&ros));
+    assert!(inspect.contains("format ros2"), "{inspect}");
+    assert!(inspect.lines().any(|l| l.starts_with("/camera/image") && l.contains("sensor_msgs/msg/Image") && l.contains(" 60 ")), "{inspect}");
+    assert!(inspect.lines().any(|l| l.starts_with("/slam/state") && l.contains("duv_msgs/msg/TrackingState")), "{inspect}");
+    assert!(ros.join("log/metadata.yaml").is_file());
+    rosbags_agrees(&ros.join("log"));
+    let bad = duv().args(["run", "--source", "sim:coastal", "--log-format", "rosbag", "--out"]).arg(dir.path().join("bad")).output().unwrap();
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && err.contains("rosbag") && err.contains("foxglove") && err.contains("ros2"), "{err}");
+
+    let replay = |log: &Path, out: &Path| {
+        run_ok(duv().arg("replay").arg(log).arg("--out").arg(out).args(["--deterministic", "--no-progress", "--no-map"]));
+        std::fs::read(out.join("trajectory.txt")).unwrap()
+    };
+    let (t_fox, t_ros) = (replay(&fox, &dir.path().join("r-fox")), replay(&ros, &dir.path().join("r-ros")));
+    assert_eq!(String::from_utf8_lossy(&t_ros).lines().filter(|l| !l.starts_with('#')).count(), 60);
+    assert!(t_fox == t_ros, "replays of the Foxglove and the ROS 2 log differ");
+
+    // Resume reads the CDR log back (poses, states, window, keyframes and their frames).
+    let resumed = run_ok(sim_run(&ros, 90).args(["--no-map", "--continue", "--log-format", "ros2"]));
+    assert!(resumed.contains("in the recorded frame and scale; tracking") && resumed.contains("logged frames again"), "{resumed}");
+    assert_eq!(read_states(&ros.join("states.txt")).len(), 90);
+    assert!(list_segments(&ros.join("log")).unwrap().len() >= 2);
+    rosbags_agrees(&ros.join("log"));
+}
+
 /// Sends `signal` to `child` and returns the seconds until it exited, with its exit code.
 fn signal_and_wait(child: &mut std::process::Child, signals: &[&str]) -> (f64, Option<i32>) {
     let t0 = Instant::now();

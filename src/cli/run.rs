@@ -8,6 +8,7 @@
 //! status. `duv replay` and `duv demo` run their dives through [`run`].
 
 use anyhow::Context;
+use duv_core::config::board::LogFormatSetting;
 use duv_core::{PlaneF32, StampedPose};
 use duv_eval::report::AuseInput;
 use duv_eval::{build_report, write_report, Alignment, EvalInputs, EvalOptions, TrajectoryOptions};
@@ -117,6 +118,17 @@ pub struct RunArgs {
     /// passed, with time stamps and sequence numbers continued (`duv bench replay`).
     #[arg(long, hide = true, value_name = "SECONDS")]
     pub loop_for_s: Option<f64>,
+    /// The log's message schemas [default: the board's `[log] format`]: `foxglove` (protobuf,
+    /// opens in Foxglove) or `ros2` (a ROS 2 bag: CDR, metadata.yaml; opens with `ros2 bag`).
+    #[arg(long, value_enum)]
+    pub log_format: Option<LogFormatArg>,
+}
+
+/// `--log-format`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormatArg {
+    Foxglove,
+    Ros2,
 }
 
 /// Exit status of a run whose outputs were written but whose log stopped early (a full disk).
@@ -350,6 +362,10 @@ impl RunArgs {
             use_nav: !self.no_nav,
             progress: None,
             nav_input: self.nav.clone(),
+            log_format: self.log_format.map(|f| match f {
+                LogFormatArg::Foxglove => LogFormatSetting::Foxglove,
+                LogFormatArg::Ros2 => LogFormatSetting::Ros2,
+            }),
             mapping: (!self.no_map).then(|| MappingOptions {
                 config: self.map_config.clone(),
                 iterations_per_keyframe: self.map_iterations,
@@ -388,6 +404,7 @@ impl RunArgs {
             map_config: None,
             mapper: MapperDevice::Auto,
             loop_for_s: None,
+            log_format: None,
         }
     }
 }

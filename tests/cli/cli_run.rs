@@ -222,6 +222,40 @@ fn refine_reads_the_keyframes_of_a_run_log_around_the_damage() {
     assert!(!ok && stderr.contains("none-such") && !stderr.contains("panicked"), "{stderr}");
 }
 
+/// A mapped run logged as a ROS 2 bag: `duv refine --mcap` reads its keyframes from the CDR
+/// messages and `--from-logged-map` restores the map from its `duv_msgs/msg/MapCheckpoint`.
+#[test]
+fn refine_reads_the_keyframes_and_the_map_of_a_ros2_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("run");
+    let cfg = dir.path().join("tracker.toml");
+    std::fs::write(&cfg, "depth_factor = 4\n").unwrap();
+    let res = duv()
+        .args(["run", "--source", "sim:coastal", "--frames", "64", "--width", "160", "--height", "120", "--no-progress", "--log-format", "ros2"])
+        .args(["--mapper", "cpu", "--map-iterations", "2", "--map-final-iterations", "4", "--config"])
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    let summary = duv_log::inspect_log(&out.join("log"), duv_log::ReadLimits::default()).unwrap();
+    assert_eq!(summary.topics["/map/checkpoint"].schema, "duv_msgs/msg/MapCheckpoint");
+    let logged = summary.topics["/keyframe/pose"].messages as usize;
+    assert!(logged >= 3, "{logged} keyframes logged");
+    for (flags, to) in [(&["--mcap"][..], "whole"), (&["--from-logged-map", "--mcap"][..], "from-map")] {
+        let r = duv().args(["refine", "--iterations", "2", "--quiet"]).args(flags).arg(&out).arg("--out").arg(dir.path().join(to)).output().unwrap();
+        let stderr = String::from_utf8_lossy(&r.stderr);
+        assert!(r.status.success(), "{flags:?}: {stderr}");
+        if to == "from-map" {
+            assert!(stderr.contains("/map/checkpoint at") && stderr.contains("Gaussians"), "{stderr}");
+        }
+        let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join(to).join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(m["keyframes"].as_array().unwrap().len(), logged, "{flags:?}");
+        assert!(m["mean_psnr_db"].as_f64().unwrap() > 10.0, "{flags:?}: {}", m["mean_psnr_db"]);
+    }
+}
+
 #[test]
 fn bad_sources_are_clear_errors() {
     let dir = tempfile::tempdir().unwrap();

@@ -183,7 +183,12 @@ pub struct ChunkedWriter<W: Write> {
 impl<W: Write> ChunkedWriter<W> {
     /// Writes the magic and the header record. Messages are gathered into chunks of at most
     /// `chunk_bytes` (a larger message gets a chunk of its own).
-    pub fn new(out: W, library: &str, chunk_bytes: usize, mut buf: WriterBuffers) -> io::Result<Self> {
+    pub fn new(out: W, library: &str, chunk_bytes: usize, buf: WriterBuffers) -> io::Result<Self> {
+        Self::with_profile(out, "", library, chunk_bytes, buf)
+    }
+
+    /// [`ChunkedWriter::new`] with a header `profile` (`ros2` for a ROS 2 bag's files).
+    pub fn with_profile(out: W, profile: &str, library: &str, chunk_bytes: usize, mut buf: WriterBuffers) -> io::Result<Self> {
         buf.chunk.clear();
         if buf.chunk.capacity() < chunk_bytes {
             buf.chunk.reserve_exact(chunk_bytes);
@@ -211,7 +216,7 @@ impl<W: Write> ChunkedWriter<W> {
         let s = &mut w.buf.scratch;
         s.clear();
         let from = begin_record(s, op::HEADER);
-        put_str(s, "");
+        put_str(s, profile);
         put_str(s, library);
         end_record(s, from);
         w.out.put(&w.buf.scratch)?;

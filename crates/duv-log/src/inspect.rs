@@ -38,6 +38,8 @@ pub struct LogSummary {
     /// Gaps in the camera stream longer than 3x its median frame interval: (from, to) in ns.
     pub gaps: Vec<(u64, u64)>,
     pub metadata_names: Vec<String>,
+    /// The formats of the segments (`foxglove`, `ros2`), each once, in segment order.
+    pub formats: Vec<String>,
 }
 
 impl LogSummary {
@@ -55,15 +57,15 @@ impl LogSummary {
     pub fn render(&self) -> String {
         let mut s = String::new();
         let total_bytes: u64 = self.segments.iter().map(|g| g.bytes).sum();
-        let _ = writeln!(s, "{} segment(s), {} messages, {:.1} MiB", self.segments.len(), self.messages(), total_bytes as f64 / (1 << 20) as f64);
+        let _ = writeln!(s, "{} segment(s), {} messages, {:.1} MiB, format {}", self.segments.len(), self.messages(), total_bytes as f64 / (1 << 20) as f64, self.formats.join(" + "));
         if let Some((a, b)) = self.span_ns() {
             let _ = writeln!(s, "time span {:.3} s .. {:.3} s ({:.3} s)", a as f64 * 1e-9, b as f64 * 1e-9, (b - a) as f64 * 1e-9);
         }
-        let _ = writeln!(s, "{:<22} {:<26} {:>9} {:>12} {:>10}", "topic", "schema", "messages", "bytes", "rate Hz");
+        let _ = writeln!(s, "{:<22} {:<30} {:>9} {:>12} {:>10}", "topic", "schema", "messages", "bytes", "rate Hz");
         for (name, t) in &self.topics {
             let span = (t.last_ns.saturating_sub(t.first_ns)) as f64 * 1e-9;
             let rate = if span > 0.0 && t.messages > 1 { (t.messages - 1) as f64 / span } else { 0.0 };
-            let _ = writeln!(s, "{:<22} {:<26} {:>9} {:>12} {:>10.2}", name, t.schema, t.messages, t.bytes, rate);
+            let _ = writeln!(s, "{:<22} {:<30} {:>9} {:>12} {:>10.2}", name, t.schema, t.messages, t.bytes, rate);
         }
         if self.gaps.is_empty() {
             let _ = writeln!(s, "gaps in /camera/image: none");
@@ -104,6 +106,15 @@ pub fn inspect_log(path: &Path, limits: ReadLimits) -> Result<LogSummary, LogErr
     for file in files {
         let mut schema_names: BTreeMap<u16, String> = BTreeMap::new();
         let mut recovered = None;
+        // The MCAP header's profile: `ros2` for a ROS 2 bag, empty for the Foxglove format.
+        let format = match super::bag::read_profile(&file).as_deref() {
+            Ok(super::ros2::PROFILE) => "ros2 (a ROS 2 bag: CDR messages, metadata.yaml)",
+            Ok("") => "foxglove",
+            Ok(_) | Err(_) => "unknown",
+        };
+        if !summary.formats.iter().any(|f| f == format) {
+            summary.formats.push(format.to_string());
+        }
         let outcome = read_segment_events(&file, limits, |e| match e {
             ReadEvent::Schema(s) => {
                 schema_names.insert(s.id, s.name.clone());

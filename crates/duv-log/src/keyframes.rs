@@ -10,7 +10,7 @@
 //! it is left out and counted.
 
 use super::reader::{OwnedEvent, ReadLimits, SegmentReader};
-use super::schema::{decode_calibration, decode_frame, decode_plane_f32, decode_pose, Topic};
+use super::schema::{decode_calibration, decode_frame, decode_payload, decode_plane_f32, decode_pose, Topic};
 use super::{list_segments, LogError};
 use duv_core::{ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Timestamp};
 use std::collections::{BTreeMap, BTreeSet};
@@ -108,7 +108,13 @@ pub fn for_each_log_keyframe(path: &Path, limits: ReadLimits, keep: impl Fn(u64)
                     continue;
                 }
                 Topic::MapCheckpoint => {
-                    out.newest_map = Some(LoggedMap { log_time_ns, segment: file.clone(), bytes: data });
+                    // The checkpoint's bytes (the `data` of a `duv_msgs/msg/MapCheckpoint` in the
+                    // ROS 2 format); one that does not parse is left for the mapper to reject.
+                    let bytes = match decode_payload(&data) {
+                        Ok(b) if b.len() != data.len() => b.to_vec(),
+                        _ => data,
+                    };
+                    out.newest_map = Some(LoggedMap { log_time_ns, segment: file.clone(), bytes });
                     continue;
                 }
                 Topic::KeyframeImage | Topic::KeyframeInvDepth | Topic::KeyframeVariance | Topic::KeyframePose if !failed.contains(&index) && keep(index) => partial.entry(index).or_default(),

@@ -17,16 +17,21 @@
 //!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
 //!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
 //!   logged for a resume (`/slam/window`).
+//! - With `[log] format = "ros2"` ([`LogFormat::Ros2`]) the same topics are written as a ROS 2
+//!   bag: [`ros2`] holds the message definitions and the CDR encoding, [`bag`] the rosbag2
+//!   `metadata.yaml`.
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 
 pub mod chunked;
 pub mod inspect;
+pub mod bag;
 pub mod jpeg;
 pub mod keyframes;
 pub mod reader;
 pub mod recover;
 pub mod replay;
+pub mod ros2;
 pub mod schema;
 pub mod window;
 pub mod writer;
@@ -35,7 +40,7 @@ pub use inspect::{inspect_log, LogSummary};
 pub use keyframes::{for_each_log_keyframe, log_files, read_log_keyframes, LogKeyframes, LoggedMap};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
-pub use schema::{DecodeError, FrameEncoding, LogItem, PoseRecord, Topic};
+pub use schema::{DecodeError, FrameEncoding, LogFormat, LogItem, PoseRecord, Topic};
 pub use window::{TrackerWindow, WindowError, WindowKeyframe};
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 

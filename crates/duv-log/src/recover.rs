@@ -86,7 +86,10 @@ pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport
     };
     let file = std::fs::File::create(&tmp).map_err(io(&tmp))?;
     let library = concat!("duv-slam ", env!("CARGO_PKG_VERSION"), " recovery");
-    let mut writer = ChunkedWriter::new(BufWriter::new(file), library, RECOVERY_CHUNK_BYTES, WriterBuffers::default()).map_err(io(&tmp))?;
+    // The original's profile (`ros2` for a ROS 2 bag) is kept; an unreadable header is the
+    // Foxglove format's empty one.
+    let profile = super::bag::read_profile(path).unwrap_or_default();
+    let mut writer = ChunkedWriter::with_profile(BufWriter::new(file), &profile, library, RECOVERY_CHUNK_BYTES, WriterBuffers::default()).map_err(io(&tmp))?;
     let mut write_error: Option<std::io::Error> = None;
     let outcome = read_segment_events(path, limits, |event| {
         if write_error.is_some() {
@@ -155,10 +158,16 @@ pub fn recover_folder(dir: &Path, limits: ReadLimits) -> Result<Vec<RecoveryRepo
         }
     }
     let mut reports = Vec::new();
+    let mut ros2 = false;
     for (_, path) in list_segments(dir)? {
         if !is_finished(&path)? {
             reports.push(recover_segment(&path, limits)?);
         }
+        ros2 |= super::bag::read_profile(&path).is_ok_and(|p| p == super::ros2::PROFILE);
+    }
+    // A ROS 2 bag's index, rebuilt once its segments are readable again.
+    if ros2 {
+        super::bag::write_metadata(dir)?;
     }
     Ok(reports)
 }

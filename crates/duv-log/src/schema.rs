@@ -4,6 +4,9 @@
 //! from the `foxglove` crate, so a log opens in Foxglove with the camera, the trajectory and the
 //! Gaussian centres visible. Our own records (tracking state, health) are JSON with a JSON
 //! schema; map checkpoints are the mapper's checksummed bytes on a schemaless channel.
+//! In the ROS 2 format ([`LogFormat::Ros2`]) every topic has a ROS 2 type and CDR bodies
+//! ([`super::ros2`]); the decoders here read both, telling them apart by the body's first
+//! bytes (a CDR body starts `00 01 00 00`, which no protobuf, JSON or duv record does).
 
 use super::window::TrackerWindow;
 use super::jpeg::{JpegEncoder, JpegError};
@@ -53,12 +56,52 @@ pub enum DecodeError {
     Calibration(#[from] CameraModelError),
     #[error("pose missing or not finite")]
     BadPose,
+    /// The body is not the CDR message `schema` (a log in the ROS 2 format).
+    #[error("not a {schema}: {source}")]
+    Cdr { schema: &'static str, source: super::ros2::CdrError },
+    /// A `/slam/state` body that is neither JSON nor CDR.
+    #[error("not a tracking state: {0}")]
+    StateJson(#[from] serde_json::Error),
+}
+
+/// Which message schemas a log is written in (the board's `[log] format`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LogFormat {
+    /// Foxglove protobuf schemas and JSON records: opens in Foxglove.
+    #[default]
+    Foxglove,
+    /// A ROS 2 bag: MCAP profile `ros2`, `ros2msg` schemas, CDR messages, and a
+    /// `metadata.yaml` in the log folder ([`super::ros2`], [`super::bag`]).
+    Ros2,
+}
+
+impl LogFormat {
+    /// Every format, by name.
+    pub const ALL: [LogFormat; 2] = [LogFormat::Foxglove, LogFormat::Ros2];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            LogFormat::Foxglove => "foxglove",
+            LogFormat::Ros2 => "ros2",
+        }
+    }
+
+    /// The MCAP header profile of the format.
+    pub fn profile(self) -> &'static str {
+        match self {
+            LogFormat::Foxglove => "",
+            LogFormat::Ros2 => super::ros2::PROFILE,
+        }
+    }
 }
 
 /// Frame id of the world (the tracker's map frame).
 pub const WORLD_FRAME: &str = "world";
 /// Frame id of the camera.
 pub const CAMERA_FRAME: &str = "camera";
+
+/// The calibration's topic in the ROS 2 format.
+pub const CAMERA_INFO_TOPIC: &str = "/camera/camera_info";
 
 /// Every topic the log writes. `sequence` in the MCAP message header is the frame `seq` for
 /// per-frame topics and the keyframe id for keyframe topics.
@@ -149,7 +192,21 @@ impl Topic {
         }
     }
 
+    /// The topic's name in `format`: the ROS 2 format names the calibration
+    /// `/camera/camera_info`, beside `/camera/image` as ROS tools (image_transport, rviz's
+    /// camera display) look for it; every other name is [`Topic::name`].
+    pub fn name_in(self, format: LogFormat) -> &'static str {
+        match (self, format) {
+            (Topic::CameraCalibration, LogFormat::Ros2) => CAMERA_INFO_TOPIC,
+            _ => self.name(),
+        }
+    }
+
+    /// The topic of a channel name in either format.
     pub fn from_name(name: &str) -> Option<Topic> {
+        if name == CAMERA_INFO_TOPIC {
+            return Some(Topic::CameraCalibration);
+        }
         ALL_TOPICS.into_iter().find(|t| t.name() == name)
     }
 
@@ -173,6 +230,15 @@ impl Topic {
         match (self, frames) {
             (Topic::CameraImage, FrameEncoding::Jpeg { .. }) => Some(foxglove_schema::<fg::CompressedImage>()),
             _ => self.schema(),
+        }
+    }
+
+    /// The schema of the topic in `format` (see [`Topic::schema_for`]); every topic has one in
+    /// the ROS 2 format.
+    pub fn schema_in(self, format: LogFormat, frames: FrameEncoding) -> Option<TopicSchema> {
+        match format {
+            LogFormat::Foxglove => self.schema_for(frames),
+            LogFormat::Ros2 => Some(super::ros2::topic_schema(self, frames)),
         }
     }
 
@@ -342,7 +408,7 @@ impl Default for Templates {
 }
 
 /// Pixel data of a `foxglove.RawImage`: bytes, or f32 samples written little endian.
-enum Pixels<'a> {
+pub(crate) enum Pixels<'a> {
     Bytes(&'a [u8]),
     F32(&'a [f32]),
 }
@@ -401,6 +467,7 @@ pub struct Encoded {
 /// (the message body and the JPEG stream) and the frame encoding.
 #[derive(Debug, Default)]
 pub struct ItemEncoder {
+    format: LogFormat,
     frames: FrameEncoding,
     scratch: Vec<u8>,
     jpeg: Vec<u8>,
@@ -409,16 +476,27 @@ pub struct ItemEncoder {
 
 impl ItemEncoder {
     pub fn new(frames: FrameEncoding) -> Self {
-        ItemEncoder { frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default() }
+        Self::with_format(LogFormat::Foxglove, frames)
+    }
+
+    pub fn with_format(format: LogFormat, frames: FrameEncoding) -> Self {
+        ItemEncoder { format, frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default() }
     }
 
     pub fn frame_encoding(&self) -> FrameEncoding {
         self.frames
     }
 
+    pub fn format(&self) -> LogFormat {
+        self.format
+    }
+
     /// Encodes `item` into one or more messages; `emit` gets each with its body.
     pub fn encode(&mut self, item: &LogItem, emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
-        encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates, emit)
+        match self.format {
+            LogFormat::Foxglove => encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates, emit),
+            LogFormat::Ros2 => super::ros2::encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates.jpeg, emit),
+        }
     }
 }
 
@@ -430,7 +508,7 @@ pub fn encode_jpeg(image: &FrameImage, quality: u8, out: &mut Vec<u8>) -> Result
     encode_jpeg_with(&encoder, image, out)
 }
 
-fn encode_jpeg_with(encoder: &JpegEncoder, image: &FrameImage, out: &mut Vec<u8>) -> Result<(), LogError> {
+pub(crate) fn encode_jpeg_with(encoder: &JpegEncoder, image: &FrameImage, out: &mut Vec<u8>) -> Result<(), LogError> {
     let problem = |e: JpegError| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() };
     match image {
         FrameImage::Rgb8(i) => encoder.encode(&i.data, i.width, i.height, 3, out),
@@ -613,6 +691,9 @@ fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
 /// Decodes a logged frame: a `foxglove.RawImage` (`rgb8` or `mono8`) or a
 /// `foxglove.CompressedImage` in format `jpeg` (colour or grey), whichever the message is.
 pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, DecodeError> {
+    if super::ros2::is_cdr(data) {
+        return decode_ros2_frame(data, seq);
+    }
     if field2_wire_type(data) == Some(2) {
         return decode_jpeg_frame(data, seq, log_time_ns);
     }
@@ -650,21 +731,25 @@ fn timestamp_or(t: Option<fg::Timestamp>, log_time_ns: u64) -> Timestamp {
 /// frames, colour ones RGB.
 fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, DecodeError> {
     use foxglove::Decode;
-    use zune_jpeg::zune_core::colorspace::ColorSpace;
-    use zune_jpeg::zune_core::options::DecoderOptions;
     let img = fg::CompressedImage::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.CompressedImage", source })?;
     if !img.format.eq_ignore_ascii_case("jpeg") && !img.format.eq_ignore_ascii_case("jpg") {
         return Err(DecodeError::UnsupportedFormat { format: img.format });
     }
-    let t_ns = timestamp_or(img.timestamp, log_time_ns);
-    let mut probe = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], DecoderOptions::new_safe());
+    decode_jpeg_bytes(&img.data, timestamp_or(img.timestamp, log_time_ns), seq)
+}
+
+/// Decodes a JPEG stream into a frame: grey JPEGs give grey frames, colour ones RGB.
+fn decode_jpeg_bytes(jpeg: &[u8], t_ns: Timestamp, seq: u64) -> Result<Frame, DecodeError> {
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let mut probe = zune_jpeg::JpegDecoder::new_with_options(jpeg, DecoderOptions::new_safe());
     probe.decode_headers().map_err(|source| DecodeError::Jpeg { source })?;
     let grey = probe.get_input_colorspace() == Some(ColorSpace::Luma);
     let (w, h) = probe.dimensions().ok_or(DecodeError::JpegNoDimensions)?;
     let out = if grey { ColorSpace::Luma } else { ColorSpace::RGB };
     // Strict: a damaged stream is an error, not a frame with a grey lower half.
     let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(out).set_strict_mode(true);
-    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(&img.data[..], options);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(jpeg, options);
     let pixels = decoder.decode().map_err(|source| DecodeError::Jpeg { source })?;
     let size = |colour| DecodeError::JpegSize { width: w, height: h, colour };
     let image = if grey {
@@ -678,24 +763,37 @@ fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, D
 /// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
 /// and variance are logged) into a plane.
 pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, DecodeError> {
+    if super::ros2::is_cdr(data) {
+        let img = super::ros2::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
+        return plane_from_le(img.width as usize, img.height as usize, img.encoding, img.step, img.data);
+    }
     use foxglove::Decode;
     let img = fg::RawImage::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.RawImage", source })?;
     let (w, h) = (img.width as usize, img.height as usize);
-    if img.encoding != "32FC1" {
-        return Err(DecodeError::PlaneEncoding { encoding: img.encoding });
+    plane_from_le(w, h, &img.encoding, img.step, &img.data)
+}
+
+/// A `32FC1` plane from its little-endian samples.
+fn plane_from_le(w: usize, h: usize, encoding: &str, step: u32, bytes: &[u8]) -> Result<PlaneF32, DecodeError> {
+    if encoding != "32FC1" {
+        return Err(DecodeError::PlaneEncoding { encoding: encoding.to_string() });
     }
-    let size = || DecodeError::PlaneSize { bytes: img.data.len(), step: img.step, width: w, height: h };
-    let bytes = w.checked_mul(h).and_then(|n| n.checked_mul(4));
-    if w.checked_mul(4) != Some(img.step as usize) || bytes != Some(img.data.len()) {
+    let size = || DecodeError::PlaneSize { bytes: bytes.len(), step, width: w, height: h };
+    let n = w.checked_mul(h).and_then(|n| n.checked_mul(4));
+    if w.checked_mul(4) != Some(step as usize) || n != Some(bytes.len()) {
         return Err(size());
     }
-    let data = img.data.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let data = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
     PlaneF32::from_vec(w, h, data).ok_or_else(size)
 }
 
 /// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
 /// holds undistorted frames).
 pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, DecodeError> {
+    if super::ros2::is_cdr(data) {
+        let (w, h, k) = super::ros2::decode_camera_info(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/CameraInfo", source })?;
+        return Ok(PinholeCamera::new(k[0], k[4], k[2], k[5], w as usize, h as usize)?);
+    }
     use foxglove::Decode;
     let c = fg::CameraCalibration::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.CameraCalibration", source })?;
     if c.k.len() != 9 {
@@ -706,9 +804,64 @@ pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, DecodeError> {
 
 /// Decodes a `foxglove.PoseInFrame`.
 pub fn decode_pose(data: &[u8]) -> Result<Se3, DecodeError> {
+    if super::ros2::is_cdr(data) {
+        let (_, t, q) = super::ros2::decode_pose_stamped(data).map_err(|source| DecodeError::Cdr { schema: "geometry_msgs/msg/PoseStamped", source })?;
+        let p = fg::Pose { position: Some(fg::Vector3 { x: t[0], y: t[1], z: t[2] }), orientation: Some(fg::Quaternion { x: q[0], y: q[1], z: q[2], w: q[3] }) };
+        return se3_from_fg(&p).ok_or(DecodeError::BadPose);
+    }
     use foxglove::Decode;
     let p = fg::PoseInFrame::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.PoseInFrame", source })?;
     p.pose.as_ref().and_then(se3_from_fg).ok_or(DecodeError::BadPose)
+}
+
+/// Decodes a `/slam/state` message: JSON (`duv.TrackingState`) or CDR
+/// (`duv_msgs/msg/TrackingState`).
+pub fn decode_state(data: &[u8]) -> Result<StateMessage, DecodeError> {
+    if super::ros2::is_cdr(data) {
+        return super::ros2::decode_tracking_state(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/TrackingState", source });
+    }
+    Ok(serde_json::from_slice(data)?)
+}
+
+/// The payload of a `/map/checkpoint` or `/slam/window` message: the body itself in the
+/// Foxglove format (schemaless channels), the `data` field of the `duv_msgs` message in the
+/// ROS 2 format.
+pub fn decode_payload(data: &[u8]) -> Result<&[u8], DecodeError> {
+    if super::ros2::is_cdr(data) {
+        return super::ros2::decode_wrapped(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/MapCheckpoint", source });
+    }
+    Ok(data)
+}
+
+/// Decodes a `sensor_msgs/msg/Image` (`rgb8`, `mono8`) or a `sensor_msgs/msg/CompressedImage`
+/// (`jpeg`) into a frame. A compressed image is recognised by parsing as one to the last byte
+/// (a raw image does not: its height would be read as the format's length).
+fn decode_ros2_frame(data: &[u8], seq: u64) -> Result<Frame, DecodeError> {
+    if let Ok((t_ns, format, jpeg)) = super::ros2::decode_compressed_image(data) {
+        if !format.eq_ignore_ascii_case("jpeg") && !format.eq_ignore_ascii_case("jpg") {
+            return Err(DecodeError::UnsupportedFormat { format: format.to_string() });
+        }
+        return decode_jpeg_bytes(jpeg, Timestamp::from_ns(t_ns), seq);
+    }
+    let img = super::ros2::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    let size = |encoding| DecodeError::ImageSize { encoding, bytes: img.data.len(), width: w, height: h };
+    let image = match img.encoding {
+        "rgb8" => {
+            if img.step as usize != w * 3 {
+                return Err(DecodeError::Step { encoding: "rgb8", step: img.step, width: w });
+            }
+            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("rgb8"))?)
+        }
+        "mono8" => {
+            if img.step as usize != w {
+                return Err(DecodeError::Step { encoding: "mono8", step: img.step, width: w });
+            }
+            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("mono8"))?)
+        }
+        other => return Err(DecodeError::UnsupportedEncoding { encoding: other.to_string() }),
+    };
+    Ok(Frame { t_ns: Timestamp::from_ns(img.t_ns), seq, image })
 }
 
 #[cfg(test)]

@@ -48,6 +48,9 @@ pub enum WindowError {
     BadVarianceFlag { id: u64, flag: u8 },
     #[error("{bytes} bytes after the last keyframe")]
     TrailingBytes { bytes: usize },
+    /// A `duv_msgs/msg/TrackerWindow` (a log in the ROS 2 format) that does not parse.
+    #[error("not a duv_msgs/msg/TrackerWindow: {0}")]
+    Cdr(#[from] crate::ros2::CdrError),
 }
 
 /// One keyframe of the window.
@@ -137,7 +140,9 @@ impl TrackerWindow {
     /// Decodes a body; the error says what is wrong with it. Sizes are checked against the
     /// body before anything is allocated, so a damaged message cannot ask for more memory
     /// than it holds.
+    /// A `duv_msgs/msg/TrackerWindow` (CDR, the ROS 2 format) is unwrapped first.
     pub fn decode(data: &[u8]) -> Result<TrackerWindow, WindowError> {
+        let data = if crate::ros2::is_cdr(data) { crate::ros2::decode_wrapped(data)? } else { data };
         let mut r = LeReader::new(data);
         if r.take(4)? != MAGIC {
             return Err(WindowError::BadMagic);

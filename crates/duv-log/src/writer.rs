@@ -2,7 +2,7 @@
 //! size and age, and a write error (disk full, device gone) that stops logging cleanly.
 
 use super::chunked::{ChunkedWriter, WriterBuffers};
-use super::schema::{FrameEncoding, ItemEncoder, LogItem, Topic, ALL_TOPICS};
+use super::schema::{FrameEncoding, ItemEncoder, LogFormat, LogItem, Topic, ALL_TOPICS};
 use super::{list_segments, segment_name, LogError};
 use duv_core::{PinholeCamera, Timestamp};
 use std::collections::BTreeMap;
@@ -33,6 +33,8 @@ pub struct LogConfig {
     pub metadata: Vec<(String, BTreeMap<String, String>)>,
     /// How input frames are stored (the board's `[log] frame_encoding`).
     pub frame_encoding: FrameEncoding,
+    /// Message schemas: Foxglove's, or a ROS 2 bag (the board's `[log] format`).
+    pub format: LogFormat,
 }
 
 impl LogConfig {
@@ -44,6 +46,7 @@ impl LogConfig {
             chunk_interval: Duration::from_millis(500),
             metadata: Vec::new(),
             frame_encoding: FrameEncoding::Raw,
+            format: LogFormat::Foxglove,
         }
     }
 }
@@ -99,8 +102,17 @@ impl SegmentWriter {
     /// A writer whose first segment follows the newest existing one in the folder.
     pub fn create(cfg: LogConfig) -> Result<Self, LogError> {
         std::fs::create_dir_all(&cfg.dir).map_err(io_err(&cfg.dir))?;
-        let next_index = list_segments(&cfg.dir)?.last().map(|(i, _)| i + 1).unwrap_or(0);
-        let encoder = ItemEncoder::new(cfg.frame_encoding);
+        let existing = list_segments(&cfg.dir)?;
+        let next_index = existing.last().map(|(i, _)| i + 1).unwrap_or(0);
+        // A resumed run in another format than the folder's: both are read back, but a ROS 2
+        // bag lists only its ROS 2 segments.
+        if let Some(profile) = existing.last().and_then(|(_, p)| super::bag::read_profile(p).ok()) {
+            if profile != cfg.format.profile() {
+                let was = if profile == super::ros2::PROFILE { "ros2" } else { "foxglove" };
+                tracing::warn!("log: {} holds segments in the {was} format; this run's segments are {} (set [log] format or --log-format to keep one format)", cfg.dir.display(), cfg.format.name());
+            }
+        }
+        let encoder = ItemEncoder::with_format(cfg.format, cfg.frame_encoding);
         // Chunks close every `chunk_interval` or at CHUNK_BYTES, so a segment holds at most
         // about this many; the chunk index table is reserved for it once.
         let by_age = cfg.segment_max_age.as_secs_f64() / cfg.chunk_interval.as_secs_f64().max(1e-3);
@@ -138,7 +150,7 @@ impl SegmentWriter {
         let sync = file.try_clone().map_err(io_err(&path))?;
         let out = BufWriter::with_capacity(1 << 20, file);
         let buffers = self.spare.take().unwrap_or_default();
-        let writer = ChunkedWriter::new(out, LIBRARY, CHUNK_BYTES as usize, buffers).map_err(io_err(&path))?;
+        let writer = ChunkedWriter::with_profile(out, self.cfg.format.profile(), LIBRARY, CHUNK_BYTES as usize, buffers).map_err(io_err(&path))?;
         let now = Instant::now();
         let mut seg = OpenSegment { path, writer, sync, opened: now, last_sync: now, channels: [false; ALL_TOPICS.len()], messages: 0 };
         for (name, map) in &self.cfg.metadata {
@@ -156,17 +168,17 @@ impl SegmentWriter {
 
     /// The topic's channel id (its index in [`ALL_TOPICS`]; its schema, if any, has id
     /// index + 1), registered on first use in the segment.
-    fn channel(seg: &mut OpenSegment, topic: Topic, frames: FrameEncoding) -> Result<u16, LogError> {
+    fn channel(seg: &mut OpenSegment, topic: Topic, format: LogFormat, frames: FrameEncoding) -> Result<u16, LogError> {
         let id = topic.index() as u16;
         if seg.channels[topic.index()] {
             return Ok(id);
         }
-        let r = match topic.schema_for(frames) {
+        let r = match topic.schema_in(format, frames) {
             Some(s) => seg
                 .writer
                 .add_schema(id + 1, &s.name, &s.encoding, &s.data)
-                .and_then(|()| seg.writer.add_channel(id, id + 1, topic.name(), &s.message_encoding, &BTreeMap::new())),
-            None => seg.writer.add_channel(id, 0, topic.name(), topic.schemaless_encoding(), &BTreeMap::new()),
+                .and_then(|()| seg.writer.add_channel(id, id + 1, topic.name_in(format), &s.message_encoding, &BTreeMap::new())),
+            None => seg.writer.add_channel(id, 0, topic.name_in(format), topic.schemaless_encoding(), &BTreeMap::new()),
         };
         r.map_err(io_err(&seg.path))?;
         seg.channels[topic.index()] = true;
@@ -179,9 +191,9 @@ impl SegmentWriter {
         }
         let seg = self.open.as_mut().expect("opened above");
         let mut written = 0u64;
-        let frames = self.encoder.frame_encoding();
+        let (format, frames) = (self.encoder.format(), self.encoder.frame_encoding());
         self.encoder.encode(item, |e, body| {
-            let channel_id = Self::channel(seg, e.topic, frames)?;
+            let channel_id = Self::channel(seg, e.topic, format, frames)?;
             seg.writer.write_message(channel_id, e.sequence, e.log_time_ns, e.log_time_ns, body).map_err(io_err(&seg.path))?;
             written += 1;
             Ok(())
@@ -283,6 +295,13 @@ impl SegmentWriter {
         }
         sync_dir(&self.cfg.dir);
         tracing::info!(segment = %seg.path.display(), bytes, messages = seg.messages, "log segment closed");
+        if self.cfg.format == LogFormat::Ros2 {
+            // The segments are safe on disk; without the index the folder is re-indexed by
+            // recovery on the next start, so a failure here does not stop logging.
+            if let Err(e) = super::bag::write_metadata(&self.cfg.dir) {
+                tracing::warn!("log: {}: not updated: {e}", super::bag::METADATA_FILE);
+            }
+        }
         Ok(())
     }
 

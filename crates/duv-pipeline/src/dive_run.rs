@@ -27,7 +27,7 @@ use super::resume::{self, Relocalisation};
 use super::source::{RunSource, RunSourceError, Source, SourceOptions};
 use super::{MapStage, MapStageError, NoMapping, PipelineConfig, PipelineError, Stop};
 use duv_camera::sim::{SimPace, SimSpec};
-use duv_core::config::board::{Board, BoardError};
+use duv_core::config::board::{Board, BoardError, LogFormatSetting};
 use duv_core::PlaneF32;
 use duv_log::{ReadLimits, RecoveryReport};
 use duv_map::backend::MapperDevice;
@@ -115,6 +115,8 @@ pub struct DiveOptions {
     /// Navigation input besides the source's own (`--nav`): `mavlink:[udpin:]HOST:PORT[,...]`,
     /// the autopilot's stream received during the run, or a `nav.csv` file.
     pub nav_input: Option<String>,
+    /// The log's message schemas instead of the board's `[log] format` (`--log-format`).
+    pub log_format: Option<LogFormatSetting>,
 }
 
 /// Why a dive run failed. The messages are the ones the command line prints.
@@ -429,7 +431,10 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     let started_unix_s = unix_now_s();
     // One writer per run folder, before anything in it is read or recovered.
     let folder_lock = RunFolderLock::acquire(&opts.out)?;
-    let board = opts.board.load()?;
+    let mut board = opts.board.load()?;
+    if let Some(format) = opts.log_format {
+        board.log.format = format;
+    }
     let capacity = TrackerCapacity::from_board(&board);
     let mut cfg = match &opts.tracker_config {
         Some(p) => {

@@ -44,7 +44,7 @@ pub use progress::{ProgressSnapshot, RunProgress};
 pub use stop::Stop;
 
 use duv_camera::FrameSource;
-use duv_core::config::board::{Board, FrameLogEncoding};
+use duv_core::config::board::{Board, FrameLogEncoding, LogFormatSetting};
 use duv_core::alloc::{self, ThreadRole};
 use duv_core::{Frame, Keyframe, Se3, Sim3, Timestamp};
 use duv_log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
@@ -276,6 +276,10 @@ impl PipelineConfig {
         log.frame_encoding = match board.log.frame_encoding {
             FrameLogEncoding::Raw => FrameEncoding::Raw,
             FrameLogEncoding::Jpeg => FrameEncoding::Jpeg { quality: board.log.jpeg_quality },
+        };
+        log.format = match board.log.format {
+            LogFormatSetting::Foxglove => duv_log::LogFormat::Foxglove,
+            LogFormatSetting::Ros2 => duv_log::LogFormat::Ros2,
         };
         log.metadata.push(("duv.board".into(), [("toml".to_string(), toml::to_string(board).unwrap_or_default())].into_iter().collect()));
         PipelineConfig {

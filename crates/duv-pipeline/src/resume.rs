@@ -36,7 +36,7 @@ use super::dive::{DiveHistory, PART_METADATA};
 use super::{CheckpointStore, PipelineError};
 use duv_core::{Frame, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Sim3, Timestamp};
 use duv_log::reader::OwnedEvent;
-use duv_log::schema::{decode_calibration, decode_frame, decode_plane_f32, decode_pose, StateMessage};
+use duv_log::schema::{decode_calibration, decode_frame, decode_plane_f32, decode_pose, decode_state};
 use duv_log::{list_segments, recover_folder, ReadLimits, RecoveryReport, SegmentReader, Topic, TrackerWindow};
 use duv_track::{ResumePoint, SeedFrame, SeedKeyframe, Tracker, TrackerSeed};
 use nalgebra::Vector3;
@@ -200,7 +200,7 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                     }
                 }
                 Topic::State => {
-                    if let Ok(s) = serde_json::from_slice::<StateMessage>(&data) {
+                    if let Ok(s) = decode_state(&data) {
                         let note = s.why.as_ref().map(|w| match (s.value, s.limit) {
                             (Some(v), Some(l)) => format!("{w} {v:.4} (limit {l:.4})"),
                             _ => w.clone(),

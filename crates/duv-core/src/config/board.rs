@@ -167,10 +167,25 @@ pub enum FrameLogEncoding {
     Jpeg,
 }
 
+/// Which message schemas the log is written in.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LogFormatSetting {
+    /// Foxglove protobuf schemas and JSON records: the log opens in Foxglove.
+    #[default]
+    Foxglove,
+    /// A ROS 2 bag (rosbag2 folder: `metadata.yaml`, MCAP files with CDR messages): opens
+    /// with `ros2 bag`, the `rosbags` package, and in Foxglove.
+    Ros2,
+}
+
 /// The `[log]` section.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct LogSettings {
+    /// `foxglove` or `ros2`: the message schemas of the log (`duv run --log-format` overrides).
+    #[serde(default)]
+    pub format: LogFormatSetting,
     /// `raw` or `jpeg`: how every input frame is logged (keyframe images stay raw).
     #[serde(default)]
     pub frame_encoding: FrameLogEncoding,
@@ -188,7 +203,7 @@ fn default_jpeg_quality() -> u8 {
 
 impl Default for LogSettings {
     fn default() -> Self {
-        LogSettings { frame_encoding: FrameLogEncoding::Raw, jpeg_quality: DEFAULT_JPEG_QUALITY }
+        LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Raw, jpeg_quality: DEFAULT_JPEG_QUALITY }
     }
 }
 
@@ -338,10 +353,14 @@ mapping = 1
     #[test]
     fn log_section_is_optional_and_strict() {
         let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
-        assert_eq!(b.log, LogSettings { frame_encoding: FrameLogEncoding::Raw, jpeg_quality: 90 });
+        assert_eq!(b.log, LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Raw, jpeg_quality: 90 });
         let with = |body: &str| format!("{MINIMAL}[log]\n{body}\n");
         let b = Board::parse(Path::new("t.toml"), &with("frame_encoding = \"jpeg\"\njpeg_quality = 75")).unwrap();
-        assert_eq!(b.log, LogSettings { frame_encoding: FrameLogEncoding::Jpeg, jpeg_quality: 75 });
+        assert_eq!(b.log, LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Jpeg, jpeg_quality: 75 });
+        let b = Board::parse(Path::new("t.toml"), &with("format = \"ros2\"")).unwrap();
+        assert_eq!(b.log.format, LogFormatSetting::Ros2);
+        let e = Board::parse(Path::new("t.toml"), &with("format = \"rosbag\"")).unwrap_err().to_string();
+        assert!(e.starts_with("t.toml:") && e.contains("unknown variant `rosbag`") && e.contains("foxglove") && e.contains("ros2"), "{e}");
         for q in [0, 101] {
             let e = Board::parse(Path::new("t.toml"), &with(&format!("frame_encoding = \"jpeg\"\njpeg_quality = {q}"))).unwrap_err();
             assert_eq!(e.to_string(), format!("t.toml: log.jpeg_quality = {q} is invalid: must be in 1..=100"));
