@@ -304,6 +304,19 @@ pub mod defs {
          float64 limit\n",
     );
     pub const HEALTH: (&str, &str) = ("duv_msgs/Health", "# Once a second: queue depths and drops, per-stage latency, budget headroom, host memory.\nstd_msgs/Header header\n# The record as JSON.\nstring json\n");
+    pub const NAV_SAMPLE: (&str, &str) = (
+        "duv_msgs/NavSample",
+        "# One navigation sample on the frames' clock (/nav/sample); NaN: the sensor has no sample here.\n\
+         std_msgs/Header header\n\
+         # Pressure depth below the surface, metres, positive down.\n\
+         float64 depth_m\n\
+         # Range to the seabed along gravity (altimeter, DVL bottom lock), metres.\n\
+         float64 altitude_m\n\
+         # Velocity over ground in the camera frame (x right, y down, z forward), m/s.\n\
+         geometry_msgs/Vector3 vel_cam_mps\n\
+         # The AHRS camera-to-world rotation, world z up (the heading may drift).\n\
+         geometry_msgs/Quaternion world_from_cam\n",
+    );
     pub const TRACKER_WINDOW: (&str, &str) = (
         "duv_msgs/TrackerWindow",
         "# The tracker's newest keyframes, what a resume seeds a tracker with (/slam/window).\nstd_msgs/Header header\n# The window in the duv.tracker_window layout (little endian; see duv-log window.rs).\nuint8[] data\n",
@@ -327,6 +340,7 @@ pub enum Ros2Type {
     Health,
     TrackerWindow,
     MapCheckpoint,
+    NavSample,
 }
 
 impl Ros2Type {
@@ -343,6 +357,7 @@ impl Ros2Type {
             Ros2Type::Health => HEALTH,
             Ros2Type::TrackerWindow => TRACKER_WINDOW,
             Ros2Type::MapCheckpoint => MAP_CHECKPOINT,
+            Ros2Type::NavSample => NAV_SAMPLE,
         }
     }
 
@@ -355,6 +370,7 @@ impl Ros2Type {
             Ros2Type::PoseStamped => &[HEADER, TIME, POSE, POINT, QUATERNION],
             Ros2Type::TfMessage => &[TRANSFORM_STAMPED, HEADER, TIME, TRANSFORM, VECTOR3, QUATERNION],
             Ros2Type::PointCloud2 => &[HEADER, TIME, POINT_FIELD],
+            Ros2Type::NavSample => &[HEADER, TIME, VECTOR3, QUATERNION],
         }
     }
 
@@ -391,6 +407,7 @@ pub fn topic_type(topic: Topic, frames: FrameEncoding) -> Ros2Type {
         Topic::Health => Ros2Type::Health,
         Topic::TrackerWindow => Ros2Type::TrackerWindow,
         Topic::MapCheckpoint => Ros2Type::MapCheckpoint,
+        Topic::Nav => Ros2Type::NavSample,
     }
 }
 
@@ -574,7 +591,32 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             wrapped(scratch, win.t_ns, jpeg);
             emit(Encoded { topic: Topic::TrackerWindow, sequence: win.seq as u32, log_time_ns }, scratch)
         }
+        LogItem::Nav(n) => {
+            let mut w = CdrWriter::new(scratch);
+            w.header(n.t_ns.t_ns(), CAMERA_FRAME);
+            w.f64(n.depth_m.unwrap_or(f64::NAN));
+            w.f64(n.altitude_m.unwrap_or(f64::NAN));
+            let v = n.vel_cam_mps.map_or([f64::NAN; 3], |v| [v.x, v.y, v.z]);
+            v.into_iter().for_each(|x| w.f64(x));
+            let q = n.world_from_cam_rot.map_or([f64::NAN; 4], |q| [q.i, q.j, q.k, q.w]);
+            q.into_iter().for_each(|x| w.f64(x));
+            emit(Encoded { topic: Topic::Nav, sequence: 0, log_time_ns }, scratch)
+        }
     }
+}
+
+/// A `duv_msgs/NavSample`: NaN fields are sensors without a sample.
+pub fn decode_nav_sample(data: &[u8]) -> Result<duv_core::nav::NavSample, CdrError> {
+    let mut r = CdrReader::new(data)?;
+    let (t_ns, _) = r.header()?;
+    let depth = r.f64()?;
+    let altitude = r.f64()?;
+    let v = r.f64_array::<3>()?;
+    let q = r.f64_array::<4>()?;
+    r.finish()?;
+    let some = |x: f64| (!x.is_nan()).then_some(x);
+    let all = |a: &[f64]| a.iter().all(|x| !x.is_nan());
+    Ok(super::schema::nav_sample(t_ns, some(depth), some(altitude), all(&v).then_some(v), all(&q).then_some(q)))
 }
 
 /// `sensor_msgs/PointField` datatype of float32.

@@ -120,9 +120,12 @@ pub enum Topic {
     MapCheckpoint,
     Health,
     TrackerWindow,
+    /// The vehicle's navigation sensors (depth, altitude, DVL velocity, attitude), on the
+    /// frames' clock: what replay and resume give the metric alignment.
+    Nav,
 }
 
-pub const ALL_TOPICS: [Topic; 13] = [
+pub const ALL_TOPICS: [Topic; 14] = [
     Topic::CameraImage,
     Topic::CameraCalibration,
     Topic::Pose,
@@ -136,6 +139,7 @@ pub const ALL_TOPICS: [Topic; 13] = [
     Topic::MapCheckpoint,
     Topic::Health,
     Topic::TrackerWindow,
+    Topic::Nav,
 ];
 
 /// Schema of a topic: name, schema encoding, schema bytes, message encoding.
@@ -147,6 +151,7 @@ pub struct TopicSchema {
 }
 
 const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"segment":{"type":"integer"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
+const NAV_SCHEMA: &str = r#"{"title":"duv.NavSample","type":"object","description":"one navigation sample on the frames' clock; a missing field is a sensor without a sample","properties":{"t_ns":{"type":"integer"},"depth_m":{"type":"number","description":"pressure depth, positive down"},"altitude_m":{"type":"number","description":"range to the seabed along gravity"},"vel_cam_mps":{"type":"array","items":{"type":"number"},"description":"velocity over ground in the camera frame (x right, y down, z forward)"},"world_from_cam_xyzw":{"type":"array","items":{"type":"number"},"description":"the AHRS camera-to-world rotation, world z up"}}}"#;
 const HEALTH_SCHEMA: &str = r#"{"title":"duv.Health","type":"object","description":"once a second: queue depths and drops, per-stage latency, budget headroom, host memory"}"#;
 
 fn foxglove_schema<T: Encode>() -> TopicSchema {
@@ -189,6 +194,7 @@ impl Topic {
             Topic::MapCheckpoint => "/map/checkpoint",
             Topic::Health => "/health",
             Topic::TrackerWindow => "/slam/window",
+            Topic::Nav => "/nav/sample",
         }
     }
 
@@ -220,6 +226,7 @@ impl Topic {
             Topic::MapGaussians => foxglove_schema::<fg::PointCloud>(),
             Topic::State => json_schema("duv.TrackingState", STATE_SCHEMA),
             Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
+            Topic::Nav => json_schema("duv.NavSample", NAV_SCHEMA),
             Topic::MapCheckpoint | Topic::TrackerWindow => return None,
         })
     }
@@ -317,6 +324,8 @@ pub enum LogItem {
     Health { t_ns: Timestamp, json: String },
     /// The tracker's newest keyframes (what a resume seeds a tracker with).
     Window(std::sync::Arc<TrackerWindow>),
+    /// A navigation sample, on the frames' clock.
+    Nav(duv_core::nav::NavSample),
 }
 
 impl LogItem {
@@ -328,7 +337,7 @@ impl LogItem {
                 FrameImage::Rgb8(i) => i.data.len(),
                 FrameImage::Gray8(i) => i.data.len(),
             },
-            LogItem::Calibration { .. } | LogItem::Pose(_) => 0,
+            LogItem::Calibration { .. } | LogItem::Pose(_) | LogItem::Nav(_) => 0,
             LogItem::Keyframe(k) => k.image.data.len() + 4 * (k.inv_depth.data.len() + k.inv_depth_variance.data.len()),
             LogItem::Map { centres_in_world, checkpoint, .. } => 12 * centres_in_world.len() + checkpoint.len(),
             LogItem::Health { json, .. } => json.len(),
@@ -343,6 +352,7 @@ impl LogItem {
             LogItem::Pose(p) => p.t_ns,
             LogItem::Keyframe(k) => k.t_ns,
             LogItem::Window(w) => w.t_ns,
+            LogItem::Nav(n) => n.t_ns,
         }
     }
 }
@@ -648,7 +658,59 @@ fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpe
             w.encode(scratch)?;
             emit(Encoded { topic: Topic::TrackerWindow, sequence: w.seq as u32, log_time_ns }, scratch)
         }
+        LogItem::Nav(n) => {
+            scratch.clear();
+            serde_json::to_writer(&mut *scratch, &NavJson::from(n)).map_err(|e| LogError::Encode { what: "navigation sample", problem: e.to_string() })?;
+            emit(Encoded { topic: Topic::Nav, sequence: 0, log_time_ns }, scratch)
+        }
     }
+}
+
+/// A `/nav/sample` message in the Foxglove format (JSON).
+#[derive(Serialize, Deserialize)]
+struct NavJson {
+    t_ns: i64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    depth_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    altitude_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    vel_cam_mps: Option<[f64; 3]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    world_from_cam_xyzw: Option<[f64; 4]>,
+}
+
+impl From<&duv_core::nav::NavSample> for NavJson {
+    fn from(n: &duv_core::nav::NavSample) -> Self {
+        NavJson {
+            t_ns: n.t_ns.t_ns(),
+            depth_m: n.depth_m,
+            altitude_m: n.altitude_m,
+            vel_cam_mps: n.vel_cam_mps.map(|v| [v.x, v.y, v.z]),
+            world_from_cam_xyzw: n.world_from_cam_rot.map(|q| [q.i, q.j, q.k, q.w]),
+        }
+    }
+}
+
+/// A navigation sample from its parts (a quaternion as x, y, z, w; normalised).
+pub(crate) fn nav_sample(t_ns: i64, depth_m: Option<f64>, altitude_m: Option<f64>, vel: Option<[f64; 3]>, q_xyzw: Option<[f64; 4]>) -> duv_core::nav::NavSample {
+    duv_core::nav::NavSample {
+        t_ns: Timestamp::from_ns(t_ns),
+        depth_m,
+        altitude_m,
+        vel_cam_mps: vel.map(nalgebra::Vector3::from),
+        world_from_cam_rot: q_xyzw.map(|[x, y, z, w]| UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))),
+    }
+}
+
+/// Decodes a `/nav/sample` message (JSON in the Foxglove format, `duv_msgs/msg/NavSample` in
+/// the ROS 2 format).
+pub fn decode_nav(data: &[u8]) -> Result<duv_core::nav::NavSample, DecodeError> {
+    if super::ros2::is_cdr(data) {
+        return super::ros2::decode_nav_sample(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/NavSample", source });
+    }
+    let j: NavJson = serde_json::from_slice(data)?;
+    Ok(nav_sample(j.t_ns, j.depth_m, j.altitude_m, j.vel_cam_mps, j.world_from_cam_xyzw))
 }
 
 /// The wire type of field 2 of a protobuf message: `foxglove.RawImage` has its `width` there
