@@ -17,6 +17,8 @@
 //!   [`inspect`] summarises a log folder (`duv inspect`); [`keyframes`] reads the logged
 //!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
 //!   logged for a resume (`/slam/window`).
+//! - [`rosbag_source`]: a ROS 2 bag (MCAP, CDR) as a frame source with its camera and navigation
+//!   topics (`--source rosbag:`).
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 
@@ -27,6 +29,7 @@ pub mod keyframes;
 pub mod reader;
 pub mod recover;
 pub mod replay;
+pub mod rosbag_source;
 pub mod schema;
 pub mod window;
 pub mod writer;
