@@ -1,8 +1,8 @@
 //! ROS 2 bags in (`--source rosbag:`): bags written here with the `mcap` crate (ROS 2 profile,
 //! `ros2msg` schemas, CDR bodies) from a generated sequence, read back against the generator's
 //! truth (frames, stamps, pixels, camera, navigation samples); `duv run` end to end on a bag
-//! of a generated survey (tracked frames, ATE, metric scale); a bag written by the independent
-//! Python `rosbags` package; bad input (no MCAP, missing or ambiguous topics, an unknown
+//! of a generated survey (tracked frames, ATE, metric scale); bags written by the independent
+//! Python `rosbags` package (chunks uncompressed, zstd, lz4); bad input (no MCAP, missing or ambiguous topics, an unknown
 //! encoding, a truncated message or file) as errors naming the thing.
 
 use duv_camera::FrameSource;
@@ -512,26 +512,34 @@ fn a_bag_written_by_the_python_rosbags_package_reads_back() {
         args.push(format!("{}:{}", f.t_ns.t_ns(), png.display()));
     }
     let c = r.camera();
-    let bag = dir.path().join("from_python");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/write_rosbag.py");
-    let out = Command::new(&py).arg(&script).arg(&bag).args([c.fx, c.fy, c.cx, c.cy].map(|v| v.to_string())).args(&args).output().unwrap();
-    assert!(out.status.success(), "{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    // Two image topics (raw bgr8 and its PNG-compressed twin): each named, each equal to the
-    // generator's frames; the camera from /cam/camera_info; attitude from /imu/data.
-    let e = open(&bag.display().to_string()).err().unwrap().to_string();
-    assert!(e.starts_with("several image topics: /cam/image_raw (sensor_msgs/msg/Image, 4 messages), /cam/image_raw/compressed"), "{e}");
-    for topic in ["/cam/image_raw", "/cam/image_raw/compressed"] {
-        let mut src = open(&format!("{},image={topic}", bag.display())).unwrap();
-        assert_eq!((src.camera_from(), *src.camera()), ("/cam/camera_info", *c), "{topic}");
-        let frames = frames_of(&mut src);
-        assert_eq!(frames.len(), 4, "{topic}");
-        for (i, f) in frames.iter().enumerate() {
-            let truth = r.render(i);
-            assert_eq!(f.t_ns, truth.t_ns, "{topic} {i}");
-            assert_eq!(f.image, FrameImage::Rgb8(truth.rgb), "{topic} {i}");
+    // Chunks uncompressed, zstd (rosbag2's default for MCAP) and lz4.
+    for compress in ["none", "zstd", "lz4"] {
+        let bag = dir.path().join(format!("from_python_{compress}"));
+        let mut cmd = Command::new(&py);
+        cmd.arg(&script);
+        if compress != "none" {
+            cmd.args(["--compress", compress]);
         }
-        assert_eq!(src.nav().samples.len(), 4);
-        assert!(src.nav().samples.iter().all(|s| s.world_from_cam_rot.is_some_and(|q| q.angle() == 0.0)));
-        assert_eq!(src.nav_topics()[0].topic, "/imu/data");
+        let out = cmd.arg(&bag).args([c.fx, c.fy, c.cx, c.cy].map(|v| v.to_string())).args(&args).output().unwrap();
+        assert!(out.status.success(), "{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        // Two image topics (raw bgr8 and its PNG-compressed twin): each named, each equal to
+        // the generator's frames; the camera from /cam/camera_info; attitude from /imu/data.
+        let e = open(&bag.display().to_string()).err().unwrap().to_string();
+        assert!(e.starts_with("several image topics: /cam/image_raw (sensor_msgs/msg/Image, 4 messages), /cam/image_raw/compressed"), "{compress}: {e}");
+        for topic in ["/cam/image_raw", "/cam/image_raw/compressed"] {
+            let mut src = open(&format!("{},image={topic}", bag.display())).unwrap();
+            assert_eq!((src.camera_from(), *src.camera()), ("/cam/camera_info", *c), "{compress} {topic}");
+            let frames = frames_of(&mut src);
+            assert_eq!(frames.len(), 4, "{compress} {topic}");
+            for (i, f) in frames.iter().enumerate() {
+                let truth = r.render(i);
+                assert_eq!(f.t_ns, truth.t_ns, "{compress} {topic} {i}");
+                assert_eq!(f.image, FrameImage::Rgb8(truth.rgb), "{compress} {topic} {i}");
+            }
+            assert_eq!(src.nav().samples.len(), 4);
+            assert!(src.nav().samples.iter().all(|s| s.world_from_cam_rot.is_some_and(|q| q.angle() == 0.0)));
+            assert_eq!(src.nav_topics()[0].topic, "/imu/data");
+        }
     }
 }

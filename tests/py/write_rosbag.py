@@ -1,13 +1,15 @@
 """Writes a ROS 2 bag (MCAP storage, CDR) with the independent `rosbags` package, for
 tests/rosbag.rs: the duv `rosbag:` source must read what a standard tool writes.
 
-    python write_rosbag.py OUT_DIR FX FY CX CY T_NS:IMAGE.png [T_NS:IMAGE.png ...]
+    python write_rosbag.py [--compress zstd|lz4] OUT_DIR FX FY CX CY T_NS:IMAGE.png [...]
 
 Topics: /cam/image_raw (sensor_msgs/msg/Image, bgr8, the PNG's pixels), its
 /cam/image_raw/compressed (sensor_msgs/msg/CompressedImage, the PNG file as it is),
 /cam/camera_info (sensor_msgs/msg/CameraInfo, plumb_bob, no distortion) and
 /imu/data (sensor_msgs/msg/Imu, identity orientation) at every image's stamp. PNGs are
 8-bit RGB, not interlaced (what duv writes); decoded here with zlib (no imaging library).
+`--compress zstd`: chunks compressed by rosbags (rosbag2's default for MCAP); `--compress lz4`:
+the bag rewritten chunk by chunk with LZ4 by the `mcap` package.
 """
 
 import struct
@@ -16,7 +18,7 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 
@@ -63,9 +65,32 @@ def read_png_rgb8(path):
     return width, height, out.reshape(height, width, 3), data
 
 
+def rewrite_lz4(path):
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    data = Path(path).read_bytes()
+    with open(path, 'wb') as f:
+        w = McapWriter(f, compression=CompressionType.LZ4)
+        w.start(profile='ros2', library='write_rosbag.py')
+        schemas, channels = {}, {}
+        for schema, channel, message in make_reader(__import__('io').BytesIO(data)).iter_messages():
+            if schema.id not in schemas:
+                schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = w.register_channel(channel.topic, channel.message_encoding, schemas[schema.id], channel.metadata)
+            w.add_message(channels[channel.id], message.log_time, message.data, message.publish_time, message.sequence)
+        w.finish()
+
+
 def main():
-    out, fx, fy, cx, cy = sys.argv[1], *map(float, sys.argv[2:6])
-    frames = [arg.split(':', 1) for arg in sys.argv[6:]]
+    args = sys.argv[1:]
+    compress = None
+    if args[0] == '--compress':
+        compress, args = args[1], args[2:]
+    out, fx, fy, cx, cy = args[0], *map(float, args[1:5])
+    frames = [arg.split(':', 1) for arg in args[5:]]
     ts = get_typestore(Stores.ROS2_HUMBLE)
     Image = ts.types['sensor_msgs/msg/Image']
     CompressedImage = ts.types['sensor_msgs/msg/CompressedImage']
@@ -77,7 +102,10 @@ def main():
     Header = ts.types['std_msgs/msg/Header']
     Time = ts.types['builtin_interfaces/msg/Time']
 
-    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+    writer = Writer(out, version=9, storage_plugin=StoragePlugin.MCAP)
+    if compress == 'zstd':
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer as w:
         c_img = w.add_connection('/cam/image_raw', Image.__msgtype__, typestore=ts)
         c_jpg = w.add_connection('/cam/image_raw/compressed', CompressedImage.__msgtype__, typestore=ts)
         c_info = w.add_connection('/cam/camera_info', CameraInfo.__msgtype__, typestore=ts)
@@ -115,6 +143,9 @@ def main():
             w.write(c_imu, t_ns, ts.serialize_cdr(imu, Imu.__msgtype__))
             w.write(c_img, t_ns, ts.serialize_cdr(img, Image.__msgtype__))
             w.write(c_jpg, t_ns, ts.serialize_cdr(comp, CompressedImage.__msgtype__))
+    if compress == 'lz4':
+        for f in Path(out).glob('*.mcap'):
+            rewrite_lz4(f)
     print(f'wrote {len(frames)} frames to {out}')
 
 

@@ -58,8 +58,8 @@
 //! **Files.** The folder's `metadata.yaml` lists its files in order (`relative_file_paths`);
 //! without it every `*.mcap` in the folder is read in natural name order. SQLite bags
 //! (`*.db3`) are not read (`ros2 bag convert` writes MCAP). Chunks are read by the log's
-//! salvaging reader ([`SegmentReader`]), which reads uncompressed chunks only: a bag recorded
-//! with zstd or lz4 chunk compression is an error saying so.
+//! salvaging reader ([`SegmentReader`]): uncompressed, zstd (rosbag2's default) or lz4; other
+//! chunk compressions are an error naming them.
 //!
 //! Memory: opening reads the bag once and keeps the CameraInfo and navigation messages
 //! (small) and the first image; frames are then read one message at a time. Like the `mcap:`
@@ -93,7 +93,7 @@ pub enum RosbagError {
     NoMcap { path: PathBuf, hint: String },
     #[error("{path}: metadata.yaml names {file}, which is missing")]
     MissingFile { path: PathBuf, file: PathBuf },
-    #[error("{path}: chunks compressed with {compression} cannot be read (uncompressed MCAP only; re-record without compression or convert the bag)")]
+    #[error("{path}: chunks compressed with {compression} cannot be read (uncompressed, zstd or lz4 only)")]
     Compressed { path: PathBuf, compression: String },
     #[error("{path}: no sensor_msgs/msg/Image or CompressedImage topic; topics: {topics}")]
     NoImageTopic { path: PathBuf, topics: String },
