@@ -450,6 +450,68 @@ fn bad_bags_are_errors_naming_the_thing() {
     }
 }
 
+#[test]
+fn bad_navigation_samples_are_rejected_and_counted_like_nav_csv_rows() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = renderer(2, 32, 24);
+    let d = dir.path().join("nav");
+    let mut bag = Bag::create(&d);
+    bag.topic("/cam/image_raw", "sensor_msgs/msg/Image");
+    bag.topic("/cam/camera_info", "sensor_msgs/msg/CameraInfo");
+    bag.topic("/pressure", "sensor_msgs/msg/FluidPressure");
+    bag.topic("/altimeter", "sensor_msgs/msg/Range");
+    bag.topic("/imu", "sensor_msgs/msg/Imu");
+    bag.topic("/dvl", "geometry_msgs/msg/TwistStamped");
+    for i in 0..r.len() {
+        let f = r.render(i);
+        bag.write("/cam/camera_info", f.t_ns, &camera_info_msg(f.t_ns, r.camera()));
+        bag.write("/cam/image_raw", f.t_ns, &image_msg(f.t_ns, &f.rgb, "rgb8"));
+    }
+    let t = |s: f64| Timestamp::from_secs_f64(s);
+    // Depth: good, NaN, out of order, repeated, 12 km, good.
+    for (s, depth) in [(1.0, 10.0), (2.0, f64::NAN), (1.5, 10.1), (2.0, 10.2), (3.0, 12_000.0), (4.0, 10.3)] {
+        bag.write("/pressure", t(s), &pressure_msg(t(s), depth));
+    }
+    // Altitude: good, negative, infinite (a Range beyond max_range).
+    for (s, a) in [(1.0, 2.0), (2.5, -0.5), (3.5, f64::INFINITY)] {
+        bag.write("/altimeter", t(s), &range_msg(t(s), a));
+    }
+    // Attitude: unit, far from unit, and one without orientation (covariance[0] = -1).
+    bag.write("/imu", t(1.0), &imu_msg(t(1.0), [0.0, 0.0, 0.0, 1.0]));
+    bag.write("/imu", t(2.2), &imu_msg(t(2.2), [0.0, 0.0, 0.0, 2.0]));
+    let mut no_orientation = Cdr::new();
+    no_orientation.header(t(2.4), "imu");
+    no_orientation.f64s(&[0.0, 0.0, 0.0, 1.0, -1.0]);
+    no_orientation.f64s(&[0.0; 8 + 3 + 9 + 3 + 9]);
+    bag.write("/imu", t(2.4), &no_orientation.0);
+    // Velocity: 25 m/s (over the limit), then good.
+    for (s, v) in [(1.2, 25.0), (1.3, 0.4)] {
+        let mut m = Cdr::new();
+        m.header(t(s), "dvl");
+        m.f64s(&[0.0, 0.0, v, 0.0, 0.0, 0.0]);
+        bag.write("/dvl", t(s), &m.0);
+    }
+    bag.finish();
+    let src = open(&d.display().to_string()).unwrap();
+    let nav = src.nav();
+    let rej = nav.rejected;
+    assert_eq!(
+        (rej.non_finite, rej.out_of_order, rej.duplicate_time, rej.depth_out_of_range, rej.altitude_out_of_range, rej.bad_quaternion, rej.velocity_out_of_range),
+        (2, 1, 1, 1, 1, 1, 1),
+        "{}",
+        rej.describe()
+    );
+    let depths: Vec<f64> = nav.samples.iter().filter_map(|s| s.depth_m).collect();
+    assert_eq!(depths.len(), 2);
+    assert!((depths[0] - 10.0).abs() < 1e-9 && (depths[1] - 10.3).abs() < 1e-9, "{depths:?}");
+    // The samples at 1 s of depth, altitude and attitude share one row.
+    let first = nav.samples[0];
+    assert_eq!(first.t_ns, t(1.0));
+    assert!(first.depth_m.is_some() && first.altitude_m == Some(2.0) && first.world_from_cam_rot.is_some());
+    assert_eq!(nav.samples.iter().filter_map(|s| s.vel_cam_mps).collect::<Vec<_>>(), [Vector3::new(0.0, 0.0, 0.4)]);
+    assert_eq!(nav.samples.iter().filter(|s| s.world_from_cam_rot.is_some()).count(), 1);
+}
+
 /// Root-mean-square position error of `est` (TUM) against the generator's poses after the
 /// Sim(3) alignment, the number of poses compared, and the alignment's scale.
 fn ate_sim3(est_path: &Path, r: &SimRenderer) -> (f64, usize, f64) {
@@ -484,6 +546,19 @@ fn duv_run_tracks_a_bag_of_a_generated_survey() {
     assert!(n >= 95, "{n} of 100 frames with a pose:\n{text}");
     assert!(ate < 0.035, "ATE {ate} m (measured 0.0165):\n{text}");
     assert!((scale - 1.0).abs() < 0.02, "metric from the bag's sensors: scale to truth {scale} (measured 1.0044)");
+    // At recorded timing over 2: 30 frames at 10 fps take at least 2.9 s / 2.
+    let start = std::time::Instant::now();
+    let res = Command::new(env!("CARGO_BIN_EXE_duv"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .env("RUST_LOG", "warn")
+        .args(["run", "--no-map", "--no-progress", "--frames", "30", "--speed", "2", "--source", &format!("rosbag:{}", bag.display()), "--out"])
+        .arg(dir.path().join("paced"))
+        .output()
+        .unwrap();
+    let paced_s = start.elapsed().as_secs_f64();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    eprintln!("30 frames at --speed 2: {paced_s:.2} s");
+    assert!(paced_s >= 1.45, "paced at recorded timing / 2: {paced_s} s");
 }
 
 /// The Python interpreter with the `rosbags` package: `DUV_PYTHON`, else the venv `.ci/run`
