@@ -213,9 +213,8 @@ fn write_sim_bag(dir: &Path, r: &SimRenderer, encoding: &str) -> Vec<NavSample> 
     bag.topic("/nav/altimeter", "sensor_msgs/msg/Range");
     bag.topic("/dvl/twist", "geometry_msgs/msg/TwistWithCovarianceStamped");
     bag.topic("/imu/data", "sensor_msgs/msg/Imu");
-    for i in 0..r.len() {
+    for (i, n) in nav.iter().enumerate() {
         let f = r.render(i);
-        let n = &nav[i];
         if let Some(d) = n.depth_m {
             bag.write("/nav/pressure", n.t_ns, &pressure_msg(n.t_ns, d));
         }

@@ -799,7 +799,7 @@ fn bag_files(path: &Path) -> Result<Vec<PathBuf>, RosbagError> {
         let hint = if db3 { "; this is a SQLite bag (.db3): convert it to MCAP (ros2 bag convert)".to_string() } else { String::new() };
         return Err(RosbagError::NoMcap { path: path.to_path_buf(), hint });
     }
-    names.sort_by(|a, b| natural_key(a).cmp(&natural_key(b)));
+    names.sort_by_key(|n| natural_key(n));
     Ok(names.into_iter().map(|n| path.join(n)).collect())
 }
 
@@ -1282,7 +1282,7 @@ mod tests {
         assert_eq!(metadata_files("rosbag2_bagfile_information:\n  relative_file_paths:\n    - dive_0.mcap\n    - dive_1.mcap\n  starting_time:\n"), ["dive_0.mcap", "dive_1.mcap"]);
         assert_eq!(metadata_files("  relative_file_paths: [a_0.mcap, 'a_1.mcap']\n"), ["a_0.mcap", "a_1.mcap"]);
         let mut names = vec!["d_10.mcap", "d_2.mcap", "d_0.mcap"];
-        names.sort_by(|a, b| natural_key(a).cmp(&natural_key(b)));
+        names.sort_by_key(|n| natural_key(n));
         assert_eq!(names, ["d_0.mcap", "d_2.mcap", "d_10.mcap"]);
         assert_eq!(namespace_candidates("/cam/image_raw/compressed"), ["/cam/image_raw/camera_info", "/cam/camera_info", "/camera_info"]);
     }
