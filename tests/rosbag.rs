@@ -471,6 +471,9 @@ fn bad_navigation_samples_are_rejected_and_counted_like_nav_csv_rows() {
     for (s, depth) in [(1.0, 10.0), (2.0, f64::NAN), (1.5, 10.1), (2.0, 10.2), (3.0, 12_000.0), (4.0, 10.3)] {
         bag.write("/pressure", t(s), &pressure_msg(t(s), depth));
     }
+    // A pressure message cut short: noted, counted, the rest kept.
+    let cut = pressure_msg(t(5.0), 10.4);
+    bag.write("/pressure", t(5.0), &cut[..cut.len() - 10]);
     // Altitude: good, negative, infinite (a Range beyond max_range).
     for (s, a) in [(1.0, 2.0), (2.5, -0.5), (3.5, f64::INFINITY)] {
         bag.write("/altimeter", t(s), &range_msg(t(s), a));
@@ -500,6 +503,7 @@ fn bad_navigation_samples_are_rejected_and_counted_like_nav_csv_rows() {
         "{}",
         rej.describe()
     );
+    assert_eq!(src.notes(), ["/pressure: 1 message(s) could not be decoded (first: /pressure, message 6: the message ends inside fluid_pressure (needs 8 bytes at offset 28, has 34))"]);
     let depths: Vec<f64> = nav.samples.iter().filter_map(|s| s.depth_m).collect();
     assert_eq!(depths.len(), 2);
     assert!((depths[0] - 10.0).abs() < 1e-9 && (depths[1] - 10.3).abs() < 1e-9, "{depths:?}");

@@ -61,8 +61,9 @@
 //! salvaging reader ([`SegmentReader`]): uncompressed, zstd (rosbag2's default) or lz4; other
 //! chunk compressions are an error naming them.
 //!
-//! Memory: opening reads the bag once and keeps the CameraInfo and navigation messages
-//! (small) and the first image; frames are then read one message at a time. Like the `mcap:`
+//! Memory: opening reads the bag once, keeps the first CameraInfo messages and the first image
+//! of each topic, and decodes the navigation messages into rows at once; frames are then read
+//! one message at a time. Like the `mcap:`
 //! replay, each frame is a new image (no pooling).
 
 use crate::reader::OwnedEvent;
@@ -279,8 +280,8 @@ impl MsgType {
         matches!(self, MsgType::Image | MsgType::CompressedImage)
     }
 
-    fn is_kept(self) -> bool {
-        !self.is_image()
+    fn is_nav(self) -> bool {
+        !self.is_image() && self != MsgType::CameraInfo
     }
 }
 
@@ -374,11 +375,15 @@ pub struct RosbagSource {
     max_frames: Option<u64>,
 }
 
-/// A kept message: topic, message index on its topic, data.
-struct Kept {
-    topic: String,
-    index: u64,
-    data: Vec<u8>,
+/// CameraInfo messages kept per topic while opening (the first that decodes is used).
+const CAMERA_INFO_KEPT: usize = 4;
+
+/// A navigation topic's messages, decoded while opening (rows in bag order, the bad counted).
+#[derive(Default)]
+struct NavDecoded {
+    rows: Vec<NavRow>,
+    bad: u64,
+    first_problem: Option<String>,
 }
 
 impl RosbagSource {
@@ -389,7 +394,10 @@ impl RosbagSource {
         let files = bag_files(&spec.path)?;
         // One pass over the bag: topics, counts, the small messages, the first image per topic.
         let mut topics: BTreeMap<String, BagTopic> = BTreeMap::new();
-        let mut kept: Vec<Kept> = Vec::new();
+        // Per topic: the first CameraInfo messages (index, data); navigation messages decoded
+        // at once, so a long dive's IMU is kept as rows, not as messages.
+        let mut infos: BTreeMap<String, Vec<(u64, Vec<u8>)>> = BTreeMap::new();
+        let mut decoded: BTreeMap<String, NavDecoded> = BTreeMap::new();
         let mut first_image: BTreeMap<String, Vec<u8>> = BTreeMap::new();
         for f in &files {
             let mut r = SegmentReader::open(f, limits)?;
@@ -409,7 +417,23 @@ impl RosbagSource {
                         let index = t.messages;
                         t.messages += 1;
                         match MsgType::from_schema(&t.schema) {
-                            Some(m) if m.is_kept() => kept.push(Kept { topic: t.topic.clone(), index, data }),
+                            Some(MsgType::CameraInfo) => {
+                                let v = infos.entry(t.topic.clone()).or_default();
+                                if v.len() < CAMERA_INFO_KEPT {
+                                    v.push((index, data));
+                                }
+                            }
+                            Some(m) if m.is_nav() => {
+                                let d = decoded.entry(t.topic.clone()).or_default();
+                                match decode_nav(&data, m, spec) {
+                                    Ok(Some(row)) => d.rows.push(row),
+                                    Ok(None) => {}
+                                    Err(e) => {
+                                        d.bad += 1;
+                                        d.first_problem.get_or_insert_with(|| RosbagError::InMessage { topic: t.topic.clone(), index, source: Box::new(e) }.to_string());
+                                    }
+                                }
+                            }
                             Some(_) => {
                                 first_image.entry(t.topic.clone()).or_insert(data);
                             }
@@ -489,14 +513,14 @@ impl RosbagSource {
                     cdr(t)?;
                     let mut problem = None;
                     let mut cam = None;
-                    for k in kept.iter().filter(|k| k.topic == t.topic) {
-                        match decode_camera_info(&k.data) {
+                    for (index, data) in infos.get(&t.topic).into_iter().flatten() {
+                        match decode_camera_info(data) {
                             Ok(c) => {
                                 cam = Some(c);
                                 break;
                             }
                             Err(e) => {
-                                problem.get_or_insert_with(|| RosbagError::InMessage { topic: t.topic.clone(), index: k.index, source: Box::new(e) }.to_string());
+                                problem.get_or_insert_with(|| RosbagError::InMessage { topic: t.topic.clone(), index: *index, source: Box::new(e) }.to_string());
                             }
                         }
                     }
@@ -548,22 +572,11 @@ impl RosbagSource {
         }
         let mut rows: Vec<NavRow> = Vec::new();
         let mut pre = duv_core::nav::NavRejections::default();
-        for (sensor, m, t) in &chosen {
+        for (sensor, _, t) in &chosen {
             let mut last: Option<Timestamp> = None;
             let mut used = 0u64;
-            let mut bad = 0u64;
-            for k in kept.iter().filter(|k| k.topic == t.topic) {
-                let row = match decode_nav(&k.data, *m, spec) {
-                    Ok(Some(r)) => r,
-                    Ok(None) => continue,
-                    Err(e) => {
-                        if bad == 0 {
-                            tracing::warn!("{}", RosbagError::InMessage { topic: t.topic.clone(), index: k.index, source: Box::new(e) });
-                        }
-                        bad += 1;
-                        continue;
-                    }
-                };
+            let d = decoded.remove(&t.topic).unwrap_or_default();
+            for row in d.rows {
                 let ts = row.t_ns.expect("decode_nav stamps every row");
                 match last {
                     Some(l) if ts < l => pre.out_of_order += 1,
@@ -575,8 +588,10 @@ impl RosbagSource {
                     }
                 }
             }
-            if bad > 0 {
-                notes.push(format!("{}: {bad} message(s) could not be decoded", t.topic));
+            if d.bad > 0 {
+                let why = d.first_problem.unwrap_or_default();
+                tracing::warn!("{why}");
+                notes.push(format!("{}: {} message(s) could not be decoded (first: {why})", t.topic, d.bad));
             }
             nav_topics.push(NavTopic { sensor: sensor.option(), topic: t.topic.clone(), schema: t.schema.clone(), messages: used });
         }
