@@ -119,6 +119,9 @@ impl Source {
             return Ok(Source::Mcap { replay: Box::new(replay), count: options.frames.unwrap_or(usize::MAX), looping });
         }
         if let Some(rest) = spec.strip_prefix("rosbag:") {
+            if options.width.is_some() || options.height.is_some() {
+                return Err(RunSourceError::Options("--width/--height apply to sim: sources only".into()));
+            }
             let wrap = |source| RunSourceError::Rosbag { spec: spec.to_string(), source };
             let parsed = RosbagSpec::parse(rest).map_err(wrap)?;
             let calibration = parsed.calib.as_deref().map(duv_camera::dataset::read_calibration).transpose()?;
