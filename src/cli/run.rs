@@ -26,7 +26,11 @@ use std::time::Duration;
 #[derive(clap::Args)]
 pub struct RunArgs {
     /// Frame source: `tum:DIR`, `euroc:DIR`, `tartanair:DIR`, `folder:DIR` (dataset options as
-    /// in `duv dataset`), `mcap:LOG`, a live camera (`v4l2:`, `aravis:`), or
+    /// in `duv dataset`), `mcap:LOG`, a ROS 2 bag
+    /// (`rosbag:DIR_OR_MCAP[,image=/topic][,camera_info=/topic][,calib=FILE][,fov=DEG]
+    /// [,depth=/topic][,altitude=/topic][,dvl=/topic][,imu=/topic][,water_density=KG_M3]
+    /// [,surface_pressure=PA]`: CDR images, CameraInfo and navigation topics), a live camera
+    /// (`v4l2:`, `aravis:`), or
     /// `sim:WATER[-TRAJECTORY][,frames=N][,seed=S][,pace=realtime|none][,nav=on][,lamps=on]
     /// [,backscatter=S][,snow=N][,seabed=C][,burst=START:DURATION[:FACTOR]][,night=on]` generated in
     /// memory, e.g. `sim:coastal`, `sim:turbid-loop,frames=50,seed=3`,
@@ -34,7 +38,8 @@ pub struct RunArgs {
     /// hover; `frames`/`seed` as --frames/--seed; `pace=realtime` is --speed 1; `nav=on` adds
     /// the generator's navigation sensors; the scene options as `duv sim`'s --lamps,
     /// --lamp-backscatter, --snow, --seabed-texture, --burst, --night).
-    /// With navigation input (a dataset's `nav.csv`, `nav=FILE`, `nav=on`) the outputs are in
+    /// With navigation input (a dataset's `nav.csv`, `nav=FILE`, `nav=on`, a bag's navigation
+    /// topics) the outputs are in
     /// metres; `metric.json` says which unit a run folder is in.
     #[arg(long)]
     source: String,

@@ -6,7 +6,7 @@ use super::{CameraError, FrameSource};
 use duv_core::config::board::Board;
 
 /// The kinds a `--source` spec may name, for help and error messages.
-pub const SOURCE_KINDS: &str = "v4l2, aravis, tum, euroc, tartanair, folder, sim, mcap";
+pub const SOURCE_KINDS: &str = "v4l2, aravis, tum, euroc, tartanair, folder, sim, mcap, rosbag";
 
 /// Opens a frame source from a spec `KIND:ARG[,OPTION=VALUE]...`:
 ///

@@ -248,35 +248,14 @@ impl NavTrack {
 /// [`parse_nav_csv`] judges rows: sorted by time (a repeated time keeps the first), values
 /// out of range, not finite or off unit norm rejected and counted, depth spikes cleared.
 pub fn validate_samples(mut raw: Vec<NavSample>) -> NavTrack {
-    let mut rejected = NavRejections::default();
     raw.sort_by_key(|s| s.t_ns);
-    let mut samples: Vec<NavSample> = Vec::with_capacity(raw.len());
-    for r in raw {
-        if samples.last().is_some_and(|p| p.t_ns == r.t_ns) {
-            rejected.duplicate_time += 1;
-            continue;
-        }
-        let mut s = NavSample::empty(r.t_ns);
-        s.depth_m = r.depth_m.filter(|&d| check_finite(d, &mut rejected) && check_range(d, DEPTH_RANGE_M, &mut rejected.depth_out_of_range));
-        s.altitude_m = r.altitude_m.filter(|&a| check_finite(a, &mut rejected) && check_range(a, ALTITUDE_RANGE_M, &mut rejected.altitude_out_of_range));
-        s.vel_cam_mps = r.vel_cam_mps.filter(|v| {
-            if !v.iter().all(|x| check_finite(*x, &mut rejected)) {
-                return false;
-            }
-            if v.norm() > MAX_SPEED_MPS {
-                rejected.velocity_out_of_range += 1;
-                return false;
-            }
-            true
-        });
-        s.world_from_cam_rot = r.world_from_cam_rot.filter(|q| q.coords.iter().all(|x| check_finite(*x, &mut rejected)));
-        if !s.is_empty() {
-            samples.push(s);
-        }
-    }
-    rejected.depth_spike = reject_depth_spikes(&mut samples);
-    samples.retain(|s| !s.is_empty());
-    NavTrack { samples, rejected }
+    judge_nav_rows(raw.into_iter().map(|s| NavRow {
+        t_ns: Some(s.t_ns),
+        depth_m: s.depth_m,
+        altitude_m: s.altitude_m,
+        vel: s.vel_cam_mps.map(|v| [v.x, v.y, v.z]),
+        q: s.world_from_cam_rot.map(|q| [q.i, q.j, q.k, q.w]),
+    }))
 }
 
 /// Reads `nav.csv`; see the module documentation for the format and what is rejected.
@@ -286,8 +265,7 @@ pub fn read_nav_csv(path: &Path) -> Result<NavTrack, NavError> {
 
 /// Parses the text of a `nav.csv`; `path` is for the messages.
 pub fn parse_nav_csv(path: &Path, text: &str) -> Result<NavTrack, NavError> {
-    let mut rejected = NavRejections::default();
-    let mut samples: Vec<NavSample> = Vec::new();
+    let mut rows: Vec<NavRow> = Vec::new();
     let mut header_seen = false;
     for (i, raw) in text.lines().enumerate() {
         let line_no = i + 1;
@@ -304,7 +282,21 @@ pub fn parse_nav_csv(path: &Path, text: &str) -> Result<NavTrack, NavError> {
             header_seen = true;
             continue;
         }
-        let row = parse_row(path, line_no, line)?;
+        rows.push(parse_row(path, line_no, line)?);
+    }
+    if !header_seen {
+        return Err(NavError::NoHeader { path: path.to_path_buf() });
+    }
+    Ok(judge_nav_rows(rows))
+}
+
+/// Judges rows of sensor values as [`read_nav_csv`] does (see the module documentation: what
+/// is rejected and counted), for every source of navigation samples (a `nav.csv`, a ROS 2 bag's
+/// sensor topics); rows in the order they were recorded.
+pub fn judge_nav_rows(rows: impl IntoIterator<Item = NavRow>) -> NavTrack {
+    let mut rejected = NavRejections::default();
+    let mut samples: Vec<NavSample> = Vec::new();
+    for row in rows {
         let Some(t_ns) = row.t_ns else {
             rejected.non_finite += 1;
             continue;
@@ -358,12 +350,9 @@ pub fn parse_nav_csv(path: &Path, text: &str) -> Result<NavTrack, NavError> {
         }
         samples.push(s);
     }
-    if !header_seen {
-        return Err(NavError::NoHeader { path: path.to_path_buf() });
-    }
     rejected.depth_spike = reject_depth_spikes(&mut samples);
     samples.retain(|s| !s.is_empty());
-    Ok(NavTrack { samples, rejected })
+    NavTrack { samples, rejected }
 }
 
 /// Counts a non-finite value (a group with several counts once: callers stop at the first).
@@ -385,23 +374,25 @@ fn check_range(v: f64, (lo, hi): (f64, f64), count: &mut usize) -> bool {
     }
 }
 
-/// The cells of one data row, parsed but not yet judged. `t_ns` is `None` for a non-finite time.
-struct Row {
-    t_ns: Option<Timestamp>,
-    depth_m: Option<f64>,
-    altitude_m: Option<f64>,
-    vel: Option<[f64; 3]>,
-    q: Option<[f64; 4]>,
+/// The values of one row, read but not yet judged ([`judge_nav_rows`]). `t_ns` is `None` for
+/// a non-finite time; `vel` in the camera frame, m/s; `q` is `[qx, qy, qz, qw]` as in `nav.csv`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct NavRow {
+    pub t_ns: Option<Timestamp>,
+    pub depth_m: Option<f64>,
+    pub altitude_m: Option<f64>,
+    pub vel: Option<[f64; 3]>,
+    pub q: Option<[f64; 4]>,
 }
 
-impl Row {
-    /// No sensor cell is filled.
-    fn is_blank(&self) -> bool {
+impl NavRow {
+    /// No sensor value is filled.
+    pub fn is_blank(&self) -> bool {
         self.depth_m.is_none() && self.altitude_m.is_none() && self.vel.is_none() && self.q.is_none()
     }
 }
 
-fn parse_row(path: &Path, line: usize, text: &str) -> Result<Row, NavError> {
+fn parse_row(path: &Path, line: usize, text: &str) -> Result<NavRow, NavError> {
     let cells: Vec<&str> = text.split(',').map(str::trim).collect();
     if cells.len() != NAV_CSV_COLUMNS.len() {
         return Err(NavError::CellCount { path: path.to_path_buf(), line, expected: NAV_CSV_COLUMNS.len(), found: cells.len() });
@@ -444,7 +435,7 @@ fn parse_row(path: &Path, line: usize, text: &str) -> Result<Row, NavError> {
     let altitude_m = number(2)?;
     let vel = group(3..6, "vel_x_mps,vel_y_mps,vel_z_mps")?.map(|v| [v[0], v[1], v[2]]);
     let q = group(6..10, "qx,qy,qz,qw")?.map(|v| [v[0], v[1], v[2], v[3]]);
-    Ok(Row { t_ns, depth_m, altitude_m, vel, q })
+    Ok(NavRow { t_ns, depth_m, altitude_m, vel, q })
 }
 
 /// Clears the depth of every sample further than [`DEPTH_SPIKE_M`] from the median of the

@@ -20,6 +20,8 @@
 //! - With `[log] format = "ros2"` ([`LogFormat::Ros2`]) the same topics are written as a ROS 2
 //!   bag: [`ros2`] holds the message definitions and the CDR encoding, [`bag`] the rosbag2
 //!   `metadata.yaml`.
+//! - [`rosbag_source`]: a ROS 2 bag (MCAP, CDR) as a frame source with its camera and navigation
+//!   topics (`--source rosbag:`).
 //!
 //! The log never imports another stage: what it writes arrives as plain `core` types.
 
@@ -32,6 +34,7 @@ pub mod reader;
 pub mod recover;
 pub mod replay;
 pub mod ros2;
+pub mod rosbag_source;
 pub mod schema;
 pub mod window;
 pub mod writer;

@@ -275,10 +275,10 @@ impl SegmentReader {
         let record = mcap::parse_record(opcode, body).map_err(|e| format!("bad record (opcode {opcode:#x}): {e}"))?;
         match record {
             Record::Chunk { header, data } => {
-                let records = chunk_records(&header, &data)?;
+                let records = chunk_records(&header, &data, self.limits.max_record_bytes)?;
                 let mut events = Vec::new();
                 let mut orphaned = 0;
-                for_each_record(records, |opcode, body| {
+                for_each_record(&records, |opcode, body| {
                     match mcap::parse_record(opcode, body).map_err(|e| format!("bad record in a chunk (opcode {opcode:#x}): {e}"))? {
                         Record::Message { header, data } => events.push(OwnedEvent::Message {
                             channel_id: header.channel_id,
@@ -365,7 +365,7 @@ impl SegmentReader {
             let ok = match opcode {
                 op::CHUNK => {
                     return match mcap::parse_record(opcode, &self.body) {
-                        Ok(Record::Chunk { header, data }) => chunk_records(&header, &data).is_ok() || (after_damage && p > at),
+                        Ok(Record::Chunk { header, data }) => chunk_records(&header, &data, self.limits.max_record_bytes).is_ok() || (after_damage && p > at),
                         _ => false,
                     }
                 }
@@ -505,16 +505,32 @@ fn check_head(opcode: u8, len: u64, at: u64, file_bytes: u64, limit: usize) -> R
     Ok(())
 }
 
-/// The records of a chunk after its CRC is checked (only uncompressed chunks: the writer never
-/// compresses).
-fn chunk_records<'a>(header: &mcap::records::ChunkHeader, data: &'a [u8]) -> Result<&'a [u8], Bad> {
-    if !header.compression.is_empty() {
-        return Err(format!("a chunk compressed with {} (not read)", header.compression));
-    }
+/// The records of a chunk after its CRC is checked. Our writer never compresses; chunks of
+/// other writers (ROS 2 bags: rosbag2 writes zstd by default) may be `zstd` or `lz4`
+/// (decompressed, at most `max_bytes`).
+fn chunk_records<'a>(header: &mcap::records::ChunkHeader, data: &'a [u8], max_bytes: usize) -> Result<std::borrow::Cow<'a, [u8]>, Bad> {
+    use std::io::Read;
+    let data: std::borrow::Cow<'a, [u8]> = match header.compression.as_str() {
+        "" => std::borrow::Cow::Borrowed(data),
+        kind @ ("zstd" | "lz4") => {
+            if header.uncompressed_size > max_bytes as u64 {
+                return Err(format!("a {kind} chunk of {} bytes uncompressed, over the limit of {max_bytes}", header.uncompressed_size));
+            }
+            let mut out = Vec::with_capacity(header.uncompressed_size as usize);
+            let limit = header.uncompressed_size + 1;
+            let read = match kind {
+                "zstd" => ruzstd::decoding::StreamingDecoder::new(data).map_err(|e| e.to_string()).and_then(|d| d.take(limit).read_to_end(&mut out).map_err(|e| e.to_string())),
+                _ => lz4_flex::frame::FrameDecoder::new(data).take(limit).read_to_end(&mut out).map_err(|e| e.to_string()),
+            };
+            read.map_err(|e| format!("a {kind} chunk that does not decompress: {e}"))?;
+            std::borrow::Cow::Owned(out)
+        }
+        other => return Err(format!("a chunk compressed with {other} (not read)")),
+    };
     if data.len() as u64 != header.uncompressed_size {
         return Err(format!("a chunk of {} bytes says {}", data.len(), header.uncompressed_size));
     }
-    if header.uncompressed_crc != 0 && crc32fast::hash(data) != header.uncompressed_crc {
+    if header.uncompressed_crc != 0 && crc32fast::hash(&data) != header.uncompressed_crc {
         return Err("chunk CRC mismatch".into());
     }
     Ok(data)

@@ -797,29 +797,36 @@ fn decode_jpeg_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, D
     if !img.format.eq_ignore_ascii_case("jpeg") && !img.format.eq_ignore_ascii_case("jpg") {
         return Err(DecodeError::UnsupportedFormat { format: img.format });
     }
-    decode_jpeg_bytes(&img.data, timestamp_or(img.timestamp, log_time_ns), seq)
+    let t_ns = timestamp_or(img.timestamp, log_time_ns);
+    let image = decode_jpeg(&img.data)?;
+    Ok(Frame { t_ns, seq, image })
 }
 
-/// Decodes a JPEG stream into a frame: grey JPEGs give grey frames, colour ones RGB.
+/// Decodes a JPEG stream into a frame.
 fn decode_jpeg_bytes(jpeg: &[u8], t_ns: Timestamp, seq: u64) -> Result<Frame, DecodeError> {
+    Ok(Frame { t_ns, seq, image: decode_jpeg(jpeg)? })
+}
+
+/// Decodes a JPEG (strictly: a damaged stream is an error): grey JPEGs give grey images,
+/// colour ones RGB.
+pub(crate) fn decode_jpeg(data: &[u8]) -> Result<FrameImage, DecodeError> {
     use zune_jpeg::zune_core::colorspace::ColorSpace;
     use zune_jpeg::zune_core::options::DecoderOptions;
-    let mut probe = zune_jpeg::JpegDecoder::new_with_options(jpeg, DecoderOptions::new_safe());
+    let mut probe = zune_jpeg::JpegDecoder::new_with_options(data, DecoderOptions::new_safe());
     probe.decode_headers().map_err(|source| DecodeError::Jpeg { source })?;
     let grey = probe.get_input_colorspace() == Some(ColorSpace::Luma);
     let (w, h) = probe.dimensions().ok_or(DecodeError::JpegNoDimensions)?;
     let out = if grey { ColorSpace::Luma } else { ColorSpace::RGB };
     // Strict: a damaged stream is an error, not a frame with a grey lower half.
     let options = DecoderOptions::new_safe().jpeg_set_out_colorspace(out).set_strict_mode(true);
-    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(jpeg, options);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(data, options);
     let pixels = decoder.decode().map_err(|source| DecodeError::Jpeg { source })?;
     let size = |colour| DecodeError::JpegSize { width: w, height: h, colour };
-    let image = if grey {
+    Ok(if grey {
         FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, pixels).ok_or_else(|| size("grey"))?)
     } else {
         FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, pixels).ok_or_else(|| size("rgb"))?)
-    };
-    Ok(Frame { t_ns, seq, image })
+    })
 }
 
 /// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth

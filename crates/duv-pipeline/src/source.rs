@@ -1,6 +1,6 @@
 //! Where a run's frames come from: every kind of `--source` (`sim:` generated in memory,
-//! dataset folders, `mcap:` recorded logs, with an optional replay loop for soak tests, and the
-//! live cameras `duv_camera::open_source` knows) behind one type, [`Source`], with the ground
+//! dataset folders, `mcap:` recorded logs, with an optional replay loop for soak tests, `rosbag:`
+//! ROS 2 bags, and the live cameras `duv_camera::open_source` knows) behind one type, [`Source`], with the ground
 //! truth (poses, depth) where the source has it; [`RunSource`] is it as the pipeline's
 //! [`FrameSource`]. Here, in the crate that wires the stages, because it needs both the camera
 //! stage (datasets, cameras, the generator) and the log stage (replay).
@@ -11,6 +11,7 @@ use duv_camera::{open_source, CameraError, FrameSource};
 use duv_core::config::board::Board;
 use duv_core::{Frame, FrameImage, ImageRgb8, PinholeCamera, PlaneF32, StampedPose};
 use duv_log::replay::{McapSource, ReplayError};
+use duv_log::rosbag_source::{RosbagError, RosbagSource, RosbagSpec};
 use duv_log::ReadLimits;
 use duv_sim::{SimConfig, SimError, SimRenderer};
 use std::path::{Path, PathBuf};
@@ -23,6 +24,8 @@ pub enum RunSourceError {
     Replay { spec: String, source: ReplayError },
     #[error("source {spec}")]
     Sim { spec: String, source: SimError },
+    #[error("source {spec}")]
+    Rosbag { spec: String, source: RosbagError },
     #[error("reopening {path} for lap {lap}")]
     Reopen { path: PathBuf, lap: u64, source: ReplayError },
     #[error(transparent)]
@@ -67,6 +70,8 @@ pub enum Source {
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize, nav: bool },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
     Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>> },
+    /// A ROS 2 bag: frames undistorted like a dataset's where its camera has distortion.
+    Rosbag { bag: Box<RosbagSource>, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
     /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
     Live { source: Box<dyn FrameSource>, next: usize, count: usize },
 }
@@ -113,6 +118,18 @@ impl Source {
             };
             return Ok(Source::Mcap { replay: Box::new(replay), count: options.frames.unwrap_or(usize::MAX), looping });
         }
+        if let Some(rest) = spec.strip_prefix("rosbag:") {
+            if options.width.is_some() || options.height.is_some() {
+                return Err(RunSourceError::Options("--width/--height apply to sim: sources only".into()));
+            }
+            let wrap = |source| RunSourceError::Rosbag { spec: spec.to_string(), source };
+            let parsed = RosbagSpec::parse(rest).map_err(wrap)?;
+            let calibration = parsed.calib.as_deref().map(duv_camera::dataset::read_calibration).transpose()?;
+            let bag = RosbagSource::open(&parsed, calibration).map_err(wrap)?.with_max_frames(options.frames);
+            let camera = *bag.camera();
+            let undistort = camera.distortion.is_some().then(|| (camera.undistort_map(), ImageRgb8::new(camera.width, camera.height)));
+            return Ok(Source::Rosbag { bag: Box::new(bag), count: options.frames.unwrap_or(usize::MAX), undistort });
+        }
         if let Some(preset) = spec.strip_prefix("sim:") {
             let sim = SimSpec::parse(spec, preset)?;
             let mut cfg = SimConfig::preset(sim.water, sim.trajectory);
@@ -152,13 +169,14 @@ impl Source {
             Source::Sim { renderer, .. } => *renderer.camera(),
             Source::Dataset { dataset, .. } => dataset.camera.undistorted(),
             Source::Mcap { replay, .. } => *replay.camera(),
+            Source::Rosbag { bag, .. } => bag.camera().undistorted(),
             Source::Live { source, .. } => *source.camera(),
         }
     }
 
     pub fn len(&self) -> usize {
         match self {
-            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Mcap { count, .. } | Source::Live { count, .. } => *count,
+            Source::Sim { count, .. } | Source::Dataset { count, .. } | Source::Mcap { count, .. } | Source::Rosbag { count, .. } | Source::Live { count, .. } => *count,
         }
     }
 
@@ -193,6 +211,15 @@ impl Source {
                     Err(e) => tracing::warn!("skipping a frame: {e}"),
                 }
             },
+            Source::Rosbag { bag, undistort, .. } => {
+                let Some(mut frame) = bag.next_frame()? else { return Ok(None) };
+                if let Some((map, buf)) = undistort {
+                    let rgb = frame.image.to_rgb8();
+                    map.apply_rgb8(&rgb, buf);
+                    frame.image = FrameImage::Rgb8(buf.clone());
+                }
+                Ok(Some(frame))
+            }
             Source::Mcap { replay, looping: None, .. } => Ok(replay.next_frame()?),
             Source::Mcap { replay, looping: Some(lp), .. } => loop {
                 if let Some(mut frame) = replay.next_frame()? {
@@ -238,6 +265,7 @@ impl Source {
                 duv_sim::nav::simulate(renderer, &duv_sim::NavNoise::default(), seed).map(Some).map_err(|source| RunSourceError::Sim { spec: "sim: navigation sensors".into(), source })
             }
             Source::Dataset { dataset, .. } => Ok(dataset.nav().map(|t| t.samples.clone())),
+            Source::Rosbag { bag, .. } => Ok((!bag.nav().is_empty()).then(|| bag.nav().samples.clone())),
             _ => Ok(None),
         }
     }
@@ -256,7 +284,7 @@ impl Source {
         match self {
             Source::Sim { renderer, count, .. } => Some(renderer.poses()[..*count].to_vec()),
             Source::Dataset { dataset, .. } => dataset.ground_truth.clone(),
-            Source::Mcap { .. } => None,
+            Source::Mcap { .. } | Source::Rosbag { .. } => None,
             Source::Live { source, .. } => source.ground_truth().map(<[_]>::to_vec),
         }
     }
@@ -266,7 +294,7 @@ impl Source {
         match self {
             Source::Sim { renderer, .. } => Some(renderer.render(seq as usize).depth_m),
             Source::Dataset { dataset, .. } => dataset.load_depth_for_frame(seq as usize).ok().flatten(),
-            Source::Mcap { .. } | Source::Live { .. } => None,
+            Source::Mcap { .. } | Source::Rosbag { .. } | Source::Live { .. } => None,
         }
     }
 
@@ -278,6 +306,7 @@ impl Source {
             }
             Source::Dataset { dataset, .. } => dataset.describe(),
             Source::Mcap { replay, .. } => replay.describe(),
+            Source::Rosbag { bag, .. } => bag.describe(),
             Source::Live { source, .. } => source.describe(),
         }
     }
