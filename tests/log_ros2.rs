@@ -94,6 +94,15 @@ fn write_log(cfg: LogConfig, frames: u64) {
         if seq % 20 == 5 {
             w.write(&LogItem::Keyframe(Arc::new(keyframe(seq, t)))).unwrap();
         }
+        // A navigation sample a frame, every other one without its altimeter.
+        let nav = duv_core::nav::NavSample {
+            t_ns: Timestamp::from_ns(t),
+            depth_m: Some(20.0 + seq as f64 * 0.01),
+            altitude_m: (seq % 2 == 0).then_some(2.5),
+            vel_cam_mps: Some(nalgebra::Vector3::new(0.0, 0.1, 0.5)),
+            world_from_cam_rot: Some(nalgebra::UnitQuaternion::from_euler_angles(-1.2, 0.0, 0.3)),
+        };
+        w.write(&LogItem::Nav(nav)).unwrap();
         if seq % 10 == 9 {
             w.write(&LogItem::Health { t_ns: Timestamp::from_ns(t), json: format!("{{\"frames\":{seq}}}") }).unwrap();
             w.write(&LogItem::Window(Arc::new(window(seq, t)))).unwrap();
@@ -169,7 +178,8 @@ fn a_ros2_log_is_a_bag_that_rosbags_opens_and_deserialises() {
     }
     let ours = our_counts(dir.path());
     assert_eq!((ours["/camera/image"], ours["/slam/state"], ours["/keyframe/variance"], ours["/health"], ours["/slam/window"], ours["/map/gaussians"]), (60, 60, 3, 6, 6, 1));
-    assert_eq!(ours.len(), 13, "every topic: {ours:?}");
+    assert_eq!(ours["/nav/sample"], 60);
+    assert_eq!(ours.len(), 14, "every topic: {ours:?}");
     let Some(v) = rosbags_check(dir.path()) else { return };
     assert_counts_match(&v, &ours);
     let types = &v["types"];
@@ -179,6 +189,7 @@ fn a_ros2_log_is_a_bag_that_rosbags_opens_and_deserialises() {
         ("/slam/pose", "geometry_msgs/msg/PoseStamped"),
         ("/tf", "tf2_msgs/msg/TFMessage"),
         ("/slam/state", "duv_msgs/msg/TrackingState"),
+        ("/nav/sample", "duv_msgs/msg/NavSample"),
         ("/keyframe/image", "sensor_msgs/msg/Image"),
         ("/keyframe/inv_depth", "sensor_msgs/msg/Image"),
         ("/keyframe/variance", "sensor_msgs/msg/Image"),

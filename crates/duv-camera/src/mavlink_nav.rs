@@ -211,7 +211,14 @@ struct Collected {
     depths: [Vec<(i64, f64)>; 4],
     counts: MavlinkCounts,
     capacity: usize,
+    /// Handed every sample as it arrives (the run's log); depths only of the kind in use.
+    tap: Option<NavTap>,
+    /// The best depth kind seen so far (index in [`DEPTH_KINDS`]), for the tap.
+    depth_in_use: Option<usize>,
 }
+
+/// Where a receiver hands each sample as it arrives (stamped with the run's clock).
+pub type NavTap = Box<dyn FnMut(NavSample) + Send>;
 
 /// The receiving thread of a live MAVLink stream, collecting samples until [`NavReceiver::finish`].
 pub struct NavReceiver {
@@ -234,7 +241,9 @@ impl NavReceiver {
     /// Listens on the spec's address and collects from now on; `epoch` is the run's clock
     /// (samples are stamped with the time since it), `body_from_cam` the camera's mounting,
     /// `max_samples` the buffer (allocated here).
-    pub fn start(spec: MavlinkNavSpec, body_from_cam: UnitQuaternion<f64>, max_samples: usize, epoch: Instant) -> Result<Self, MavlinkNavError> {
+    /// `tap`, when given, gets every sample as it arrives (depths only of the message kind in
+    /// use), e.g. for the log.
+    pub fn start(spec: MavlinkNavSpec, body_from_cam: UnitQuaternion<f64>, max_samples: usize, epoch: Instant, tap: Option<NavTap>) -> Result<Self, MavlinkNavError> {
         let socket = UdpSocket::bind(spec.listen).map_err(|source| MavlinkNavError::Bind { spec: spec.spec.clone(), addr: spec.listen, source })?;
         let local = socket.local_addr().map_err(|source| MavlinkNavError::Bind { spec: spec.spec.clone(), addr: spec.listen, source })?;
         socket.set_read_timeout(Some(Duration::from_millis(100))).map_err(|source| MavlinkNavError::Bind { spec: spec.spec.clone(), addr: spec.listen, source })?;
@@ -243,7 +252,7 @@ impl NavReceiver {
         let sp = spec.clone();
         let thread = std::thread::Builder::new()
             .name("nav".into())
-            .spawn(move || receive(socket, &sp, body_from_cam, max_samples, epoch, &s))
+            .spawn(move || receive(socket, &sp, body_from_cam, max_samples, epoch, &s, tap))
             .map_err(|source| MavlinkNavError::Thread { spec: spec.spec.clone(), source })?;
         tracing::info!(spec = spec.spec, %local, "navigation: listening for MAVLink");
         Ok(NavReceiver { spec, local, stop, thread: Some(thread) })
@@ -285,13 +294,18 @@ impl Drop for NavReceiver {
     }
 }
 
-fn receive(socket: UdpSocket, spec: &MavlinkNavSpec, body_from_cam: UnitQuaternion<f64>, capacity: usize, epoch: Instant, stop: &AtomicBool) -> Collected {
+fn receive(socket: UdpSocket, spec: &MavlinkNavSpec, body_from_cam: UnitQuaternion<f64>, capacity: usize, epoch: Instant, stop: &AtomicBool, tap: Option<NavTap>) -> Collected {
     let depth_capacity = capacity / 4 + 1;
     let mut c = Collected {
         samples: Vec::with_capacity(capacity),
         depths: std::array::from_fn(|_| Vec::with_capacity(depth_capacity)),
         counts: MavlinkCounts::default(),
         capacity,
+        tap,
+        depth_in_use: match spec.depth {
+            DepthSource::Auto => None,
+            k => DEPTH_KINDS.iter().position(|d| *d == k),
+        },
     };
     let mut reader = MavlinkReader::new(Datagrams { socket, buf: Box::new([0; 65_536]), start: 0, end: 0, received: 0 });
     while !stop.load(Ordering::Relaxed) {
@@ -300,7 +314,7 @@ fn receive(socket: UdpSocket, spec: &MavlinkNavSpec, body_from_cam: UnitQuaterni
                 c.counts.messages += 1;
                 let t_ns = epoch.elapsed().as_nanos() as i64;
                 if let Some(r) = reading(&msg, spec, body_from_cam) {
-                    keep(&mut c, t_ns, r, spec.min_confidence);
+                    keep(&mut c, t_ns, r, spec.min_confidence, spec.depth == DepthSource::Auto);
                 }
             }
             Err(mavlink::error::MessageReadError::Io(e)) if matches!(e.kind(), std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut) => {}
@@ -315,12 +329,20 @@ fn receive(socket: UdpSocket, spec: &MavlinkNavSpec, body_from_cam: UnitQuaterni
     c
 }
 
-fn keep(c: &mut Collected, t_ns: i64, r: NavReading, min_confidence: f64) {
+fn keep(c: &mut Collected, t_ns: i64, r: NavReading, min_confidence: f64, auto_depth: bool) {
     let t = Timestamp::from_ns(t_ns);
     let sample = match r {
         NavReading::Depth { kind, depth_m } => {
             let i = DEPTH_KINDS.iter().position(|d| *d == kind).unwrap_or(0);
             c.counts.depth[i] += 1;
+            if auto_depth && c.depth_in_use.is_none_or(|u| i < u) {
+                c.depth_in_use = Some(i);
+            }
+            if c.depth_in_use == Some(i) {
+                if let Some(tap) = c.tap.as_mut() {
+                    tap(NavSample { depth_m: Some(depth_m), ..NavSample::empty(t) });
+                }
+            }
             let v = &mut c.depths[i];
             if v.len() < v.capacity() {
                 v.push((t_ns, depth_m));
@@ -346,6 +368,9 @@ fn keep(c: &mut Collected, t_ns: i64, r: NavReading, min_confidence: f64) {
             NavSample { vel_cam_mps: Some(vel_cam_mps), ..NavSample::empty(t) }
         }
     };
+    if let Some(tap) = c.tap.as_mut() {
+        tap(sample);
+    }
     if c.samples.len() < c.capacity {
         c.samples.push(sample);
     } else {
@@ -436,7 +461,7 @@ mod tests {
     #[test]
     fn a_udp_stream_from_an_autopilot_is_collected_and_judged() {
         let epoch = Instant::now();
-        let rx = NavReceiver::start(spec(""), down40(), 1000, epoch).unwrap();
+        let rx = NavReceiver::start(spec(""), down40(), 1000, epoch, None).unwrap();
         let to = rx.local_addr();
         let tx = UdpSocket::bind("127.0.0.1:0").unwrap();
         let hpa = |d: f64| ((101_325.0 + 1025.0 * G_MPS2 * d) / 100.0) as f32;
@@ -478,7 +503,7 @@ mod tests {
     fn a_busy_port_is_an_error_naming_it() {
         let taken = UdpSocket::bind("127.0.0.1:0").unwrap();
         let port = taken.local_addr().unwrap().port();
-        let e = NavReceiver::start(spec("").clone_with_port(port), down40(), 10, Instant::now()).err().unwrap().to_string();
+        let e = NavReceiver::start(spec("").clone_with_port(port), down40(), 10, Instant::now(), None).err().unwrap().to_string();
         assert!(e.contains(&format!("cannot listen on 127.0.0.1:{port}")), "{e}");
     }
 

@@ -195,3 +195,25 @@ fn finish(index: u64, p: Partial, used: &mut BTreeSet<u64>, out: &mut LogKeyfram
     used.insert(kf.index);
     Some(kf)
 }
+
+/// Every navigation sample a log holds (`/nav/sample`), sorted by time, from a log folder, a
+/// run folder or one segment; damaged ranges are skipped, undecodable messages counted.
+pub fn read_log_nav(path: &Path, limits: ReadLimits) -> Result<(Vec<duv_core::nav::NavSample>, usize), LogError> {
+    let mut samples = Vec::new();
+    let mut undecodable = 0;
+    for file in log_files(path)? {
+        let mut r = SegmentReader::open(&file, limits)?;
+        while let Some(e) = r.next_event() {
+            let OwnedEvent::Message { channel_id, data, .. } = e else { continue };
+            if r.channel(channel_id).and_then(|c| Topic::from_name(&c.topic)) != Some(Topic::Nav) {
+                continue;
+            }
+            match super::schema::decode_nav(&data) {
+                Ok(n) => samples.push(n),
+                Err(_) => undecodable += 1,
+            }
+        }
+    }
+    samples.sort_by_key(|s: &duv_core::nav::NavSample| s.t_ns);
+    Ok((samples, undecodable))
+}

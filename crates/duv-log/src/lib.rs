@@ -40,7 +40,7 @@ pub mod window;
 pub mod writer;
 
 pub use inspect::{inspect_log, LogSummary};
-pub use keyframes::{for_each_log_keyframe, log_files, read_log_keyframes, LogKeyframes, LoggedMap};
+pub use keyframes::{for_each_log_keyframe, log_files, read_log_keyframes, read_log_nav, LogKeyframes, LoggedMap};
 pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessage, SegmentReader};
 pub use recover::{recover_folder, RecoveryReport};
 pub use schema::{DecodeError, FrameEncoding, LogFormat, LogItem, PoseRecord, Topic};

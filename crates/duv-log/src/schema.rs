@@ -939,6 +939,38 @@ mod tests {
     use duv_core::ImageRgb8;
 
     #[test]
+    fn navigation_samples_round_trip_in_both_formats() {
+        use duv_core::nav::NavSample;
+        let full = NavSample {
+            t_ns: Timestamp::from_ns(2_345_000_001),
+            depth_m: Some(12.25),
+            altitude_m: Some(2.5),
+            vel_cam_mps: Some(nalgebra::Vector3::new(0.1, -0.02, 0.5)),
+            world_from_cam_rot: Some(UnitQuaternion::from_euler_angles(0.3, -0.1, 2.0)),
+        };
+        let depth_only = NavSample { depth_m: Some(7.0), ..NavSample::empty(Timestamp::from_ns(9)) };
+        for format in LogFormat::ALL {
+            let mut enc = ItemEncoder::with_format(format, FrameEncoding::Raw);
+            for sample in [full, depth_only] {
+                let mut got = Vec::new();
+                enc.encode(&LogItem::Nav(sample), |e, b| {
+                    got.push((e.topic, e.log_time_ns, b.to_vec()));
+                    Ok(())
+                })
+                .unwrap();
+                assert_eq!((got.len(), got[0].0, got[0].1), (1, Topic::Nav, sample.t_ns.t_ns() as u64), "{format:?}");
+                let back = decode_nav(&got[0].2).unwrap();
+                assert_eq!((back.t_ns, back.depth_m, back.altitude_m, back.vel_cam_mps), (sample.t_ns, sample.depth_m, sample.altitude_m, sample.vel_cam_mps), "{format:?}");
+                match (back.world_from_cam_rot, sample.world_from_cam_rot) {
+                    (Some(a), Some(b)) => assert!(a.angle_to(&b) < 1e-12, "{format:?}"),
+                    (a, b) => assert_eq!(a.is_none(), b.is_none(), "{format:?}"),
+                }
+            }
+        }
+        assert!(decode_nav(b"{\"depth_m\": 3}").is_err(), "no time");
+    }
+
+    #[test]
     fn frame_and_pose_round_trip() {
         let mut img = ImageRgb8::new(5, 3);
         for (i, v) in img.data.iter_mut().enumerate() {

@@ -64,6 +64,8 @@ pub struct DiveHistory {
     pub keyframes: BTreeMap<u64, (Timestamp, Se3)>,
     /// The processes that wrote the log, by part number.
     pub parts: BTreeMap<u32, DivePart>,
+    /// Every logged navigation sample (`/nav/sample`), in log order.
+    pub nav: Vec<duv_core::nav::NavSample>,
 }
 
 impl DiveHistory {

@@ -619,18 +619,34 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     // once.
     let stop = Stop::on_signals()?;
     let total = source.len();
-    let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
-    // `--nav`: a file is read now (its errors before any frame), a stream received from now on.
+    // Navigation input, logged on `/nav/sample` as the run goes: `--nav FILE` read now (its
+    // errors before any frame), the source's own (a dataset's nav.csv, the generator's
+    // sensors, a logged one on replay), or a `--nav mavlink:` stream received from now on.
     let mut nav_stream = None;
-    let mut nav_file = None;
-    match opts.nav_input.as_deref() {
-        Some(spec) if spec.starts_with("mavlink:") && opts.use_nav => {
-            let parsed = duv_camera::mavlink_nav::MavlinkNavSpec::parse(spec)?;
-            nav_stream = Some(duv_camera::mavlink_nav::NavReceiver::start(parsed, board.nav.body_from_cam(), board.nav.max_samples as usize, pcfg.arrival_clock.epoch())?);
+    let mut known_nav: Option<Vec<duv_core::nav::NavSample>> = None;
+    if opts.use_nav {
+        match opts.nav_input.as_deref() {
+            Some(spec) if spec.starts_with("mavlink:") => {
+                let parsed = duv_camera::mavlink_nav::MavlinkNavSpec::parse(spec)?;
+                let live = Arc::new(super::queue::BoundedQueue::new("nav", NAV_LIVE_QUEUE, 0, super::queue::FullPolicy::DropOldest));
+                pcfg.nav_to_log.live = Some(live.clone());
+                let tap: duv_camera::mavlink_nav::NavTap = Box::new(move |s| {
+                    let _ = live.push(s, 0);
+                });
+                nav_stream = Some(duv_camera::mavlink_nav::NavReceiver::start(parsed, board.nav.body_from_cam(), board.nav.max_samples as usize, pcfg.arrival_clock.epoch(), Some(tap))?);
+            }
+            Some(file) => {
+                let track = duv_core::nav::read_nav_csv(Path::new(file))?;
+                if track.rejected.total() > 0 {
+                    progress(&Progress::NavStream { summary: &format!("--nav {file}: {} samples, {}", track.samples.len(), track.rejected.describe()) });
+                }
+                known_nav = Some(track.samples);
+            }
+            None => known_nav = source.nav()?,
         }
-        Some(file) if opts.use_nav && !file.starts_with("mavlink:") => nav_file = Some(duv_core::nav::read_nav_csv(Path::new(file))?),
-        _ => {}
     }
+    pcfg.nav_to_log.known = known_nav.clone().unwrap_or_default();
+    let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
     let frames_expected = (total != usize::MAX).then(|| total.saturating_sub(start));
     pcfg.progress.set_frames_expected(frames_expected.map(|n| n as u64));
     progress(&Progress::Tracking { frames: frames_expected });
@@ -730,13 +746,19 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
             }
             None => None,
         }
-    } else if let Some(track) = nav_file {
-        if track.rejected.total() > 0 {
-            progress(&Progress::NavStream { summary: &format!("--nav: {} samples, {}", track.samples.len(), track.rejected.describe()) });
-        }
-        Some(track.samples)
     } else {
-        source.nav()?
+        known_nav
+    };
+    // A resumed dive: the samples the earlier processes logged as well (a stream's are nowhere
+    // else); repeated times are kept once.
+    let logged_nav = resume_state.as_ref().map(|r| &r.history.nav).filter(|n| opts.use_nav && !n.is_empty());
+    let nav = match (nav, logged_nav) {
+        (Some(mut now), Some(logged)) => {
+            now.extend_from_slice(logged);
+            Some(duv_core::nav::validate_samples(now).samples)
+        }
+        (None, Some(logged)) => Some(duv_core::nav::validate_samples(logged.clone()).samples),
+        (nav, None) => nav,
     };
     let (units, metric_from_world) = match &nav {
         None if !opts.use_nav => (MetricRecord::map_units("navigation input turned off (--no-nav)", 0), None),
@@ -831,6 +853,10 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         log_error: result.log_error,
     })))
 }
+
+/// Live navigation samples waiting for the capture thread to log them (a few seconds of a
+/// fast autopilot stream).
+const NAV_LIVE_QUEUE: usize = 1024;
 
 /// One line on what a MAVLink stream delivered: messages, samples by sensor, rejections.
 fn mavlink_summary(spec: &str, got: &duv_camera::mavlink_nav::MavlinkNav) -> String {

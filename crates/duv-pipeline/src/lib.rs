@@ -256,7 +256,31 @@ pub struct PipelineConfig {
     pub progress: Arc<RunProgress>,
     /// The run's clock against the frames' (inputs stamped on arrival).
     pub arrival_clock: Arc<clock::ArrivalClock>,
+    /// Navigation samples for the log (`/nav/sample`).
+    pub nav_to_log: NavToLog,
 }
+
+/// Navigation samples the capture thread logs: the known ones (a dataset's `nav.csv`, the
+/// generator's sensors, `--nav FILE`) as the frames pass their time, the live ones (a MAVLink
+/// stream, stamped on the run's clock) as they arrive, moved onto the frames' clock. Replay and
+/// resume read them back.
+#[derive(Clone, Default)]
+pub struct NavToLog {
+    /// Sorted by time.
+    pub known: Vec<duv_core::nav::NavSample>,
+    /// Samples stamped with the run's clock (ns since [`clock::ArrivalClock::epoch`]).
+    pub live: Option<Arc<BoundedQueue<duv_core::nav::NavSample>>>,
+}
+
+impl std::fmt::Debug for NavToLog {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("NavToLog").field("known", &self.known.len()).field("live", &self.live.is_some()).finish()
+    }
+}
+
+/// Known navigation samples older than this before a resumed run's first frame were logged by
+/// the earlier process.
+const NAV_RELOG_NS: i64 = 2_000_000_000;
 
 impl PipelineConfig {
     fn handoff(&self) -> HandoffConfig {
@@ -304,6 +328,7 @@ impl PipelineConfig {
             retrack_unlogged: std::collections::BTreeSet::new(),
             progress: Arc::new(RunProgress::new()),
             arrival_clock: Arc::new(clock::ArrivalClock::new()),
+            nav_to_log: NavToLog::default(),
         }
     }
 }
@@ -725,7 +750,10 @@ pub fn run<S: FrameSource + 'static>(
         let mut pacer = cfg.pace_speed.map(|speed| Pacer { speed, start: None });
         let lossless = cfg.lossless_frames;
         let arrival_clock = cfg.arrival_clock.clone();
+        let nav_known = cfg.nav_to_log.known.clone();
+        let nav_live = cfg.nav_to_log.live.clone();
         spawn("capture", move || -> (S, Option<String>) {
+            let mut nav_next: Option<usize> = None;
             alloc::label_current_thread(ThreadRole::Capture);
             let _span = tracing::info_span!("capture").entered();
             // Every slot at the camera's size now (start-up), so none grows while frames flow.
@@ -761,6 +789,18 @@ pub fn run<S: FrameSource + 'static>(
                         sh.frames_captured.fetch_add(1, Ordering::Relaxed);
                         sh.latest_t_ns.store(frame.t_ns.t_ns(), Ordering::Relaxed);
                         log_push(&lq, LogItem::Frame(Arc::clone(&frame)));
+                        let t = frame.t_ns.t_ns();
+                        let next = nav_next.get_or_insert_with(|| nav_known.partition_point(|s| s.t_ns.t_ns() < t - NAV_RELOG_NS));
+                        while *next < nav_known.len() && nav_known[*next].t_ns.t_ns() <= t {
+                            log_push(&lq, LogItem::Nav(nav_known[*next]));
+                            *next += 1;
+                        }
+                        while let Some(mut s) = nav_live.as_ref().and_then(|q| q.try_pop()) {
+                            if let Some(t) = arrival_clock.frame_time_ns(s.t_ns.t_ns()) {
+                                s.t_ns = Timestamp::from_ns(t);
+                                log_push(&lq, LogItem::Nav(s));
+                            }
+                        }
                         let item = (frame, Instant::now());
                         let pushed = if lossless { fq.push_wait(item, 0) } else { fq.push(item, 0) };
                         if let Pushed::QueuedDroppedOldest(old) = pushed {

@@ -36,7 +36,7 @@ use super::dive::{DiveHistory, PART_METADATA};
 use super::{CheckpointStore, PipelineError};
 use duv_core::{Frame, ImageRgb8, Keyframe, PinholeCamera, PlaneF32, Se3, Sim3, Timestamp};
 use duv_log::reader::OwnedEvent;
-use duv_log::schema::{decode_calibration, decode_frame, decode_plane_f32, decode_pose, decode_state};
+use duv_log::schema::{decode_calibration, decode_frame, decode_nav, decode_plane_f32, decode_pose, decode_state};
 use duv_log::{list_segments, recover_folder, ReadLimits, RecoveryReport, SegmentReader, Topic, TrackerWindow};
 use duv_track::{ResumePoint, SeedFrame, SeedKeyframe, Tracker, TrackerSeed};
 use nalgebra::Vector3;
@@ -235,6 +235,11 @@ pub fn prepare(out_dir: &Path, limits: ReadLimits, options: &ResumeOptions) -> R
                         if let Some(id) = s.new_keyframe {
                             next_keyframe_id = next_keyframe_id.max(id + 1);
                         }
+                    }
+                }
+                Topic::Nav => {
+                    if let Ok(n) = decode_nav(&data) {
+                        history.nav.push(n);
                     }
                 }
                 Topic::TrackerWindow => match TrackerWindow::decode(&data) {

@@ -69,7 +69,8 @@ pub enum Source {
     /// `nav`: the spec asked for the generator's navigation sensors (`nav=on`).
     Sim { renderer: Box<SimRenderer>, next: usize, count: usize, nav: bool },
     Dataset { dataset: Box<Dataset>, next: usize, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
-    Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>> },
+    /// `path`: the log (its navigation samples are read on demand, [`Source::nav`]).
+    Mcap { replay: Box<McapSource>, count: usize, looping: Option<Box<ReplayLoop>>, path: PathBuf },
     /// A ROS 2 bag: frames undistorted like a dataset's where its camera has distortion.
     Rosbag { bag: Box<RosbagSource>, count: usize, undistort: Option<(duv_core::camera::UndistortMap, ImageRgb8)> },
     /// Live cameras (`v4l2:`, `aravis:`) and every other kind `camera::open_source` knows.
@@ -116,7 +117,7 @@ impl Source {
                 }
                 None => None,
             };
-            return Ok(Source::Mcap { replay: Box::new(replay), count: options.frames.unwrap_or(usize::MAX), looping });
+            return Ok(Source::Mcap { replay: Box::new(replay), count: options.frames.unwrap_or(usize::MAX), looping, path: PathBuf::from(path) });
         }
         if let Some(rest) = spec.strip_prefix("rosbag:") {
             if options.width.is_some() || options.height.is_some() {
@@ -257,7 +258,8 @@ impl Source {
 
     /// The vehicle's navigation samples, sorted by time, where the source has them: a
     /// dataset's `nav.csv` (or `nav=FILE`), the generator's sensors for `sim:...,nav=on`
-    /// (seeded like its images). `Ok(None)`: no navigation input.
+    /// (seeded like its images), a bag's navigation topics, a replayed log's `/nav/sample`.
+    /// `Ok(None)`: no navigation input.
     pub fn nav(&self) -> Result<Option<Vec<duv_core::nav::NavSample>>, RunSourceError> {
         match self {
             Source::Sim { renderer, nav: true, .. } => {
@@ -266,6 +268,11 @@ impl Source {
             }
             Source::Dataset { dataset, .. } => Ok(dataset.nav().map(|t| t.samples.clone())),
             Source::Rosbag { bag, .. } => Ok((!bag.nav().is_empty()).then(|| bag.nav().samples.clone())),
+            // A replayed log: the samples it logged (`/nav/sample`), as the recorded run had them.
+            Source::Mcap { path, .. } => {
+                let (samples, _undecodable) = duv_log::read_log_nav(path, ReadLimits::default()).map_err(|source| RunSourceError::Replay { spec: format!("mcap:{}", path.display()), source: source.into() })?;
+                Ok((!samples.is_empty()).then_some(samples))
+            }
             _ => Ok(None),
         }
     }
