@@ -1,6 +1,6 @@
-//! Baseline JPEG encoding of logged frames (ITU T.81, JFIF), allocation-free: the logging
-//! thread of a board that logs JPEG (`[log] frame_encoding = "jpeg"`) encodes every input
-//! frame, so the encoder works MCU by MCU straight from the frame's pixels into the caller's
+//! Baseline JPEG encoding of frames (ITU T.81, JFIF), allocation-free: the logging thread of a
+//! board that logs JPEG (`[log] frame_encoding = "jpeg"`) encodes every input frame, and the
+//! live view its downscaled camera, so the encoder works MCU by MCU straight from the frame's pixels into the caller's
 //! reused output buffer, with its quantisation and Huffman tables built once per quality.
 //!
 //! Colour frames are YCbCr, 4:4:4 from quality 90 up (colour-true frames for offshore
