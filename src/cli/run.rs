@@ -108,6 +108,11 @@ pub struct RunArgs {
     /// passed, with time stamps and sequence numbers continued (`duv bench replay`).
     #[arg(long, hide = true, value_name = "SECONDS")]
     pub loop_for_s: Option<f64>,
+    /// Serve a live view for Foxglove (WebSocket) on ADDR (`HOST:PORT`) or, without ADDR, on the
+    /// board's `[live] bind`: pose, tracking state, a downscaled camera, keyframes and Gaussian
+    /// centres within the board's bandwidth cap. Needs a build with the `live-view` feature.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1)]
+    pub live_view: Option<Option<String>>,
 }
 
 /// Exit status of a run whose outputs were written but whose log stopped early (a full disk).
@@ -120,6 +125,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Numeric options are checked before anything is opened or written.
     if let Some(s) = args.speed {
         anyhow::ensure!(s.is_finite() && s >= MIN_SPEED, "--speed must be a finite factor >= {MIN_SPEED}, got {s}");
+    }
+    if args.live_view.is_some() && !cfg!(feature = "live-view") {
+        anyhow::bail!("--live-view: this build lacks the `live-view` feature (build with `cargo build --features live-view`)");
+    }
+    if let Some(Some(addr)) = &args.live_view {
+        anyhow::ensure!(addr.parse::<std::net::SocketAddr>().is_ok(), "--live-view {addr:?}: must be HOST:PORT with a numeric address, e.g. 0.0.0.0:8765");
     }
     let no_progress = args.no_progress;
     let outcome = run_dive(args.dive_options(), &mut |p: &Progress| {
@@ -327,6 +338,7 @@ impl RunArgs {
             continue_dive: self.continue_dive,
             announce: self.announce,
             use_nav: !self.no_nav,
+            live_view: self.live_view.clone(),
             mapping: (!self.no_map).then(|| MappingOptions {
                 config: self.map_config.clone(),
                 iterations_per_keyframe: self.map_iterations,
@@ -364,6 +376,7 @@ impl RunArgs {
             map_config: None,
             mapper: MapperDevice::Auto,
             loop_for_s: None,
+            live_view: None,
         }
     }
 }

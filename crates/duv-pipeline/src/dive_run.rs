@@ -110,6 +110,9 @@ pub struct DiveOptions {
     /// Use the source's navigation sensors for metric outputs (`metric.json`, [`super::metric`]);
     /// `false`: map units, as without them.
     pub use_nav: bool,
+    /// The live view (`--live-view [ADDR]`): `Some(None)` on the board's `live.bind`,
+    /// `Some(Some(addr))` on `addr`; `None`: off.
+    pub live_view: Option<Option<String>>,
 }
 
 /// Why a dive run failed. The messages are the ones the command line prints.
@@ -136,6 +139,9 @@ pub enum DiveError {
     /// A map checkpoint that does not restore.
     #[error("{}: {error}", path.display())]
     Checkpoint { path: PathBuf, error: MapStageError },
+    /// `--live-view ADDR` that the board's `[live]` checks refuse.
+    #[error("--live-view {value}: {why}")]
+    LiveView { value: String, why: &'static str },
     /// The source ended before its first frame.
     #[error("the source delivered no frame")]
     NoFrame,
@@ -194,6 +200,10 @@ pub enum Progress<'a> {
     ResumedNewFrame { last_seq: u64, why: &'a str },
     /// Resume: logged frames without a recorded pose are tracked from the log.
     TrackingUnposed { frames: usize, first_seq: u64, last_seq: u64 },
+    /// The live view serves on `bind` (from the start of tracking).
+    LiveView { bind: &'a str },
+    /// What the live view sent and dropped.
+    LiveViewEnded(&'a super::live::LiveReport),
     /// Tracking starts (`None`: the source has no end). The one progress line a quiet caller
     /// leaves out.
     Tracking { frames: Option<usize> },
@@ -249,6 +259,7 @@ impl Progress<'_> {
                 | Progress::CaughtUp { .. }
                 | Progress::MapExported { .. }
                 | Progress::Units { .. }
+                | Progress::LiveViewEnded(_)
         )
     }
 }
@@ -304,6 +315,8 @@ impl std::fmt::Display for Progress<'_> {
             Progress::TrackingUnposed { frames, first_seq, last_seq } => {
                 write!(f, "tracking {frames} frame(s) logged after the last recorded pose from the log (frames {first_seq}..{last_seq})")
             }
+            Progress::LiveView { bind } => write!(f, "live view on ws://{bind} (Foxglove: open a connection, Foxglove WebSocket, ws://<vehicle>:<port>)"),
+            Progress::LiveViewEnded(report) => write!(f, "{report}"),
             Progress::Tracking { frames } => write!(f, "tracking {} frames...", frames.map_or("all".to_string(), |n| n.to_string())),
             Progress::State { seq, state } => write!(f, "frame {seq:>6}: {state}"),
             Progress::InitWaited { summary } => f.write_str(summary),
@@ -493,6 +506,14 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     // Recorded and generated sources lose nothing by waiting; paced replay behaves live.
     pcfg.lossless_frames = speed.is_none();
     pcfg.announce = opts.announce;
+    if let Some(addr) = &opts.live_view {
+        let mut live = board.live.clone();
+        if let Some(addr) = addr {
+            live.bind = addr.clone();
+            live.validate().map_err(|(_, value, why)| DiveError::LiveView { value, why })?;
+        }
+        pcfg.live = Some(live);
+    }
     let one = |k: &str, v: String| [(k.to_string(), v)].into_iter().collect();
     pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));
     pcfg.log.metadata.push(("duv.run".into(), one("source", opts.source.clone())));
@@ -596,6 +617,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     let stop = Stop::on_signals()?;
     let total = source.len();
     let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
+    if let Some(live) = &pcfg.live {
+        progress(&Progress::LiveView { bind: &live.bind });
+    }
     progress(&Progress::Tracking { frames: (total != usize::MAX).then(|| total.saturating_sub(start)) });
     let result = match super::run(run_source, tracker, map, &pcfg, retrack, stop.clone()) {
         Err(error @ PipelineError::Aborted { .. }) => {
@@ -631,6 +655,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         log_error: result.log_error.as_deref(),
         interrupted: result.interrupted,
     });
+    if let Some(live) = &result.live {
+        progress(&Progress::LiveViewEnded(live));
+    }
     let history = resume_state.as_ref().map(|r| &r.history).filter(|h| !h.frames.is_empty());
     if frames_done == 0 && history.is_none() {
         if result.interrupted {

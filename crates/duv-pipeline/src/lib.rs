@@ -24,6 +24,7 @@ pub mod dive;
 pub mod dive_run;
 mod handoff;
 pub mod keyframe_folder;
+pub mod live;
 pub mod lock;
 pub mod mapping;
 pub mod metric;
@@ -79,6 +80,9 @@ pub enum PipelineError {
     Mapping(#[source] MapStageError),
     #[error("resume from {path}: {problem}")]
     Resume { path: PathBuf, problem: String },
+    /// The live view could not start (or this build lacks it).
+    #[error("{problem}")]
+    Live { problem: String },
     /// A second signal: the log was closed, the other stages were left where they were.
     #[error("stopped at once by a second signal (the log is closed; {frames_captured} frames captured)")]
     Aborted { frames_captured: u64 },
@@ -146,6 +150,8 @@ pub struct MapCheckpoint {
     /// messages instead of embedding their pixels (`map::checkpoint::KeyframePixels`).
     pub logged: Vec<u8>,
     pub centres_in_world: Vec<[f32; 3]>,
+    /// The view-independent colour of each centre (RGB) for the live view; empty: none.
+    pub colours: Vec<[u8; 3]>,
 }
 
 /// A mapping stage that keeps the keyframe poses it was sent (its checkpoint is their list):
@@ -178,7 +184,7 @@ impl MapStage for NoMapping {
         }
         let file = serde_json::to_vec(&self.keyframes).ok()?;
         let centres_in_world = self.keyframes.iter().map(|k| [k.2[0] as f32, k.2[1] as f32, k.2[2] as f32]).collect();
-        Some(MapCheckpoint { logged: file.clone(), file, centres_in_world })
+        Some(MapCheckpoint { logged: file.clone(), file, centres_in_world, colours: Vec::new() })
     }
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError> {
         self.keyframes = serde_json::from_slice(bytes)?;
@@ -243,6 +249,9 @@ pub struct PipelineConfig {
     /// stopped run had not tracked yet, or whose pose was lost to damage): their poses are
     /// logged this time.
     pub retrack_unlogged: std::collections::BTreeSet<u64>,
+    /// The live view over the tether (`--live-view`): the board's `[live]` section, the bind
+    /// address as asked; `None`: off.
+    pub live: Option<duv_core::config::board::LiveSettings>,
 }
 
 impl PipelineConfig {
@@ -285,6 +294,7 @@ impl PipelineConfig {
             window_interval: Duration::from_millis(500),
             unlogged_keyframes: Vec::new(),
             retrack_unlogged: std::collections::BTreeSet::new(),
+            live: None,
         }
     }
 }
@@ -376,6 +386,8 @@ pub struct PipelineResult<S> {
     /// the first [`DROPPED_KEYFRAMES_KEPT`].
     pub dropped_keyframes: Vec<u64>,
     pub wall: Duration,
+    /// What the live view sent and dropped (`None`: off).
+    pub live: Option<live::LiveReport>,
 }
 
 struct Shared {
@@ -477,6 +489,9 @@ pub fn run<S: FrameSource + 'static>(
     let checkpoints = CheckpointStore::new(cfg.out_dir.join("checkpoints"), 3);
     let camera = *source.camera();
     writer.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera }).ok();
+    if cfg.deterministic && cfg.live.is_some() {
+        return Err(PipelineError::Live { problem: "the live view is not available with --deterministic (every stage runs on one thread)".into() });
+    }
     if cfg.deterministic {
         return run_deterministic(source, tracker, map, cfg, writer, checkpoints, retrack, stop, started);
     }
@@ -499,6 +514,8 @@ pub fn run<S: FrameSource + 'static>(
         let b = item.approx_bytes();
         let _ = q.push(item, b);
     };
+    // The live view (off unless asked): its own thread, fed without waiting.
+    let (live, live_thread) = live::LiveFeed::start(cfg.live.as_ref())?;
 
     // Logging.
     let logging = {
@@ -545,6 +562,7 @@ pub fn run<S: FrameSource + 'static>(
         let interval = cfg.checkpoint_interval;
         let mut map = map;
         let stop = stop.clone();
+        let live = live.clone();
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
             let kq_on_exit = kq.clone();
             let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
@@ -557,6 +575,7 @@ pub fn run<S: FrameSource + 'static>(
                 let mut failed_saves = 0u64;
                 let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
                     if let Some(c) = map.checkpoint() {
+                        live.cloud(t, &c.centres_in_world, &c.colours);
                         match checkpoints.save(&c.file) {
                             Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
                             Err(e) => {
@@ -621,6 +640,7 @@ pub fn run<S: FrameSource + 'static>(
         let mut handoff = Handoff::new(cfg.handoff(), &mut tracker);
         handoff.adopt(&mut tracker, &cfg.unlogged_keyframes);
         let retrack_unlogged = cfg.retrack_unlogged.clone();
+        let live = live.clone();
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
             let _span = tracing::info_span!("track").entered();
@@ -630,6 +650,7 @@ pub fn run<S: FrameSource + 'static>(
             let mut track_times = Vec::with_capacity(RECORD_FRAMES);
             let to_mapping = |kf: Arc<Keyframe>| {
                 sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                live.keyframe(&kf);
                 if let Pushed::Refused(kf) = kq.push(kf, 0) {
                     // The id, for mapping to take the keyframe from the log at the end.
                     if let Ok(mut ids) = sh.dropped_keyframes.lock() {
@@ -660,7 +681,10 @@ pub fn run<S: FrameSource + 'static>(
                     let out = tracker.track(&frame)?;
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
-                    log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
+                    let pose = pose_record(&out, align.as_ref());
+                    log_push(&lq, LogItem::Pose(pose));
+                    live.pose(&pose);
+                    live.frame(&frame);
                     handoff.after_frame(tracker, &frame, &out, |item| log_push(&lq, item), to_mapping)?;
                     let lat = arrived.elapsed();
                     latencies.push(lat);
@@ -676,6 +700,7 @@ pub fn run<S: FrameSource + 'static>(
                 }
                 handoff.flush(tracker, |item| log_push(&lq, item), |kf| {
                     sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                    live.keyframe(&kf);
                     let _ = kq.push_wait(kf, 0);
                     Ok(())
                 })
@@ -691,7 +716,7 @@ pub fn run<S: FrameSource + 'static>(
     // log: enough slots for a full frame queue, a full log queue of frames, the keyframes
     // waiting in the lag and the frame in tracking.
     let frame_bytes = camera.width * camera.height * 3;
-    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + FRAME_SLOTS_IN_FLIGHT;
+    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + FRAME_SLOTS_IN_FLIGHT + live.frame_slots();
     let capture = {
         let fq = frames.clone();
         let lq = log_q.clone();
@@ -763,6 +788,7 @@ pub fn run<S: FrameSource + 'static>(
             frames.close();
             keyframes.close();
             log_q.close();
+            live.close();
             let (stats, _) = join(logging, "logging")?;
             tracing::warn!(messages = stats.messages, "log closed after a second signal");
             return Err(PipelineError::Aborted { frames_captured: shared.frames_captured.load(Ordering::Relaxed) });
@@ -804,6 +830,8 @@ pub fn run<S: FrameSource + 'static>(
     let (source, capture_error) = join(capture, "capture")?;
     let tracked = join(tracking, "tracking")?;
     let mapped = join(mapping, "mapping")?;
+    live.close();
+    let live = live_thread.join();
     log_q.close();
     let (log_stats, log_error) = join(logging, "logging")?;
     let (tracker, recorder, latencies, track_times) = tracked?;
@@ -828,6 +856,7 @@ pub fn run<S: FrameSource + 'static>(
         interrupted: stop.load(Ordering::Relaxed),
         dropped_keyframes,
         wall: started.elapsed(),
+        live,
     })
 }
 
@@ -931,5 +960,6 @@ fn run_deterministic<S: FrameSource + 'static>(
         interrupted: stop.load(Ordering::Relaxed),
         dropped_keyframes: Vec::new(),
         wall: started.elapsed(),
+        live: None,
     })
 }
