@@ -4,7 +4,7 @@
 //! Without the `live-view` feature the flag is refused with a message that says so.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Command;
 
 fn duv() -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_duv"));
@@ -36,6 +36,7 @@ fn a_client_receives_pose_and_state_of_the_run_and_the_run_ends_without_it() {
     use std::collections::{BTreeMap, BTreeSet};
     use std::io::Read;
     use std::net::{TcpListener, TcpStream};
+    use std::process::Stdio;
     use std::time::{Duration, Instant};
     use tungstenite::client::IntoClientRequest;
     use tungstenite::Message;
