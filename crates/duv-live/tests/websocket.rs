@@ -220,7 +220,7 @@ fn the_bandwidth_cap_holds_at_the_client_and_drops_are_counted() {
         server.publish(&LiveItem::Frame(frame(i, 160, 120)));
         offered[0] += 1;
         offered[1] += 1;
-        if i % 15 == 0 {
+        if i.is_multiple_of(15) {
             server.publish(&cloud(2000));
             offered[2] += 1;
         }
