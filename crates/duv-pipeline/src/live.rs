@@ -104,12 +104,14 @@ mod on {
             if last != i64::MIN && t >= last && t - last < self.frame_interval_ns {
                 return;
             }
+            // A due frame the live thread has no place for is skipped (counted), and the next
+            // is due an interval later, as if it had gone.
+            self.last_frame_t_ns.store(t, Ordering::Relaxed);
             if self.frames_in_flight.fetch_add(1, Ordering::Relaxed) >= LIVE_FRAMES_IN_FLIGHT {
                 self.frames_in_flight.fetch_sub(1, Ordering::Relaxed);
                 self.frames_skipped.fetch_add(1, Ordering::Relaxed);
                 return;
             }
-            self.last_frame_t_ns.store(t, Ordering::Relaxed);
             self.push(LiveItem::Frame(Arc::clone(frame)));
         }
     }
@@ -266,5 +268,66 @@ impl LiveThread {
             return t.join().ok();
         }
         None
+    }
+}
+
+#[cfg(all(test, feature = "live-view"))]
+mod tests {
+    use super::on::Shared;
+    use super::*;
+    use crate::queue::{BoundedQueue, FullPolicy};
+    use duv_core::{FrameImage, ImageRgb8, Se3};
+    use std::sync::atomic::{AtomicI64, AtomicU64, AtomicUsize, Ordering};
+
+    fn shared(queue: usize, image_hz: f64) -> Shared {
+        Shared {
+            queue: BoundedQueue::new("live", queue, 0, FullPolicy::DropNewest),
+            frames_in_flight: AtomicUsize::new(0),
+            frames_skipped: AtomicU64::new(0),
+            last_frame_t_ns: AtomicI64::new(i64::MIN),
+            frame_interval_ns: (1e9 / image_hz) as i64,
+        }
+    }
+
+    fn frame(t_ms: i64) -> Arc<Frame> {
+        Arc::new(Frame { t_ns: Timestamp::from_ns(t_ms * 1_000_000), seq: t_ms as u64, image: FrameImage::Rgb8(ImageRgb8::new(4, 4)) })
+    }
+
+    fn pose(seq: u64) -> PoseRecord {
+        PoseRecord { t_ns: Timestamp::from_ns(seq as i64), seq, world_from_cam: Se3::identity(), state: "tracking", tracked: true, keyframe: None, new_keyframe: None, loop_closed: false, segment: 0, why: None, value: None, limit: None }
+    }
+
+    /// A full queue refuses and counts (the tracking side never waits); a refused frame gives its
+    /// in-flight place back.
+    #[test]
+    fn a_full_queue_refuses_and_counts() {
+        let s = shared(4, 10.0);
+        for i in 0..10 {
+            s.push(duv_live::LiveItem::Pose(on::live_pose(&pose(i))));
+        }
+        let q = s.queue.stats();
+        assert_eq!((q.pushed, q.dropped, q.depth), (4, 6, 4));
+        s.frame(&frame(0));
+        assert_eq!((s.queue.stats().dropped, s.frames_in_flight.load(Ordering::Relaxed)), (7, 0));
+    }
+
+    /// Frames at 30 Hz of frame time with `image_hz` 10: one in three is taken; at most
+    /// [`LIVE_FRAMES_IN_FLIGHT`] are held by the live thread, the others are skipped and counted.
+    #[test]
+    fn frames_follow_image_hz_and_the_in_flight_limit() {
+        let s = shared(64, 10.0);
+        for k in 0..9 {
+            s.frame(&frame(k * 33 + 1));
+        }
+        // Frames at 1, 34, ..., 265 ms: due at 1, 133 and 265 ms (100 ms is only 99 ms after 1);
+        // the first two are taken, the third finds both places held and is skipped.
+        assert_eq!(s.queue.stats().pushed, LIVE_FRAMES_IN_FLIGHT as u64);
+        assert_eq!(s.frames_in_flight.load(Ordering::Relaxed), LIVE_FRAMES_IN_FLIGHT);
+        assert_eq!(s.frames_skipped.load(Ordering::Relaxed), 1);
+        // The live thread is done with one: the next due frame is taken.
+        drop(s.queue.try_pop());
+        s.frames_in_flight.fetch_sub(1, Ordering::Relaxed);
+        s.frame(&frame(1000));
+        assert_eq!(s.queue.stats().pushed, 3);
     }
 }
