@@ -106,9 +106,11 @@ fn frame(seq: u64, w: usize, h: usize) -> Arc<Frame> {
     Arc::new(Frame { t_ns: Timestamp::from_ns(seq as i64 * 100_000_000), seq, image: FrameImage::Rgb8(img) })
 }
 
-fn cloud(n: usize) -> LiveItem {
+/// `n` centres, coloured (R = index mod 256, G 7, B 9) or, without `colours`, by height.
+fn cloud(n: usize, colours: bool) -> LiveItem {
     let centres = (0..n).map(|i| [i as f32 * 0.01, (i % 7) as f32, -((i % 13) as f32) * 0.1]).collect();
-    LiveItem::Cloud { t_ns: Timestamp::from_ns(5), centres_in_world: centres, colours: Vec::new() }
+    let colours = if colours { (0..n).map(|i| [(i % 256) as u8, 7, 9]).collect() } else { Vec::new() };
+    LiveItem::Cloud { t_ns: Timestamp::from_ns(5), centres_in_world: centres, colours }
 }
 
 #[test]
@@ -129,7 +131,7 @@ fn a_client_subscribes_and_receives_every_topic_decodable() {
     server.publish(&LiveItem::Frame(frame(7, 160, 120)));
     server.publish(&LiveItem::Keyframe { id: 0, t_ns: Timestamp::from_ns(1), world_from_cam: Se3::identity() });
     server.publish(&LiveItem::Keyframe { id: 1, t_ns: Timestamp::from_ns(2), world_from_cam: p.world_from_cam });
-    server.publish(&cloud(500));
+    server.publish(&cloud(500, true));
 
     let mut got: HashMap<&str, Vec<Vec<u8>>> = HashMap::new();
     rt.block_on(async {
@@ -170,7 +172,10 @@ fn a_client_subscribes_and_receives_every_topic_decodable() {
     assert_eq!((pc.point_stride, pc.data.len(), pc.fields.len()), (16, 500 * 16, 7));
     let x1 = f32::from_le_bytes(pc.data[16..20].try_into().unwrap());
     let y1 = f32::from_le_bytes(pc.data[20..24].try_into().unwrap());
-    assert_eq!((x1, y1, pc.data[31]), (0.01, 1.0, 255));
+    assert_eq!((x1, y1), (0.01, 1.0));
+    assert_eq!(&pc.data[28..32], &[1, 7, 9, 255], "point 1's colour, opaque");
+    let names: Vec<_> = pc.fields.iter().map(|f| f.name.as_str()).collect();
+    assert_eq!(names, ["x", "y", "z", "red", "green", "blue", "alpha"]);
 
     let stats = server.stats();
     assert_eq!((stats.sent.pose, stats.sent.camera, stats.sent.keyframes, stats.sent.cloud), (1, 1, 2, 1));
@@ -221,7 +226,7 @@ fn the_bandwidth_cap_holds_at_the_client_and_drops_are_counted() {
         offered[0] += 1;
         offered[1] += 1;
         if i.is_multiple_of(15) {
-            server.publish(&cloud(2000));
+            server.publish(&cloud(2000, false));
             offered[2] += 1;
         }
         i += 1;
