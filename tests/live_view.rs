@@ -120,3 +120,19 @@ fn a_client_receives_pose_and_state_of_the_run_and_the_run_ends_without_it() {
     let sent: usize = line.split(": ").nth(2).and_then(|s| s.split(' ').next()).and_then(|n| n.parse().ok()).unwrap_or_else(|| panic!("{line}"));
     assert!(sent >= poses, "{line}: {poses} received");
 }
+
+/// A port already taken: the run stops at once with the address in the message, before it
+/// logs anything (so the folder is not left as a dive to resume).
+#[cfg(feature = "live-view")]
+#[test]
+fn a_taken_port_is_an_error_before_anything_is_logged() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let dir = tempfile::tempdir().unwrap();
+    let out = duv().args(run_args(&dir.path().join("run"), &addr)).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(text.contains(&format!("live view: cannot serve on {addr}")), "{text}");
+    let segments = std::fs::read_dir(dir.path().join("run/log")).map(|d| d.count()).unwrap_or(0);
+    assert_eq!(segments, 0, "nothing logged");
+}

@@ -480,18 +480,26 @@ pub fn run<S: FrameSource + 'static>(
             return Err(PipelineError::BadSetting { setting: "pace_speed (--speed)", value: speed, problem: "must be a finite factor >= 0.001" });
         }
     }
+    if cfg.deterministic && cfg.live.is_some() {
+        return Err(PipelineError::Live { problem: "the live view is not available with --deterministic (every stage runs on one thread)".into() });
+    }
+    // The live view (off unless asked) first: a server that cannot start leaves no log behind.
+    let (live, live_thread) = live::LiveFeed::start(cfg.live.as_ref())?;
     let retrack: Vec<Arc<Frame>> = retrack.into_iter().map(Arc::new).collect();
     let started = Instant::now();
-    let mut writer = SegmentWriter::create(cfg.log.clone())?;
+    let mut writer = match SegmentWriter::create(cfg.log.clone()) {
+        Ok(w) => w,
+        Err(e) => {
+            live.close();
+            return Err(e.into());
+        }
+    };
     if cfg.announce {
         writer.set_on_sync(|path, messages, bytes| println!("synced {} {messages} {bytes}", path.display()));
     }
     let checkpoints = CheckpointStore::new(cfg.out_dir.join("checkpoints"), 3);
     let camera = *source.camera();
     writer.write(&LogItem::Calibration { t_ns: Timestamp::from_ns(0), camera }).ok();
-    if cfg.deterministic && cfg.live.is_some() {
-        return Err(PipelineError::Live { problem: "the live view is not available with --deterministic (every stage runs on one thread)".into() });
-    }
     if cfg.deterministic {
         return run_deterministic(source, tracker, map, cfg, writer, checkpoints, retrack, stop, started);
     }
@@ -514,8 +522,6 @@ pub fn run<S: FrameSource + 'static>(
         let b = item.approx_bytes();
         let _ = q.push(item, b);
     };
-    // The live view (off unless asked): its own thread, fed without waiting.
-    let (live, live_thread) = live::LiveFeed::start(cfg.live.as_ref())?;
 
     // Logging.
     let logging = {
