@@ -79,6 +79,12 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
     // Map checkpoints (every 5 s on a vehicle) serialise the map into a new buffer: periodic,
     // not per frame, and kept out of the counted window here.
     pcfg.checkpoint_interval = Duration::from_secs(3600);
+    // A build with the live view has it on here: tracking queues every pose and a frame at
+    // every frame time for the live thread, and still allocates nothing.
+    #[cfg(feature = "live-view")]
+    {
+        pcfg.live = Some(duv_core::config::board::LiveSettings { bind: "127.0.0.1:0".into(), image_hz: 60.0, ..Default::default() });
+    }
     let cap = track_sim::capacity(2);
     let tracker = duv_track::Tracker::new(&camera, &track_sim::small_tracker_config(), cap).unwrap();
     let delivered = Arc::new(AtomicU64::new(0));

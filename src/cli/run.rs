@@ -123,6 +123,11 @@ pub struct RunArgs {
     /// passed, with time stamps and sequence numbers continued (`duv bench replay`).
     #[arg(long, hide = true, value_name = "SECONDS")]
     pub loop_for_s: Option<f64>,
+    /// Serve a live view for Foxglove (WebSocket) on ADDR (`HOST:PORT`) or, without ADDR, on the
+    /// board's `[live] bind`: pose, tracking state, a downscaled camera, keyframes and Gaussian
+    /// centres within the board's bandwidth cap. Needs a build with the `live-view` feature.
+    #[arg(long, value_name = "ADDR", num_args = 0..=1)]
+    pub live_view: Option<Option<String>>,
     /// The log's message schemas [default: the board's `[log] format`]: `foxglove` (protobuf,
     /// opens in Foxglove) or `ros2` (a ROS 2 bag: CDR, metadata.yaml; opens with `ros2 bag`).
     #[arg(long, value_enum)]
@@ -146,6 +151,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Numeric options are checked before anything is opened or written.
     if let Some(s) = args.speed {
         anyhow::ensure!(s.is_finite() && s >= MIN_SPEED, "--speed must be a finite factor >= {MIN_SPEED}, got {s}");
+    }
+    if args.live_view.is_some() && !cfg!(feature = "live-view") {
+        anyhow::bail!("--live-view: this build lacks the `live-view` feature (build with `cargo build --features live-view`)");
+    }
+    if let Some(Some(addr)) = &args.live_view {
+        anyhow::ensure!(addr.parse::<std::net::SocketAddr>().is_ok(), "--live-view {addr:?}: must be HOST:PORT with a numeric address, e.g. 0.0.0.0:8765");
     }
     let no_progress = args.no_progress;
     let mut options = args.dive_options();
@@ -371,6 +382,7 @@ impl RunArgs {
                 LogFormatArg::Foxglove => LogFormatSetting::Foxglove,
                 LogFormatArg::Ros2 => LogFormatSetting::Ros2,
             }),
+            live_view: self.live_view.clone(),
             mapping: (!self.no_map).then(|| MappingOptions {
                 config: self.map_config.clone(),
                 iterations_per_keyframe: self.map_iterations,
@@ -410,6 +422,7 @@ impl RunArgs {
             mapper: MapperDevice::Auto,
             loop_for_s: None,
             log_format: None,
+            live_view: None,
         }
     }
 }

@@ -5,6 +5,7 @@ pub mod align;
 pub mod alloc;
 pub mod camera;
 pub mod frame;
+pub mod jpeg;
 pub mod keyframe;
 pub mod nav;
 pub mod pose;

@@ -28,7 +28,8 @@
 pub mod chunked;
 pub mod inspect;
 pub mod bag;
-pub mod jpeg;
+/// Baseline JPEG encoding, allocation-free (in `duv-core`, shared with the live view).
+pub use duv_core::jpeg;
 pub mod keyframes;
 pub mod reader;
 pub mod recover;

@@ -117,6 +117,9 @@ pub struct DiveOptions {
     pub nav_input: Option<String>,
     /// The log's message schemas instead of the board's `[log] format` (`--log-format`).
     pub log_format: Option<LogFormatSetting>,
+    /// The live view (`--live-view [ADDR]`): `Some(None)` on the board's `live.bind`,
+    /// `Some(Some(addr))` on `addr`; `None`: off.
+    pub live_view: Option<Option<String>>,
 }
 
 /// Why a dive run failed. The messages are the ones the command line prints.
@@ -143,6 +146,9 @@ pub enum DiveError {
     /// A map checkpoint that does not restore.
     #[error("{}: {error}", path.display())]
     Checkpoint { path: PathBuf, error: MapStageError },
+    /// `--live-view ADDR` that the board's `[live]` checks refuse.
+    #[error("--live-view {value}: {why}")]
+    LiveView { value: String, why: &'static str },
     /// The source ended before its first frame.
     #[error("the source delivered no frame")]
     NoFrame,
@@ -207,6 +213,10 @@ pub enum Progress<'a> {
     ResumedNewFrame { last_seq: u64, why: &'a str },
     /// Resume: logged frames without a recorded pose are tracked from the log.
     TrackingUnposed { frames: usize, first_seq: u64, last_seq: u64 },
+    /// The live view serves on `bind` (from the start of tracking).
+    LiveView { bind: &'a str },
+    /// What the live view sent and dropped.
+    LiveViewEnded(&'a super::live::LiveReport),
     /// Tracking starts (`None`: the source has no end). The one progress line a quiet caller
     /// leaves out.
     Tracking { frames: Option<usize> },
@@ -265,6 +275,7 @@ impl Progress<'_> {
                 | Progress::MapExported { .. }
                 | Progress::Units { .. }
                 | Progress::NavStream { .. }
+                | Progress::LiveViewEnded(_)
         )
     }
 }
@@ -320,6 +331,8 @@ impl std::fmt::Display for Progress<'_> {
             Progress::TrackingUnposed { frames, first_seq, last_seq } => {
                 write!(f, "tracking {frames} frame(s) logged after the last recorded pose from the log (frames {first_seq}..{last_seq})")
             }
+            Progress::LiveView { bind } => write!(f, "live view on ws://{bind} (Foxglove: open a connection, Foxglove WebSocket, ws://<vehicle>:<port>)"),
+            Progress::LiveViewEnded(report) => write!(f, "{report}"),
             Progress::Tracking { frames } => write!(f, "tracking {} frames...", frames.map_or("all".to_string(), |n| n.to_string())),
             Progress::State { seq, state } => write!(f, "frame {seq:>6}: {state}"),
             Progress::InitWaited { summary } => f.write_str(summary),
@@ -517,6 +530,14 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     if let Some(p) = &opts.progress {
         pcfg.progress = p.clone();
     }
+    if let Some(addr) = &opts.live_view {
+        let mut live = board.live.clone();
+        if let Some(addr) = addr {
+            live.bind = addr.clone();
+            live.validate().map_err(|(_, value, why)| DiveError::LiveView { value, why })?;
+        }
+        pcfg.live = Some(live);
+    }
     let one = |k: &str, v: String| [(k.to_string(), v)].into_iter().collect();
     pcfg.log.metadata.push(("duv.tracker_config".into(), one("toml", toml::to_string(&cfg).unwrap_or_default())));
     pcfg.log.metadata.push(("duv.run".into(), one("source", opts.source.clone())));
@@ -647,6 +668,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     }
     pcfg.nav_to_log.known = known_nav.clone().unwrap_or_default();
     let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
+    if let Some(live) = &pcfg.live {
+        progress(&Progress::LiveView { bind: &live.bind });
+    }
     let frames_expected = (total != usize::MAX).then(|| total.saturating_sub(start));
     pcfg.progress.set_frames_expected(frames_expected.map(|n| n as u64));
     progress(&Progress::Tracking { frames: frames_expected });
@@ -684,6 +708,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         log_error: result.log_error.as_deref(),
         interrupted: result.interrupted,
     });
+    if let Some(live) = &result.live {
+        progress(&Progress::LiveViewEnded(live));
+    }
     let history = resume_state.as_ref().map(|r| &r.history).filter(|h| !h.frames.is_empty());
     if frames_done == 0 && history.is_none() {
         if result.interrupted {

@@ -27,6 +27,7 @@ pub mod dive_run;
 pub mod export;
 mod handoff;
 pub mod keyframe_folder;
+pub mod live;
 pub mod lock;
 pub mod mapping;
 pub mod metric;
@@ -84,6 +85,9 @@ pub enum PipelineError {
     Mapping(#[source] MapStageError),
     #[error("resume from {path}: {problem}")]
     Resume { path: PathBuf, problem: String },
+    /// The live view could not start (or this build lacks it).
+    #[error("{problem}")]
+    Live { problem: String },
     /// A second signal: the log was closed, the other stages were left where they were.
     #[error("stopped at once by a second signal (the log is closed; {frames_captured} frames captured)")]
     Aborted { frames_captured: u64 },
@@ -155,6 +159,8 @@ pub struct MapCheckpoint {
     /// messages instead of embedding their pixels (`map::checkpoint::KeyframePixels`).
     pub logged: Vec<u8>,
     pub centres_in_world: Vec<[f32; 3]>,
+    /// The view-independent colour of each centre (RGB) for the live view; empty: none.
+    pub colours: Vec<[u8; 3]>,
 }
 
 /// A mapping stage that keeps the keyframe poses it was sent (its checkpoint is their list):
@@ -187,7 +193,7 @@ impl MapStage for NoMapping {
         }
         let file = serde_json::to_vec(&self.keyframes).ok()?;
         let centres_in_world = self.keyframes.iter().map(|k| [k.2[0] as f32, k.2[1] as f32, k.2[2] as f32]).collect();
-        Some(MapCheckpoint { logged: file.clone(), file, centres_in_world })
+        Some(MapCheckpoint { logged: file.clone(), file, centres_in_world, colours: Vec::new() })
     }
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError> {
         self.keyframes = serde_json::from_slice(bytes)?;
@@ -258,6 +264,9 @@ pub struct PipelineConfig {
     pub arrival_clock: Arc<clock::ArrivalClock>,
     /// Navigation samples for the log (`/nav/sample`).
     pub nav_to_log: NavToLog,
+    /// The live view over the tether (`--live-view`): the board's `[live]` section, the bind
+    /// address as asked; `None`: off.
+    pub live: Option<duv_core::config::board::LiveSettings>,
 }
 
 /// Navigation samples the capture thread logs: the known ones (a dataset's `nav.csv`, the
@@ -329,6 +338,7 @@ impl PipelineConfig {
             progress: Arc::new(RunProgress::new()),
             arrival_clock: Arc::new(clock::ArrivalClock::new()),
             nav_to_log: NavToLog::default(),
+            live: None,
         }
     }
 }
@@ -420,6 +430,8 @@ pub struct PipelineResult<S> {
     /// the first [`DROPPED_KEYFRAMES_KEPT`].
     pub dropped_keyframes: Vec<u64>,
     pub wall: Duration,
+    /// What the live view sent and dropped (`None`: off).
+    pub live: Option<live::LiveReport>,
 }
 
 struct Shared {
@@ -512,9 +524,20 @@ pub fn run<S: FrameSource + 'static>(
             return Err(PipelineError::BadSetting { setting: "pace_speed (--speed)", value: speed, problem: "must be a finite factor >= 0.001" });
         }
     }
+    if cfg.deterministic && cfg.live.is_some() {
+        return Err(PipelineError::Live { problem: "the live view is not available with --deterministic (every stage runs on one thread)".into() });
+    }
+    // The live view (off unless asked) first: a server that cannot start leaves no log behind.
+    let (live, live_thread) = live::LiveFeed::start(cfg.live.as_ref())?;
     let retrack: Vec<Arc<Frame>> = retrack.into_iter().map(Arc::new).collect();
     let started = Instant::now();
-    let mut writer = SegmentWriter::create(cfg.log.clone())?;
+    let mut writer = match SegmentWriter::create(cfg.log.clone()) {
+        Ok(w) => w,
+        Err(e) => {
+            live.close();
+            return Err(e.into());
+        }
+    };
     if cfg.announce {
         writer.set_on_sync(|path, messages, bytes| println!("synced {} {messages} {bytes}", path.display()));
     }
@@ -590,6 +613,7 @@ pub fn run<S: FrameSource + 'static>(
         let progress = cfg.progress.clone();
         let mut map = map;
         let stop = stop.clone();
+        let live = live.clone();
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
             let kq_on_exit = kq.clone();
             let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
@@ -602,6 +626,7 @@ pub fn run<S: FrameSource + 'static>(
                 let mut failed_saves = 0u64;
                 let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
                     if let Some(c) = map.checkpoint() {
+                        live.cloud(t, &c.centres_in_world, &c.colours);
                         match checkpoints.save(&c.file) {
                             Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
                             Err(e) => {
@@ -670,6 +695,7 @@ pub fn run<S: FrameSource + 'static>(
         handoff.adopt(&mut tracker, &cfg.unlogged_keyframes);
         let retrack_unlogged = cfg.retrack_unlogged.clone();
         let progress = cfg.progress.clone();
+        let live = live.clone();
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
             let _span = tracing::info_span!("track").entered();
@@ -680,6 +706,7 @@ pub fn run<S: FrameSource + 'static>(
             let to_mapping = |kf: Arc<Keyframe>| {
                 sh.keyframes.fetch_add(1, Ordering::Relaxed);
                 progress.keyframe_handed_on();
+                live.keyframe(&kf);
                 if let Pushed::Refused(kf) = kq.push(kf, 0) {
                     // The id, for mapping to take the keyframe from the log at the end.
                     if let Ok(mut ids) = sh.dropped_keyframes.lock() {
@@ -711,7 +738,10 @@ pub fn run<S: FrameSource + 'static>(
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
                     progress.frame_tracked(out.state.name(), out.segment);
-                    log_push(&lq, LogItem::Pose(pose_record(&out, align.as_ref())));
+                    let pose = pose_record(&out, align.as_ref());
+                    log_push(&lq, LogItem::Pose(pose));
+                    live.pose(&pose);
+                    live.frame(&frame);
                     handoff.after_frame(tracker, &frame, &out, |item| log_push(&lq, item), to_mapping)?;
                     let lat = arrived.elapsed();
                     latencies.push(lat);
@@ -727,6 +757,7 @@ pub fn run<S: FrameSource + 'static>(
                 }
                 handoff.flush(tracker, |item| log_push(&lq, item), |kf| {
                     sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                    live.keyframe(&kf);
                     let _ = kq.push_wait(kf, 0);
                     Ok(())
                 })
@@ -742,7 +773,7 @@ pub fn run<S: FrameSource + 'static>(
     // log: enough slots for a full frame queue, a full log queue of frames, the keyframes
     // waiting in the lag and the frame in tracking.
     let frame_bytes = camera.width * camera.height * 3;
-    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + FRAME_SLOTS_IN_FLIGHT;
+    let pool_slots = cfg.frame_queue + cfg.log_queue_bytes / frame_bytes.max(1) + cfg.keyframe_lag + FRAME_SLOTS_IN_FLIGHT + live.frame_slots();
     let capture = {
         let fq = frames.clone();
         let lq = log_q.clone();
@@ -831,6 +862,7 @@ pub fn run<S: FrameSource + 'static>(
             frames.close();
             keyframes.close();
             log_q.close();
+            live.close();
             let (stats, _) = join(logging, "logging")?;
             tracing::warn!(messages = stats.messages, "log closed after a second signal");
             return Err(PipelineError::Aborted { frames_captured: shared.frames_captured.load(Ordering::Relaxed) });
@@ -872,6 +904,8 @@ pub fn run<S: FrameSource + 'static>(
     let (source, capture_error) = join(capture, "capture")?;
     let tracked = join(tracking, "tracking")?;
     let mapped = join(mapping, "mapping")?;
+    live.close();
+    let live = live_thread.join();
     log_q.close();
     let (log_stats, log_error) = join(logging, "logging")?;
     let (tracker, recorder, latencies, track_times) = tracked?;
@@ -896,6 +930,7 @@ pub fn run<S: FrameSource + 'static>(
         interrupted: stop.load(Ordering::Relaxed),
         dropped_keyframes,
         wall: started.elapsed(),
+        live,
     })
 }
 
@@ -999,5 +1034,6 @@ fn run_deterministic<S: FrameSource + 'static>(
         interrupted: stop.load(Ordering::Relaxed),
         dropped_keyframes: Vec::new(),
         wall: started.elapsed(),
+        live: None,
     })
 }

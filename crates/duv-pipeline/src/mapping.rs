@@ -119,7 +119,10 @@ impl MapStage for GaussianMapping {
         };
         let g = mapper.gaussians();
         let centres_in_world = (0..g.len()).map(|i| g.get(i).mean).collect();
-        Some(MapCheckpoint { file, logged, centres_in_world })
+        // The degree-0 colour (what the live view shows), as the renderer takes it.
+        let c0 = duv_map::gaussians::SH_C0 as f32;
+        let colours = (0..g.len()).map(|i| g.get(i).f_dc.map(|f| ((0.5 + c0 * f).clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
+        Some(MapCheckpoint { file, logged, centres_in_world, colours })
     }
 
     fn newest_keyframe(&self) -> Option<u64> {

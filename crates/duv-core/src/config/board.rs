@@ -36,6 +36,9 @@ pub struct Board {
     /// The black-box log; absent: raw frames.
     #[serde(default)]
     pub log: LogSettings,
+    /// The live view over the tether (`duv run --live-view`); absent: the defaults.
+    #[serde(default)]
+    pub live: LiveSettings,
     /// The vehicle's navigation sensors as its autopilot reports them (MAVLink); absent: a
     /// camera looking straight ahead along the vehicle's axis.
     #[serde(default)]
@@ -207,6 +210,38 @@ impl Default for LogSettings {
     }
 }
 
+/// The `[live]` section: the live view's WebSocket server (`duv run --live-view`, a build with
+/// the `live-view` feature) and what it may send over the tether.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LiveSettings {
+    /// Address the server listens on, `HOST:PORT` (`0.0.0.0`: every interface; port 0: any
+    /// free port). `--live-view ADDR` overrides it.
+    pub bind: String,
+    /// Bandwidth cap of everything the live view sends, KiB/s (all clients together): camera
+    /// frames are dropped first, then point clouds and keyframe lists, poses and state last.
+    pub max_kb_per_s: u32,
+    /// The live camera's size as a fraction of the input frame's, (0, 1].
+    pub image_scale: f64,
+    /// ... and at most this wide, pixels (16..=4096; the height follows the aspect ratio).
+    pub image_max_width: u32,
+    /// Live camera frames per second of frame time, at most 60; 0: no camera.
+    pub image_hz: f64,
+    /// JPEG quality of the live camera, 1..=100.
+    pub jpeg_quality: u8,
+    /// Gaussian centres per point cloud at most (an even subsample of the map).
+    pub cloud_max_points: u32,
+    /// Items waiting for the live view's thread (poses, frames, keyframes, clouds); when full,
+    /// new ones are dropped and counted, tracking never waits.
+    pub queue: u32,
+}
+
+impl Default for LiveSettings {
+    fn default() -> Self {
+        LiveSettings { bind: "0.0.0.0:8765".into(), max_kb_per_s: 256, image_scale: 0.5, image_max_width: 320, image_hz: 2.0, jpeg_quality: 60, cloud_max_points: 20_000, queue: 64 }
+    }
+}
+
 impl Board {
     /// Parses and validates a board file.
     pub fn load(path: &Path) -> Result<Board, BoardError> {
@@ -289,7 +324,7 @@ impl Board {
         if !(1..=100).contains(&self.log.jpeg_quality) {
             return Err(invalid("log.jpeg_quality", self.log.jpeg_quality.to_string(), "must be in 1..=100"));
         }
-        Ok(())
+        self.live.validate().map_err(|(key, value, why)| invalid(key, value, why))
     }
 
     /// Every `*.toml` directly in `dir`, sorted by name.
@@ -300,6 +335,38 @@ impl Board {
             .collect();
         v.sort();
         Ok(v)
+    }
+}
+
+impl LiveSettings {
+    /// The first invalid key, its value and why (the board's messages).
+    pub fn validate(&self) -> Result<(), (&'static str, String, &'static str)> {
+        let l = self;
+        if l.bind.parse::<std::net::SocketAddr>().is_err() {
+            return Err(("live.bind", format!("{:?}", l.bind), "must be HOST:PORT with a numeric address, e.g. \"0.0.0.0:8765\""));
+        }
+        if l.max_kb_per_s == 0 {
+            return Err(("live.max_kb_per_s", "0".into(), "must be > 0"));
+        }
+        if !(l.image_scale.is_finite() && l.image_scale > 0.0 && l.image_scale <= 1.0) {
+            return Err(("live.image_scale", l.image_scale.to_string(), "must be in (0, 1]"));
+        }
+        if !(16..=4096).contains(&l.image_max_width) {
+            return Err(("live.image_max_width", l.image_max_width.to_string(), "must be in 16..=4096"));
+        }
+        if !(l.image_hz.is_finite() && (0.0..=60.0).contains(&l.image_hz)) {
+            return Err(("live.image_hz", l.image_hz.to_string(), "must be in [0, 60] (0: no camera)"));
+        }
+        if !(1..=100).contains(&l.jpeg_quality) {
+            return Err(("live.jpeg_quality", l.jpeg_quality.to_string(), "must be in 1..=100"));
+        }
+        if l.cloud_max_points == 0 {
+            return Err(("live.cloud_max_points", "0".into(), "must be > 0"));
+        }
+        if l.queue < 4 {
+            return Err(("live.queue", l.queue.to_string(), "must be at least 4"));
+        }
+        Ok(())
     }
 }
 
@@ -371,6 +438,30 @@ mapping = 1
         assert!(e.contains("unknown variant `png`") && e.contains("raw") && e.contains("jpeg"), "{e}");
         let e = Board::parse(Path::new("t.toml"), &with("frame_encodng = \"jpeg\"")).unwrap_err().to_string();
         assert!(e.contains("unknown field `frame_encodng`"), "{e}");
+    }
+
+    #[test]
+    fn live_section_is_optional_and_validated_by_key() {
+        let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
+        assert_eq!(b.live, LiveSettings::default());
+        let with = |body: &str| format!("{MINIMAL}[live]\n{body}\n");
+        let b = Board::parse(Path::new("t.toml"), &with("bind = \"127.0.0.1:9000\"\nmax_kb_per_s = 64\nimage_hz = 0")).unwrap();
+        assert_eq!((b.live.bind.as_str(), b.live.max_kb_per_s, b.live.image_hz, b.live.queue), ("127.0.0.1:9000", 64, 0.0, 64));
+        for (body, want) in [
+            ("bind = \"vehicle\"", "t.toml: live.bind = \"vehicle\" is invalid: must be HOST:PORT"),
+            ("max_kb_per_s = 0", "t.toml: live.max_kb_per_s = 0 is invalid: must be > 0"),
+            ("image_scale = 1.5", "t.toml: live.image_scale = 1.5 is invalid: must be in (0, 1]"),
+            ("image_max_width = 8", "t.toml: live.image_max_width = 8 is invalid"),
+            ("image_hz = -1", "t.toml: live.image_hz = -1 is invalid"),
+            ("jpeg_quality = 0", "t.toml: live.jpeg_quality = 0 is invalid"),
+            ("cloud_max_points = 0", "t.toml: live.cloud_max_points = 0 is invalid"),
+            ("queue = 2", "t.toml: live.queue = 2 is invalid: must be at least 4"),
+        ] {
+            let e = Board::parse(Path::new("t.toml"), &with(body)).unwrap_err().to_string();
+            assert!(e.starts_with(want), "{body}: {e}");
+        }
+        let e = Board::parse(Path::new("t.toml"), &with("port = 1")).unwrap_err().to_string();
+        assert!(e.contains("unknown field `port`"), "{e}");
     }
 
     #[test]

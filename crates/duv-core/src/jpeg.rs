@@ -1,7 +1,8 @@
-//! Baseline JPEG encoding of logged frames (ITU T.81, JFIF), allocation-free: the logging
-//! thread of a board that logs JPEG (`[log] frame_encoding = "jpeg"`) encodes every input
-//! frame, so the encoder works MCU by MCU straight from the frame's pixels into the caller's
-//! reused output buffer, with its quantisation and Huffman tables built once per quality.
+//! Baseline JPEG encoding of frames (ITU T.81, JFIF), allocation-free: the logging thread of a
+//! board that logs JPEG (`[log] frame_encoding = "jpeg"`) encodes every input frame, and the
+//! live view its downscaled camera, so the encoder works MCU by MCU straight from the frame's
+//! pixels into the caller's reused output buffer, with its quantisation and Huffman tables
+//! built once per quality.
 //!
 //! Colour frames are YCbCr, 4:4:4 from quality 90 up (colour-true frames for offshore
 //! refinement: chroma edges stay sharp) and 4:2:0 below (16x16 MCUs: four luma blocks, one
