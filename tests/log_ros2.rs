@@ -179,7 +179,8 @@ fn a_ros2_log_is_a_bag_that_rosbags_opens_and_deserialises() {
     let ours = our_counts(dir.path());
     assert_eq!((ours["/camera/image"], ours["/slam/state"], ours["/keyframe/variance"], ours["/health"], ours["/slam/window"], ours["/map/gaussians"]), (60, 60, 3, 6, 6, 1));
     assert_eq!(ours["/nav/sample"], 60);
-    assert_eq!(ours.len(), 14, "every topic: {ours:?}");
+    assert_eq!(ours["/slam/odometry"], 60);
+    assert_eq!(ours.len(), 15, "every topic: {ours:?}");
     let Some(v) = rosbags_check(dir.path()) else { return };
     assert_counts_match(&v, &ours);
     let types = &v["types"];
@@ -190,6 +191,7 @@ fn a_ros2_log_is_a_bag_that_rosbags_opens_and_deserialises() {
         ("/tf", "tf2_msgs/msg/TFMessage"),
         ("/slam/state", "duv_msgs/msg/TrackingState"),
         ("/nav/sample", "duv_msgs/msg/NavSample"),
+        ("/slam/odometry", "nav_msgs/msg/Odometry"),
         ("/keyframe/image", "sensor_msgs/msg/Image"),
         ("/keyframe/inv_depth", "sensor_msgs/msg/Image"),
         ("/keyframe/variance", "sensor_msgs/msg/Image"),

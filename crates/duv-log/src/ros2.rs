@@ -8,6 +8,8 @@
 //! | `/camera/image` | `sensor_msgs/msg/Image` (`rgb8`, `mono8`) or `sensor_msgs/msg/CompressedImage` (`jpeg`) |
 //! | `/camera/camera_info` (the Foxglove format's `/camera/calibration`) | `sensor_msgs/msg/CameraInfo` |
 //! | `/slam/pose`, `/keyframe/pose` | `geometry_msgs/msg/PoseStamped` |
+//! | `/slam/odometry` | `nav_msgs/msg/Odometry` (the ROS 2 format only) |
+//! | `/nav/sample` | `duv_msgs/msg/NavSample` |
 //! | `/tf` | `tf2_msgs/msg/TFMessage` (`world` -> `camera`) |
 //! | `/slam/state` | `duv_msgs/msg/TrackingState` |
 //! | `/keyframe/image` | `sensor_msgs/msg/Image` (`rgb8`) |
@@ -304,6 +306,13 @@ pub mod defs {
          float64 limit\n",
     );
     pub const HEALTH: (&str, &str) = ("duv_msgs/Health", "# Once a second: queue depths and drops, per-stage latency, budget headroom, host memory.\nstd_msgs/Header header\n# The record as JSON.\nstring json\n");
+    pub const POSE_WITH_COVARIANCE: (&str, &str) = ("geometry_msgs/PoseWithCovariance", "geometry_msgs/Pose pose\nfloat64[36] covariance\n");
+    pub const TWIST: (&str, &str) = ("geometry_msgs/Twist", "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n");
+    pub const TWIST_WITH_COVARIANCE: (&str, &str) = ("geometry_msgs/TwistWithCovariance", "geometry_msgs/Twist twist\nfloat64[36] covariance\n");
+    pub const ODOMETRY: (&str, &str) = (
+        "nav_msgs/Odometry",
+        "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n",
+    );
     pub const NAV_SAMPLE: (&str, &str) = (
         "duv_msgs/NavSample",
         "# One navigation sample on the frames' clock (/nav/sample); NaN: the sensor has no sample here.\n\
@@ -341,6 +350,7 @@ pub enum Ros2Type {
     TrackerWindow,
     MapCheckpoint,
     NavSample,
+    Odometry,
 }
 
 impl Ros2Type {
@@ -358,6 +368,7 @@ impl Ros2Type {
             Ros2Type::TrackerWindow => TRACKER_WINDOW,
             Ros2Type::MapCheckpoint => MAP_CHECKPOINT,
             Ros2Type::NavSample => NAV_SAMPLE,
+            Ros2Type::Odometry => ODOMETRY,
         }
     }
 
@@ -371,6 +382,7 @@ impl Ros2Type {
             Ros2Type::TfMessage => &[TRANSFORM_STAMPED, HEADER, TIME, TRANSFORM, VECTOR3, QUATERNION],
             Ros2Type::PointCloud2 => &[HEADER, TIME, POINT_FIELD],
             Ros2Type::NavSample => &[HEADER, TIME, VECTOR3, QUATERNION],
+            Ros2Type::Odometry => &[HEADER, TIME, POSE_WITH_COVARIANCE, POSE, POINT, QUATERNION, TWIST_WITH_COVARIANCE, TWIST, VECTOR3],
         }
     }
 
@@ -408,6 +420,7 @@ pub fn topic_type(topic: Topic, frames: FrameEncoding) -> Ros2Type {
         Topic::TrackerWindow => Ros2Type::TrackerWindow,
         Topic::MapCheckpoint => Ros2Type::MapCheckpoint,
         Topic::Nav => Ros2Type::NavSample,
+        Topic::Odometry => Ros2Type::Odometry,
     }
 }
 
@@ -462,7 +475,7 @@ fn wrapped(out: &mut Vec<u8>, t_ns: Timestamp, bytes: &[u8]) {
 
 /// Encodes `item` as CDR messages (the ROS 2 format); the buffers are the [`ItemEncoder`]'s.
 /// [`ItemEncoder`]: super::schema::ItemEncoder
-pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, jpeg_encoder: &mut Option<JpegEncoder>, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, jpeg_encoder: &mut Option<JpegEncoder>, odometry_prev: &mut Option<(Timestamp, Se3)>, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
     let log_time_ns = item.t_ns().t_ns().max(0) as u64;
     match item {
         LogItem::Frame(f) => {
@@ -523,6 +536,27 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             let (t, q) = xyz_xyzw(&p.world_from_cam);
             w.pose(t, q);
             emit(Encoded { topic: Topic::Transform, sequence, log_time_ns }, scratch)?;
+            // nav_msgs/Odometry: the pose, and the velocity since the previous pose in the
+            // camera frame; covariances all zero (ROS: unknown).
+            let (linear, angular) = match odometry_prev.replace((p.t_ns, p.world_from_cam)) {
+                Some((t0, prev)) if p.t_ns > t0 => {
+                    let dt = (p.t_ns.t_ns() - t0.t_ns()) as f64 * 1e-9;
+                    let v = p.world_from_cam.rotation.inverse() * (p.world_from_cam.translation.vector - prev.translation.vector) / dt;
+                    let w = (prev.rotation.inverse() * p.world_from_cam.rotation).scaled_axis() / dt;
+                    ([v.x, v.y, v.z], [w.x, w.y, w.z])
+                }
+                _ => ([0.0; 3], [0.0; 3]),
+            };
+            let mut w = CdrWriter::new(scratch);
+            w.header(p.t_ns.t_ns(), WORLD_FRAME);
+            w.string(CAMERA_FRAME);
+            let (t, q) = xyz_xyzw(&p.world_from_cam);
+            w.pose(t, q);
+            w.f64_array(&[0.0; 36]);
+            w.f64_array(&linear);
+            w.f64_array(&angular);
+            w.f64_array(&[0.0; 36]);
+            emit(Encoded { topic: Topic::Odometry, sequence, log_time_ns }, scratch)?;
             let mut w = CdrWriter::new(scratch);
             w.header(p.t_ns.t_ns(), CAMERA_FRAME);
             w.u64(p.seq);
@@ -603,6 +637,22 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             emit(Encoded { topic: Topic::Nav, sequence: 0, log_time_ns }, scratch)
         }
     }
+}
+
+/// A `nav_msgs/Odometry`: time, position, orientation (x, y, z, w), linear and angular velocity
+/// in the child (camera) frame.
+pub fn decode_odometry(data: &[u8]) -> Result<(i64, [f64; 3], [f64; 4], [f64; 3], [f64; 3]), CdrError> {
+    let mut r = CdrReader::new(data)?;
+    let (t_ns, _) = r.header()?;
+    let _child = r.string()?;
+    let p = r.f64_array::<3>()?;
+    let q = r.f64_array::<4>()?;
+    let _ = r.f64_array::<36>()?;
+    let v = r.f64_array::<3>()?;
+    let w = r.f64_array::<3>()?;
+    let _ = r.f64_array::<36>()?;
+    r.finish()?;
+    Ok((t_ns, p, q, v, w))
 }
 
 /// A `duv_msgs/NavSample`: NaN fields are sensors without a sample.
@@ -732,6 +782,38 @@ pub fn decode_health(data: &[u8]) -> Result<&str, CdrError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn odometry_carries_the_velocity_since_the_previous_pose_in_the_camera_frame() {
+        use crate::schema::{ItemEncoder, LogFormat};
+        use crate::PoseRecord;
+        use nalgebra::{Translation3, UnitQuaternion, Vector3};
+        let rot0 = UnitQuaternion::from_euler_angles(0.2, -0.1, 0.5);
+        // 0.1 s later: moved 5 cm along world x, turned 0.02 rad about the camera's own y.
+        let rot1 = rot0 * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.02);
+        let p0 = Se3::from_parts(Translation3::new(1.0, 2.0, 3.0), rot0);
+        let p1 = Se3::from_parts(Translation3::new(1.05, 2.0, 3.0), rot1);
+        let rec = |seq: u64, t: i64, p: Se3| PoseRecord { t_ns: Timestamp::from_ns(t), seq, world_from_cam: p, state: "tracking", tracked: true, keyframe: None, new_keyframe: None, loop_closed: false, segment: 0, why: None, value: None, limit: None };
+        let mut enc = ItemEncoder::with_format(LogFormat::Ros2, FrameEncoding::Raw);
+        let mut odom = Vec::new();
+        for (seq, t, p) in [(0, 1_000_000_000, p0), (1, 1_100_000_000, p1)] {
+            enc.encode(&LogItem::Pose(rec(seq, t, p)), |e, b| {
+                if e.topic == Topic::Odometry {
+                    odom.push(decode_odometry(b).unwrap());
+                }
+                Ok(())
+            })
+            .unwrap();
+        }
+        assert_eq!(odom.len(), 2);
+        let (t, pos, _, v0, w0) = odom[0];
+        assert_eq!((t, pos, v0, w0), (1_000_000_000, [1.0, 2.0, 3.0], [0.0; 3], [0.0; 3]), "no velocity before a second pose");
+        let (_, _, q, v, w) = odom[1];
+        assert!((UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[3], q[0], q[1], q[2])).angle_to(&rot1)) < 1e-12);
+        let v_expected = rot1.inverse() * Vector3::new(0.5, 0.0, 0.0);
+        assert!((Vector3::from(v) - v_expected).norm() < 1e-9, "{v:?} vs {v_expected}");
+        assert!((Vector3::from(w) - Vector3::new(0.0, 0.2, 0.0)).norm() < 1e-9, "{w:?}");
+    }
 
     #[test]
     fn cdr_aligns_from_after_the_header_and_round_trips() {

@@ -123,9 +123,12 @@ pub enum Topic {
     /// The vehicle's navigation sensors (depth, altitude, DVL velocity, attitude), on the
     /// frames' clock: what replay and resume give the metric alignment.
     Nav,
+    /// The pose with its velocity since the previous frame (`nav_msgs/msg/Odometry`); written
+    /// in the ROS 2 format only.
+    Odometry,
 }
 
-pub const ALL_TOPICS: [Topic; 14] = [
+pub const ALL_TOPICS: [Topic; 15] = [
     Topic::CameraImage,
     Topic::CameraCalibration,
     Topic::Pose,
@@ -140,6 +143,7 @@ pub const ALL_TOPICS: [Topic; 14] = [
     Topic::Health,
     Topic::TrackerWindow,
     Topic::Nav,
+    Topic::Odometry,
 ];
 
 /// Schema of a topic: name, schema encoding, schema bytes, message encoding.
@@ -195,6 +199,7 @@ impl Topic {
             Topic::Health => "/health",
             Topic::TrackerWindow => "/slam/window",
             Topic::Nav => "/nav/sample",
+            Topic::Odometry => "/slam/odometry",
         }
     }
 
@@ -227,7 +232,8 @@ impl Topic {
             Topic::State => json_schema("duv.TrackingState", STATE_SCHEMA),
             Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
             Topic::Nav => json_schema("duv.NavSample", NAV_SCHEMA),
-            Topic::MapCheckpoint | Topic::TrackerWindow => return None,
+            // The odometry is written in the ROS 2 format only.
+            Topic::MapCheckpoint | Topic::TrackerWindow | Topic::Odometry => return None,
         })
     }
 
@@ -482,6 +488,8 @@ pub struct ItemEncoder {
     scratch: Vec<u8>,
     jpeg: Vec<u8>,
     templates: Templates,
+    /// The previous pose (ROS 2 format: the odometry's velocity).
+    odometry_prev: Option<(Timestamp, Se3)>,
 }
 
 impl ItemEncoder {
@@ -490,7 +498,7 @@ impl ItemEncoder {
     }
 
     pub fn with_format(format: LogFormat, frames: FrameEncoding) -> Self {
-        ItemEncoder { format, frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default() }
+        ItemEncoder { format, frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default(), odometry_prev: None }
     }
 
     pub fn frame_encoding(&self) -> FrameEncoding {
@@ -505,7 +513,7 @@ impl ItemEncoder {
     pub fn encode(&mut self, item: &LogItem, emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
         match self.format {
             LogFormat::Foxglove => encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates, emit),
-            LogFormat::Ros2 => super::ros2::encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates.jpeg, emit),
+            LogFormat::Ros2 => super::ros2::encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates.jpeg, &mut self.odometry_prev, emit),
         }
     }
 }
