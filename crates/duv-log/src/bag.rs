@@ -9,8 +9,7 @@
 
 use super::chunked::MAGIC;
 use super::reader::{read_segment_events, ReadEvent, ReadLimits};
-use super::recover::is_finished;
-use super::writer::sync_dir;
+use super::files::{is_finished, sync_dir};
 use super::{list_segments, ros2, LogError};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;

@@ -28,6 +28,7 @@
 pub mod chunked;
 pub mod inspect;
 pub mod bag;
+pub mod files;
 /// Baseline JPEG encoding, allocation-free (in `duv-core`, shared with the live view).
 pub use duv_core::jpeg;
 pub mod keyframes;

@@ -6,12 +6,13 @@
 //! space for the copy (at most the segment's size); without it the segment is left as it is
 //! (every reader salvages it the same way) and the report says so.
 
-use super::chunked::{ChunkedWriter, WriterBuffers, MAGIC};
+use super::chunked::{ChunkedWriter, WriterBuffers};
 use super::reader::{read_segment_events, ReadEvent, ReadLimits};
-use super::writer::sync_dir;
+pub use super::files::is_finished;
+use super::files::sync_dir;
 use super::{list_segments, LogError};
 use std::collections::BTreeMap;
-use std::io::{BufWriter, Read, Seek, SeekFrom};
+use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
 /// Name of the metadata record a recovered segment carries.
@@ -45,19 +46,6 @@ const RECOVERY_RESERVE_BYTES: u64 = 4 << 20;
 /// Chunk size of recovered files.
 const RECOVERY_CHUNK_BYTES: usize = 768 << 10;
 
-/// Whether `path` ends with the MCAP closing magic (a finished file).
-pub fn is_finished(path: &Path) -> Result<bool, LogError> {
-    let io = |source| LogError::Io { path: path.to_path_buf(), source };
-    let mut f = std::fs::File::open(path).map_err(io)?;
-    let len = f.metadata().map_err(io)?.len();
-    if len < (2 * MAGIC.len()) as u64 {
-        return Ok(false);
-    }
-    f.seek(SeekFrom::End(-(MAGIC.len() as i64))).map_err(io)?;
-    let mut tail = [0u8; 8];
-    f.read_exact(&mut tail).map_err(io)?;
-    Ok(tail == MAGIC)
-}
 
 /// Re-writes the readable part of `path` into a valid MCAP file in its place.
 pub fn recover_segment(path: &Path, limits: ReadLimits) -> Result<RecoveryReport, LogError> {

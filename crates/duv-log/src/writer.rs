@@ -319,9 +319,4 @@ impl OpenSegment {
     }
 }
 
-/// fsyncs a directory so a rename or a new file in it survives power loss (best effort).
-pub fn sync_dir(dir: &Path) {
-    if let Ok(d) = File::open(dir) {
-        let _ = d.sync_all();
-    }
-}
+pub use super::files::sync_dir;
