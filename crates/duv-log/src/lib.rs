@@ -18,8 +18,10 @@
 //!   keyframes back (`duv refine --mcap`); [`window`] is the tracker's sliding window as
 //!   logged for a resume (`/slam/window`).
 //! - With `[log] format = "ros2"` ([`LogFormat::Ros2`]) the same topics are written as a ROS 2
-//!   bag: [`ros2`] holds the message definitions and the CDR encoding, [`bag`] the rosbag2
-//!   `metadata.yaml`.
+//!   bag: [`ros2`] holds the message definitions and their encoding, [`cdr`] the CDR writer and
+//!   reader and the decoding of what our readers take back, [`bag`] the rosbag2
+//!   `metadata.yaml`. [`encoder`] encodes log items in either format; [`records`] holds the
+//!   plain records both carry; [`files`] whether a segment is finished and the folder fsync.
 //! - [`rosbag_source`]: a ROS 2 bag (MCAP, CDR) as a frame source with its camera and navigation
 //!   topics (`--source rosbag:`).
 //!
@@ -28,11 +30,14 @@
 pub mod chunked;
 pub mod inspect;
 pub mod bag;
+pub mod cdr;
+pub mod encoder;
 pub mod files;
 /// Baseline JPEG encoding, allocation-free (in `duv-core`, shared with the live view).
 pub use duv_core::jpeg;
 pub mod keyframes;
 pub mod reader;
+pub mod records;
 pub mod recover;
 pub mod replay;
 pub mod ros2;

@@ -58,7 +58,7 @@ pub enum DecodeError {
     BadPose,
     /// The body is not the CDR message `schema` (a log in the ROS 2 format).
     #[error("not a {schema}: {source}")]
-    Cdr { schema: &'static str, source: super::ros2::CdrError },
+    Cdr { schema: &'static str, source: super::cdr::CdrError },
     /// A `/slam/state` body that is neither JSON nor CDR.
     #[error("not a tracking state: {0}")]
     StateJson(#[from] serde_json::Error),
@@ -90,7 +90,7 @@ impl LogFormat {
     pub fn profile(self) -> &'static str {
         match self {
             LogFormat::Foxglove => "",
-            LogFormat::Ros2 => super::ros2::PROFILE,
+            LogFormat::Ros2 => super::cdr::PROFILE,
         }
     }
 }
@@ -246,14 +246,6 @@ impl Topic {
         }
     }
 
-    /// The schema of the topic in `format` (see [`Topic::schema_for`]); every topic has one in
-    /// the ROS 2 format.
-    pub fn schema_in(self, format: LogFormat, frames: FrameEncoding) -> Option<TopicSchema> {
-        match format {
-            LogFormat::Foxglove => self.schema_for(frames),
-            LogFormat::Ros2 => Some(super::ros2::topic_schema(self, frames)),
-        }
-    }
 
     /// Message encoding of a schemaless topic.
     pub fn schemaless_encoding(self) -> &'static str {
@@ -293,28 +285,7 @@ pub struct PoseRecord {
     pub limit: Option<f64>,
 }
 
-/// The JSON body of a `/slam/state` message.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StateMessage {
-    pub seq: u64,
-    pub t_ns: i64,
-    pub state: String,
-    pub tracked: bool,
-    pub keyframe: Option<u64>,
-    pub new_keyframe: Option<u64>,
-    pub loop_closed: bool,
-    /// The map segment the pose is in (logs written before segments read back as 0).
-    #[serde(default)]
-    pub segment: u32,
-    /// Why the frame has no measured pose yet, with the value against its limit (logs
-    /// written before these fields read back as `None`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub why: Option<String>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub value: Option<f64>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub limit: Option<f64>,
-}
+pub use super::records::StateMessage;
 
 /// What the other stages hand to the log writer.
 #[derive(Clone, Debug)]
@@ -396,13 +367,13 @@ fn encode<T: Encode>(msg: &T, what: &'static str, out: &mut Vec<u8>) -> Result<(
 
 /// Messages whose strings are set once, so that encoding one allocates nothing: only their
 /// numbers change from item to item.
-struct Templates {
+pub(crate) struct Templates {
     image: fg::RawImage,
     compressed: fg::CompressedImage,
     pose: fg::PoseInFrame,
     transform: fg::FrameTransform,
     /// The JPEG encoder for the board's quality (its tables, built once).
-    jpeg: Option<JpegEncoder>,
+    pub(crate) jpeg: Option<JpegEncoder>,
 }
 
 impl std::fmt::Debug for Templates {
@@ -479,44 +450,6 @@ pub struct Encoded {
     pub log_time_ns: u64,
 }
 
-/// Encodes [`LogItem`]s into MCAP message bodies, with the buffers it reuses from item to item
-/// (the message body and the JPEG stream) and the frame encoding.
-#[derive(Debug, Default)]
-pub struct ItemEncoder {
-    format: LogFormat,
-    frames: FrameEncoding,
-    scratch: Vec<u8>,
-    jpeg: Vec<u8>,
-    templates: Templates,
-    /// The previous pose (ROS 2 format: the odometry's velocity).
-    odometry_prev: Option<(Timestamp, Se3)>,
-}
-
-impl ItemEncoder {
-    pub fn new(frames: FrameEncoding) -> Self {
-        Self::with_format(LogFormat::Foxglove, frames)
-    }
-
-    pub fn with_format(format: LogFormat, frames: FrameEncoding) -> Self {
-        ItemEncoder { format, frames, scratch: Vec::new(), jpeg: Vec::new(), templates: Templates::default(), odometry_prev: None }
-    }
-
-    pub fn frame_encoding(&self) -> FrameEncoding {
-        self.frames
-    }
-
-    pub fn format(&self) -> LogFormat {
-        self.format
-    }
-
-    /// Encodes `item` into one or more messages; `emit` gets each with its body.
-    pub fn encode(&mut self, item: &LogItem, emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
-        match self.format {
-            LogFormat::Foxglove => encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates, emit),
-            LogFormat::Ros2 => super::ros2::encode_item(item, self.frames, &mut self.scratch, &mut self.jpeg, &mut self.templates.jpeg, &mut self.odometry_prev, emit),
-        }
-    }
-}
 
 /// Compresses `image` into `out` (cleared first; its capacity is reused) with a one-off
 /// encoder; the log keeps one per quality ([`ItemEncoder`]).
@@ -552,7 +485,7 @@ fn append_bytes_field(field: u32, bytes: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(bytes);
 }
 
-fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, tpl: &mut Templates, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
+pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut Vec<u8>, jpeg: &mut Vec<u8>, tpl: &mut Templates, mut emit: impl FnMut(Encoded, &[u8]) -> Result<(), LogError>) -> Result<(), LogError> {
     let log_time_ns = item.t_ns().t_ns().max(0) as u64;
     match item {
         LogItem::Frame(f) => {
@@ -700,22 +633,13 @@ impl From<&duv_core::nav::NavSample> for NavJson {
     }
 }
 
-/// A navigation sample from its parts (a quaternion as x, y, z, w; normalised).
-pub(crate) fn nav_sample(t_ns: i64, depth_m: Option<f64>, altitude_m: Option<f64>, vel: Option<[f64; 3]>, q_xyzw: Option<[f64; 4]>) -> duv_core::nav::NavSample {
-    duv_core::nav::NavSample {
-        t_ns: Timestamp::from_ns(t_ns),
-        depth_m,
-        altitude_m,
-        vel_cam_mps: vel.map(nalgebra::Vector3::from),
-        world_from_cam_rot: q_xyzw.map(|[x, y, z, w]| UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))),
-    }
-}
+pub(crate) use super::records::nav_sample;
 
 /// Decodes a `/nav/sample` message (JSON in the Foxglove format, `duv_msgs/msg/NavSample` in
 /// the ROS 2 format).
 pub fn decode_nav(data: &[u8]) -> Result<duv_core::nav::NavSample, DecodeError> {
-    if super::ros2::is_cdr(data) {
-        return super::ros2::decode_nav_sample(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/NavSample", source });
+    if super::cdr::is_cdr(data) {
+        return super::cdr::decode_nav_sample(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/NavSample", source });
     }
     let j: NavJson = serde_json::from_slice(data)?;
     Ok(nav_sample(j.t_ns, j.depth_m, j.altitude_m, j.vel_cam_mps, j.world_from_cam_xyzw))
@@ -724,7 +648,7 @@ pub fn decode_nav(data: &[u8]) -> Result<duv_core::nav::NavSample, DecodeError> 
 /// The wire type of field 2 of a protobuf message: `foxglove.RawImage` has its `width` there
 /// (fixed32, wire type 5), `foxglove.CompressedImage` its `data` (length-delimited, wire type
 /// 2). `None` when the field is absent or the bytes are not protobuf.
-fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
+pub(crate) fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
     fn varint(d: &mut &[u8]) -> Option<u64> {
         let mut v = 0u64;
         for shift in (0..64).step_by(7) {
@@ -761,7 +685,7 @@ fn field2_wire_type(mut data: &[u8]) -> Option<u8> {
 /// Decodes a logged frame: a `foxglove.RawImage` (`rgb8` or `mono8`) or a
 /// `foxglove.CompressedImage` in format `jpeg` (colour or grey), whichever the message is.
 pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, DecodeError> {
-    if super::ros2::is_cdr(data) {
+    if super::cdr::is_cdr(data) {
         return decode_ros2_frame(data, seq);
     }
     if field2_wire_type(data) == Some(2) {
@@ -840,8 +764,8 @@ pub(crate) fn decode_jpeg(data: &[u8]) -> Result<FrameImage, DecodeError> {
 /// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
 /// and variance are logged) into a plane.
 pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, DecodeError> {
-    if super::ros2::is_cdr(data) {
-        let img = super::ros2::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
+    if super::cdr::is_cdr(data) {
+        let img = super::cdr::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
         return plane_from_le(img.width as usize, img.height as usize, img.encoding, img.step, img.data);
     }
     use foxglove::Decode;
@@ -867,8 +791,8 @@ fn plane_from_le(w: usize, h: usize, encoding: &str, step: u32, bytes: &[u8]) ->
 /// Decodes a `foxglove.CameraCalibration` into a pinhole camera (distortion dropped: the log
 /// holds undistorted frames).
 pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, DecodeError> {
-    if super::ros2::is_cdr(data) {
-        let (w, h, k) = super::ros2::decode_camera_info(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/CameraInfo", source })?;
+    if super::cdr::is_cdr(data) {
+        let (w, h, k) = super::cdr::decode_camera_info(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/CameraInfo", source })?;
         return Ok(PinholeCamera::new(k[0], k[4], k[2], k[5], w as usize, h as usize)?);
     }
     use foxglove::Decode;
@@ -881,8 +805,8 @@ pub fn decode_calibration(data: &[u8]) -> Result<PinholeCamera, DecodeError> {
 
 /// Decodes a `foxglove.PoseInFrame`.
 pub fn decode_pose(data: &[u8]) -> Result<Se3, DecodeError> {
-    if super::ros2::is_cdr(data) {
-        let (_, t, q) = super::ros2::decode_pose_stamped(data).map_err(|source| DecodeError::Cdr { schema: "geometry_msgs/msg/PoseStamped", source })?;
+    if super::cdr::is_cdr(data) {
+        let (_, t, q) = super::cdr::decode_pose_stamped(data).map_err(|source| DecodeError::Cdr { schema: "geometry_msgs/msg/PoseStamped", source })?;
         let p = fg::Pose { position: Some(fg::Vector3 { x: t[0], y: t[1], z: t[2] }), orientation: Some(fg::Quaternion { x: q[0], y: q[1], z: q[2], w: q[3] }) };
         return se3_from_fg(&p).ok_or(DecodeError::BadPose);
     }
@@ -894,8 +818,8 @@ pub fn decode_pose(data: &[u8]) -> Result<Se3, DecodeError> {
 /// Decodes a `/slam/state` message: JSON (`duv.TrackingState`) or CDR
 /// (`duv_msgs/msg/TrackingState`).
 pub fn decode_state(data: &[u8]) -> Result<StateMessage, DecodeError> {
-    if super::ros2::is_cdr(data) {
-        return super::ros2::decode_tracking_state(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/TrackingState", source });
+    if super::cdr::is_cdr(data) {
+        return super::cdr::decode_tracking_state(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/TrackingState", source });
     }
     Ok(serde_json::from_slice(data)?)
 }
@@ -904,8 +828,8 @@ pub fn decode_state(data: &[u8]) -> Result<StateMessage, DecodeError> {
 /// Foxglove format (schemaless channels), the `data` field of the `duv_msgs` message in the
 /// ROS 2 format.
 pub fn decode_payload(data: &[u8]) -> Result<&[u8], DecodeError> {
-    if super::ros2::is_cdr(data) {
-        return super::ros2::decode_wrapped(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/MapCheckpoint", source });
+    if super::cdr::is_cdr(data) {
+        return super::cdr::decode_wrapped(data).map_err(|source| DecodeError::Cdr { schema: "duv_msgs/msg/MapCheckpoint", source });
     }
     Ok(data)
 }
@@ -914,13 +838,13 @@ pub fn decode_payload(data: &[u8]) -> Result<&[u8], DecodeError> {
 /// (`jpeg`) into a frame. A compressed image is recognised by parsing as one to the last byte
 /// (a raw image does not: its height would be read as the format's length).
 fn decode_ros2_frame(data: &[u8], seq: u64) -> Result<Frame, DecodeError> {
-    if let Ok((t_ns, format, jpeg)) = super::ros2::decode_compressed_image(data) {
+    if let Ok((t_ns, format, jpeg)) = super::cdr::decode_compressed_image(data) {
         if !format.eq_ignore_ascii_case("jpeg") && !format.eq_ignore_ascii_case("jpg") {
             return Err(DecodeError::UnsupportedFormat { format: format.to_string() });
         }
         return decode_jpeg_bytes(jpeg, Timestamp::from_ns(t_ns), seq);
     }
-    let img = super::ros2::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
+    let img = super::cdr::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
     let (w, h) = (img.width as usize, img.height as usize);
     let size = |encoding| DecodeError::ImageSize { encoding, bytes: img.data.len(), width: w, height: h };
     let image = match img.encoding {
@@ -941,165 +865,3 @@ fn decode_ros2_frame(data: &[u8], seq: u64) -> Result<Frame, DecodeError> {
     Ok(Frame { t_ns: Timestamp::from_ns(img.t_ns), seq, image })
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use duv_core::ImageRgb8;
-
-    #[test]
-    fn navigation_samples_round_trip_in_both_formats() {
-        use duv_core::nav::NavSample;
-        let full = NavSample {
-            t_ns: Timestamp::from_ns(2_345_000_001),
-            depth_m: Some(12.25),
-            altitude_m: Some(2.5),
-            vel_cam_mps: Some(nalgebra::Vector3::new(0.1, -0.02, 0.5)),
-            world_from_cam_rot: Some(UnitQuaternion::from_euler_angles(0.3, -0.1, 2.0)),
-        };
-        let depth_only = NavSample { depth_m: Some(7.0), ..NavSample::empty(Timestamp::from_ns(9)) };
-        for format in LogFormat::ALL {
-            let mut enc = ItemEncoder::with_format(format, FrameEncoding::Raw);
-            for sample in [full, depth_only] {
-                let mut got = Vec::new();
-                enc.encode(&LogItem::Nav(sample), |e, b| {
-                    got.push((e.topic, e.log_time_ns, b.to_vec()));
-                    Ok(())
-                })
-                .unwrap();
-                assert_eq!((got.len(), got[0].0, got[0].1), (1, Topic::Nav, sample.t_ns.t_ns() as u64), "{format:?}");
-                let back = decode_nav(&got[0].2).unwrap();
-                assert_eq!((back.t_ns, back.depth_m, back.altitude_m, back.vel_cam_mps), (sample.t_ns, sample.depth_m, sample.altitude_m, sample.vel_cam_mps), "{format:?}");
-                match (back.world_from_cam_rot, sample.world_from_cam_rot) {
-                    (Some(a), Some(b)) => assert!(a.angle_to(&b) < 1e-12, "{format:?}"),
-                    (a, b) => assert_eq!(a.is_none(), b.is_none(), "{format:?}"),
-                }
-            }
-        }
-        assert!(decode_nav(b"{\"depth_m\": 3}").is_err(), "no time");
-    }
-
-    #[test]
-    fn frame_and_pose_round_trip() {
-        let mut img = ImageRgb8::new(5, 3);
-        for (i, v) in img.data.iter_mut().enumerate() {
-            *v = (i * 7 % 251) as u8;
-        }
-        let frame = Frame { t_ns: Timestamp::from_ns(1_500_000_123), seq: 42, image: FrameImage::Rgb8(img) };
-        let mut enc = ItemEncoder::new(FrameEncoding::Raw);
-        let mut got = Vec::new();
-        enc.encode(&LogItem::Frame(std::sync::Arc::new(frame.clone())), |e, b| {
-            got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
-            Ok(())
-        })
-        .unwrap();
-        assert_eq!(got.len(), 1);
-        assert_eq!((got[0].0, got[0].1, got[0].2), (Topic::CameraImage, 42, 1_500_000_123));
-        assert_eq!(decode_frame(&got[0].3, 42, 0).unwrap(), frame);
-
-        let pose = Se3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
-        let rec = PoseRecord { t_ns: Timestamp::from_ns(7), seq: 3, world_from_cam: pose, state: "tracking", tracked: true, keyframe: Some(1), new_keyframe: None, loop_closed: false, segment: 2, why: None, value: None, limit: None };
-        got.clear();
-        enc.encode(&LogItem::Pose(rec), |e, b| {
-            got.push((e.topic, e.sequence, e.log_time_ns, b.to_vec()));
-            Ok(())
-        })
-        .unwrap();
-        assert_eq!(got.iter().map(|g| g.0).collect::<Vec<_>>(), vec![Topic::Pose, Topic::Transform, Topic::State]);
-        let back = decode_pose(&got[0].3).unwrap();
-        assert!((back.translation.vector - pose.translation.vector).norm() < 1e-12);
-        assert!(back.rotation.angle_to(&pose.rotation) < 1e-12);
-        let state: StateMessage = serde_json::from_slice(&got[2].3).unwrap();
-        assert_eq!((state.seq, state.state.as_str(), state.keyframe, state.segment), (3, "tracking", Some(1), 2));
-        assert_eq!(Topic::from_name("/slam/pose"), Some(Topic::Pose));
-        assert_eq!(Topic::CameraImage.schema().unwrap().name, "foxglove.RawImage");
-        assert_eq!(Topic::Pose.schema().unwrap().name, "foxglove.PoseInFrame");
-        assert_eq!(Topic::Transform.schema().unwrap().name, "foxglove.FrameTransform");
-        assert_eq!(Topic::MapGaussians.schema().unwrap().name, "foxglove.PointCloud");
-        assert_eq!(Topic::CameraCalibration.schema().unwrap().encoding, "protobuf");
-    }
-
-    /// A smooth test image (JPEG's case: gradients and a few edges, like a seabed).
-    fn smooth(w: usize, h: usize) -> ImageRgb8 {
-        let mut img = ImageRgb8::new(w, h);
-        for y in 0..h {
-            for x in 0..w {
-                let v = [(x * 255 / w) as u8, (y * 255 / h) as u8, if (x / 8 + y / 8) % 2 == 0 { 60 } else { 190 }];
-                img.set_pixel(x, y, v);
-            }
-        }
-        img
-    }
-
-    #[test]
-    fn jpeg_frames_round_trip_colour_and_grey() {
-        let mut enc = ItemEncoder::new(FrameEncoding::Jpeg { quality: 90 });
-        let rgb = smooth(37, 23); // not a multiple of the 8x8 / 16x16 MCU
-        let grey = duv_core::ImageGray8::from_vec(37, 23, rgb.data.iter().step_by(3).copied().collect()).unwrap();
-        for image in [FrameImage::Rgb8(rgb.clone()), FrameImage::Gray8(grey)] {
-            let frame = Frame { t_ns: Timestamp::from_ns(2_000_000_007), seq: 9, image };
-            let mut body = Vec::new();
-            enc.encode(&LogItem::Frame(std::sync::Arc::new(frame.clone())), |e, b| {
-                assert_eq!((e.topic, e.sequence, e.log_time_ns), (Topic::CameraImage, 9, 2_000_000_007));
-                body = b.to_vec();
-                Ok(())
-            })
-            .unwrap();
-            assert_eq!(field2_wire_type(&body), Some(2), "CompressedImage carries its data in field 2");
-            let back = decode_frame(&body, 9, 0).unwrap();
-            assert_eq!((back.t_ns, back.seq), (frame.t_ns, 9));
-            let (a, b): (&[u8], &[u8]) = match (&frame.image, &back.image) {
-                (FrameImage::Rgb8(a), FrameImage::Rgb8(b)) => (&a.data, &b.data),
-                (FrameImage::Gray8(a), FrameImage::Gray8(b)) => (&a.data, &b.data),
-                _ => panic!("colour kind changed"),
-            };
-            let mse = a.iter().zip(b).map(|(&x, &y)| (x as f64 - y as f64).powi(2)).sum::<f64>() / a.len() as f64;
-            let psnr = 10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10();
-            assert!(psnr > 30.0, "quality 90: PSNR {psnr:.1} dB");
-        }
-        assert_eq!(Topic::CameraImage.schema_for(FrameEncoding::Jpeg { quality: 90 }).unwrap().name, "foxglove.CompressedImage");
-        assert_eq!(Topic::CameraImage.schema_for(FrameEncoding::Raw).unwrap().name, "foxglove.RawImage");
-        assert_eq!(Topic::KeyframeImage.schema_for(FrameEncoding::Jpeg { quality: 90 }).unwrap().name, "foxglove.RawImage");
-    }
-
-    #[test]
-    fn bad_jpeg_input_is_an_error_not_a_panic() {
-        let img = FrameImage::Rgb8(smooth(16, 16));
-        let e = encode_jpeg(&img, 0, &mut Vec::new()).unwrap_err();
-        assert!(e.to_string().contains("quality 0"), "{e}");
-        // A CompressedImage whose JPEG is cut short, and one in another format.
-        let mut out = Vec::new();
-        encode_jpeg(&img, 80, &mut out).unwrap();
-        for (data, format, want) in [(out[..out.len() / 2].to_vec(), "jpeg", "jpeg"), (out.clone(), "png", "format \"png\"")] {
-            let msg = fg::CompressedImage { timestamp: None, frame_id: String::new(), data: data.into(), format: format.into() };
-            let mut body = Vec::new();
-            msg.encode(&mut body).unwrap();
-            let e = decode_frame(&body, 0, 0).unwrap_err().to_string();
-            assert!(e.contains(want), "{e}");
-        }
-        assert!(decode_frame(&[0xff, 0xff, 0xff], 0, 0).is_err());
-    }
-
-    #[test]
-    fn keyframe_planes_round_trip_and_bad_planes_are_errors() {
-        let camera = PinholeCamera::new(50.0, 50.0, 2.0, 1.5, 4, 3).unwrap();
-        let mut inv = duv_core::PlaneF32::new(4, 3);
-        let mut var = duv_core::PlaneF32::new(4, 3);
-        for (i, (d, v)) in inv.data.iter_mut().zip(var.data.iter_mut()).enumerate() {
-            *d = 0.25 + i as f32 * 0.01;
-            *v = if i == 5 { f32::MAX } else { 1e-4 * i as f32 };
-        }
-        let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
-        let (mut scratch, mut jpeg) = (Vec::new(), Vec::new());
-        let mut got = Vec::new();
-        encode_item(&LogItem::Keyframe(std::sync::Arc::new(kf)), FrameEncoding::Raw, &mut scratch, &mut jpeg, &mut Templates::default(), |e, b| {
-            got.push((e.topic, e.sequence, b.to_vec()));
-            Ok(())
-        })
-        .unwrap();
-        assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), vec![(Topic::KeyframeImage, 9), (Topic::KeyframeInvDepth, 9), (Topic::KeyframeVariance, 9), (Topic::KeyframePose, 9)]);
-        assert_eq!(decode_plane_f32(&got[1].2).unwrap(), inv);
-        assert_eq!(decode_plane_f32(&got[2].2).unwrap(), var);
-        let err = decode_plane_f32(&got[0].2).unwrap_err().to_string();
-        assert!(err.contains("rgb8"), "{err}");
-    }
-}

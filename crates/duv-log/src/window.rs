@@ -50,7 +50,7 @@ pub enum WindowError {
     TrailingBytes { bytes: usize },
     /// A `duv_msgs/msg/TrackerWindow` (a log in the ROS 2 format) that does not parse.
     #[error("not a duv_msgs/msg/TrackerWindow: {0}")]
-    Cdr(#[from] crate::ros2::CdrError),
+    Cdr(#[from] crate::cdr::CdrError),
 }
 
 /// One keyframe of the window.
@@ -142,7 +142,7 @@ impl TrackerWindow {
     /// than it holds.
     /// A `duv_msgs/msg/TrackerWindow` (CDR, the ROS 2 format) is unwrapped first.
     pub fn decode(data: &[u8]) -> Result<TrackerWindow, WindowError> {
-        let data = if crate::ros2::is_cdr(data) { crate::ros2::decode_wrapped(data)? } else { data };
+        let data = if crate::cdr::is_cdr(data) { crate::cdr::decode_wrapped(data)? } else { data };
         let mut r = LeReader::new(data);
         if r.take(4)? != MAGIC {
             return Err(WindowError::BadMagic);

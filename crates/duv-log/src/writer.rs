@@ -2,7 +2,8 @@
 //! size and age, and a write error (disk full, device gone) that stops logging cleanly.
 
 use super::chunked::{ChunkedWriter, WriterBuffers};
-use super::schema::{FrameEncoding, ItemEncoder, LogFormat, LogItem, Topic, ALL_TOPICS};
+use super::encoder::{schema_in, ItemEncoder};
+use super::schema::{FrameEncoding, LogFormat, LogItem, Topic, ALL_TOPICS};
 use super::{list_segments, segment_name, LogError};
 use duv_core::{PinholeCamera, Timestamp};
 use std::collections::BTreeMap;
@@ -173,7 +174,7 @@ impl SegmentWriter {
         if seg.channels[topic.index()] {
             return Ok(id);
         }
-        let r = match topic.schema_in(format, frames) {
+        let r = match schema_in(topic, format, frames) {
             Some(s) => seg
                 .writer
                 .add_schema(id + 1, &s.name, &s.encoding, &s.data)
