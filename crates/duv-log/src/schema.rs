@@ -452,7 +452,7 @@ pub struct Encoded {
 
 
 /// Compresses `image` into `out` (cleared first; its capacity is reused) with a one-off
-/// encoder; the log keeps one per quality ([`ItemEncoder`]).
+/// encoder; the log keeps one per quality ([`ItemEncoder`](super::encoder::ItemEncoder)).
 pub fn encode_jpeg(image: &FrameImage, quality: u8, out: &mut Vec<u8>) -> Result<(), LogError> {
     let problem = |e: JpegError| LogError::Encode { what: "frame (jpeg)", problem: e.to_string() };
     let encoder = JpegEncoder::new(quality).map_err(problem)?;
