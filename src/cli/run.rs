@@ -129,7 +129,7 @@ pub struct RunArgs {
     #[arg(long, value_name = "ADDR", num_args = 0..=1)]
     pub live_view: Option<Option<String>>,
     /// The log's message schemas [default: the board's `[log] format`]: `foxglove` (protobuf,
-    /// opens in Foxglove) or `ros2` (a ROS 2 bag: CDR, metadata.yaml; opens with `ros2 bag`).
+    /// opens in Foxglove) or `ros2` (a ROS 2 bag in rosbag2's layout: CDR messages, metadata.yaml).
     #[arg(long, value_enum)]
     pub log_format: Option<LogFormatArg>,
 }
