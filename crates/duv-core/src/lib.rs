@@ -19,7 +19,7 @@ pub mod io;
 pub use camera::{CameraModelError, PinholeCamera, RadTan};
 pub use keyframe::Keyframe;
 pub use frame::{Frame, FrameImage, Image, ImageGray16, ImageGray8, ImageRgb8, ImageRgbF32, PlaneF32};
-pub use pose::{Se3, Sim3};
+pub use pose::{PoseRecord, Se3, Sim3};
 pub use time::Timestamp;
 
 /// A time-stamped pose, `world_from_cam` (camera-to-world), as in a TUM trajectory file.

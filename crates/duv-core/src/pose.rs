@@ -100,6 +100,74 @@ pub fn rotation_angle(q: &UnitQuaternion<f64>) -> f64 {
     q.angle()
 }
 
+
+/// A pose with its tracking state, as the tracker reported it live: what the log and the live
+/// view take from tracking (here, so that neither stage imports the other).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseRecord {
+    pub t_ns: crate::Timestamp,
+    pub seq: u64,
+    pub world_from_cam: Se3,
+    /// Short state name (`tracking`, `lost (black frame)`, ...).
+    pub state: &'static str,
+    /// Whether the pose was measured (tracking or relocalised).
+    pub tracked: bool,
+    /// The keyframe the pose was measured against.
+    pub keyframe: Option<u64>,
+    /// Id of the keyframe this frame became.
+    pub new_keyframe: Option<u64>,
+    pub loop_closed: bool,
+    /// The map segment the pose is in (a new one after a loss; 0 is the dive's first).
+    pub segment: u32,
+    /// Why the frame has no measured pose yet (`init_low_confidence`, `init_small_flow`,
+    /// `init_pose_failed`, `init_keyframe`), with the measured value and its threshold.
+    pub why: Option<&'static str>,
+    pub value: Option<f64>,
+    pub limit: Option<f64>,
+}
+
+/// The JSON schema of the tracking state record (`duv.TrackingState`, [`TrackingStateRef`]).
+pub const TRACKING_STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"segment":{"type":"integer"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
+
+/// The tracking state of a [`PoseRecord`] as its JSON record (`duv.TrackingState`: the log's
+/// `/slam/state`, the live view's), borrowed.
+#[derive(serde::Serialize)]
+pub struct TrackingStateRef<'a> {
+    seq: u64,
+    t_ns: i64,
+    state: &'a str,
+    tracked: bool,
+    keyframe: Option<u64>,
+    new_keyframe: Option<u64>,
+    loop_closed: bool,
+    segment: u32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    why: Option<&'a str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    value: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    limit: Option<f64>,
+}
+
+impl PoseRecord {
+    /// Its tracking state record (everything but the pose).
+    pub fn state_record(&self) -> TrackingStateRef<'_> {
+        TrackingStateRef {
+            seq: self.seq,
+            t_ns: self.t_ns.t_ns(),
+            state: self.state,
+            tracked: self.tracked,
+            keyframe: self.keyframe,
+            new_keyframe: self.new_keyframe,
+            loop_closed: self.loop_closed,
+            segment: self.segment,
+            why: self.why,
+            value: self.value,
+            limit: self.limit,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -25,6 +25,7 @@ pub use budget::{Budget, Class};
 
 use duv_core::config::board::LiveSettings;
 use duv_core::jpeg::{JpegEncoder, JpegError};
+pub use duv_core::PoseRecord;
 use duv_core::{Frame, Se3, Timestamp};
 use foxglove::messages as fg;
 use foxglove::websocket::ServerListener;
@@ -84,28 +85,10 @@ pub enum LiveError {
     Jpeg(#[from] JpegError),
 }
 
-/// A tracked frame's pose and state, as the tracker reported it (the fields of the log's
-/// `/slam/state`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct LivePose {
-    pub t_ns: Timestamp,
-    pub seq: u64,
-    pub world_from_cam: Se3,
-    pub state: &'static str,
-    pub tracked: bool,
-    pub keyframe: Option<u64>,
-    pub new_keyframe: Option<u64>,
-    pub loop_closed: bool,
-    pub segment: u32,
-    pub why: Option<&'static str>,
-    pub value: Option<f64>,
-    pub limit: Option<f64>,
-}
-
 /// What the pipeline hands to the live view.
 #[derive(Clone, Debug)]
 pub enum LiveItem {
-    Pose(LivePose),
+    Pose(PoseRecord),
     /// An input frame (shared with tracking, not copied); downscaled and compressed here.
     Frame(Arc<Frame>),
     /// A keyframe handed to mapping: its pose joins `/slam/keyframes`.
@@ -193,27 +176,6 @@ impl ServerListener for ClientCount {
     }
 }
 
-/// The JSON body of `/slam/state` (the log's `duv.TrackingState`).
-#[derive(Serialize)]
-struct StateRef<'a> {
-    seq: u64,
-    t_ns: i64,
-    state: &'a str,
-    tracked: bool,
-    keyframe: Option<u64>,
-    new_keyframe: Option<u64>,
-    loop_closed: bool,
-    segment: u32,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    why: Option<&'a str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    value: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    limit: Option<f64>,
-}
-
-const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"segment":{"type":"integer"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
-
 /// Foxglove time of `t_ns` (negative times clamp to 0).
 fn fg_time(t_ns: Timestamp) -> fg::Timestamp {
     let ns = t_ns.t_ns().max(0) as u64;
@@ -261,7 +223,7 @@ impl LiveServer {
             let (schema, encoding) = match topic {
                 Topic::Pose => (fg::PoseInFrame::get_schema(), fg::PoseInFrame::get_message_encoding()),
                 Topic::Transform => (fg::FrameTransform::get_schema(), fg::FrameTransform::get_message_encoding()),
-                Topic::State => (Some(foxglove::Schema::new("duv.TrackingState", "jsonschema", STATE_SCHEMA.as_bytes())), "json".to_string()),
+                Topic::State => (Some(foxglove::Schema::new("duv.TrackingState", "jsonschema", duv_core::pose::TRACKING_STATE_SCHEMA.as_bytes())), "json".to_string()),
                 Topic::Camera => (fg::CompressedImage::get_schema(), fg::CompressedImage::get_message_encoding()),
                 Topic::Keyframes => (fg::PosesInFrame::get_schema(), fg::PosesInFrame::get_message_encoding()),
                 Topic::Gaussians => (fg::PointCloud::get_schema(), fg::PointCloud::get_message_encoding()),
@@ -453,7 +415,7 @@ impl LiveServer {
         self.stats.messages_sent += 1;
     }
 
-    fn encode_pose(&mut self, p: &LivePose) {
+    fn encode_pose(&mut self, p: &PoseRecord) {
         let stamp = Some(fg_time(p.t_ns));
         self.pose_tpl.timestamp = stamp;
         self.pose_tpl.pose = Some(fg_pose(&p.world_from_cam));
@@ -464,19 +426,7 @@ impl LiveServer {
         self.tf_tpl.translation = Some(fg::Vector3 { x: t.x, y: t.y, z: t.z });
         self.tf_tpl.rotation = Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w });
         encode_into(&self.tf_tpl, &mut self.body[1]);
-        let state = StateRef {
-            seq: p.seq,
-            t_ns: p.t_ns.t_ns(),
-            state: p.state,
-            tracked: p.tracked,
-            keyframe: p.keyframe,
-            new_keyframe: p.new_keyframe,
-            loop_closed: p.loop_closed,
-            segment: p.segment,
-            why: p.why,
-            value: p.value,
-            limit: p.limit,
-        };
+        let state = p.state_record();
         self.body[2].clear();
         if let Err(e) = serde_json::to_writer(&mut self.body[2], &state) {
             tracing::warn!("live state of frame {} not encoded: {e}", p.seq);

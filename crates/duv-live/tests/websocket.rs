@@ -4,7 +4,7 @@
 
 use duv_core::config::board::LiveSettings;
 use duv_core::{Frame, FrameImage, ImageRgb8, Se3, Timestamp};
-use duv_live::{LiveItem, LivePose, LiveServer, Topic, MESSAGE_OVERHEAD_BYTES, TOPICS};
+use duv_live::{LiveItem, LiveServer, PoseRecord, Topic, MESSAGE_OVERHEAD_BYTES, TOPICS};
 use foxglove::messages as fg;
 use foxglove::Decode;
 use futures_util::{SinkExt, StreamExt};
@@ -79,8 +79,8 @@ fn message_data(msg: &Message) -> Option<(&'static str, Vec<u8>)> {
     Some((TOPICS[sub - 1], b[13..].to_vec()))
 }
 
-fn pose(seq: u64) -> LivePose {
-    LivePose {
+fn pose(seq: u64) -> PoseRecord {
+    PoseRecord {
         t_ns: Timestamp::from_ns(1_000_000_000 + seq as i64 * 100_000_000),
         seq,
         world_from_cam: Se3::from_parts(nalgebra::Translation3::new(seq as f64 * 0.1, -0.5, 2.0), nalgebra::UnitQuaternion::from_euler_angles(0.1, 0.2, 0.3)),

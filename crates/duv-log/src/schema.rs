@@ -154,7 +154,6 @@ pub struct TopicSchema {
     pub message_encoding: String,
 }
 
-const STATE_SCHEMA: &str = r#"{"title":"duv.TrackingState","type":"object","properties":{"seq":{"type":"integer"},"t_ns":{"type":"integer"},"state":{"type":"string"},"tracked":{"type":"boolean"},"keyframe":{"type":["integer","null"]},"new_keyframe":{"type":["integer","null"]},"loop_closed":{"type":"boolean"},"segment":{"type":"integer"},"why":{"type":"string"},"value":{"type":"number"},"limit":{"type":"number"}}}"#;
 const NAV_SCHEMA: &str = r#"{"title":"duv.NavSample","type":"object","description":"one navigation sample on the frames' clock; a missing field is a sensor without a sample","properties":{"t_ns":{"type":"integer"},"depth_m":{"type":"number","description":"pressure depth, positive down"},"altitude_m":{"type":"number","description":"range to the seabed along gravity"},"vel_cam_mps":{"type":"array","items":{"type":"number"},"description":"velocity over ground in the camera frame (x right, y down, z forward)"},"world_from_cam_xyzw":{"type":"array","items":{"type":"number"},"description":"the AHRS camera-to-world rotation, world z up"}}}"#;
 const HEALTH_SCHEMA: &str = r#"{"title":"duv.Health","type":"object","description":"once a second: queue depths and drops, per-stage latency, budget headroom, host memory"}"#;
 
@@ -229,7 +228,7 @@ impl Topic {
             Topic::Pose | Topic::KeyframePose => foxglove_schema::<fg::PoseInFrame>(),
             Topic::Transform => foxglove_schema::<fg::FrameTransform>(),
             Topic::MapGaussians => foxglove_schema::<fg::PointCloud>(),
-            Topic::State => json_schema("duv.TrackingState", STATE_SCHEMA),
+            Topic::State => json_schema("duv.TrackingState", duv_core::pose::TRACKING_STATE_SCHEMA),
             Topic::Health => json_schema("duv.Health", HEALTH_SCHEMA),
             Topic::Nav => json_schema("duv.NavSample", NAV_SCHEMA),
             // The odometry is written in the ROS 2 format only.
@@ -261,29 +260,7 @@ impl Topic {
     }
 }
 
-/// A pose with its tracking state, as the tracker reported it live.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PoseRecord {
-    pub t_ns: Timestamp,
-    pub seq: u64,
-    pub world_from_cam: Se3,
-    /// Short state name (`tracking`, `lost (black frame)`, ...).
-    pub state: &'static str,
-    /// Whether the pose was measured (tracking or relocalised).
-    pub tracked: bool,
-    /// The keyframe the pose was measured against.
-    pub keyframe: Option<u64>,
-    /// Id of the keyframe this frame became.
-    pub new_keyframe: Option<u64>,
-    pub loop_closed: bool,
-    /// The map segment the pose is in (a new one after a loss; 0 is the dive's first).
-    pub segment: u32,
-    /// Why the frame has no measured pose yet (`init_low_confidence`, `init_small_flow`,
-    /// `init_pose_failed`, `init_keyframe`), with the measured value and its threshold.
-    pub why: Option<&'static str>,
-    pub value: Option<f64>,
-    pub limit: Option<f64>,
-}
+pub use duv_core::PoseRecord;
 
 pub use super::records::StateMessage;
 
@@ -424,25 +401,6 @@ fn encode_raw_image(tpl: &mut fg::RawImage, t_ns: Timestamp, width: usize, heigh
     Ok(())
 }
 
-/// The JSON body of `/slam/state`, borrowed ([`StateMessage`] is what readers get back).
-#[derive(Serialize)]
-struct StateRef<'a> {
-    seq: u64,
-    t_ns: i64,
-    state: &'a str,
-    tracked: bool,
-    keyframe: Option<u64>,
-    new_keyframe: Option<u64>,
-    loop_closed: bool,
-    segment: u32,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    why: Option<&'a str>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    value: Option<f64>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    limit: Option<f64>,
-}
-
 /// One encoded MCAP message: topic, header sequence, log time, body in the caller's buffer.
 pub struct Encoded {
     pub topic: Topic,
@@ -541,19 +499,7 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             tpl.transform.rotation = Some(fg::Quaternion { x: q.i, y: q.j, z: q.k, w: q.w });
             encode(&tpl.transform, "transform", scratch)?;
             emit(Encoded { topic: Topic::Transform, sequence, log_time_ns }, scratch)?;
-            let state = StateRef {
-                seq: p.seq,
-                t_ns: p.t_ns.t_ns(),
-                state: p.state,
-                tracked: p.tracked,
-                keyframe: p.keyframe,
-                new_keyframe: p.new_keyframe,
-                loop_closed: p.loop_closed,
-                segment: p.segment,
-                why: p.why,
-                value: p.value,
-                limit: p.limit,
-            };
+            let state = p.state_record();
             scratch.clear();
             serde_json::to_writer(&mut *scratch, &state).map_err(|e| LogError::Encode { what: "state", problem: e.to_string() })?;
             emit(Encoded { topic: Topic::State, sequence, log_time_ns }, scratch)
@@ -695,23 +641,30 @@ pub fn decode_frame(data: &[u8], seq: u64, log_time_ns: u64) -> Result<Frame, De
     let img = fg::RawImage::decode(data).map_err(|source| DecodeError::Protobuf { schema: "foxglove.RawImage", source })?;
     let (w, h) = (img.width as usize, img.height as usize);
     let t_ns = timestamp_or(img.timestamp, log_time_ns);
-    let size = |encoding| DecodeError::ImageSize { encoding, bytes: img.data.len(), width: w, height: h };
-    let image = match img.encoding.as_str() {
+    let image = raw_frame_image(&img.encoding, img.step, w, h, &img.data)?;
+    Ok(Frame { t_ns, seq, image })
+}
+
+
+/// A raw `rgb8` or `mono8` image of `w` x `h` with rows of `step` bytes (the Foxglove
+/// `RawImage` and the ROS 2 `sensor_msgs/Image` carry the same fields).
+fn raw_frame_image(encoding: &str, step: u32, w: usize, h: usize, data: &[u8]) -> Result<FrameImage, DecodeError> {
+    let size = |encoding| DecodeError::ImageSize { encoding, bytes: data.len(), width: w, height: h };
+    Ok(match encoding {
         "rgb8" => {
-            if img.step as usize != w * 3 {
-                return Err(DecodeError::Step { encoding: "rgb8", step: img.step, width: w });
+            if step as usize != w * 3 {
+                return Err(DecodeError::Step { encoding: "rgb8", step, width: w });
             }
-            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("rgb8"))?)
+            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, data.to_vec()).ok_or_else(|| size("rgb8"))?)
         }
         "mono8" => {
-            if img.step as usize != w {
-                return Err(DecodeError::Step { encoding: "mono8", step: img.step, width: w });
+            if step as usize != w {
+                return Err(DecodeError::Step { encoding: "mono8", step, width: w });
             }
-            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("mono8"))?)
+            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, data.to_vec()).ok_or_else(|| size("mono8"))?)
         }
         other => return Err(DecodeError::UnsupportedEncoding { encoding: other.to_string() }),
-    };
-    Ok(Frame { t_ns, seq, image })
+    })
 }
 
 fn timestamp_or(t: Option<fg::Timestamp>, log_time_ns: u64) -> Timestamp {
@@ -846,22 +799,7 @@ fn decode_ros2_frame(data: &[u8], seq: u64) -> Result<Frame, DecodeError> {
     }
     let img = super::cdr::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
     let (w, h) = (img.width as usize, img.height as usize);
-    let size = |encoding| DecodeError::ImageSize { encoding, bytes: img.data.len(), width: w, height: h };
-    let image = match img.encoding {
-        "rgb8" => {
-            if img.step as usize != w * 3 {
-                return Err(DecodeError::Step { encoding: "rgb8", step: img.step, width: w });
-            }
-            FrameImage::Rgb8(duv_core::ImageRgb8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("rgb8"))?)
-        }
-        "mono8" => {
-            if img.step as usize != w {
-                return Err(DecodeError::Step { encoding: "mono8", step: img.step, width: w });
-            }
-            FrameImage::Gray8(duv_core::ImageGray8::from_vec(w, h, img.data.to_vec()).ok_or_else(|| size("mono8"))?)
-        }
-        other => return Err(DecodeError::UnsupportedEncoding { encoding: other.to_string() }),
-    };
+    let image = raw_frame_image(img.encoding, img.step, w, h, img.data)?;
     Ok(Frame { t_ns: Timestamp::from_ns(img.t_ns), seq, image })
 }
 

@@ -76,7 +76,7 @@ impl std::fmt::Display for LiveReport {
 mod on {
     use super::*;
     use crate::queue::{BoundedQueue, FullPolicy, Pushed};
-    use duv_live::{LiveItem, LivePose, LiveServer};
+    use duv_live::{LiveItem, LiveServer};
     use std::sync::atomic::{AtomicI64, AtomicU64, AtomicUsize, Ordering};
 
     pub(super) struct Shared {
@@ -116,22 +116,6 @@ mod on {
         }
     }
 
-    pub(super) fn live_pose(p: &PoseRecord) -> LivePose {
-        LivePose {
-            t_ns: p.t_ns,
-            seq: p.seq,
-            world_from_cam: p.world_from_cam,
-            state: p.state,
-            tracked: p.tracked,
-            keyframe: p.keyframe,
-            new_keyframe: p.new_keyframe,
-            loop_closed: p.loop_closed,
-            segment: p.segment,
-            why: p.why,
-            value: p.value,
-            limit: p.limit,
-        }
-    }
 
     pub(super) fn start(settings: &LiveSettings) -> Result<(Arc<Shared>, std::thread::JoinHandle<LiveReport>), PipelineError> {
         let server = LiveServer::start(settings).map_err(|e| PipelineError::Live { problem: e.to_string() })?;
@@ -223,7 +207,7 @@ impl LiveFeed {
     pub fn pose(&self, _p: &PoseRecord) {
         #[cfg(feature = "live-view")]
         if let Some(s) = &self.shared {
-            s.push(duv_live::LiveItem::Pose(on::live_pose(_p)));
+            s.push(duv_live::LiveItem::Pose(*_p));
         }
     }
 
@@ -303,7 +287,7 @@ mod tests {
     fn a_full_queue_refuses_and_counts() {
         let s = shared(4, 10.0);
         for i in 0..10 {
-            s.push(duv_live::LiveItem::Pose(on::live_pose(&pose(i))));
+            s.push(duv_live::LiveItem::Pose(pose(i)));
         }
         let q = s.queue.stats();
         assert_eq!((q.pushed, q.dropped, q.depth), (4, 6, 4));
