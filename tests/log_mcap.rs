@@ -18,6 +18,9 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+#[path = "common/python.rs"]
+mod python;
+
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
 
@@ -95,21 +98,9 @@ fn topic_counts(path: &Path) -> (BTreeMap<String, u64>, duv_log::ReadOutcome) {
     (counts, outcome)
 }
 
-/// The Python interpreter with the `mcap` package: `DUV_PYTHON`, else the venv `.ci/run`
-/// makes, else `python3`. `None` when none can import mcap.
-fn python_with_mcap() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let candidates: Vec<PathBuf> = std::env::var_os("DUV_PYTHON").map(PathBuf::from).into_iter().chain([root.join("target/py-mcap/bin/python"), PathBuf::from("python3")]).collect();
-    candidates.into_iter().find(|py| std::process::Command::new(py).args(["-c", "import mcap.reader"]).output().is_ok_and(|o| o.status.success()))
-}
 
 fn python_check(files: &[PathBuf]) -> Option<serde_json::Value> {
-    let Some(py) = python_with_mcap() else {
-        assert!(std::env::var("CI").as_deref() != Ok("true"), "CI=true but no Python with the `mcap` package (run .ci/run, or set DUV_PYTHON)");
-        assert!(std::env::var_os("DUV_PYTHON").is_none(), "DUV_PYTHON is set but cannot import the `mcap` package");
-        eprintln!("SKIPPED the Python cross-check: no Python with the `mcap` package (pip install mcap, or run .ci/run)");
-        return None;
-    };
+    let py = python::python_with("mcap.reader", "mcap")?;
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/check_mcap.py");
     let out = std::process::Command::new(&py).arg(&script).args(files).output().unwrap();
     assert!(out.status.success(), "python mcap failed: {}", String::from_utf8_lossy(&out.stderr));

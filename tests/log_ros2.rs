@@ -15,9 +15,12 @@ use duv_log::schema::{decode_state, PoseRecord};
 use duv_log::{list_segments, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogFormat, LogItem, SegmentWriter, TrackerWindow, WindowKeyframe};
 use nalgebra::{Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
+
+#[path = "common/python.rs"]
+mod python;
 
 #[global_allocator]
 static GLOBAL: CountingAllocator = CountingAllocator;
@@ -128,23 +131,11 @@ fn our_counts(dir: &Path) -> BTreeMap<String, u64> {
     counts
 }
 
-/// The Python interpreter with the `rosbags` package: `DUV_PYTHON`, else the venv `.ci/run`
-/// makes, else `python3`.
-fn python_with_rosbags() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let candidates: Vec<PathBuf> = std::env::var_os("DUV_PYTHON").map(PathBuf::from).into_iter().chain([root.join("target/py-mcap/bin/python"), PathBuf::from("python3")]).collect();
-    candidates.into_iter().find(|py| std::process::Command::new(py).args(["-c", "import rosbags.rosbag2, rosbags.typesys"]).output().is_ok_and(|o| o.status.success()))
-}
 
 /// `tests/py/check_ros2_bag.py` on the folder; `None` (skipped, saying so) without Python and
 /// `rosbags`, a failure under CI=true or with DUV_PYTHON set.
 fn rosbags_check(dir: &Path) -> Option<serde_json::Value> {
-    let Some(py) = python_with_rosbags() else {
-        assert!(std::env::var("CI").as_deref() != Ok("true"), "CI=true but no Python with the `rosbags` package (run .ci/run, or set DUV_PYTHON)");
-        assert!(std::env::var_os("DUV_PYTHON").is_none(), "DUV_PYTHON is set but cannot import the `rosbags` package");
-        eprintln!("SKIPPED the rosbags cross-check: no Python with the `rosbags` package (pip install rosbags, or run .ci/run)");
-        return None;
-    };
+    let py = python::python_with("rosbags.rosbag2", "rosbags")?;
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/check_ros2_bag.py");
     let out = std::process::Command::new(&py).arg(&script).arg(dir).output().unwrap();
     assert!(out.status.success(), "rosbags failed: {}", String::from_utf8_lossy(&out.stderr));

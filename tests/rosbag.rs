@@ -15,6 +15,9 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+#[path = "common/python.rs"]
+mod python;
+
 /// A little-endian CDR writer (the byte order `rclcpp` writes on x86 and ARM).
 struct Cdr(Vec<u8>);
 
@@ -564,22 +567,10 @@ fn duv_run_tracks_a_bag_of_a_generated_survey() {
     assert!(paced_s >= 1.45, "paced at recorded timing / 2: {paced_s} s");
 }
 
-/// The Python interpreter with the `rosbags` package: `DUV_PYTHON`, else the venv `.ci/run`
-/// makes, else `python3`. `None` when none can import it.
-fn python_with_rosbags() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let candidates: Vec<PathBuf> = std::env::var_os("DUV_PYTHON").map(PathBuf::from).into_iter().chain([root.join("target/py-mcap/bin/python"), PathBuf::from("python3")]).collect();
-    candidates.into_iter().find(|py| Command::new(py).args(["-c", "import rosbags.rosbag2, numpy"]).output().is_ok_and(|o| o.status.success()))
-}
 
 #[test]
 fn a_bag_written_by_the_python_rosbags_package_reads_back() {
-    let Some(py) = python_with_rosbags() else {
-        assert!(std::env::var("CI").as_deref() != Ok("true"), "CI=true but no Python with the `rosbags` package (run .ci/run, or set DUV_PYTHON)");
-        assert!(std::env::var_os("DUV_PYTHON").is_none(), "DUV_PYTHON is set but cannot import the `rosbags` package");
-        eprintln!("SKIPPED: no Python with the `rosbags` package (pip install rosbags, or run .ci/run)");
-        return;
-    };
+    let Some(py) = python::python_with("rosbags.rosbag2, numpy", "rosbags") else { return };
     let dir = tempfile::tempdir().unwrap();
     let r = renderer(4, 48, 36);
     let mut args: Vec<String> = Vec::new();

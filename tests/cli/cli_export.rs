@@ -38,18 +38,11 @@ fn first_working(candidates: Vec<PathBuf>, args: &[&str]) -> Option<PathBuf> {
     candidates.into_iter().find(|p| Command::new(p).args(args).output().is_ok_and(|o| o.status.success()))
 }
 
-/// A Python that imports `pycolmap`: `DUV_PYTHON`, the venv `.ci/run` makes, `python3`.
+/// A Python that imports `pycolmap` (fails the test under CI without one).
 fn python_with_pycolmap() -> Option<PathBuf> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let set = std::env::var_os("DUV_PYTHON").map(PathBuf::from);
-    let found = first_working(set.clone().into_iter().chain([root.join("target/py-mcap/bin/python"), PathBuf::from("python3")]).collect(), &["-c", "import pycolmap"]);
-    match &found {
-        None => {
-            assert!(!ci(), "CI=true but no Python with the `pycolmap` package (run .ci/run, or set DUV_PYTHON)");
-            assert!(set.is_none(), "DUV_PYTHON is set but cannot import the `pycolmap` package");
-            eprintln!("SKIPPED the pycolmap read-back: no Python with `pycolmap` (pip install pycolmap, or run .ci/run)");
-        }
-        Some(py) => eprintln!("pycolmap from {}", py.display()),
+    let found = crate::python::python_with("pycolmap", "pycolmap");
+    if let Some(py) = &found {
+        eprintln!("pycolmap from {}", py.display());
     }
     found
 }

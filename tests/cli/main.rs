@@ -7,3 +7,5 @@ mod cli_export;
 mod cli_metric;
 mod cli_run;
 mod eval_cli;
+#[path = "../common/python.rs"]
+mod python;
