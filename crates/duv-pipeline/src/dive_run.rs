@@ -666,7 +666,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
             None => known_nav = source.nav()?,
         }
     }
-    pcfg.nav_to_log.known = known_nav.clone().unwrap_or_default();
+    pcfg.nav_to_log.known = known_nav.as_deref().unwrap_or_default().into();
     let run_source = RunSource { inner: source, camera, spec: opts.source.clone() };
     if let Some(live) = &pcfg.live {
         progress(&Progress::LiveView { bind: &live.bind });

@@ -276,7 +276,7 @@ pub struct PipelineConfig {
 #[derive(Clone, Default)]
 pub struct NavToLog {
     /// Sorted by time.
-    pub known: Vec<duv_core::nav::NavSample>,
+    pub known: Arc<[duv_core::nav::NavSample]>,
     /// Samples stamped with the run's clock (ns since [`clock::ArrivalClock::epoch`]).
     pub live: Option<Arc<BoundedQueue<duv_core::nav::NavSample>>>,
 }
@@ -439,8 +439,6 @@ struct Shared {
     frames_captured: AtomicU64,
     /// Frames read and dropped because every pooled frame buffer was in use.
     frames_no_buffer: AtomicU64,
-    frames_tracked: AtomicU64,
-    keyframes: AtomicU64,
     latest_t_ns: AtomicI64,
     /// Latencies (ms) since the last health record.
     recent_ms: Mutex<Vec<f64>>,
@@ -555,8 +553,6 @@ pub fn run<S: FrameSource + 'static>(
         stop: stop.clone(),
         frames_captured: AtomicU64::new(0),
         frames_no_buffer: AtomicU64::new(0),
-        frames_tracked: AtomicU64::new(0),
-        keyframes: AtomicU64::new(0),
         latest_t_ns: AtomicI64::new(0),
         recent_ms: Mutex::new(Vec::with_capacity(4096)),
         log_failure: Mutex::new(None),
@@ -704,7 +700,6 @@ pub fn run<S: FrameSource + 'static>(
             let mut latencies = Vec::with_capacity(RECORD_FRAMES);
             let mut track_times = Vec::with_capacity(RECORD_FRAMES);
             let to_mapping = |kf: Arc<Keyframe>| {
-                sh.keyframes.fetch_add(1, Ordering::Relaxed);
                 progress.keyframe_handed_on();
                 live.keyframe(&kf);
                 if let Pushed::Refused(kf) = kq.push(kf, 0) {
@@ -745,7 +740,6 @@ pub fn run<S: FrameSource + 'static>(
                     handoff.after_frame(tracker, &frame, &out, |item| log_push(&lq, item), to_mapping)?;
                     let lat = arrived.elapsed();
                     latencies.push(lat);
-                    sh.frames_tracked.fetch_add(1, Ordering::Relaxed);
                     if let Ok(mut v) = sh.recent_ms.lock() {
                         if v.len() < v.capacity() {
                             v.push(lat.as_secs_f64() * 1e3);
@@ -756,7 +750,7 @@ pub fn run<S: FrameSource + 'static>(
                     }
                 }
                 handoff.flush(tracker, |item| log_push(&lq, item), |kf| {
-                    sh.keyframes.fetch_add(1, Ordering::Relaxed);
+                    progress.keyframe_handed_on();
                     live.keyframe(&kf);
                     let _ = kq.push_wait(kf, 0);
                     Ok(())
@@ -781,7 +775,7 @@ pub fn run<S: FrameSource + 'static>(
         let mut pacer = cfg.pace_speed.map(|speed| Pacer { speed, start: None });
         let lossless = cfg.lossless_frames;
         let arrival_clock = cfg.arrival_clock.clone();
-        let nav_known = cfg.nav_to_log.known.clone();
+        let nav_known = Arc::clone(&cfg.nav_to_log.known);
         let nav_live = cfg.nav_to_log.live.clone();
         spawn("capture", move || -> (S, Option<String>) {
             let mut nav_next: Option<usize> = None;
@@ -875,12 +869,13 @@ pub fn run<S: FrameSource + 'static>(
             *shared.recent_ms.lock().unwrap_or_else(|p| p.into_inner()) = recent;
             let mb = |b: usize| b as f64 / (1 << 20) as f64;
             let live = mb(duv_core::alloc::live_bytes());
+            let counters = cfg.progress.snapshot();
             let h = Health {
                 uptime_s: started.elapsed().as_secs_f64(),
                 frames_captured: shared.frames_captured.load(Ordering::Relaxed),
                 frames_dropped_no_buffer: shared.frames_no_buffer.load(Ordering::Relaxed),
-                frames_tracked: shared.frames_tracked.load(Ordering::Relaxed),
-                keyframes: shared.keyframes.load(Ordering::Relaxed),
+                frames_tracked: counters.frames_tracked,
+                keyframes: counters.keyframes,
                 frame_queue: frames.stats(),
                 keyframe_queue: keyframes.stats(),
                 log_queue: log_q.stats(),
