@@ -310,3 +310,35 @@ fn the_device_map_is_what_renders_between_syncs() {
     let uploaded = m.render_keyframe(0).unwrap().colour.data.clone();
     assert!(uploaded == device, "the render between syncs was not the device's map");
 }
+
+/// `--mapper auto` asks which device it would get before opening it: on a CPU device
+/// (lavapipe in CI) it takes the CPU reference whatever GPU budget the board gives, even one
+/// that device could not allocate (the Jetson board's 4 GiB against lavapipe's 2 GiB arena
+/// limit failed the run before), and `--mapper vulkan` still reports the arena.
+#[test]
+fn auto_takes_the_cpu_reference_on_a_cpu_device_whatever_the_gpu_budget() {
+    if std::env::var_os(duv_gpu::DEVICE_ENV).is_some() {
+        eprintln!("{} names a device: auto opens it, nothing to check here", duv_gpu::DEVICE_ENV);
+        return;
+    }
+    let (name, kind) = match duv_gpu::GpuContext::probe(&gpu_options()) {
+        Ok(found) => found,
+        Err(e) if e.is_unavailable() && std::env::var_os("CI").is_none() => {
+            eprintln!("SKIPPED: no Vulkan device ({e})");
+            return;
+        }
+        Err(e) => panic!("probing the Vulkan device: {e}"),
+    };
+    if kind != "CPU" {
+        eprintln!("{name} is a {kind}: auto uses it, nothing to check here");
+        return;
+    }
+    let huge = GpuOptions::with_budget_mb(64 * 1024);
+    let mut m = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 1000, max_keyframes: 2, width: W, height: H }).unwrap();
+    let what = m.use_device(MapperDevice::Auto, &huge).expect("auto on a CPU device must not open it");
+    assert!(!m.renders_on_vulkan(), "{what}");
+    assert!(what.contains(&name) && what.contains("runs on the CPU"), "{what}");
+    let mut v = Mapper::new(MapperConfig::default(), MapperCapacity { max_gaussians: 1000, max_keyframes: 2, width: W, height: H }).unwrap();
+    let err = v.use_device(MapperDevice::Vulkan, &huge).expect_err("a 64 GiB arena on lavapipe").to_string();
+    assert!(err.contains("arena"), "{err}");
+}

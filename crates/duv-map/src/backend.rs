@@ -50,20 +50,19 @@ impl RenderBackend {
             MapperDevice::Vulkan => Self::from_open_result(GpuContext::new(options, &KERNELS), capacity),
             MapperDevice::Auto => {
                 let picked = options.device.is_some() || std::env::var_os(duv_gpu::DEVICE_ENV).is_some();
-                let backend = Self::from_open_result(GpuContext::new(options, &KERNELS), capacity)?;
-                match &backend {
-                    RenderBackend::Vulkan { ctx, .. } if ctx.info().device_type == "CPU" && !picked => {
+                // Asked before the device is opened: a CPU device is not used, so its arena
+                // limit (lavapipe's is smaller than some boards' GPU budgets) does not matter.
+                if !picked {
+                    if let Ok((name, "CPU")) = GpuContext::probe(options) {
                         let why = format!(
-                            "the only Vulkan device, {}, runs on the CPU, where the CPU reference maps as fast in a whole run (--mapper vulkan or {} selects it)",
-                            ctx.info().name,
+                            "the only Vulkan device, {name}, runs on the CPU, where the CPU reference maps as fast in a whole run (--mapper vulkan or {} selects it)",
                             duv_gpu::DEVICE_ENV
                         );
                         tracing::info!("map: {why}");
-                        drop(backend);
-                        Ok(Self::cpu(capacity, &why)?)
+                        return Ok(Self::cpu(capacity, &why)?);
                     }
-                    _ => Ok(backend),
                 }
+                Self::from_open_result(GpuContext::new(options, &KERNELS), capacity)
             }
         }
     }

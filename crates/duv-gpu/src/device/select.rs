@@ -89,6 +89,19 @@ impl Selected {
     }
 }
 
+/// The Vulkan 1.2 instance every context (and [`GpuContext::probe`]) starts from.
+fn create_instance(entry: &ash::Entry) -> Result<ash::Instance, GpuError> {
+    let app = vk::ApplicationInfo::default()
+        .application_name(c"duv")
+        .engine_name(c"duv")
+        .api_version(vk::API_VERSION_1_2);
+    match unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) } {
+        Ok(i) => Ok(i),
+        Err(vk::Result::ERROR_INCOMPATIBLE_DRIVER) => Err(GpuError::NoDevice { seen: String::new() }),
+        Err(result) => Err(GpuError::Vulkan { call: "vkCreateInstance", result }),
+    }
+}
+
 fn type_rank(t: vk::PhysicalDeviceType) -> u32 {
     match t {
         vk::PhysicalDeviceType::DISCRETE_GPU => 0,
@@ -115,6 +128,7 @@ pub(super) struct Candidate {
     pub(super) physical: vk::PhysicalDevice,
     name: String,
     rank: u32,
+    device_type: &'static str,
     pub(super) queue_family: u32,
     pub(super) timestamp_bits: u32,
     /// VK_EXT_shader_atomic_float with `shaderBufferFloat32AtomicAdd`.
@@ -131,15 +145,7 @@ impl GpuContext {
         let entry = loader()?.clone();
         // Instance and device creation (and pipeline builds) one context at a time.
         let _lifecycle = lifecycle_lock();
-        let app = vk::ApplicationInfo::default()
-            .application_name(c"duv")
-            .engine_name(c"duv")
-            .api_version(vk::API_VERSION_1_2);
-        let instance = match unsafe { entry.create_instance(&vk::InstanceCreateInfo::default().application_info(&app), None) } {
-            Ok(i) => i,
-            Err(vk::Result::ERROR_INCOMPATIBLE_DRIVER) => return Err(GpuError::NoDevice { seen: String::new() }),
-            Err(result) => return Err(GpuError::Vulkan { call: "vkCreateInstance", result }),
-        };
+        let instance = create_instance(&entry)?;
         // From here on a failure must destroy the instance.
         match Self::open(entry, instance, options, kernels) {
             Ok(ctx) => Ok(ctx),
@@ -148,6 +154,20 @@ impl GpuContext {
                 Err(e)
             }
         }
+    }
+
+    /// The device [`GpuContext::new`] would open with `options`, as (name, type: "discrete
+    /// GPU", "integrated GPU", "virtual GPU", "CPU" or "other"), found without creating it or
+    /// allocating anything: a caller that would not use a CPU device asks before paying for
+    /// (or failing on) the arena.
+    pub fn probe(options: &GpuOptions) -> Result<(String, &'static str), GpuError> {
+        let entry = loader()?.clone();
+        let _lifecycle = lifecycle_lock();
+        let instance = create_instance(&entry)?;
+        let wanted = options.device.clone().or_else(|| std::env::var(DEVICE_ENV).ok().filter(|s| !s.trim().is_empty()));
+        let picked = Self::pick(&instance, wanted.as_deref()).map(|c| (c.name, c.device_type));
+        unsafe { instance.destroy_instance(None) };
+        picked
     }
 
     pub(super) fn pick(instance: &ash::Instance, wanted: Option<&str>) -> Result<Candidate, GpuError> {
@@ -195,6 +215,7 @@ impl GpuContext {
                     physical,
                     name,
                     rank: type_rank(props.device_type),
+                    device_type: type_name(props.device_type),
                     queue_family: qf as u32,
                     timestamp_bits: f.timestamp_valid_bits,
                     float_atomics,
