@@ -88,7 +88,8 @@ pub struct RunArgs {
     /// stdout (the crash harness reads them).
     #[arg(long, hide = true)]
     announce: bool,
-    /// Track only: no map, no map exports.
+    /// Track only: no map, no map exports, no map report. With a map, a finished run scores it
+    /// on up to 8 frames between keyframes (one render each) into DIR/map/report.{json,md}.
     #[arg(long)]
     pub no_map: bool,
     /// Ignore the source's navigation sensors: outputs in map units, as a camera alone gives.

@@ -342,6 +342,18 @@ mod tests {
     use super::*;
 
     #[test]
+    fn panels_are_labelled_above_the_images() {
+        let row = ImageRgb8 { width: 2 * 100, height: 10, data: vec![40; 2 * 100 * 10 * 3] };
+        let out = with_labels(&row, 100, &["input", "restored"]);
+        assert_eq!((out.width, out.height), (200, 10 + 11));
+        assert_eq!(&out.data[11 * 200 * 3..], &row.data[..], "the images are kept below the strip");
+        let white_in = |x0: usize, x1: usize| (0..11).flat_map(|y| (x0..x1).map(move |x| (y, x))).filter(|&(y, x)| out.data[(y * 200 + x) * 3] == 255).count();
+        // "input": i n p u t; "restored": 8 glyphs; every glyph has set pixels; none past a part.
+        assert!(white_in(0, 100) > 5 * 8 && white_in(100, 200) > 8 * 8, "{} {}", white_in(0, 100), white_in(100, 200));
+        assert_eq!(white_in(2 + 5 * 6, 100), 0, "nothing after the fifth letter of the first label");
+    }
+
+    #[test]
     fn history_stays_within_its_capacity() {
         let cap = MapperCapacity { max_gaussians: 10, max_keyframes: 1, width: 8, height: 8 };
         let mut s = MappingStage::new(MapperConfig::default(), cap, MappingBudget::default()).unwrap();
