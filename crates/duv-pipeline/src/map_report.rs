@@ -123,7 +123,7 @@ pub fn map_quality(mapper: &Mapper, per_view: Vec<MapViewScore>, metric: Option<
     MapQuality {
         selection: format!(
             "Up to {MAX_SCORED_VIEWS} frames halfway between consecutive keyframes (never optimised on), evenly over the dive, each rendered from its tracked pose; \
-             restored: the captured frame with the map's range and medium inverted (transmission gain at most x{:.1}, towards the captured colour where the map's coverage or depth is uncertain)",
+             restored: the captured frame with the map's range and medium inverted (transmission gain at most x{:.0}), fused per channel with the map's albedo by their variances, the captured colour where the map does not cover the pixel",
             RestoreConfig::default().max_gain
         ),
         views: per_view.len(),
