@@ -25,7 +25,7 @@ struct Cli {
 enum Command {
     /// Generate a short underwater sequence, run the pipeline on it, print the metrics table.
     Demo(cli::demo::DemoArgs),
-    /// Track a dataset or a generated sequence: trajectory, keyframe depth and variance, eval report.
+    /// Track a dataset or a generated sequence: trajectory, keyframe depth and variance, map and map report, eval report.
     Run(cli::run::RunArgs),
     /// Generate an underwater sequence with exact ground truth (TUM RGB-D layout).
     Sim(cli::sim::SimArgs),

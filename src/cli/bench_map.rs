@@ -27,14 +27,16 @@ use std::time::Instant;
 use anyhow::Context;
 use duv_core::MediumParams;
 use duv_eval::image::{psnr, ssim, SsimConvention};
-use duv_core::io::png_io::write_rgb8;
 use duv_core::io::write_atomic;
 use duv_map::GpuOptions;
 use duv_map::backend::MapperDevice;
 use duv_map::mapper::{Mapper, MapperCapacity, MapperConfig};
 use duv_map::pose_refine::PoseRefineConfig;
 use duv_map::render::DepthMode;
-use duv_map::stage::render_panel;
+use duv_eval::map_quality::{summarise_restored, RestoredSummary};
+use duv_map::render::MediumPlanes;
+use duv_map::restore::{restore_captured, RestoreConfig};
+use duv_pipeline::map_report::{score_views, ScoreView};
 use duv_sim::keyframes::sim_keyframes;
 use duv_sim::keyframes::SimKeyframe;
 use duv_sim::{SimConfig, SimFrame, SimRenderer, TrajectoryKind, WaterPreset};
@@ -284,6 +286,12 @@ struct RunResult {
     mean_psnr_db: f64,
     mean_ssim: f64,
     mean_restored_psnr_db: f64,
+    /// The keyframes' restored views against the water-free truth, with the captured frames'
+    /// own scores, the map albedo's and the mean colour error per channel.
+    keyframes_restored: Option<RestoredSummary>,
+    /// The keyframes restored with the generator's medium instead of the map's (same range):
+    /// the gap to `mean_restored_psnr_db` is what the medium estimate costs.
+    restored_true_medium_psnr_db: f64,
     /// The keyframes' rendered depth against the true depth.
     depth: DepthScore,
     /// The same scores on the frames halfway between consecutive keyframes, which the map
@@ -361,6 +369,7 @@ struct HeldOut {
     mean_psnr_db: f64,
     mean_ssim: f64,
     mean_restored_psnr_db: f64,
+    restored: Option<RestoredSummary>,
 }
 
 /// The generated frames halfway between consecutive keyframes that are at least two frames
@@ -386,18 +395,19 @@ fn heldout_frames(renderer: &SimRenderer, kfs: &[SimKeyframe], tracked_poses: Op
 }
 
 /// Mean PSNR/SSIM of the renders from each view's pose against its image, and of the
-/// restored render against its water-free image; `None` without views.
-fn score_views(mapper: &mut Mapper, camera: &duv_core::PinholeCamera, views: &[(SimFrame, Se3)]) -> anyhow::Result<Option<HeldOut>> {
-    let (mut p, mut s, mut r) = (0.0, 0.0, 0.0);
-    for (f, pose) in views {
-        let out = mapper.render(camera, pose)?;
-        let image = f.rgb.to_rgb_f32();
-        p += psnr(&out.colour, &image)?;
-        s += ssim(&out.colour, &image, SsimConvention::Skimage)?;
-        r += psnr(&out.restored, &f.clear.to_rgb_f32())?;
-    }
-    let n = views.len() as f64;
-    Ok((!views.is_empty()).then_some(HeldOut { views: views.len(), mean_psnr_db: p / n, mean_ssim: s / n, mean_restored_psnr_db: r / n }))
+/// restored view against its water-free image (the run's [`score_views`]); `None` without views.
+fn score_bench_views(mapper: &mut Mapper, camera: &duv_core::PinholeCamera, views: &[(SimFrame, Se3)], restore: &RestoreConfig) -> anyhow::Result<Option<HeldOut>> {
+    let views: Vec<ScoreView> = views.iter().enumerate().map(|(i, (f, pose))| ScoreView { seq: i as u64, world_from_cam: *pose, captured: f.rgb.clone(), clear: Some(f.clear.clone()) }).collect();
+    let scores = score_views(mapper, camera, &views, restore, None)?;
+    let n = scores.len() as f64;
+    let restored = summarise_restored(&scores);
+    Ok((!scores.is_empty()).then(|| HeldOut {
+        views: scores.len(),
+        mean_psnr_db: scores.iter().map(|v| v.psnr_db).sum::<f64>() / n,
+        mean_ssim: scores.iter().map(|v| v.ssim).sum::<f64>() / n,
+        mean_restored_psnr_db: restored.map_or(f64::NAN, |r| r.psnr_mean_db),
+        restored,
+    }))
 }
 
 const VARIANTS: [&str; 5] = ["full", "no_medium", "one_coefficient", "no_mahalanobis", "no_kl"];
@@ -566,9 +576,13 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             let ms_per_iteration = start.elapsed().as_secs_f64() * 1e3 / mapper.iteration().max(1) as f64;
             let dir = a.out.join(format!("{}-{variant}", water_name(water)));
             std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-            let (mut p_sum, mut s_sum, mut r_sum) = (0.0, 0.0, 0.0);
+            let (mut p_sum, mut s_sum, mut t_sum) = (0.0, 0.0, 0.0);
             let (mut depth_errs, mut covered, mut with_truth) = (Vec::new(), 0, 0);
             let depth_mode = mapper.config().render.depth_mode;
+            let restore = RestoreConfig::default();
+            let cam = kfs[0].keyframe.camera;
+            let truth_planes = MediumPlanes::uniform(cam.width, cam.height, truth.b_inf.map(|v| v as f32), truth.beta_d.map(|v| v as f32), truth.beta_b.map(|v| v as f32));
+            let mut with_truth_medium = duv_core::ImageRgbF32::new(cam.width, cam.height);
             for (slot, s) in kfs.iter().enumerate() {
                 let out = mapper.render_keyframe(slot)?;
                 let (c, t) = depth_errors(&out.depth, &out.alpha, &true_depth[slot], depth_mode, &mut depth_errs);
@@ -576,12 +590,17 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 let input = s.keyframe.image.to_rgb_f32();
                 p_sum += psnr(&out.colour, &input)?;
                 s_sum += ssim(&out.colour, &input, SsimConvention::Skimage)?;
-                r_sum += psnr(&out.restored, &s.clear.to_rgb_f32())?;
-                write_rgb8(&dir.join(format!("{:06}.png", s.keyframe.index)), &render_panel(&s.keyframe.image, out))?;
+                // The same restoration with the generator's medium: what the medium estimate costs.
+                restore_captured(&input, out, &truth_planes, &cam, depth_mode, &restore, &mut with_truth_medium)?;
+                t_sum += psnr(&with_truth_medium, &s.clear.to_rgb_f32())?;
             }
             let n = kfs.len() as f64;
-            let heldout_metrics = score_views(&mut mapper, &kfs[0].keyframe.camera, &heldout)?;
-            let novel_metrics = score_views(&mut mapper, &kfs[0].keyframe.camera, &novel)?;
+            // The restored view (and the render panels) through the run's own scoring.
+            let kf_views: Vec<ScoreView> = kfs.iter().map(|s| ScoreView { seq: s.keyframe.index, world_from_cam: s.keyframe.world_from_cam, captured: s.keyframe.image.clone(), clear: Some(s.clear.clone()) }).collect();
+            let kf_scores = score_views(&mut mapper, &cam, &kf_views, &restore, Some(&dir))?;
+            let keyframes_restored = summarise_restored(&kf_scores);
+            let heldout_metrics = score_bench_views(&mut mapper, &cam, &heldout, &restore)?;
+            let novel_metrics = score_bench_views(&mut mapper, &cam, &novel, &restore)?;
             let medium = mapper.medium_summary(&kfs[0].keyframe.world_from_cam);
             let r = RunResult {
                 water: water_name(water).into(),
@@ -592,7 +611,9 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
                 iterations: mapper.iteration(),
                 mean_psnr_db: p_sum / n,
                 mean_ssim: s_sum / n,
-                mean_restored_psnr_db: r_sum / n,
+                mean_restored_psnr_db: keyframes_restored.map_or(f64::NAN, |r| r.psnr_mean_db),
+                keyframes_restored,
+                restored_true_medium_psnr_db: t_sum / n,
                 depth: depth_score(&mut depth_errs, covered, with_truth),
                 heldout: heldout_metrics,
                 novel_altitude: novel_metrics.map(|m| (a.novel_altitude_m.unwrap_or(f64::NAN), m)),
@@ -636,6 +657,18 @@ pub fn run(a: BenchMapArgs) -> anyhow::Result<()> {
             if let Some(h) = &r.heldout {
                 println!("{:8} {:16} held-out views ({}): PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB", r.water, r.variant, h.views, h.mean_psnr_db, h.mean_ssim, h.mean_restored_psnr_db);
             }
+            let rs = |what: &str, x: &Option<RestoredSummary>| {
+                if let Some(x) = x {
+                    println!(
+                        "{:8} {:16} {what} vs water-free truth: restored {:6.2} dB (err RGB {:+.3} {:+.3} {:+.3}), captured {:6.2} dB (err {:+.3} {:+.3} {:+.3}), map albedo {:6.2} dB (err {:+.3} {:+.3} {:+.3}); {} of {} worse than captured",
+                        r.water, r.variant, x.psnr_mean_db, x.mean_error_rgb[0], x.mean_error_rgb[1], x.mean_error_rgb[2], x.captured_psnr_mean_db, x.captured_mean_error_rgb[0], x.captured_mean_error_rgb[1], x.captured_mean_error_rgb[2],
+                        x.albedo_psnr_mean_db, x.albedo_mean_error_rgb[0], x.albedo_mean_error_rgb[1], x.albedo_mean_error_rgb[2], x.worse_than_captured, x.views
+                    );
+                }
+            };
+            rs("keyframes", &r.keyframes_restored);
+            rs("held-out", &r.heldout.and_then(|h| h.restored));
+            println!("{:8} {:16} keyframes restored with the generator's medium: {:6.2} dB", r.water, r.variant, r.restored_true_medium_psnr_db);
             if let Some((alt, h)) = &r.novel_altitude {
                 println!("{:8} {:16} views from {alt} m ({}): PSNR {:6.2} dB  SSIM {:.4}  restored PSNR {:6.2} dB", r.water, r.variant, h.views, h.mean_psnr_db, h.mean_ssim, h.mean_restored_psnr_db);
             }

@@ -375,15 +375,18 @@ pub fn run(a: RefineArgs) -> anyhow::Result<()> {
     for slot in 0..mapper.keyframe_count() {
         let kf = mapper.keyframe(slot).context("keyframe")?.clone();
         let clear_img = keyframes.iter().position(|k| k.index == kf.index).and_then(|i| clear[i].clone());
-        let out = mapper.render_keyframe(slot)?;
+        mapper.render_keyframe(slot)?;
         let input = kf.image.to_rgb_f32();
+        let mut restored = duv_core::ImageRgbF32::new(kf.camera.width, kf.camera.height);
+        mapper.restore_last(&input, &kf.camera, &duv_map::restore::RestoreConfig::default(), &mut restored)?;
+        let out = mapper.last_render();
         let p = psnr(&out.colour, &input)?;
         let s = ssim(&out.colour, &input, SsimConvention::Skimage)?;
         let restored_psnr = match &clear_img {
-            Some(c) => Some(psnr(&out.restored, &c.to_rgb_f32())?),
+            Some(c) => Some(psnr(&restored, &c.to_rgb_f32())?),
             None => None,
         };
-        let panel = render_panel(&kf.image, out);
+        let panel = render_panel(&kf.image, out, &restored);
         write_rgb8(&a.out.join("renders").join(format!("{:06}.png", kf.index)), &panel)?;
         let input_pose = input_poses.iter().find(|(i, _)| *i == kf.index).map_or(kf.world_from_cam, |p| p.1);
         let (pose_shift_m, pose_shift_deg) = pose_difference(&input_pose, &kf.world_from_cam);

@@ -88,7 +88,8 @@ pub struct RunArgs {
     /// stdout (the crash harness reads them).
     #[arg(long, hide = true)]
     announce: bool,
-    /// Track only: no map, no map exports.
+    /// Track only: no map, no map exports, no map report. With a map, a finished run scores it
+    /// on up to 8 frames between keyframes (one render each) into DIR/map/report.{json,md}.
     #[arg(long)]
     pub no_map: bool,
     /// Ignore the source's navigation sensors: outputs in map units, as a camera alone gives.
@@ -208,7 +209,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         Err(e) => return Err(e.into()),
     };
     // Held until the evaluation report is written.
-    let WrittenDive { folder_lock: _lock, source, tracker, outputs: written, record, part, frames_tracked: frames_done, track_times: latencies, interrupted, stop, log_error } = *dive;
+    let WrittenDive { folder_lock: _lock, source, tracker, outputs: written, record, part, frames_tracked: frames_done, track_times: latencies, interrupted, stop, log_error, map_quality } = *dive;
     let in_world = written.segments.iter().find(|s| s.0 == 0).map_or(0, |s| s.1);
     let others: Vec<String> = written.segments.iter().filter(|s| s.0 != 0).map(|(s, n)| format!("{n} in trajectory-segment-{s}.txt")).collect();
     println!(
@@ -285,7 +286,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     // Evaluation against ground truth. A trajectory too short to align (a run stopped during
     // initialisation) is reported, not a failed run: its outputs are all written by now.
     if let Some(gt) = source.ground_truth() {
-        if let Err(e) = evaluate(&args, &source, &tracker, &gt, &written.trajectory, &written.live) {
+        if let Err(e) = evaluate(&args, &source, &tracker, &gt, &written.trajectory, &written.live, map_quality.as_ref()) {
             eprintln!("evaluation skipped: {e:#}");
         }
     }
@@ -299,7 +300,7 @@ fn stopped_by(stop: &Stop, what: &str) -> super::Exit {
 
 /// The eval report of a finished run against the source's ground truth (ATE, AUSE of the
 /// keyframes whose true depth the source has), printed and written to `OUT/eval`.
-fn evaluate(args: &RunArgs, source: &Source, tracker: &Tracker, gt: &[StampedPose], frames: &[StampedPose], live: &[(u64, u64)]) -> anyhow::Result<()> {
+fn evaluate(args: &RunArgs, source: &Source, tracker: &Tracker, gt: &[StampedPose], frames: &[StampedPose], live: &[(u64, u64)], map: Option<&duv_eval::MapQuality>) -> anyhow::Result<()> {
     {
         let camera = source.camera();
         let (mut inv, mut var) = (PlaneF32::new(camera.width, camera.height), PlaneF32::new(camera.width, camera.height));
@@ -339,11 +340,19 @@ fn evaluate(args: &RunArgs, source: &Source, tracker: &Tracker, gt: &[StampedPos
                 ause.push(AuseInput { name: format!("keyframe {id:06}"), errors, uncertainties });
             }
         }
-        let evaluation = if ause.is_empty() {
+        let mut evaluation = if ause.is_empty() {
             first
         } else {
             build_report(&EvalInputs { ause: &ause, ause_source: Some("keyframe inverse depth vs ground truth, variance as uncertainty".into()), ..base })?
         };
+        if let Some(m) = map {
+            // The map's renders of the frames between keyframes are the report's images; its
+            // panels lie in the run folder, one up from `eval/`.
+            let report = &mut evaluation.report;
+            report.images = duv_eval::map_quality::image_report(m, camera.width, camera.height);
+            report.inputs.images = Some(format!("the map rendered at {} frames between keyframes (tracked poses) vs those frames, ../map/report.json", m.views));
+            report.map = Some(duv_eval::MapQuality { panels: m.panels.iter().map(|p| format!("../{p}")).collect(), ..m.clone() });
+        }
         let eval_dir = args.out.join("eval");
         write_report(&evaluation, &eval_dir).with_context(|| format!("writing the report to {}", eval_dir.display()))?;
         print!("{}", evaluation.report.metrics_table());

@@ -380,7 +380,7 @@ fn mapping_stage_spends_its_budget_and_exports() {
     assert_eq!(restored.mapper().gaussians().len(), ply.len());
     for k in &kfs {
         let panel = duv_core::io::png_io::read_image(&dir.path().join("renders").join(format!("{:06}.png", k.keyframe.index))).unwrap();
-        assert_eq!((panel.width(), panel.height()), (5 * 64, 48));
+        assert_eq!((panel.width(), panel.height()), (5 * 64, 11 + 48), "five labelled parts");
     }
 }
 

@@ -84,7 +84,29 @@ fn run_on_a_tiny_sim_source_writes_every_output() {
     assert_eq!(renders.len(), restored.keyframe_count());
     assert!(renders.len() >= 6, "{} render panels", renders.len());
     let panel = read_image(&renders[0]).unwrap();
-    assert_eq!((panel.width(), panel.height()), (5 * 160, 120), "input | render | restored | depth | uncertainty");
+    assert_eq!((panel.width(), panel.height()), (5 * 160, 11 + 120), "input | render | restored | depth | uncertainty, under a label strip");
+
+    // The map report: frames between keyframes, the restored view against the generator's
+    // water-free view, the medium with its unit, a labelled panel per frame; the evaluation
+    // report carries it and its image scores.
+    let q: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("map/report.json")).unwrap()).unwrap();
+    let views = q["views"].as_u64().unwrap();
+    assert!((1..=8).contains(&views), "{q}");
+    assert!(q["psnr_mean_db"].as_f64().unwrap() > 20.0, "{q}");
+    assert!(q["coverage"].as_f64().unwrap() > 0.5, "{q}");
+    assert_eq!(q["medium_unit"], "1/map unit");
+    assert!(q["lpips_mean"].is_null() && q["lpips_missing"].is_string());
+    let r = &q["restored"];
+    assert!(r["psnr_mean_db"].as_f64().unwrap() > r["captured_psnr_mean_db"].as_f64().unwrap(), "restoring made it worse: {r}");
+    for v in q["per_view"].as_array().unwrap() {
+        let seq = v["seq"].as_u64().unwrap();
+        let p = read_image(&out.join(format!("map/{seq:06}.png"))).unwrap();
+        assert_eq!((p.width(), p.height()), (5 * 160, 11 + 120));
+    }
+    assert!(std::fs::read_to_string(out.join("map/report.md")).unwrap().contains("restored vs water-free truth"));
+    assert_eq!(report["images"]["pairs"].as_u64(), Some(views), "{}", report["images"]);
+    assert_eq!(report["map"]["views"].as_u64(), Some(views));
+    assert!(stdout.contains("map on ") && stdout.contains("restored vs water-free truth"), "{stdout}");
 
     // The log's map checkpoints refer to the keyframes' own log messages instead of embedding
     // their pixels; with the log's keyframes the newest one restores the same map as the

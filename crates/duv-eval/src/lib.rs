@@ -2,7 +2,7 @@
 //! trajectory association, Umeyama alignment, ATE and RPE as evo computes them
 //! ([`sync`], [`align`], [`trajectory`]); PSNR and SSIM as scikit-image (or the 3DGS papers)
 //! compute them ([`image`]); the sparsification error of depth uncertainty ([`ause`]);
-//! and the report with its figures ([`report`]; the figures, drawn with `plotters`, only with
+//! the map's figures of a run ([`map_quality`]); and the report with its figures ([`report`]; the figures, drawn with `plotters`, only with
 //! the `figures` feature, in `plot`).
 //!
 //! Everything takes in-memory data; only [`report::write_report`] and the `duv eval`
@@ -12,6 +12,7 @@ pub mod align;
 pub mod ause;
 pub mod image;
 pub mod load;
+pub mod map_quality;
 #[cfg(feature = "figures")]
 pub mod plot;
 pub mod report;
@@ -23,6 +24,7 @@ pub use align::{umeyama, Alignment, AlignmentSummary};
 pub use ause::{ause, AuseOptions, AuseResult};
 pub use image::{psnr, ssim, SsimConvention};
 pub use report::{build_report, write_report, AuseInput, EvalImage, EvalInputs, EvalOptions, Evaluation, ImagePair, Report};
+pub use map_quality::{MapQuality, MapViewScore, RestoredScore, RestoredSummary};
 pub use stats::ErrorStats;
 pub use sync::{associate, DEFAULT_MAX_DT_NS};
 pub use trajectory::{ate, evaluate_trajectory, rpe, AteResult, RpeResult, TrajectoryOptions};

@@ -211,6 +211,9 @@ pub struct Report {
     pub trajectory: TrajectoryReport,
     pub images: Option<ImageReport>,
     pub ause: Option<AuseReport>,
+    /// The map's figures (held-out views, restored view, medium, size) where the run mapped.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub map: Option<super::map_quality::MapQuality>,
     /// Figure files written beside the report.
     pub figures: Vec<String>,
     /// Why no figures were drawn, where none were: a build without the `figures` feature.
@@ -306,6 +309,7 @@ pub fn build_report(inputs: &EvalInputs) -> Result<Evaluation, EvalError> {
         trajectory: trajectory.report.clone(),
         images,
         ause: ause_report,
+        map: None,
         figures,
         figures_not_drawn,
     };
@@ -404,6 +408,9 @@ impl Report {
             for k in &u.per_keyframe {
                 let _ = writeln!(s, "| {} | {} | {} | {} | {} |", k.name, k.pixels, fmt_num(k.mae, 4), fmt_num(k.ause, 4), fmt_num(k.ause_random, 4));
             }
+        }
+        if let Some(m) = &self.map {
+            s.push_str(&m.markdown());
         }
         s.push_str("\n## Figures\n\n");
         for f in &self.figures {

@@ -8,7 +8,7 @@
 //! renderer with the medium (Eq. 6-9, 11), forward and backward; [`medium`] the medium network
 //! (Eq. 10); [`loss`] the mapping losses and their gradients (Eq. 12-14); [`adam`] the
 //! optimiser; [`mapper`] the mapping stage that ties them together ([`densify`] and
-//! [`schedule`] are its density control and keyframe schedule); [`stage`] is what the pipeline
+//! [`schedule`] are its density control and keyframe schedule); [`restore`] the water-free view of a captured frame; [`stage`] is what the pipeline
 //! drives: keyframes in with a per-keyframe budget, and the exports. [`real`] makes the medium and losses generic over `f32` (runtime) and `f64`
 //! (finite-difference gradient checks).
 
@@ -25,6 +25,7 @@ pub mod ply;
 pub mod pose_refine;
 pub mod real;
 pub mod render;
+pub mod restore;
 pub mod schedule;
 pub mod stage;
 pub mod vulkan;

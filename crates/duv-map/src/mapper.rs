@@ -768,6 +768,24 @@ impl Mapper {
         Ok(&self.view.out)
     }
 
+    /// The output of the last [`Mapper::render`] (or keyframe render).
+    pub fn last_render(&self) -> &RenderOutput {
+        &self.view.out
+    }
+
+    /// The medium field's per-pixel parameters of the last [`Mapper::render`] (or keyframe
+    /// render), for [`crate::restore::restore_captured`].
+    pub fn view_medium(&self) -> &MediumPlanes {
+        &self.view.planes
+    }
+
+    /// The water-free view of `captured`, seen from the pose of the last [`Mapper::render`]
+    /// (or keyframe render), with that render's range and medium
+    /// ([`crate::restore::restore_captured`]), into `dst`.
+    pub fn restore_last(&self, captured: &ImageRgbF32, camera: &PinholeCamera, cfg: &crate::restore::RestoreConfig, dst: &mut ImageRgbF32) -> Result<crate::restore::RestoreStats, crate::restore::RestoreError> {
+        crate::restore::restore_captured(captured, &self.view.out, &self.view.planes, camera, self.config.render.depth_mode, cfg, dst)
+    }
+
     /// Renders keyframe `slot` (oldest first).
     pub fn render_keyframe(&mut self, slot: usize) -> Result<&RenderOutput, MapperError> {
         let (camera, pose) = match self.keyframes.get(slot) {

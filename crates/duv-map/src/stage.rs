@@ -13,7 +13,8 @@
 //! * [`MappingStage::export`] writes `map.ply` (3DGS layout), `map.ckpt` (the full mapper
 //!   checkpoint), `medium.json` (the medium along the newest keyframe's optical axis, the
 //!   generator's keys `beta_D`, `beta_B`, `B_inf`) and `renders/NNNNNN.png`, one panel per
-//!   stored keyframe: input | render | restored | depth | uncertainty.
+//!   stored keyframe: input | render | restored | depth | uncertainty, labelled (the restored
+//!   view is the keyframe's image restored with the map's range and medium, [`crate::restore`]).
 //!
 //! Every buffer is sized by [`MapperCapacity`], which [`MapperCapacity::from_board`] takes from
 //! the board (`max_gaussians`, `max_keyframes`) and the camera.
@@ -28,7 +29,7 @@ use super::mapper::{IterationReport, Mapper, MapperCapacity, MapperConfig, Mappe
 use super::ply::write_ply_in;
 use super::render::RenderOutput;
 use duv_core::config::Board;
-use duv_core::{ImageRgb8, Keyframe, MediumParams, PlaneF32, Se3};
+use duv_core::{ImageRgb8, ImageRgbF32, Keyframe, MediumParams, PlaneF32, Se3};
 use duv_core::io::png_io::write_rgb8;
 use duv_core::io::{write_atomic, IoError};
 
@@ -45,6 +46,8 @@ pub enum StageError {
     CreateDir { path: String, source: std::io::Error },
     #[error("medium.json: {0}")]
     Json(String),
+    #[error(transparent)]
+    Restore(#[from] crate::restore::RestoreError),
     #[error("mapping budget: {field} = {value} {why}")]
     InvalidBudget { field: &'static str, value: f64, why: &'static str },
 }
@@ -93,6 +96,8 @@ pub struct MappingStage {
     /// (iteration, Gaussians) after every keyframe and every `optimise` call, capacity fixed.
     history: Vec<(u64, usize)>,
     history_cap: usize,
+    /// How the restored panels of `renders/` trust the map.
+    restore: crate::restore::RestoreConfig,
 }
 
 impl MappingStage {
@@ -105,14 +110,14 @@ impl MappingStage {
         // One entry per keyframe and per optimise call: 4 per keyframe of capacity is plenty;
         // past it the history keeps every other entry.
         let history_cap = 4 * capacity.max_keyframes.max(16);
-        Ok(MappingStage { mapper, budget, history: Vec::with_capacity(history_cap), history_cap })
+        Ok(MappingStage { mapper, budget, history: Vec::with_capacity(history_cap), history_cap, restore: crate::restore::RestoreConfig::default() })
     }
 
     /// A stage restored from a map checkpoint (`map.ckpt`).
     pub fn from_checkpoint(path: &Path, budget: MappingBudget) -> Result<Self, StageError> {
         let mapper = Mapper::load_checkpoint(path)?;
         let history_cap = 4 * mapper.capacity().max_keyframes.max(16);
-        Ok(MappingStage { mapper, budget, history: Vec::with_capacity(history_cap), history_cap })
+        Ok(MappingStage { mapper, budget, history: Vec::with_capacity(history_cap), history_cap, restore: crate::restore::RestoreConfig::default() })
     }
 
     pub fn mapper(&self) -> &Mapper {
@@ -120,6 +125,10 @@ impl MappingStage {
     }
     pub fn mapper_mut(&mut self) -> &mut Mapper {
         &mut self.mapper
+    }
+    /// The restoration of the `renders/` panels (and of the run's map report).
+    pub fn restore_config(&self) -> crate::restore::RestoreConfig {
+        self.restore
     }
     pub fn budget(&self) -> MappingBudget {
         self.budget
@@ -219,11 +228,15 @@ impl MappingStage {
         }
         let renders = dir.join("renders");
         std::fs::create_dir_all(&renders).map_err(|source| StageError::CreateDir { path: renders.display().to_string(), source })?;
+        let cap = self.mapper.capacity();
+        let mut restored = ImageRgbF32::new(cap.width, cap.height);
         for slot in 0..self.mapper.keyframe_count() {
             let Some(kf) = self.mapper.keyframe(slot) else { continue };
-            let (index, image) = (kf.index, kf.image.clone());
-            let out = self.mapper.render_keyframe(slot)?;
-            write_rgb8(&renders.join(format!("{index:06}.png")), &render_panel(&image, out))?;
+            let (index, image, camera) = (kf.index, kf.image.clone(), kf.camera);
+            let captured = image.to_rgb_f32();
+            self.mapper.render_keyframe(slot)?;
+            self.mapper.restore_last(&captured, &camera, &self.restore, &mut restored)?;
+            write_rgb8(&renders.join(format!("{index:06}.png")), &render_panel(&image, self.mapper.last_render(), &restored))?;
         }
         Ok(())
     }
@@ -261,17 +274,84 @@ pub fn hconcat(panels: &[&ImageRgb8]) -> ImageRgb8 {
     out
 }
 
-/// The render panel of a keyframe: input | render | restored | depth | uncertainty (the
-/// rendered depth's standard deviation), depth and uncertainty scaled to their range where
-/// the map covers the pixel.
-pub fn render_panel(input: &ImageRgb8, out: &RenderOutput) -> ImageRgb8 {
+/// The labels over the five parts of a [`render_panel`].
+pub const PANEL_LABELS: [&str; 5] = ["input", "render", "restored", "depth", "uncertainty"];
+
+/// The render panel of a view: input | render | restored | depth | uncertainty (the rendered
+/// depth's standard deviation), each labelled above ([`PANEL_LABELS`]); depth and uncertainty
+/// scaled to their range where the map covers the pixel. `restored` is the water-free view
+/// (`Mapper::restore_last`).
+pub fn render_panel(input: &ImageRgb8, out: &RenderOutput, restored: &ImageRgbF32) -> ImageRgb8 {
     let std = PlaneF32 { width: out.depth_var.width, height: out.depth_var.height, data: out.depth_var.data.iter().map(|v| v.max(0.0).sqrt()).collect() };
-    hconcat(&[input, &out.colour.to_rgb8(), &out.restored.to_rgb8(), &gray_panel(&out.depth, &out.alpha), &gray_panel(&std, &out.alpha)])
+    let row = hconcat(&[input, &out.colour.to_rgb8(), &restored.to_rgb8(), &gray_panel(&out.depth, &out.alpha), &gray_panel(&std, &out.alpha)]);
+    with_labels(&row, input.width, &PANEL_LABELS)
+}
+
+/// 5x7 glyphs of the letters the panel labels use (rows top to bottom, bit 4 the left column).
+const GLYPHS: [(char, [u8; 7]); 14] = [
+    ('a', [0b00000, 0b00000, 0b01110, 0b00001, 0b01111, 0b10001, 0b01111]),
+    ('c', [0b00000, 0b00000, 0b01110, 0b10000, 0b10000, 0b10001, 0b01110]),
+    ('d', [0b00001, 0b00001, 0b01101, 0b10011, 0b10001, 0b10011, 0b01101]),
+    ('e', [0b00000, 0b00000, 0b01110, 0b10001, 0b11111, 0b10000, 0b01110]),
+    ('h', [0b10000, 0b10000, 0b10110, 0b11001, 0b10001, 0b10001, 0b10001]),
+    ('i', [0b00100, 0b00000, 0b01100, 0b00100, 0b00100, 0b00100, 0b01110]),
+    ('n', [0b00000, 0b00000, 0b10110, 0b11001, 0b10001, 0b10001, 0b10001]),
+    ('o', [0b00000, 0b00000, 0b01110, 0b10001, 0b10001, 0b10001, 0b01110]),
+    ('p', [0b00000, 0b00000, 0b11110, 0b10001, 0b11110, 0b10000, 0b10000]),
+    ('r', [0b00000, 0b00000, 0b10110, 0b11001, 0b10000, 0b10000, 0b10000]),
+    ('s', [0b00000, 0b00000, 0b01111, 0b10000, 0b01110, 0b00001, 0b11110]),
+    ('t', [0b01000, 0b01000, 0b11100, 0b01000, 0b01000, 0b01001, 0b00110]),
+    ('u', [0b00000, 0b00000, 0b10001, 0b10001, 0b10001, 0b10011, 0b01101]),
+    ('y', [0b00000, 0b00000, 0b10001, 0b10001, 0b01111, 0b00001, 0b01110]),
+];
+
+/// `row` (parts `part_width` wide) under a black strip with `labels[k]` in white over part `k`
+/// (glyphs scaled by 2 where a part is at least 240 pixels wide; letters without a glyph are
+/// left blank).
+pub fn with_labels(row: &ImageRgb8, part_width: usize, labels: &[&str]) -> ImageRgb8 {
+    let scale = if part_width >= 240 { 2 } else { 1 };
+    let strip = 7 * scale + 4;
+    let mut out = ImageRgb8::new(row.width, row.height + strip);
+    out.data[strip * row.width * 3..].copy_from_slice(&row.data);
+    for (k, label) in labels.iter().enumerate() {
+        let mut x0 = k * part_width + 2;
+        for ch in label.chars() {
+            if let Some((_, rows)) = GLYPHS.iter().find(|g| g.0 == ch) {
+                for (gy, bits) in rows.iter().enumerate() {
+                    for gx in 0..5 {
+                        if bits & (0b10000 >> gx) == 0 {
+                            continue;
+                        }
+                        for (sy, sx) in (0..scale).flat_map(|a| (0..scale).map(move |b| (a, b))) {
+                            let (x, y) = (x0 + gx * scale + sx, 2 + gy * scale + sy);
+                            if x < (k + 1) * part_width && x < out.width {
+                                out.data[(y * out.width + x) * 3..][..3].fill(255);
+                            }
+                        }
+                    }
+                }
+            }
+            x0 += 6 * scale;
+        }
+    }
+    out
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn panels_are_labelled_above_the_images() {
+        let row = ImageRgb8 { width: 2 * 100, height: 10, data: vec![40; 2 * 100 * 10 * 3] };
+        let out = with_labels(&row, 100, &["input", "restored"]);
+        assert_eq!((out.width, out.height), (200, 10 + 11));
+        assert_eq!(&out.data[11 * 200 * 3..], &row.data[..], "the images are kept below the strip");
+        let white_in = |x0: usize, x1: usize| (0..11).flat_map(|y| (x0..x1).map(move |x| (y, x))).filter(|&(y, x)| out.data[(y * 200 + x) * 3] == 255).count();
+        // "input": i n p u t; "restored": 8 glyphs; every glyph has set pixels; none past a part.
+        assert!(white_in(0, 100) > 5 * 8 && white_in(100, 200) > 8 * 8, "{} {}", white_in(0, 100), white_in(100, 200));
+        assert_eq!(white_in(2 + 5 * 6, 100), 0, "nothing after the fifth letter of the first label");
+    }
 
     #[test]
     fn history_stays_within_its_capacity() {

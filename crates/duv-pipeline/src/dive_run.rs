@@ -254,6 +254,10 @@ pub enum Progress<'a> {
     MapExported { summary: &'a str },
     /// The map export failed.
     MapNotExported { error: &'a MapStageError },
+    /// The map's figures on frames between keyframes ([`super::map_report`]).
+    MapScored { summary: &'a str },
+    /// Scoring the map failed.
+    MapNotScored { error: &'a super::map_report::MapReportError },
     /// The unit of the outputs ([`MetricRecord::summary`]).
     Units { summary: &'a str },
     /// What a live navigation stream delivered.
@@ -273,6 +277,7 @@ impl Progress<'_> {
                 | Progress::LogRate { .. }
                 | Progress::CaughtUp { .. }
                 | Progress::MapExported { .. }
+                | Progress::MapScored { .. }
                 | Progress::Units { .. }
                 | Progress::NavStream { .. }
                 | Progress::LiveViewEnded(_)
@@ -370,6 +375,8 @@ impl std::fmt::Display for Progress<'_> {
             Progress::DepthFilesNotWritten { error } => write!(f, "KEYFRAME DEPTH FILES NOT ALL WRITTEN: {error}"),
             Progress::MapExported { summary } => f.write_str(summary),
             Progress::MapNotExported { error } => write!(f, "MAP NOT EXPORTED: {error}"),
+            Progress::MapScored { summary } => write!(f, "{summary} (map/report.md)"),
+            Progress::MapNotScored { error } => write!(f, "map not scored: {error}"),
             Progress::Units { summary } => write!(f, "{summary}"),
             Progress::NavStream { summary } => write!(f, "{summary}"),
             Progress::MetricNotWritten { error } => write!(f, "metric.json not written: {error}"),
@@ -416,6 +423,8 @@ pub struct WrittenDive {
     pub stop: Stop,
     /// Why logging stopped early (a full disk): the log is incomplete.
     pub log_error: Option<String>,
+    /// The map's figures (`map/report.json`), where the run mapped and finished.
+    pub map_quality: Option<duv_eval::MapQuality>,
 }
 
 /// The `p` quantile (0..1) of sorted durations, milliseconds (0 for none).
@@ -861,6 +870,33 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         Ok(None) => {}
         Err(e) => progress(&Progress::MapNotExported { error: &e }),
     }
+    // The map's figures on frames between keyframes (a finished run only: a stopped one
+    // exports the map as it is and goes).
+    let map_quality = if result.interrupted {
+        None
+    } else {
+        let posed: Vec<(u64, duv_core::Se3)> = recorder
+            .frames()
+            .iter()
+            .zip(&fin.frames)
+            .enumerate()
+            .filter(|(i, _)| fin.sources.get(*i).is_some_and(|s| s.has_pose()) && fin.segments.get(*i) == Some(&0))
+            .map(|(_, (r, p))| (r.seq, p.world_from_cam))
+            .collect();
+        let mut posed = posed;
+        posed.sort_by_key(|p| p.0);
+        let kf_seqs: BTreeSet<u64> = fin.keyframes.iter().filter(|k| k.segment == 0).map(|k| k.seq).collect();
+        match super::map_report::score_run_map(map.as_mut(), &source, &opts.out, &posed, &kf_seqs, &camera, metric_from_world.as_ref()) {
+            Ok(q) => q,
+            Err(e) => {
+                progress(&Progress::MapNotScored { error: &e });
+                None
+            }
+        }
+    };
+    if let Some(q) = &map_quality {
+        progress(&Progress::MapScored { summary: &q.summary() });
+    }
     if record.finished {
         if let Err(e) = record.write(&opts.out) {
             progress(&Progress::DiveRecordNotWritten { error: &e });
@@ -878,6 +914,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         interrupted: result.interrupted,
         stop,
         log_error: result.log_error,
+        map_quality,
     })))
 }
 

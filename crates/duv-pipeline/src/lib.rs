@@ -29,6 +29,7 @@ mod handoff;
 pub mod keyframe_folder;
 pub mod live;
 pub mod lock;
+pub mod map_report;
 pub mod mapping;
 pub mod metric;
 pub mod outputs;
@@ -137,6 +138,10 @@ pub trait MapStage: Send {
     /// takes the map's frame there (e.g. metres from the navigation sensors); `None`, the
     /// map's own frame (the default).
     fn set_output_frame(&mut self, _to_from_map: Option<Sim3>) {}
+    /// The mapper and the restoration of its panels, for the map report (`None`: no map).
+    fn mapper_mut(&mut self) -> Option<(&mut duv_map::mapper::Mapper, duv_map::restore::RestoreConfig)> {
+        None
+    }
     /// Gaussians in the map now (`None`: the stage keeps no map).
     fn gaussians(&self) -> Option<usize> {
         None

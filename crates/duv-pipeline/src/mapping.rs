@@ -145,6 +145,13 @@ impl MapStage for GaussianMapping {
         Some(self.stage.mapper().gaussians().len())
     }
 
+    fn mapper_mut(&mut self) -> Option<(&mut duv_map::mapper::Mapper, duv_map::restore::RestoreConfig)> {
+        (self.fed > 0).then(|| {
+            let restore = self.stage.restore_config();
+            (self.stage.mapper_mut(), restore)
+        })
+    }
+
     fn set_output_frame(&mut self, to_from_map: Option<Sim3>) {
         self.output_frame = to_from_map;
     }

@@ -256,6 +256,33 @@ impl Source {
         }
     }
 
+    /// Frame `seq` read again as the tracker saw it, with its water-free view where the
+    /// source knows it (the generator's; a dataset folder's `clear/` image of the same name, as
+    /// `duv sim` writes them): for the map report. `None`: this source cannot read a frame again
+    /// (the run's own log can, `map_report`); a dataset that is undistorted or downsampled is
+    /// `None` too.
+    pub fn frame_again(&self, seq: u64) -> Option<(ImageRgb8, Option<ImageRgb8>)> {
+        match self {
+            Source::Sim { renderer, count, .. } if (seq as usize) < *count => {
+                let f = renderer.render(seq as usize);
+                Some((f.rgb, Some(f.clear)))
+            }
+            Source::Dataset { dataset, undistort: None, .. } if dataset.downsample <= 1 && (seq as usize) < dataset.frames.len() => {
+                let frame = dataset.load_frame(seq as usize).ok()?;
+                let path = &dataset.frames[seq as usize].path;
+                let clear = path.file_name().and_then(|name| {
+                    let p = dataset.root.join("clear").join(name);
+                    match duv_camera::dataset::read_image_file(&p) {
+                        Ok(FrameImage::Rgb8(i)) if (i.width, i.height) == (frame.image.width(), frame.image.height()) => Some(i),
+                        _ => None,
+                    }
+                });
+                Some((frame.image.to_rgb8(), clear))
+            }
+            _ => None,
+        }
+    }
+
     /// The vehicle's navigation samples, sorted by time, where the source has them: a
     /// dataset's `nav.csv` (or `nav=FILE`), the generator's sensors for `sim:...,nav=on`
     /// (seeded like its images), a bag's navigation topics, a replayed log's `/nav/sample`.
