@@ -30,6 +30,25 @@ fn sim_board_is_ci_sized() {
     assert_eq!((b.camera.width, b.camera.height), (320, 240));
     assert!(b.budgets.max_gaussians <= 100_000);
     assert!(b.budgets.ba_window <= b.budgets.max_keyframes);
+    // 2 cores and a CPU mapper: the mapper takes one core at most and yields to tracking.
+    assert_eq!(b.threads.mapping, 1);
+    assert_eq!(b.threads.mapping_nice, 19);
+}
+
+/// Where a board pins both stages, tracking and mapping get cores of their own, and every
+/// board lowers mapping's priority.
+#[test]
+fn tracking_owns_its_cores_on_every_board() {
+    for f in Board::files_in(&boards_dir()).unwrap() {
+        let b = Board::load(&f).unwrap();
+        let t = &b.threads;
+        if let (Some(track), Some(map)) = (&t.tracking_cores, &t.mapping_cores) {
+            assert!(track.iter().all(|c| !map.contains(c)), "{}: tracking {track:?} and mapping {map:?} share a core", f.display());
+        }
+        assert!(t.mapping_nice >= 10, "{}: mapping_nice {}", f.display(), t.mapping_nice);
+    }
+    let orin = Board::load(&boards_dir().join("jetson-orin-nx-16gb.toml")).unwrap();
+    assert_eq!(orin.threads.tracking_cores, Some(vec![2, 3, 4, 5]));
 }
 
 #[test]

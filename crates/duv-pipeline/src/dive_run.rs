@@ -230,6 +230,8 @@ pub enum Progress<'a> {
         frames_tracked: usize,
         frames_dropped: u64,
         keyframes_dropped: u64,
+        /// Keyframes the full keyframe queue deferred to the end of the run.
+        keyframes_deferred: u64,
         log_records_dropped: u64,
         log_messages: u64,
         log_segments: u32,
@@ -242,8 +244,10 @@ pub enum Progress<'a> {
     Latency { median_ms: f64, p99_ms: f64 },
     /// What the log took.
     LogRate { log_bytes: u64, frames_captured: u64, frames_per_s: f64, wall_s: f64 },
-    /// The keyframes the full keyframe queue refused were mapped from the log.
+    /// The keyframes the full keyframe queue deferred were mapped from the log.
     CaughtUp { keyframes: usize },
+    /// Where the stage threads ran ([`super::placement::PlacementReport::summary`]).
+    Threads { summary: &'a str },
     /// Mapping them stopped early.
     CatchUpProblem { problem: &'a str },
     /// `dive.json` could not be written.
@@ -276,6 +280,7 @@ impl Progress<'_> {
                 | Progress::Latency { .. }
                 | Progress::LogRate { .. }
                 | Progress::CaughtUp { .. }
+                | Progress::Threads { .. }
                 | Progress::MapExported { .. }
                 | Progress::MapScored { .. }
                 | Progress::Units { .. }
@@ -346,6 +351,7 @@ impl std::fmt::Display for Progress<'_> {
                 frames_tracked,
                 frames_dropped,
                 keyframes_dropped,
+                keyframes_deferred,
                 log_records_dropped,
                 log_messages,
                 log_segments,
@@ -353,7 +359,7 @@ impl std::fmt::Display for Progress<'_> {
                 interrupted,
             } => write!(
                 f,
-                "pipeline: {frames_captured} frames captured, {frames_tracked} tracked, {frames_dropped} dropped (frame queue), {keyframes_dropped} keyframes dropped (mapping queue), {log_records_dropped} log records dropped; log {log_messages} messages in {log_segments} segment(s){}{}",
+                "pipeline: {frames_captured} frames captured, {frames_tracked} tracked, {frames_dropped} dropped (frame queue), {keyframes_dropped} keyframes dropped and {keyframes_deferred} deferred (mapping queue), {log_records_dropped} log records dropped; log {log_messages} messages in {log_segments} segment(s){}{}",
                 log_error.map(|e| format!("; LOGGING STOPPED: {e}")).unwrap_or_default(),
                 if *interrupted { "; interrupted" } else { "" }
             ),
@@ -369,7 +375,8 @@ impl std::fmt::Display for Progress<'_> {
                     *log_bytes as f64 / 1e6 / wall_s
                 )
             }
-            Progress::CaughtUp { keyframes } => write!(f, "map: {keyframes} logged keyframe(s) the keyframe queue had dropped mapped before the final optimisation"),
+            Progress::CaughtUp { keyframes } => write!(f, "map: {keyframes} logged keyframe(s) the keyframe queue had deferred mapped before the final optimisation"),
+            Progress::Threads { summary } => f.write_str(summary),
             Progress::CatchUpProblem { problem } => write!(f, "MAP: the logged keyframes were not all mapped: {problem}"),
             Progress::DiveRecordNotWritten { error } => write!(f, "dive.json not written: {error}"),
             Progress::DepthFilesNotWritten { error } => write!(f, "KEYFRAME DEPTH FILES NOT ALL WRITTEN: {error}"),
@@ -711,6 +718,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         frames_tracked: frames_done,
         frames_dropped: result.frame_queue.dropped,
         keyframes_dropped: result.keyframe_queue.dropped,
+        keyframes_deferred: result.keyframe_queue.deferred,
         log_records_dropped: result.log_queue.dropped,
         log_messages: result.log.messages,
         log_segments: result.log.segments,
@@ -719,6 +727,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     });
     if let Some(live) = &result.live {
         progress(&Progress::LiveViewEnded(live));
+    }
+    if !result.threads.is_empty() {
+        progress(&Progress::Threads { summary: &result.threads });
     }
     let history = resume_state.as_ref().map(|r| &r.history).filter(|h| !h.frames.is_empty());
     if frames_done == 0 && history.is_none() {
@@ -743,12 +754,12 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
 
     // Final trajectory, keyframes, their depth maps and states of the whole dive: one writer,
     // this process's poses in the recorded frame over what earlier processes logged.
-    // Keyframes the full keyframe queue kept from mapping are in the log: the map gets them
-    // now, before its final optimisation, so it covers every logged keyframe.
-    // Only this run's dropped keyframes, from this run's segments (an earlier run's are fed
+    // Keyframes the full keyframe queue deferred are in the log: the map gets them now,
+    // before its final optimisation, so it covers every logged keyframe (`keyframe_queue`).
+    // Only this run's deferred keyframes, from this run's segments (an earlier run's are fed
     // when the dive is resumed).
-    if opts.mapping.is_some() && !result.interrupted && !result.dropped_keyframes.is_empty() {
-        let dropped: BTreeSet<u64> = result.dropped_keyframes.iter().copied().collect();
+    if opts.mapping.is_some() && !result.interrupted && !result.deferred_keyframes.is_empty() {
+        let dropped: BTreeSet<u64> = result.deferred_keyframes.iter().copied().collect();
         let earlier: BTreeSet<u32> = resume_state.as_ref().map(|r| r.history.parts.values().flat_map(|p| p.segments.iter().copied()).collect()).unwrap_or_default();
         let mut refed = Refed::default();
         for (index, segment) in duv_log::list_segments(&log_dir)?.into_iter().filter(|(i, _)| !earlier.contains(i)) {

@@ -2,14 +2,16 @@
 //! stream passed down, clean shutdown on SIGINT/SIGTERM, health telemetry once a second.
 //!
 //! ```text
-//!  capture ──frames (drop oldest)──> tracking ──keyframes (drop newest)──> mapping
+//!  capture ──frames (drop oldest)──> tracking ──keyframes (defer)──> mapping
 //!     │                                 │                                     │
-//!     └───────────── log records (bounded in bytes, drop newest) ─────────────┴──> logging
+//!     └───────────── log records (bounded in bytes, drop newest) ────────┴──> logging
 //! ```
 //!
 //! Every capacity comes from the board ([`budget::plan`] refuses a board that cannot hold the
-//! resolution). Tracking never waits on mapping or logging: both edges refuse and count when
-//! full. The caller's thread publishes health and watches the shutdown flag.
+//! resolution). Tracking never waits on mapping or logging: the log edge refuses and counts
+//! when full, the keyframe edge defers the keyframe its neighbours cover best to the end of
+//! the run ([`keyframe_queue`]). Tracking owns its cores; mapping and logging yield to it
+//! ([`placement`]). The caller's thread publishes health and watches the shutdown flag.
 //! `deterministic` runs every stage in order on the caller's thread (no drops, no timing):
 //! the same input gives bit-identical output.
 //!
@@ -27,12 +29,14 @@ pub mod dive_run;
 pub mod export;
 mod handoff;
 pub mod keyframe_folder;
+pub mod keyframe_queue;
 pub mod live;
 pub mod lock;
 pub mod map_report;
 pub mod mapping;
 pub mod metric;
 pub mod outputs;
+pub mod placement;
 pub mod pool;
 pub mod progress;
 pub mod queue;
@@ -52,6 +56,8 @@ use duv_core::{Frame, Keyframe, Se3, Sim3, Timestamp};
 use duv_log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
 use duv_track::{TrackOutput, Tracker, TrajectoryRecorder};
 use handoff::{Handoff, HandoffConfig};
+use keyframe_queue::{KeyframeQueue, Scheduled};
+use placement::{PlacementReport, StageThread, ThreadPlacement};
 use queue::{BoundedQueue, FullPolicy, Pushed, QueueStats};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -214,8 +220,8 @@ pub const KEYFRAME_SLOTS_IN_FLIGHT: usize = 4;
 
 /// Frames a run records (poses, latencies) before its records grow: an hour at 30 frames/s.
 const RECORD_FRAMES: usize = 30 * 3600;
-/// Dropped keyframe ids a run remembers for mapping to take from the log at its end.
-pub const DROPPED_KEYFRAMES_KEPT: usize = 1 << 14;
+/// Deferred keyframe ids a run remembers for mapping to take from the log at its end.
+pub const DEFERRED_KEYFRAMES_KEPT: usize = 1 << 14;
 
 /// How the pipeline runs.
 #[derive(Clone, Debug)]
@@ -272,6 +278,8 @@ pub struct PipelineConfig {
     /// The live view over the tether (`--live-view`): the board's `[live]` section, the bind
     /// address as asked; `None`: off.
     pub live: Option<duv_core::config::board::LiveSettings>,
+    /// Where the stage threads run (the board's `[threads]`); the default places nothing.
+    pub placement: ThreadPlacement,
 }
 
 /// Navigation samples the capture thread logs: the known ones (a dataset's `nav.csv`, the
@@ -343,6 +351,7 @@ impl PipelineConfig {
             progress: Arc::new(RunProgress::new()),
             arrival_clock: Arc::new(clock::ArrivalClock::new()),
             nav_to_log: NavToLog::default(),
+            placement: ThreadPlacement::from_board(&board.threads),
             live: None,
         }
     }
@@ -431,9 +440,11 @@ pub struct PipelineResult<S> {
     pub map: Box<dyn MapStage>,
     /// Shutdown came from a signal, not the end of the source.
     pub interrupted: bool,
-    /// Ids of the keyframes the full keyframe queue kept from mapping (they are in the log),
-    /// the first [`DROPPED_KEYFRAMES_KEPT`].
-    pub dropped_keyframes: Vec<u64>,
+    /// Ids of the keyframes the full keyframe queue deferred (they are in the log; mapping
+    /// takes them at the end of the run), the first [`DEFERRED_KEYFRAMES_KEPT`].
+    pub deferred_keyframes: Vec<u64>,
+    /// What thread placement was applied ([`PlacementReport::summary`]); empty when none ran.
+    pub threads: String,
     pub wall: Duration,
     /// What the live view sent and dropped (`None`: off).
     pub live: Option<live::LiveReport>,
@@ -448,8 +459,9 @@ struct Shared {
     /// Latencies (ms) since the last health record.
     recent_ms: Mutex<Vec<f64>>,
     log_failure: Mutex<Option<String>>,
-    /// Ids of the keyframes the full keyframe queue refused (capacity fixed at start).
-    dropped_keyframes: Mutex<Vec<u64>>,
+    /// Ids of the keyframes the full keyframe queue deferred (capacity fixed at start).
+    deferred_keyframes: Mutex<Vec<u64>>,
+    placed: PlacementReport,
 }
 
 fn pose_record(out: &TrackOutput, world_from_tracker: Option<&Sim3>) -> PoseRecord {
@@ -552,7 +564,7 @@ pub fn run<S: FrameSource + 'static>(
     }
 
     let frames: Arc<BoundedQueue<(Arc<Frame>, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::DropOldest));
-    let keyframes: Arc<BoundedQueue<Arc<Keyframe>>> = Arc::new(BoundedQueue::new("keyframes", cfg.keyframe_queue, 0, FullPolicy::DropNewest));
+    let keyframes: Arc<KeyframeQueue> = Arc::new(KeyframeQueue::new(cfg.keyframe_queue));
     let log_q: Arc<BoundedQueue<LogItem>> = Arc::new(BoundedQueue::new("log", 1 << 16, cfg.log_queue_bytes, FullPolicy::DropNewest));
     let shared = Arc::new(Shared {
         stop: stop.clone(),
@@ -561,7 +573,8 @@ pub fn run<S: FrameSource + 'static>(
         latest_t_ns: AtomicI64::new(0),
         recent_ms: Mutex::new(Vec::with_capacity(4096)),
         log_failure: Mutex::new(None),
-        dropped_keyframes: Mutex::new(Vec::with_capacity(DROPPED_KEYFRAMES_KEPT)),
+        deferred_keyframes: Mutex::new(Vec::with_capacity(DEFERRED_KEYFRAMES_KEPT)),
+        placed: PlacementReport::default(),
     });
     let log_push = |q: &BoundedQueue<LogItem>, item: LogItem| {
         let b = item.approx_bytes();
@@ -574,8 +587,10 @@ pub fn run<S: FrameSource + 'static>(
         let sh = shared.clone();
         let tick = cfg.log.chunk_interval / 4;
         let abort = stop_levels.abort.clone();
+        let placement = cfg.placement.clone();
         spawn("logging", move || {
             alloc::label_current_thread(ThreadRole::Logging);
+            sh.placed.apply_here(&placement, StageThread::Logging);
             let _span = tracing::info_span!("log").entered();
             let mut first_error: Option<String> = None;
             loop {
@@ -615,8 +630,27 @@ pub fn run<S: FrameSource + 'static>(
         let mut map = map;
         let stop = stop.clone();
         let live = live.clone();
+        let placement = cfg.placement.clone();
+        let sh = shared.clone();
         spawn("mapping", move || -> Result<Box<dyn MapStage>, PipelineError> {
             let kq_on_exit = kq.clone();
+            // The CPU mapper's data-parallel loops run in a pool of the board's size, placed
+            // like this thread, so mapping never takes more than `threads.mapping` cores. Made
+            // before this thread is placed: its workers would inherit the nice value, and each
+            // raises its own.
+            let pool = (placement.mapping_workers > 0)
+                .then(|| {
+                    let (sh, placement) = (sh.clone(), placement.clone());
+                    rayon::ThreadPoolBuilder::new()
+                        .num_threads(placement.mapping_workers)
+                        .thread_name(|i| format!("mapping-{i}"))
+                        .start_handler(move |_| sh.placed.apply_here(&placement, StageThread::Mapping))
+                        .build()
+                        .map_err(|e| tracing::warn!("mapping worker pool not made ({e}); the mapper uses the shared one"))
+                        .ok()
+                })
+                .flatten();
+            sh.placed.apply_here(&placement, StageThread::Mapping);
             let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
                 alloc::label_current_thread(ThreadRole::Mapping);
                 let _span = tracing::info_span!("map").entered();
@@ -677,7 +711,10 @@ pub fn run<S: FrameSource + 'static>(
                 Ok(map)
             };
             // Closed on any exit, so tracking never waits on a mapping thread that failed.
-            let result = run();
+            let result = match &pool {
+                Some(pool) => pool.install(run),
+                None => run(),
+            };
             kq_on_exit.close();
             result
         })?
@@ -697,8 +734,10 @@ pub fn run<S: FrameSource + 'static>(
         let retrack_unlogged = cfg.retrack_unlogged.clone();
         let progress = cfg.progress.clone();
         let live = live.clone();
+        let placement = cfg.placement.clone();
         spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
+            sh.placed.apply_here(&placement, StageThread::Tracking);
             let _span = tracing::info_span!("track").entered();
             // A run's record: an hour at 30 frames/s before it grows.
             let mut recorder = TrajectoryRecorder::with_capacity(RECORD_FRAMES, RECORD_FRAMES / 4);
@@ -707,9 +746,9 @@ pub fn run<S: FrameSource + 'static>(
             let to_mapping = |kf: Arc<Keyframe>| {
                 progress.keyframe_handed_on();
                 live.keyframe(&kf);
-                if let Pushed::Refused(kf) = kq.push(kf, 0) {
+                if let Scheduled::QueuedDeferred(kf) = kq.push(kf) {
                     // The id, for mapping to take the keyframe from the log at the end.
-                    if let Ok(mut ids) = sh.dropped_keyframes.lock() {
+                    if let Ok(mut ids) = sh.deferred_keyframes.lock() {
                         if ids.len() < ids.capacity() {
                             ids.push(kf.index);
                         }
@@ -718,6 +757,10 @@ pub fn run<S: FrameSource + 'static>(
                 Ok(())
             };
             let result = tracker.run_in_pool(|tracker| -> Result<(), PipelineError> {
+                // The tracker's workers run where this thread does.
+                if placement.tracking_cores.is_some() {
+                    rayon::broadcast(|_| sh.placed.apply_here(&placement, StageThread::Tracking));
+                }
                 for frame in &retrack {
                     if sh.stop.load(Ordering::Relaxed) {
                         break;
@@ -757,7 +800,7 @@ pub fn run<S: FrameSource + 'static>(
                 handoff.flush(tracker, |item| log_push(&lq, item), |kf| {
                     progress.keyframe_handed_on();
                     live.keyframe(&kf);
-                    let _ = kq.push_wait(kf, 0);
+                    kq.push_wait(kf);
                     Ok(())
                 })
             });
@@ -910,7 +953,8 @@ pub fn run<S: FrameSource + 'static>(
     let (log_stats, log_error) = join(logging, "logging")?;
     let (tracker, recorder, latencies, track_times) = tracked?;
     let map = mapped?;
-    let dropped_keyframes = std::mem::take(&mut *shared.dropped_keyframes.lock().unwrap_or_else(|p| p.into_inner()));
+    let deferred_keyframes = std::mem::take(&mut *shared.deferred_keyframes.lock().unwrap_or_else(|p| p.into_inner()));
+    let threads = shared.placed.summary(&cfg.placement);
     if let Some(e) = capture_error {
         tracing::warn!("the source ended with an error: {e}");
     }
@@ -928,7 +972,8 @@ pub fn run<S: FrameSource + 'static>(
         log_error,
         map,
         interrupted: stop.load(Ordering::Relaxed),
-        dropped_keyframes,
+        deferred_keyframes,
+        threads,
         wall: started.elapsed(),
         live,
     })
@@ -1032,7 +1077,8 @@ fn run_deterministic<S: FrameSource + 'static>(
         log_error,
         map,
         interrupted: stop.load(Ordering::Relaxed),
-        dropped_keyframes: Vec::new(),
+        deferred_keyframes: Vec::new(),
+        threads: String::new(),
         wall: started.elapsed(),
         live: None,
     })

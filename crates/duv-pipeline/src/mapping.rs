@@ -206,7 +206,7 @@ pub struct Refed {
 /// Feeds `map` the keyframes logged in `log_dir` that it does not cover: those after
 /// `newest_fed` (a restored checkpoint's newest; `None`: all when the stage holds none) and
 /// those whose image `keyframe_folder` does not hold (every keyframe mapping receives is
-/// written there; the missing ones were dropped by a full keyframe queue, or came after the
+/// written there; the missing ones were deferred by a full keyframe queue, or came after the
 /// newest checkpoint of a stopped run). One keyframe at a time from the log: the map then
 /// covers every logged keyframe.
 pub fn feed_unmapped_keyframes(map: &mut dyn MapStage, log_dir: &Path, keyframe_folder: &KeyframeFolder, newest_fed: Option<u64>) -> Refed {

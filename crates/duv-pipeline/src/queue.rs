@@ -2,8 +2,8 @@
 //!
 //! One type, [`BoundedQueue`], bounded in items and optionally in bytes, whose `push` never
 //! blocks: when full it either drops the oldest item ([`FullPolicy::DropOldest`], frames) or
-//! refuses the new one ([`FullPolicy::DropNewest`], keyframes and log records), and counts
-//! the drop. End of stream is [`BoundedQueue::close`]: the consumer drains what is left and
+//! refuses the new one ([`FullPolicy::DropNewest`], log records), and counts
+//! the drop (keyframes have their own queue, `keyframe_queue`, which defers instead). End of stream is [`BoundedQueue::close`]: the consumer drains what is left and
 //! then gets `None`. The storage is allocated once, at construction.
 
 use std::collections::VecDeque;
@@ -25,6 +25,9 @@ pub struct QueueStats {
     pub pushed: u64,
     pub popped: u64,
     pub dropped: u64,
+    /// Items taken out of the queue to make room but not lost (the keyframe queue's deferred
+    /// keyframes, mapped from the log at the end of the run; see `keyframe_queue`).
+    pub deferred: u64,
     pub depth: usize,
     pub depth_bytes: usize,
     pub max_depth: usize,

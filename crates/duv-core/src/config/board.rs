@@ -155,8 +155,41 @@ pub struct Budgets {
 pub struct Threads {
     /// Worker threads for tracking's data-parallel loops (flow, BA linearisation).
     pub tracking: u32,
-    /// Worker threads for the CPU mapper (unused when mapping runs on the GPU).
+    /// Worker threads for the CPU mapper (unused when mapping runs on the GPU): the mapping
+    /// thread's own data-parallel pool, so the mapper never takes more than this many cores.
     pub mapping: u32,
+    /// CPU cores (0-based ids) the tracking thread and its workers are pinned to; absent:
+    /// any core. Pinning is applied where the OS allows (Linux); elsewhere, or for a core the
+    /// machine does not have, a warning and the threads run unpinned.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tracking_cores: Option<Vec<u32>>,
+    /// CPU cores the mapping thread and its workers are pinned to; absent: any core.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mapping_cores: Option<Vec<u32>>,
+    /// Nice value (0..=19, higher yields more) of the mapping thread and its workers; tracking
+    /// stays at the process's own priority, so on a busy machine mapping yields to it.
+    /// Lowering a priority needs no privileges.
+    #[serde(default = "default_mapping_nice")]
+    pub mapping_nice: u8,
+    /// Nice value (0..=19) of the logging thread.
+    #[serde(default = "default_logging_nice")]
+    pub logging_nice: u8,
+}
+
+/// [`Threads::mapping_nice`] when the board does not say.
+pub const DEFAULT_MAPPING_NICE: u8 = 10;
+/// [`Threads::logging_nice`] when the board does not say.
+pub const DEFAULT_LOGGING_NICE: u8 = 0;
+/// The highest nice value (the lowest priority) Linux knows.
+pub const MAX_NICE: u8 = 19;
+/// Core ids a board may name (glibc's `CPU_SETSIZE`).
+pub const MAX_CORE_ID: u32 = 1023;
+
+fn default_mapping_nice() -> u8 {
+    DEFAULT_MAPPING_NICE
+}
+fn default_logging_nice() -> u8 {
+    DEFAULT_LOGGING_NICE
 }
 
 /// How input frames are stored in the log.
@@ -315,6 +348,23 @@ impl Board {
                 return Err(invalid(key, "0".into(), "at least one thread"));
             }
         }
+        for (key, v) in [("threads.mapping_nice", self.threads.mapping_nice), ("threads.logging_nice", self.threads.logging_nice)] {
+            if v > MAX_NICE {
+                return Err(invalid(key, v.to_string(), "a nice value must be in 0..=19 (higher yields more)"));
+            }
+        }
+        for (key, cores) in [("threads.tracking_cores", &self.threads.tracking_cores), ("threads.mapping_cores", &self.threads.mapping_cores)] {
+            let Some(cores) = cores else { continue };
+            if cores.is_empty() {
+                return Err(invalid(key, "[]".into(), "name at least one core, or leave the key out for any core"));
+            }
+            if let Some(c) = cores.iter().find(|c| **c > MAX_CORE_ID) {
+                return Err(invalid(key, c.to_string(), "a core id must be at most 1023"));
+            }
+            if cores.iter().enumerate().any(|(i, c)| cores[..i].contains(c)) {
+                return Err(invalid(key, format!("{cores:?}"), "a core is named twice"));
+            }
+        }
         if let Some(v) = self.nav.camera_rpy_deg.iter().find(|v| !(v.is_finite() && v.abs() <= 360.0)) {
             return Err(invalid("nav.camera_rpy_deg", v.to_string(), "must be finite degrees within [-360, 360]"));
         }
@@ -405,6 +455,33 @@ mapping = 1
         assert_eq!(b.budgets.ba_window, 8);
         assert_eq!(b.camera.pixel_format, PixelFormat::Rgb24);
         assert_eq!(b.camera.driver_buffers, DEFAULT_DRIVER_BUFFERS);
+    }
+
+    #[test]
+    fn thread_placement_keys_parse_and_are_validated() {
+        let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
+        assert_eq!((b.threads.tracking_cores.as_deref(), b.threads.mapping_cores.as_deref()), (None, None));
+        assert_eq!((b.threads.mapping_nice, b.threads.logging_nice), (DEFAULT_MAPPING_NICE, DEFAULT_LOGGING_NICE));
+        let with = |extra: &str| MINIMAL.replace("mapping = 1\n", &format!("mapping = 1\n{extra}\n"));
+        let b = Board::parse(Path::new("t.toml"), &with("tracking_cores = [0]\nmapping_cores = [1, 2]\nmapping_nice = 19\nlogging_nice = 5")).unwrap();
+        assert_eq!(b.threads.tracking_cores, Some(vec![0]));
+        assert_eq!(b.threads.mapping_cores, Some(vec![1, 2]));
+        assert_eq!((b.threads.mapping_nice, b.threads.logging_nice), (19, 5));
+        // Written back and read again: the same board.
+        let again = Board::parse(Path::new("t.toml"), &toml::to_string(&b).unwrap()).unwrap();
+        assert_eq!(again, b);
+        for (extra, key) in [
+            ("mapping_nice = 20", "threads.mapping_nice"),
+            ("logging_nice = 25", "threads.logging_nice"),
+            ("tracking_cores = []", "threads.tracking_cores"),
+            ("mapping_cores = [0, 0]", "threads.mapping_cores"),
+            ("mapping_cores = [4096]", "threads.mapping_cores"),
+        ] {
+            let e = Board::parse(Path::new("t.toml"), &with(extra)).unwrap_err();
+            assert!(e.to_string().contains(key), "{extra}: {e}");
+        }
+        // A negative nice (a higher priority) needs privileges: not a board value.
+        assert!(Board::parse(Path::new("t.toml"), &with("mapping_nice = -5")).is_err());
     }
 
     #[test]
