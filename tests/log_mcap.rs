@@ -84,7 +84,7 @@ fn write_log(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64) -
             w.sync_now().unwrap();
         }
     }
-    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(frames as i64 * 100_000_000), centres_in_world: vec![[0.0, 1.0, 2.0]; 10], checkpoint: vec![7u8; 100] }).unwrap();
+    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(frames as i64 * 100_000_000), centres_in_world: vec![[0.0, 1.0, 2.0]; 10], checkpoint: vec![7u8; 100], last: true }).unwrap();
     let (stats, r) = w.finish();
     r.unwrap();
     assert!(stats.failure.is_none());

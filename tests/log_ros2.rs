@@ -116,7 +116,7 @@ fn write_log(cfg: LogConfig, frames: u64) {
     }
     let t = 1_000_000_000 + frames as i64 * 100_000_000;
     let centres = vec![[1.0f32, 2.0, 3.0], [-1.0, 0.5, 4.0]];
-    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(t), centres_in_world: centres, checkpoint: b"DUVMAPCK checkpoint bytes".to_vec() }).unwrap();
+    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(t), centres_in_world: centres, checkpoint: b"DUVMAPCK checkpoint bytes".to_vec(), last: true }).unwrap();
     let (_stats, r) = w.finish();
     r.unwrap();
 }
@@ -324,7 +324,7 @@ fn the_ros2_log_writer_allocates_nothing_once_warm() {
         .collect();
     let keyframes: Vec<Arc<Keyframe>> = (0..40u64).map(|s| Arc::new(keyframe(s, s as i64 * 50_000_000))).collect();
     let windows: Vec<Arc<TrackerWindow>> = (0..40u64).map(|s| Arc::new(window(s, s as i64 * 50_000_000))).collect();
-    let maps: Vec<LogItem> = (0..40u64).map(|s| LogItem::Map { t_ns: Timestamp::from_ns(s as i64), centres_in_world: vec![[s as f32, 0.0, 1.0]; 100], checkpoint: vec![7u8; 1000] }).collect();
+    let maps: Vec<LogItem> = (0..40u64).map(|s| LogItem::Map { t_ns: Timestamp::from_ns(s as i64), centres_in_world: vec![[s as f32, 0.0, 1.0]; 100], checkpoint: vec![7u8; 1000], last: false }).collect();
     let health: Vec<LogItem> = (0..40u64).map(|s| LogItem::Health { t_ns: Timestamp::from_ns(s as i64), json: "{\"frames\":1}".into() }).collect();
     for (encoding, set) in [(FrameEncoding::Raw, &frames), (FrameEncoding::Jpeg { quality: 90 }, &frames), (FrameEncoding::Jpeg { quality: 75 }, &grey)] {
         let dir = tempfile::tempdir().unwrap();

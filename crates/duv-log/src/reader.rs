@@ -505,9 +505,9 @@ fn check_head(opcode: u8, len: u64, at: u64, file_bytes: u64, limit: usize) -> R
     Ok(())
 }
 
-/// The records of a chunk after its CRC is checked. Our writer never compresses; chunks of
-/// other writers (ROS 2 bags: rosbag2 writes zstd by default) may be `zstd` or `lz4`
-/// (decompressed, at most `max_bytes`).
+/// The records of a chunk after its CRC is checked: `zstd` and `lz4` chunks (ours, by the
+/// board's `[log] compression`, and other writers': rosbag2 writes zstd by default) are
+/// decompressed, at most `max_bytes`.
 fn chunk_records<'a>(header: &mcap::records::ChunkHeader, data: &'a [u8], max_bytes: usize) -> Result<std::borrow::Cow<'a, [u8]>, Bad> {
     use std::io::Read;
     let data: std::borrow::Cow<'a, [u8]> = match header.compression.as_str() {

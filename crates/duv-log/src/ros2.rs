@@ -366,7 +366,7 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             pose_stamped(scratch, k.t_ns, &k.world_from_cam);
             emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
         }
-        LogItem::Map { t_ns, centres_in_world, checkpoint } => {
+        LogItem::Map { t_ns, centres_in_world, checkpoint, .. } => {
             let mut w = CdrWriter::new(scratch);
             w.header(t_ns.t_ns(), WORLD_FRAME);
             w.u32(1);

@@ -273,7 +273,8 @@ pub enum LogItem {
     Pose(PoseRecord),
     Keyframe(std::sync::Arc<Keyframe>),
     /// A map checkpoint: the mapper's bytes and the Gaussian centres (world frame) for display.
-    Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8> },
+    /// `last`: the run's final map, logged whatever the budget says.
+    Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8>, last: bool },
     /// A health record, already JSON.
     Health { t_ns: Timestamp, json: String },
     /// The tracker's newest keyframes (what a resume seeds a tracker with).
@@ -520,7 +521,7 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             encode(&tpl.pose, "keyframe pose", scratch)?;
             emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
         }
-        LogItem::Map { t_ns, centres_in_world, checkpoint } => {
+        LogItem::Map { t_ns, centres_in_world, checkpoint, .. } => {
             let mut data = Vec::with_capacity(centres_in_world.len() * 12);
             for c in centres_in_world {
                 for v in c {

@@ -45,7 +45,7 @@ pub use progress::{ProgressSnapshot, RunProgress};
 pub use stop::Stop;
 
 use duv_camera::FrameSource;
-use duv_core::config::board::{Board, FrameLogEncoding, LogFormatSetting};
+use duv_core::config::board::{Board, FrameLogEncoding, LogCompression, LogFormatSetting};
 use duv_core::alloc::{self, ThreadRole};
 use duv_core::{Frame, Keyframe, Se3, Sim3, Timestamp};
 use duv_log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
@@ -314,6 +314,12 @@ impl PipelineConfig {
             LogFormatSetting::Foxglove => duv_log::LogFormat::Foxglove,
             LogFormatSetting::Ros2 => duv_log::LogFormat::Ros2,
         };
+        log.compression = match board.log.compression {
+            LogCompression::Zstd => duv_log::ChunkCompression::Zstd,
+            LogCompression::Lz4 => duv_log::ChunkCompression::Lz4,
+            LogCompression::None => duv_log::ChunkCompression::None,
+        };
+        log.max_mb_per_s = board.log.max_mb_per_s;
         log.metadata.push(("duv.board".into(), [("toml".to_string(), toml::to_string(board).unwrap_or_default())].into_iter().collect()));
         PipelineConfig {
             out_dir,
@@ -620,11 +626,11 @@ pub fn run<S: FrameSource + 'static>(
                 // A checkpoint that cannot be written (a full disk) is reported once; mapping
                 // goes on, and a resume starts from the newest one on disk.
                 let mut failed_saves = 0u64;
-                let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
+                let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp, last: bool| -> Result<(), PipelineError> {
                     if let Some(c) = map.checkpoint() {
                         live.cloud(t, &c.centres_in_world, &c.colours);
                         match checkpoints.save(&c.file) {
-                            Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
+                            Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last }),
                             Err(e) => {
                                 failed_saves += 1;
                                 if failed_saves == 1 {
@@ -655,7 +661,7 @@ pub fn run<S: FrameSource + 'static>(
                     }
                     if last_ckpt.elapsed() >= interval {
                         last_ckpt = Instant::now();
-                        save(&mut map, last_t)?;
+                        save(&mut map, last_t, false)?;
                     }
                     if idle {
                         match kq.pop_timeout(Duration::from_millis(100)) {
@@ -668,7 +674,7 @@ pub fn run<S: FrameSource + 'static>(
                         }
                     }
                 }
-                save(&mut map, last_t)?;
+                save(&mut map, last_t, true)?;
                 Ok(map)
             };
             // Closed on any exit, so tracking never waits on a mapping thread that failed.
@@ -1004,7 +1010,7 @@ fn run_deterministic<S: FrameSource + 'static>(
     drop(to_mapping);
     if let Some(c) = map.checkpoint() {
         match checkpoints.save(&c.file) {
-            Ok(_) => log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
+            Ok(_) => log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last: true }),
             Err(e) => tracing::error!("map checkpoint not written: {e}"),
         }
     }
