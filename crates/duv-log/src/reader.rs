@@ -92,6 +92,9 @@ pub struct ReadOutcome {
     pub orphaned_messages: u64,
     /// Chunks whose CRC held and whose messages were delivered.
     pub chunks: u64,
+    /// Their records' bytes as stored (compressed or not) and uncompressed, summed.
+    pub chunk_stored_bytes: u64,
+    pub chunk_uncompressed_bytes: u64,
     pub metadata: Vec<(String, BTreeMap<String, String>)>,
 }
 
@@ -294,6 +297,8 @@ impl SegmentReader {
                     Ok(())
                 })?;
                 self.outcome.chunks += 1;
+                self.outcome.chunk_stored_bytes += data.len() as u64;
+                self.outcome.chunk_uncompressed_bytes += records.len() as u64;
                 for e in events {
                     if let OwnedEvent::Message { channel_id, .. } = &e {
                         if !self.channels.contains_key(channel_id) {

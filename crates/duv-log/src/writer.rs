@@ -88,8 +88,9 @@ impl LogStats {
 }
 
 /// The byte budget: a token bucket filled at `max_mb_per_s` over log time. Every byte written
-/// draws from it (what the files grew by); a map is written only when the bucket covers its
-/// expected size (its uncompressed size times the compression ratio of the last logged map).
+/// draws from it (what the files grew by); a map is written only when the bucket covers twice
+/// its expected size (its uncompressed size times the compression ratio of the last logged
+/// map), so that the final map, always written, is paid for too.
 #[derive(Clone, Debug)]
 struct Budget {
     bytes_per_ns: f64,
@@ -269,8 +270,10 @@ impl SegmentWriter {
         if let Some(b) = self.budget.as_mut() {
             b.refill(t_ns);
             if let LogItem::Map { last, .. } = item {
+                // Twice its size: what is left must still cover the final map (about as large),
+                // which is logged whatever the bucket holds.
                 let expected = item.approx_bytes() as f64 * b.map_ratio;
-                if !*last && b.tokens < expected {
+                if !*last && b.tokens < 2.0 * expected {
                     self.stats.maps_skipped += 1;
                     return Ok(());
                 }
