@@ -203,7 +203,7 @@ pub fn inspect_log(path: &Path, limits: ReadLimits) -> Result<LogSummary, LogErr
                             summary.board = Some(b.name);
                         }
                     }
-                    if name != RECOVERED_METADATA && !summary.metadata_names.iter().any(|n| *n == name) {
+                    if name != RECOVERED_METADATA && !summary.metadata_names.contains(&name) {
                         summary.metadata_names.push(name);
                     }
                 }
