@@ -126,6 +126,11 @@ pub trait MapStage: Send {
     fn step(&mut self) -> Result<bool, MapStageError>;
     /// A checkpoint to persist now (`None` when nothing changed since the last one).
     fn checkpoint(&mut self) -> Option<MapCheckpoint>;
+    /// The run's final checkpoint: made even when nothing changed since the last one (that one
+    /// may have been left out of the log for its byte budget), `None` only for an empty map.
+    fn final_checkpoint(&mut self) -> Option<MapCheckpoint> {
+        self.checkpoint()
+    }
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError>;
     /// The newest keyframe id the stage was fed (keyframes come in id order), `None` when it
@@ -627,7 +632,7 @@ pub fn run<S: FrameSource + 'static>(
                 // goes on, and a resume starts from the newest one on disk.
                 let mut failed_saves = 0u64;
                 let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp, last: bool| -> Result<(), PipelineError> {
-                    if let Some(c) = map.checkpoint() {
+                    if let Some(c) = if last { map.final_checkpoint() } else { map.checkpoint() } {
                         live.cloud(t, &c.centres_in_world, &c.colours);
                         match checkpoints.save(&c.file) {
                             Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last }),
@@ -1008,7 +1013,7 @@ fn run_deterministic<S: FrameSource + 'static>(
         handoff.flush(tracker, |item| log(&mut writer, item), &mut to_mapping)
     })?;
     drop(to_mapping);
-    if let Some(c) = map.checkpoint() {
+    if let Some(c) = map.final_checkpoint() {
         match checkpoints.save(&c.file) {
             Ok(_) => log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last: true }),
             Err(e) => tracing::error!("map checkpoint not written: {e}"),
