@@ -37,7 +37,7 @@ enum Command {
     Refine(cli::refine::RefineArgs),
     /// Check board profiles and print the capacities they give.
     Board(cli::board::BoardArgs),
-    /// Summarise an MCAP log: topics, counts, time span, gaps, recovered segments.
+    /// Summarise an MCAP log: topics, counts, bytes and MB/s against the log budget, time span, gaps, recovered segments.
     Inspect(cli::inspect::InspectArgs),
     /// Replay a recorded MCAP log through the pipeline (recorded timing, --speed, --deterministic).
     Replay(cli::replay::ReplayArgs),

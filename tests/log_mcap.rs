@@ -9,7 +9,7 @@ use duv_log::reader::ReadLimits;
 use duv_log::recover::{is_finished, recover_segment};
 use duv_log::schema::{decode_frame, PoseRecord};
 use duv_camera::FrameSource;
-use duv_log::{inspect_log, list_segments, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogError, LogItem, SegmentWriter, Topic};
+use duv_log::{inspect_log, list_segments, ChunkCompression, read_log_keyframes, read_segment, FrameEncoding, LogConfig, LogError, LogItem, SegmentWriter, Topic};
 use duv_log::replay::McapSource;
 use duv_sim::{SimConfig, SimRenderer, TrajectoryKind, WaterPreset};
 use nalgebra::{Translation3, UnitQuaternion};
@@ -53,15 +53,22 @@ fn keyframe(index: u64, t_ns: i64) -> Keyframe {
         image,
         world_from_cam: Se3::identity(),
         camera: camera(),
+        // Values f16 holds exactly (the log stores the planes as f16), so that keyframes read
+        // back equal.
         inv_depth: PlaneF32::filled(W, H, [0.5]),
-        inv_depth_variance: PlaneF32::filled(W, H, [0.01]),
+        inv_depth_variance: PlaneF32::filled(W, H, [0.0078125]),
     }
 }
 
 /// Writes `frames` frames at 10 Hz with poses, two keyframes, health and a map checkpoint,
 /// syncing every `sync_every` frames. Returns the sync points (path, messages, bytes).
 fn write_log(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64) -> Vec<(PathBuf, u64, u64)> {
+    write_log_with(dir, frames, sync_every, segment_max_bytes, ChunkCompression::Zstd)
+}
+
+fn write_log_with(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64, compression: ChunkCompression) -> Vec<(PathBuf, u64, u64)> {
     let mut cfg = LogConfig::new(dir);
+    cfg.compression = compression;
     cfg.segment_max_bytes = segment_max_bytes;
     cfg.chunk_interval = Duration::from_secs(3600);
     cfg.metadata.push(("duv.board".into(), [("toml".to_string(), "name = \"test\"".to_string())].into_iter().collect::<BTreeMap<_, _>>()));
@@ -84,7 +91,7 @@ fn write_log(dir: &Path, frames: u64, sync_every: u64, segment_max_bytes: u64) -
             w.sync_now().unwrap();
         }
     }
-    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(frames as i64 * 100_000_000), centres_in_world: vec![[0.0, 1.0, 2.0]; 10], checkpoint: vec![7u8; 100] }).unwrap();
+    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(frames as i64 * 100_000_000), centres_in_world: vec![[0.0, 1.0, 2.0]; 10], checkpoint: vec![7u8; 100], last: true }).unwrap();
     let (stats, r) = w.finish();
     r.unwrap();
     assert!(stats.failure.is_none());
@@ -156,7 +163,8 @@ fn round_trip_and_independent_python_reader() {
 #[test]
 fn segments_rotate_by_size_and_each_is_valid() {
     let dir = tempfile::tempdir().unwrap();
-    write_log(dir.path(), 200, 5, 200_000);
+    // Uncompressed, so that the sizes below are the records' own.
+    write_log_with(dir.path(), 200, 5, 200_000, ChunkCompression::None);
     let segs = list_segments(dir.path()).unwrap();
     assert!(segs.len() >= 3, "{} segments", segs.len());
     let mut frames = 0;
@@ -566,3 +574,63 @@ fn a_resumed_runs_repeated_keyframe_index_is_renumbered() {
     assert_eq!(got.keyframes.iter().map(|k| (k.index, k.t_ns.t_ns())).collect::<Vec<_>>(), vec![(5, 0), (6, 1_000_000_000)]);
     assert_eq!(got.renumbered, vec![(5, 6)]);
 }
+
+/// The byte budget: map checkpoints (incompressible, 1 MB each, two a second) are logged only
+/// when the bucket covers them, the final one always, and the log keeps the budget on average;
+/// `duv inspect` reads the budget from the board in the log and reports bytes per topic.
+#[test]
+fn map_checkpoints_are_logged_within_the_byte_budget_and_inspect_reports_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = LogConfig::new(dir.path());
+    cfg.max_mb_per_s = Some(1.0);
+    let board = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("boards/jetson-orin-nx-16gb.toml")).unwrap();
+    let board = board.replace("max_mb_per_s = 8 ", "max_mb_per_s = 1 ");
+    assert!(board.contains("max_mb_per_s = 1 "));
+    cfg.metadata.push(("duv.board".into(), [("toml".to_string(), board)].into_iter().collect::<BTreeMap<_, _>>()));
+    let mut w = SegmentWriter::create(cfg).unwrap();
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut noise = |n: usize| -> Vec<u8> {
+        (0..n)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state as u8
+            })
+            .collect()
+    };
+    let (seconds, maps_per_s) = (10u64, 2u64);
+    for seq in 0..seconds * 10 {
+        let t = seq as i64 * 100_000_000;
+        w.write(&LogItem::Frame(Arc::new(frame(seq, t)))).unwrap();
+        w.write(&LogItem::Pose(pose(seq, t))).unwrap();
+        if seq % (10 / maps_per_s) == 0 {
+            let last = seq == seconds * 10 - 1;
+            w.write(&LogItem::Map { t_ns: Timestamp::from_ns(t), centres_in_world: vec![[0.0; 3]; 10], checkpoint: noise(1_000_000), last }).unwrap();
+        }
+    }
+    let t_end = seconds as i64 * 1_000_000_000;
+    w.write(&LogItem::Map { t_ns: Timestamp::from_ns(t_end), centres_in_world: vec![[0.0; 3]; 10], checkpoint: noise(1_000_000), last: true }).unwrap();
+    let (stats, r) = w.finish();
+    r.unwrap();
+    let offered = seconds * maps_per_s + 1;
+    assert_eq!(stats.maps_logged + stats.maps_skipped, offered);
+    // 10 s at 1 MB/s: the frames take little, so about 4 maps besides the final one fit.
+    assert!(stats.maps_skipped >= 12 && stats.maps_logged >= 3, "{stats:?}");
+    let mb_s = stats.mb_per_s().unwrap();
+    assert!(mb_s <= 1.0 && mb_s > 0.5, "{mb_s} MB/s");
+    let summary = inspect_log(dir.path(), ReadLimits::default()).unwrap();
+    assert_eq!(summary.topics["/map/checkpoint"].messages, stats.maps_logged);
+    assert_eq!(summary.topics["/map/checkpoint"].last_ns, t_end as u64, "the final map is logged");
+    assert_eq!((summary.board.as_deref(), summary.budget_mb_per_s), (Some("jetson-orin-nx-16gb"), Some(1.0)));
+    // Incompressible checkpoints: on disk about their size; every topic's share adds up.
+    let ckpt = &summary.topics["/map/checkpoint"];
+    assert!(ckpt.stored_bytes > 0.99 * ckpt.bytes as f64 && ckpt.stored_bytes < 1.01 * ckpt.bytes as f64, "{ckpt:?}");
+    let stored: f64 = summary.topics.values().map(|t| t.stored_bytes).sum();
+    let file: u64 = summary.segments.iter().map(|g| g.bytes).sum();
+    assert!(stored < file as f64 && stored > 0.95 * file as f64, "{stored} of {file}");
+    let text = summary.render();
+    assert!(text.contains("budget 1 MB/s (jetson-orin-nx-16gb): under by"), "{text}");
+    assert!(text.contains("MB/s") && text.contains("on disk"), "{text}");
+}
+

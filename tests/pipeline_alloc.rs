@@ -124,9 +124,11 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
     assert!(window.as_secs_f64() >= 3.0 * 0.5, "the counted window ({window:?}) must span several chunk closes");
 }
 
-/// The log writer on its own, per frame encoding: once warm, encoding a frame (raw, or JPEG
-/// through `log::jpeg` at 4:4:4 and 4:2:0 qualities), writing it, closing the chunk and
-/// fsyncing allocate nothing. (The threaded test above logs raw frames, as `boards/sim.toml`
+/// The log writer on its own, per frame encoding and chunk compression: once warm, encoding a
+/// frame (raw, or JPEG through `log::jpeg` at 4:4:4 and 4:2:0 qualities), writing it,
+/// compressing and closing the chunk (zstd, the boards' default, or none) and fsyncing
+/// allocate nothing. (libzstd's context is C memory, outside the counting allocator; it is
+/// made with the first chunk and reused. `lz4` allocates lz4_flex's hash table per chunk.) (The threaded test above logs raw frames, as `boards/sim.toml`
 /// does; the real boards log JPEG.)
 #[test]
 fn the_log_writer_allocates_nothing_per_frame_once_warm_for_raw_and_jpeg_frames() {
@@ -134,10 +136,15 @@ fn the_log_writer_allocates_nothing_per_frame_once_warm_for_raw_and_jpeg_frames(
     use duv_log::{FrameEncoding, LogConfig, LogItem, SegmentWriter};
     let cfg = track_sim::sim_config(WaterPreset::Turbid, TrajectoryKind::Survey, 24, 160, 120, 0.3);
     let frames: Vec<Arc<Frame>> = track_sim::render_all(&SimRenderer::new(&cfg).unwrap()).into_iter().map(Arc::new).collect();
-    for encoding in [FrameEncoding::Raw, FrameEncoding::Jpeg { quality: 90 }, FrameEncoding::Jpeg { quality: 75 }] {
+    let cases = [FrameEncoding::Raw, FrameEncoding::Jpeg { quality: 90 }, FrameEncoding::Jpeg { quality: 75 }]
+        .into_iter()
+        .flat_map(|e| [(e, duv_log::ChunkCompression::Zstd), (e, duv_log::ChunkCompression::None)]);
+    for (encoding, compression) in cases {
         let dir = tempfile::tempdir().unwrap();
         let mut lcfg = LogConfig::new(dir.path());
         lcfg.frame_encoding = encoding;
+        lcfg.compression = compression;
+        lcfg.max_mb_per_s = Some(8.0);
         // Every tick closes the chunk and fsyncs: that path is counted too.
         lcfg.chunk_interval = Duration::ZERO;
         let mut writer = SegmentWriter::create(lcfg).unwrap();
@@ -153,7 +160,7 @@ fn the_log_writer_allocates_nothing_per_frame_once_warm_for_raw_and_jpeg_frames(
                 log(f);
             }
         });
-        assert_eq!(n, 0, "{encoding:?}: {n} allocations over {} frames", frames.len() - 12);
+        assert_eq!(n, 0, "{encoding:?} {compression:?}: {n} allocations over {} frames", frames.len() - 12);
         let (stats, r) = writer.finish();
         r.unwrap();
         assert_eq!(stats.messages, frames.len() as u64);

@@ -1,4 +1,4 @@
-//! `duv inspect LOG`: topics, counts, time span, gaps and recovered segments of a log folder
+//! `duv inspect LOG`: topics, counts, bytes and MB/s per topic against the run's log budget, time span, gaps and recovered segments of a log folder
 //! (or one `.mcap` file).
 
 use duv_log::{inspect_log, ReadLimits};

@@ -93,6 +93,13 @@ impl<'a> CdrWriter<'a> {
             self.out.extend_from_slice(&x.to_le_bytes());
         }
     }
+    /// f32 samples as a `uint8[]` of little-endian f16 ([`super::schema::plane_sample_f16`]).
+    pub fn f16_bytes(&mut self, v: &[f32]) {
+        self.u32(2 * v.len() as u32);
+        for &x in v {
+            self.out.extend_from_slice(&super::schema::plane_sample_f16(x).to_le_bytes());
+        }
+    }
     /// A `float64[]`.
     pub fn f64_seq(&mut self, v: &[f64]) {
         self.u32(v.len() as u32);

@@ -1,4 +1,4 @@
-//! Our MCAP writer: chunked, uncompressed, fully indexed (message indexes after every chunk,
+//! Our MCAP writer: chunked, compressed (zstd, lz4 or none), fully indexed (message indexes after every chunk,
 //! schemas, channels, statistics, chunk and metadata indexes and summary offsets in the
 //! summary, data-section and summary CRCs), and allocation-free once warm.
 //!
@@ -11,9 +11,138 @@
 //! Schema, channel and metadata records go into the data section outside chunks, before the
 //! first message that uses them; the reader in [`super::reader`] and the PyPI `mcap` package
 //! read both layouts.
+//!
+//! **Compression** ([`ChunkCompression`], the board's `[log] compression`): each chunk's records
+//! are compressed into [`WriterBuffers`]' `compressed` buffer, reserved at the bound of the
+//! largest chunk seen, so it grows once per size class (a map checkpoint is a chunk of its
+//! own, tens of MB at 640x480, and the first one grows it) and never again.
+//! - `zstd` (the default): libzstd's streaming API on one reused compression context
+//!   (`ZSTD_compressStream2`, level [`ZSTD_LEVEL`]); a split record (message head + body) is
+//!   fed in two parts, so nothing is copied. The context's memory comes from libzstd's own C
+//!   allocator, outside Rust's global allocator (and so outside the counting-allocator tests):
+//!   it is allocated with the first chunk and reused after that (`ZSTD_CCtx` keeps its
+//!   workspace while the parameters stay the same).
+//! - `lz4`: LZ4 frames (independent blocks of at most 4 MiB, no checksums) around
+//!   `lz4_flex`'s block compressor, written here. `lz4_flex` allocates its 16 KiB hash table
+//!   afresh for every block, so this path makes one allocation per chunk; it is offered for a
+//!   board whose log thread cannot spare zstd's time.
+//! - `none`: the records as they are.
+//!
+//! Measured on a real log's content (`docs/results/2026-11-28-log-budget.md`): zstd level 1
+//! gave the better ratio on every topic at a log-thread cost the Jetson budget allows, so it
+//! is the default.
 
 use std::collections::BTreeMap;
 use std::io::{self, Write};
+use zstd::zstd_safe::{self, zstd_sys::ZSTD_EndDirective, CCtx, CParameter, InBuffer, OutBuffer, ResetDirective};
+
+/// The zstd level of compressed chunks: 1 (fastest regular level).
+pub const ZSTD_LEVEL: i32 = 1;
+
+/// How a chunk's records are compressed (the MCAP chunk's `compression` field).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ChunkCompression {
+    /// Uncompressed records (`""`).
+    None,
+    /// A Zstandard frame (`"zstd"`).
+    #[default]
+    Zstd,
+    /// An LZ4 frame (`"lz4"`).
+    Lz4,
+}
+
+impl ChunkCompression {
+    /// The name MCAP gives it in chunks and chunk indexes.
+    pub fn mcap_name(self) -> &'static str {
+        match self {
+            ChunkCompression::None => "",
+            ChunkCompression::Zstd => "zstd",
+            ChunkCompression::Lz4 => "lz4",
+        }
+    }
+}
+
+/// LZ4 frame header: magic, FLG (version 01, independent blocks, no checksums, no content
+/// size), BD (blocks of at most 4 MiB), header checksum (byte 1 of xxh32 of FLG BD).
+const LZ4_FRAME_HEADER: [u8; 7] = [0x04, 0x22, 0x4D, 0x18, 0x60, 0x70, 0x73];
+const LZ4_BLOCK_MAX: usize = 4 << 20;
+
+fn lz4_bound(total: usize, parts: usize) -> usize {
+    let blocks = total / LZ4_BLOCK_MAX + parts;
+    LZ4_FRAME_HEADER.len() + 4 + blocks * 4 + total + total / 255 + blocks * 16 + 64
+}
+
+fn zstd_error(code: usize) -> io::Error {
+    io::Error::other(format!("zstd: {}", zstd_safe::get_error_name(code)))
+}
+
+/// Compresses `parts` (one record stream, in order) into `out` (cleared first); the
+/// capacity is reserved up front, so `out` grows only for a larger chunk than any before.
+fn compress_parts(kind: ChunkCompression, ctx: &mut Option<CCtx<'static>>, out: &mut Vec<u8>, parts: &[&[u8]]) -> io::Result<()> {
+    out.clear();
+    let total: usize = parts.iter().map(|p| p.len()).sum();
+    match kind {
+        ChunkCompression::None => {
+            out.reserve(total);
+            for p in parts {
+                out.extend_from_slice(p);
+            }
+        }
+        ChunkCompression::Zstd => {
+            out.reserve(zstd_safe::compress_bound(total));
+            let cctx = match ctx {
+                Some(c) => c,
+                None => {
+                    let mut c = CCtx::create();
+                    c.set_parameter(CParameter::CompressionLevel(ZSTD_LEVEL)).map_err(zstd_error)?;
+                    ctx.insert(c)
+                }
+            };
+            cctx.reset(ResetDirective::SessionOnly).map_err(zstd_error)?;
+            // The size in the frame header: readers that decompress in one call need it.
+            cctx.set_pledged_src_size(Some(total as u64)).map_err(zstd_error)?;
+            for (i, part) in parts.iter().enumerate() {
+                let end = if i + 1 == parts.len() { ZSTD_EndDirective::ZSTD_e_end } else { ZSTD_EndDirective::ZSTD_e_continue };
+                let mut input = InBuffer::around(part);
+                loop {
+                    let pos = out.len();
+                    let mut output = OutBuffer::around_pos(out, pos);
+                    let left = cctx.compress_stream2(&mut output, &mut input, end).map_err(zstd_error)?;
+                    let done = input.pos() == part.len() && (end == ZSTD_EndDirective::ZSTD_e_continue || left == 0);
+                    if done {
+                        break;
+                    }
+                    if out.len() == out.capacity() {
+                        return Err(io::Error::other("zstd: output bound exceeded"));
+                    }
+                }
+            }
+        }
+        ChunkCompression::Lz4 => {
+            out.reserve(lz4_bound(total, parts.len()));
+            out.extend_from_slice(&LZ4_FRAME_HEADER);
+            for part in parts {
+                for block in part.chunks(LZ4_BLOCK_MAX) {
+                    let at = out.len();
+                    let room = lz4_flex::block::get_maximum_output_size(block.len());
+                    out.resize(at + 4 + room, 0);
+                    let n = lz4_flex::block::compress_into(block, &mut out[at + 4..]).map_err(|e| io::Error::other(format!("lz4: {e}")))?;
+                    if n < block.len() {
+                        out[at..at + 4].copy_from_slice(&(n as u32).to_le_bytes());
+                        out.truncate(at + 4 + n);
+                    } else {
+                        // Stored: the high bit marks an uncompressed block.
+                        out.truncate(at);
+                        out.extend_from_slice(&(block.len() as u32 | 0x8000_0000).to_le_bytes());
+                        out.extend_from_slice(block);
+                    }
+                }
+            }
+            out.extend_from_slice(&0u32.to_le_bytes());
+        }
+    }
+    Ok(())
+}
 
 /// The MCAP magic at both ends of a file.
 pub const MAGIC: [u8; 8] = *b"\x89MCAP0\r\n";
@@ -37,8 +166,8 @@ pub(crate) mod op {
 
 /// Opcode, record length, channel id, sequence, log time, publish time.
 const MESSAGE_HEAD_BYTES: usize = 1 + 8 + 2 + 4 + 8 + 8;
-/// Chunk fields before the records: start and end time, uncompressed size and CRC, an empty
-/// compression string, the records' length.
+/// Chunk fields before the records: start and end time, uncompressed size and CRC, the
+/// compression string's length (its bytes come on top), the records' length.
 const CHUNK_FIELDS_BYTES: u64 = 8 + 8 + 8 + 4 + 4 + 8;
 
 /// One chunk's entry of the summary's chunk index.
@@ -53,6 +182,8 @@ struct ChunkIndexEntry {
     offsets_to: usize,
     message_index_bytes: u64,
     records_bytes: u64,
+    compressed_bytes: u64,
+    compression: ChunkCompression,
 }
 
 /// The buffers a writer works in, passed from a finished writer to the next one so a new
@@ -67,6 +198,10 @@ pub struct WriterBuffers {
     /// Small records written outside chunks (schemas, channels, indexes, summary).
     scratch: Vec<u8>,
     metadata_indexes: Vec<(u64, u64, String)>,
+    /// The compressed records of the chunk being written.
+    compressed: Vec<u8>,
+    /// The zstd context, created with the first compressed chunk and reused.
+    zstd: Option<CCtx<'static>>,
 }
 
 impl WriterBuffers {
@@ -80,6 +215,8 @@ impl WriterBuffers {
             message_index_offsets: Vec::with_capacity(chunks * channels.max(1)),
             scratch: Vec::with_capacity(4096),
             metadata_indexes: Vec::with_capacity(8),
+            compressed: Vec::with_capacity(zstd_safe::compress_bound(chunk_bytes).max(lz4_bound(chunk_bytes, 2))),
+            zstd: None,
         }
     }
 }
@@ -178,6 +315,7 @@ pub struct ChunkedWriter<W: Write> {
     first_ns: u64,
     last_ns: u64,
     metadata_count: u32,
+    compression: ChunkCompression,
 }
 
 impl<W: Write> ChunkedWriter<W> {
@@ -211,6 +349,7 @@ impl<W: Write> ChunkedWriter<W> {
             first_ns: u64::MAX,
             last_ns: 0,
             metadata_count: 0,
+            compression: ChunkCompression::None,
         };
         w.out.put(&MAGIC)?;
         let s = &mut w.buf.scratch;
@@ -221,6 +360,11 @@ impl<W: Write> ChunkedWriter<W> {
         end_record(s, from);
         w.out.put(&w.buf.scratch)?;
         Ok(w)
+    }
+
+    /// Compresses the chunks written from now on (files start with [`ChunkCompression::None`]).
+    pub fn set_compression(&mut self, compression: ChunkCompression) {
+        self.compression = compression;
     }
 
     /// Bytes written so far (what the file holds once the output is flushed).
@@ -319,23 +463,25 @@ impl<W: Write> ChunkedWriter<W> {
         Ok(())
     }
 
-    fn chunk_header(&mut self, start_ns: u64, end_ns: u64, records_bytes: u64, crc: u32) -> io::Result<u64> {
+    fn chunk_header(&mut self, start_ns: u64, end_ns: u64, records_bytes: u64, crc: u32, compression: &str, compressed_bytes: u64) -> io::Result<u64> {
         let offset = self.out.pos;
-        let mut h = [0u8; 9 + CHUNK_FIELDS_BYTES as usize];
+        let name = compression.as_bytes();
+        let mut h = [0u8; 9 + 8 + 8 + 8 + 4 + 4];
         h[0] = op::CHUNK;
-        h[1..9].copy_from_slice(&(CHUNK_FIELDS_BYTES + records_bytes).to_le_bytes());
+        h[1..9].copy_from_slice(&(CHUNK_FIELDS_BYTES + name.len() as u64 + compressed_bytes).to_le_bytes());
         h[9..17].copy_from_slice(&start_ns.to_le_bytes());
         h[17..25].copy_from_slice(&end_ns.to_le_bytes());
         h[25..33].copy_from_slice(&records_bytes.to_le_bytes());
         h[33..37].copy_from_slice(&crc.to_le_bytes());
-        // h[37..41]: the empty compression string's length, 0.
-        h[41..49].copy_from_slice(&records_bytes.to_le_bytes());
+        h[37..41].copy_from_slice(&(name.len() as u32).to_le_bytes());
         self.out.put(&h)?;
+        self.out.put(name)?;
+        self.out.put(&compressed_bytes.to_le_bytes())?;
         Ok(offset)
     }
 
     /// Writes the message index records of the chunk just written and its chunk index entry.
-    fn index_chunk(&mut self, start_ns: u64, end_ns: u64, offset: u64, records_bytes: u64) -> io::Result<()> {
+    fn index_chunk(&mut self, start_ns: u64, end_ns: u64, offset: u64, records_bytes: u64, compressed_bytes: u64) -> io::Result<()> {
         let length = self.out.pos - offset;
         let offsets_from = self.buf.message_index_offsets.len();
         let index_from = self.out.pos;
@@ -367,6 +513,8 @@ impl<W: Write> ChunkedWriter<W> {
             offsets_to: self.buf.message_index_offsets.len(),
             message_index_bytes: self.out.pos - index_from,
             records_bytes,
+            compressed_bytes,
+            compression: self.compression,
         });
         Ok(())
     }
@@ -376,11 +524,20 @@ impl<W: Write> ChunkedWriter<W> {
         let mut crc = crc32fast::Hasher::new();
         crc.update(head);
         crc.update(data);
-        let offset = self.chunk_header(log_time_ns, log_time_ns, records_bytes, crc.finalize())?;
-        self.out.put(head)?;
-        self.out.put(data)?;
+        let (offset, compressed_bytes) = if self.compression == ChunkCompression::None {
+            let offset = self.chunk_header(log_time_ns, log_time_ns, records_bytes, crc.finalize(), "", records_bytes)?;
+            self.out.put(head)?;
+            self.out.put(data)?;
+            (offset, records_bytes)
+        } else {
+            compress_parts(self.compression, &mut self.buf.zstd, &mut self.buf.compressed, &[head, data])?;
+            let n = self.buf.compressed.len() as u64;
+            let offset = self.chunk_header(log_time_ns, log_time_ns, records_bytes, crc.finalize(), self.compression.mcap_name(), n)?;
+            self.out.put(&self.buf.compressed)?;
+            (offset, n)
+        };
         self.buf.channel_entries[slot].push((log_time_ns, 0));
-        self.index_chunk(log_time_ns, log_time_ns, offset, records_bytes)
+        self.index_chunk(log_time_ns, log_time_ns, offset, records_bytes, compressed_bytes)
     }
 
     /// Writes the open chunk (if it holds anything) with its message indexes.
@@ -391,12 +548,21 @@ impl<W: Write> ChunkedWriter<W> {
         let records_bytes = self.buf.chunk.len() as u64;
         let crc = crc32fast::hash(&self.buf.chunk);
         let (start_ns, end_ns) = (self.chunk_start_ns, self.chunk_end_ns);
-        let offset = self.chunk_header(start_ns, end_ns, records_bytes, crc)?;
-        self.out.put(&self.buf.chunk)?;
+        let (offset, compressed_bytes) = if self.compression == ChunkCompression::None {
+            let offset = self.chunk_header(start_ns, end_ns, records_bytes, crc, "", records_bytes)?;
+            self.out.put(&self.buf.chunk)?;
+            (offset, records_bytes)
+        } else {
+            compress_parts(self.compression, &mut self.buf.zstd, &mut self.buf.compressed, &[&self.buf.chunk])?;
+            let n = self.buf.compressed.len() as u64;
+            let offset = self.chunk_header(start_ns, end_ns, records_bytes, crc, self.compression.mcap_name(), n)?;
+            self.out.put(&self.buf.compressed)?;
+            (offset, n)
+        };
         self.buf.chunk.clear();
         self.chunk_start_ns = u64::MAX;
         self.chunk_end_ns = 0;
-        self.index_chunk(start_ns, end_ns, offset, records_bytes)
+        self.index_chunk(start_ns, end_ns, offset, records_bytes, compressed_bytes)
     }
 
     /// Closes the open chunk and flushes the output (a chunk boundary the file can be
@@ -485,8 +651,8 @@ impl<W: Write> ChunkedWriter<W> {
                 put_u64(s, at);
             }
             put_u64(s, e.message_index_bytes);
-            put_str(s, "");
-            put_u64(s, e.records_bytes);
+            put_str(s, e.compression.mcap_name());
+            put_u64(s, e.compressed_bytes);
             put_u64(s, e.records_bytes);
             end_record(s, from);
             self.put_scratch()?;
@@ -564,7 +730,12 @@ mod tests {
     use super::*;
 
     fn write_sample(chunk_bytes: usize) -> Vec<u8> {
+        write_sample_with(chunk_bytes, ChunkCompression::None)
+    }
+
+    fn write_sample_with(chunk_bytes: usize, compression: ChunkCompression) -> Vec<u8> {
         let mut w = ChunkedWriter::new(Vec::new(), "test", chunk_bytes, WriterBuffers::default()).unwrap();
+        w.set_compression(compression);
         let mut meta = BTreeMap::new();
         meta.insert("board".to_string(), "sim".to_string());
         w.write_metadata("duv.board", &meta).unwrap();
@@ -654,5 +825,58 @@ mod tests {
         assert_eq!(cap, (w.buf.chunk.capacity(), w.buf.channel_entries[0].capacity(), w.buf.chunk_indexes.capacity()));
         let (out, _) = w.finish().unwrap();
         assert_eq!(mcap::MessageStream::new(&out).unwrap().count(), 400);
+    }
+
+    #[test]
+    fn compressed_chunks_read_back_with_their_indexes_and_are_smaller() {
+        let plain = write_sample(1024);
+        let plain_messages = read_all(&plain);
+        assert_eq!(plain_messages.len(), 135);
+        for kind in [ChunkCompression::Zstd, ChunkCompression::Lz4] {
+            let bytes = write_sample_with(1024, kind);
+            // Our reader decompresses (ruzstd, lz4_flex's frame decoder) and checks the CRCs.
+            assert_eq!(read_all(&bytes), plain_messages, "{kind:?}");
+            // The repetitive sample compresses well: under half the file.
+            assert!(bytes.len() * 2 < plain.len(), "{kind:?}: {} vs {} bytes", bytes.len(), plain.len());
+            // The chunk index says the compression and both sizes.
+            let summary = mcap::Summary::read(&bytes).unwrap().expect("a summary");
+            assert!(summary.chunk_indexes.len() > 5);
+            for ci in &summary.chunk_indexes {
+                assert_eq!(ci.compression, kind.mcap_name());
+                assert!(ci.compressed_size < ci.uncompressed_size, "{ci:?}");
+            }
+        }
+    }
+
+    fn read_all(bytes: &[u8]) -> Vec<(u16, u32, u64, Vec<u8>)> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.mcap");
+        std::fs::write(&path, bytes).unwrap();
+        let mut v = Vec::new();
+        let outcome = crate::reader::read_segment(&path, crate::reader::ReadLimits::default(), |m| v.push((m.channel.id, m.sequence, m.log_time_ns, m.data.to_vec()))).unwrap();
+        assert!(outcome.complete && outcome.damage.is_none(), "{outcome:?}");
+        v
+    }
+
+    #[test]
+    fn a_warm_compressing_writer_keeps_its_buffers() {
+        for kind in [ChunkCompression::Zstd, ChunkCompression::Lz4] {
+            let mut w = ChunkedWriter::new(Vec::with_capacity(1 << 22), "test", 4096, WriterBuffers::with_capacity(4096, 2, 256)).unwrap();
+            w.set_compression(kind);
+            w.add_channel(1, 0, "/a", "json", &BTreeMap::new()).unwrap();
+            let big: Vec<u8> = (0..100_000u32).map(|i| (i % 251) as u8).collect();
+            let mut caps = Vec::new();
+            for round in 0..3 {
+                for i in 0..200u32 {
+                    w.write_message(1, i, i as u64, i as u64, &[(i % 7) as u8; 100]).unwrap();
+                }
+                w.write_message(1, 999, 999, 999, &big).unwrap();
+                caps.push((round, w.buf.compressed.capacity(), w.buf.chunk.capacity()));
+            }
+            assert_eq!(caps[1].1, caps[2].1, "{kind:?}: {caps:?}");
+            assert_eq!(caps[0].2, caps[2].2, "{kind:?}: {caps:?}");
+            let (out, _) = w.finish().unwrap();
+            assert_eq!(read_all(&out).len(), 603, "{kind:?}");
+        }
     }
 }

@@ -203,9 +203,12 @@ mod tests {
         let camera = PinholeCamera::new(50.0, 50.0, 2.0, 1.5, 4, 3).unwrap();
         let mut inv = duv_core::PlaneF32::new(4, 3);
         let mut var = duv_core::PlaneF32::new(4, 3);
+        // Inverse depths over the range underwater (1/m), variances from subnormal-f16 small to
+        // beyond f16's range, infinity and NaN.
+        let vars = [0.0, 3e-8, 1e-6, 5e-5, 1e-4, 0.01, 0.37, 12.5, 6e4, 1e9, f32::INFINITY, f32::NAN];
         for (i, (d, v)) in inv.data.iter_mut().zip(var.data.iter_mut()).enumerate() {
-            *d = 0.25 + i as f32 * 0.01;
-            *v = if i == 5 { f32::MAX } else { 1e-4 * i as f32 };
+            *d = 0.0123 + i as f32 * 0.7311;
+            *v = vars[i];
         }
         let kf = Keyframe { index: 9, t_ns: Timestamp::from_ns(3_000_000_001), image: ImageRgb8::new(4, 3), world_from_cam: Se3::identity(), camera, inv_depth: inv.clone(), inv_depth_variance: var.clone() };
         let (mut scratch, mut jpeg) = (Vec::new(), Vec::new());
@@ -216,8 +219,35 @@ mod tests {
         })
         .unwrap();
         assert_eq!(got.iter().map(|g| (g.0, g.1)).collect::<Vec<_>>(), vec![(Topic::KeyframeImage, 9), (Topic::KeyframeInvDepth, 9), (Topic::KeyframeVariance, 9), (Topic::KeyframePose, 9)]);
-        assert_eq!(decode_plane_f32(&got[1].2).unwrap(), inv);
-        assert_eq!(decode_plane_f32(&got[2].2).unwrap(), var);
+        // Logged as f16: half the bytes of f32, within the bound the schema states.
+        let (d16, v16) = (decode_plane_f32(&got[1].2).unwrap(), decode_plane_f32(&got[2].2).unwrap());
+        assert!(got[1].2.len() < 12 * 2 + 64 && got[1].2.len() >= 12 * 2, "{} bytes", got[1].2.len());
+        let within = |x: f32, y: f32| {
+            if x.is_nan() {
+                return y.is_nan();
+            }
+            if x.is_infinite() {
+                return y == x;
+            }
+            if x.abs() > 65504.0 {
+                return y == 65504.0f32.copysign(x);
+            }
+            let bound = if x.abs() >= 6.104e-5 { x.abs() * 2f32.powi(-11) } else { 2f32.powi(-25) };
+            (x - y).abs() <= bound
+        };
+        for (planes, name) in [((&inv, &d16), "inverse depth"), ((&var, &v16), "variance")] {
+            for (&x, &y) in planes.0.data.iter().zip(&planes.1.data) {
+                assert!(within(x, y), "{name}: {x} logged as {y}");
+            }
+        }
+        assert!(d16.data.iter().zip(&inv.data).any(|(a, b)| a != b), "f16 is lossy for these values");
+        assert_eq!(v16.data[9], 65504.0);
+        // A 32FC1 plane (an older log) is read exactly.
+        let mut old = Vec::new();
+        let mut tpl = fg::RawImage { encoding: String::new(), ..Default::default() };
+        crate::schema::encode_raw_image_for_test(&mut tpl, Timestamp::from_ns(1), 4, 3, "32FC1", 16, &var.data, &mut old);
+        let back = decode_plane_f32(&old).unwrap();
+        assert!(back.data.iter().zip(&var.data).all(|(a, b)| a == b || (a.is_nan() && b.is_nan())));
         let err = decode_plane_f32(&got[0].2).unwrap_err().to_string();
         assert!(err.contains("rgb8"), "{err}");
     }

@@ -52,6 +52,7 @@ pub use reader::{read_segment, OwnedEvent, ReadLimits, ReadOutcome, SegmentMessa
 pub use recover::{recover_folder, RecoveryReport};
 pub use schema::{DecodeError, FrameEncoding, LogFormat, LogItem, PoseRecord, Topic};
 pub use window::{TrackerWindow, WindowError, WindowKeyframe};
+pub use chunked::ChunkCompression;
 pub use writer::{LogConfig, LogStats, SegmentWriter};
 
 use std::path::PathBuf;

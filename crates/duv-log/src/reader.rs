@@ -92,6 +92,9 @@ pub struct ReadOutcome {
     pub orphaned_messages: u64,
     /// Chunks whose CRC held and whose messages were delivered.
     pub chunks: u64,
+    /// Their records' bytes as stored (compressed or not) and uncompressed, summed.
+    pub chunk_stored_bytes: u64,
+    pub chunk_uncompressed_bytes: u64,
     pub metadata: Vec<(String, BTreeMap<String, String>)>,
 }
 
@@ -294,6 +297,8 @@ impl SegmentReader {
                     Ok(())
                 })?;
                 self.outcome.chunks += 1;
+                self.outcome.chunk_stored_bytes += data.len() as u64;
+                self.outcome.chunk_uncompressed_bytes += records.len() as u64;
                 for e in events {
                     if let OwnedEvent::Message { channel_id, .. } = &e {
                         if !self.channels.contains_key(channel_id) {
@@ -505,9 +510,9 @@ fn check_head(opcode: u8, len: u64, at: u64, file_bytes: u64, limit: usize) -> R
     Ok(())
 }
 
-/// The records of a chunk after its CRC is checked. Our writer never compresses; chunks of
-/// other writers (ROS 2 bags: rosbag2 writes zstd by default) may be `zstd` or `lz4`
-/// (decompressed, at most `max_bytes`).
+/// The records of a chunk after its CRC is checked: `zstd` and `lz4` chunks (ours, by the
+/// board's `[log] compression`, and other writers': rosbag2 writes zstd by default) are
+/// decompressed, at most `max_bytes`.
 fn chunk_records<'a>(header: &mcap::records::ChunkHeader, data: &'a [u8], max_bytes: usize) -> Result<std::borrow::Cow<'a, [u8]>, Bad> {
     use std::io::Read;
     let data: std::borrow::Cow<'a, [u8]> = match header.compression.as_str() {

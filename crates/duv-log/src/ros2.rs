@@ -13,7 +13,7 @@
 //! | `/tf` | `tf2_msgs/msg/TFMessage` (`world` -> `camera`) |
 //! | `/slam/state` | `duv_msgs/msg/TrackingState` |
 //! | `/keyframe/image` | `sensor_msgs/msg/Image` (`rgb8`) |
-//! | `/keyframe/inv_depth`, `/keyframe/variance` | `sensor_msgs/msg/Image` (`32FC1`) |
+//! | `/keyframe/inv_depth`, `/keyframe/variance` | `sensor_msgs/msg/Image` (`16FC1`: f16, [`PLANE_ENCODING`](super::schema::PLANE_ENCODING)) |
 //! | `/map/gaussians` | `sensor_msgs/msg/PointCloud2` (x, y, z float32) |
 //! | `/map/checkpoint` | `duv_msgs/msg/MapCheckpoint` |
 //! | `/health` | `duv_msgs/msg/Health` |
@@ -28,7 +28,7 @@
 //! allocation.
 
 use super::jpeg::JpegEncoder;
-use super::schema::{encode_jpeg_with, Encoded, FrameEncoding, LogItem, Pixels, Topic, TopicSchema, CAMERA_FRAME, WORLD_FRAME};
+use super::schema::{encode_jpeg_with, Encoded, FrameEncoding, LogItem, Pixels, Topic, TopicSchema, CAMERA_FRAME, PLANE_ENCODING, WORLD_FRAME};
 use super::LogError;
 pub use super::cdr::{
     decode_camera_info, decode_compressed_image, decode_health, decode_image, decode_nav_sample, decode_odometry, decode_pose_stamped, decode_tracking_state, decode_wrapped, is_cdr, CdrError, CdrReader, CdrWriter, RosImage, CDR_LE, MESSAGE_ENCODING, POINT_FIELD_FLOAT32, PROFILE, SCHEMA_ENCODING,
@@ -234,6 +234,7 @@ fn image(out: &mut Vec<u8>, t_ns: Timestamp, width: usize, height: usize, encodi
     match pixels {
         Pixels::Bytes(b) => w.bytes(b),
         Pixels::F32(v) => w.f32_bytes(v),
+        Pixels::F16(v) => w.f16_bytes(v),
     }
 }
 
@@ -358,15 +359,15 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             image(scratch, k.t_ns, w, h, "rgb8", w * 3, Pixels::Bytes(&k.image.data));
             emit(Encoded { topic: Topic::KeyframeImage, sequence, log_time_ns }, scratch)?;
             let (dw, dh) = (k.inv_depth.width, k.inv_depth.height);
-            image(scratch, k.t_ns, dw, dh, "32FC1", dw * 4, Pixels::F32(&k.inv_depth.data));
+            image(scratch, k.t_ns, dw, dh, PLANE_ENCODING, dw * 2, Pixels::F16(&k.inv_depth.data));
             emit(Encoded { topic: Topic::KeyframeInvDepth, sequence, log_time_ns }, scratch)?;
             let (vw, vh) = (k.inv_depth_variance.width, k.inv_depth_variance.height);
-            image(scratch, k.t_ns, vw, vh, "32FC1", vw * 4, Pixels::F32(&k.inv_depth_variance.data));
+            image(scratch, k.t_ns, vw, vh, PLANE_ENCODING, vw * 2, Pixels::F16(&k.inv_depth_variance.data));
             emit(Encoded { topic: Topic::KeyframeVariance, sequence, log_time_ns }, scratch)?;
             pose_stamped(scratch, k.t_ns, &k.world_from_cam);
             emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
         }
-        LogItem::Map { t_ns, centres_in_world, checkpoint } => {
+        LogItem::Map { t_ns, centres_in_world, checkpoint, .. } => {
             let mut w = CdrWriter::new(scratch);
             w.header(t_ns.t_ns(), WORLD_FRAME);
             w.u32(1);

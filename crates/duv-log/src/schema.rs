@@ -45,11 +45,11 @@ pub enum DecodeError {
     JpegNoDimensions,
     #[error("jpeg: decoded size differs from {width}x{height} {colour}")]
     JpegSize { width: usize, height: usize, colour: &'static str },
-    /// A depth or variance plane of another encoding than `32FC1`.
-    #[error("encoding {encoding:?}, expected \"32FC1\"")]
+    /// A depth or variance plane of another encoding than `16FC1` or `32FC1`.
+    #[error("encoding {encoding:?}, expected \"16FC1\" or \"32FC1\"")]
     PlaneEncoding { encoding: String },
-    #[error("{bytes} bytes with step {step} for a {width}x{height} 32FC1 image")]
-    PlaneSize { bytes: usize, step: u32, width: usize, height: usize },
+    #[error("{bytes} bytes with step {step} for a {width}x{height} {encoding} image")]
+    PlaneSize { encoding: &'static str, bytes: usize, step: u32, width: usize, height: usize },
     #[error("K has {entries} entries, expected 9")]
     CalibrationK { entries: usize },
     #[error(transparent)]
@@ -273,7 +273,8 @@ pub enum LogItem {
     Pose(PoseRecord),
     Keyframe(std::sync::Arc<Keyframe>),
     /// A map checkpoint: the mapper's bytes and the Gaussian centres (world frame) for display.
-    Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8> },
+    /// `last`: the run's final map, logged whatever the budget says.
+    Map { t_ns: Timestamp, centres_in_world: Vec<[f32; 3]>, checkpoint: Vec<u8>, last: bool },
     /// A health record, already JSON.
     Health { t_ns: Timestamp, json: String },
     /// The tracker's newest keyframes (what a resume seeds a tracker with).
@@ -292,7 +293,7 @@ impl LogItem {
                 FrameImage::Gray8(i) => i.data.len(),
             },
             LogItem::Calibration { .. } | LogItem::Pose(_) | LogItem::Nav(_) => 0,
-            LogItem::Keyframe(k) => k.image.data.len() + 4 * (k.inv_depth.data.len() + k.inv_depth_variance.data.len()),
+            LogItem::Keyframe(k) => k.image.data.len() + 2 * (k.inv_depth.data.len() + k.inv_depth_variance.data.len()),
             LogItem::Map { centres_in_world, checkpoint, .. } => 12 * centres_in_world.len() + checkpoint.len(),
             LogItem::Health { json, .. } => json.len(),
             LogItem::Window(w) => w.encoded_len(),
@@ -371,10 +372,30 @@ impl Default for Templates {
     }
 }
 
-/// Pixel data of a `foxglove.RawImage`: bytes, or f32 samples written little endian.
+/// Pixel data of a `foxglove.RawImage`: bytes, or f32 samples written little endian as f32
+/// or as f16 ([`PLANE_ENCODING`]).
 pub(crate) enum Pixels<'a> {
     Bytes(&'a [u8]),
+    #[allow(dead_code)]
     F32(&'a [f32]),
+    F16(&'a [f32]),
+}
+
+/// The encoding of the logged keyframe inverse depth and variance: IEEE half floats
+/// (`half::f16`), little endian, 2 bytes a pixel (the name OpenCV gives the type; ROS and
+/// Foxglove define `32FC1` but no half-float encoding, so a viewer may not display these
+/// planes). What it costs: 11 significant bits, a relative error of at most 2^-11 (0.049 %)
+/// for magnitudes in [6.1e-5, 65504]; below 6.1e-5 (subnormal) an absolute error of at most
+/// 2^-25 (3.0e-8); finite values beyond 65504 are stored as 65504 (an inverse-depth variance
+/// that large, in m^-2, means "unknown" just as well), infinities and NaN as themselves. The
+/// tracker's inverse depth (1/m, 0.01-10 underwater) and its variance carry less precision
+/// than that. Logs written as `32FC1` (before this) are read as they are.
+pub const PLANE_ENCODING: &str = "16FC1";
+
+/// One plane sample as f16 bits (see [`PLANE_ENCODING`]).
+pub fn plane_sample_f16(x: f32) -> u16 {
+    let x = if x.is_finite() { x.clamp(-65504.0, 65504.0) } else { x };
+    half::f16::from_f32(x).to_bits()
 }
 
 /// Encodes a `foxglove.RawImage` into `out` without building the message's `data` (a copy of
@@ -397,8 +418,21 @@ fn encode_raw_image(tpl: &mut fg::RawImage, t_ns: Timestamp, width: usize, heigh
                 out.extend_from_slice(&x.to_le_bytes());
             }
         }
+        Pixels::F16(v) => {
+            field_header(6, 2 * v.len(), out);
+            for &x in v {
+                out.extend_from_slice(&plane_sample_f16(x).to_le_bytes());
+            }
+        }
     }
     Ok(())
+}
+
+/// A `32FC1` `foxglove.RawImage` as logs before [`PLANE_ENCODING`] held them (for tests).
+#[cfg(test)]
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn encode_raw_image_for_test(tpl: &mut fg::RawImage, t_ns: Timestamp, width: usize, height: usize, encoding: &str, step: usize, data: &[f32], out: &mut Vec<u8>) {
+    encode_raw_image(tpl, t_ns, width, height, encoding, step, Pixels::F32(data), "test", out).unwrap();
 }
 
 /// One encoded MCAP message: topic, header sequence, log time, body in the caller's buffer.
@@ -510,17 +544,17 @@ pub(crate) fn encode_item(item: &LogItem, frames: FrameEncoding, scratch: &mut V
             encode_raw_image(&mut tpl.image, k.t_ns, w, h, "rgb8", w * 3, Pixels::Bytes(&k.image.data), "keyframe image", scratch)?;
             emit(Encoded { topic: Topic::KeyframeImage, sequence, log_time_ns }, scratch)?;
             let (dw, dh) = (k.inv_depth.width, k.inv_depth.height);
-            encode_raw_image(&mut tpl.image, k.t_ns, dw, dh, "32FC1", dw * 4, Pixels::F32(&k.inv_depth.data), "keyframe inverse depth", scratch)?;
+            encode_raw_image(&mut tpl.image, k.t_ns, dw, dh, PLANE_ENCODING, dw * 2, Pixels::F16(&k.inv_depth.data), "keyframe inverse depth", scratch)?;
             emit(Encoded { topic: Topic::KeyframeInvDepth, sequence, log_time_ns }, scratch)?;
             let (vw, vh) = (k.inv_depth_variance.width, k.inv_depth_variance.height);
-            encode_raw_image(&mut tpl.image, k.t_ns, vw, vh, "32FC1", vw * 4, Pixels::F32(&k.inv_depth_variance.data), "keyframe variance", scratch)?;
+            encode_raw_image(&mut tpl.image, k.t_ns, vw, vh, PLANE_ENCODING, vw * 2, Pixels::F16(&k.inv_depth_variance.data), "keyframe variance", scratch)?;
             emit(Encoded { topic: Topic::KeyframeVariance, sequence, log_time_ns }, scratch)?;
             tpl.pose.timestamp = Some(fg_time(k.t_ns));
             tpl.pose.pose = Some(fg_pose(&k.world_from_cam));
             encode(&tpl.pose, "keyframe pose", scratch)?;
             emit(Encoded { topic: Topic::KeyframePose, sequence, log_time_ns }, scratch)
         }
-        LogItem::Map { t_ns, centres_in_world, checkpoint } => {
+        LogItem::Map { t_ns, centres_in_world, checkpoint, .. } => {
             let mut data = Vec::with_capacity(centres_in_world.len() * 12);
             for c in centres_in_world {
                 for v in c {
@@ -714,8 +748,9 @@ pub(crate) fn decode_jpeg(data: &[u8]) -> Result<FrameImage, DecodeError> {
     })
 }
 
-/// Decodes a `foxglove.RawImage` of encoding `32FC1` (little-endian f32, as the keyframe depth
-/// and variance are logged) into a plane.
+/// Decodes a `foxglove.RawImage` (or a ROS 2 `sensor_msgs/msg/Image`) of encoding `16FC1`
+/// (little-endian f16, as the keyframe depth and variance are logged, [`PLANE_ENCODING`]) or
+/// `32FC1` (little-endian f32, older logs) into a plane.
 pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, DecodeError> {
     if super::cdr::is_cdr(data) {
         let img = super::cdr::decode_image(data).map_err(|source| DecodeError::Cdr { schema: "sensor_msgs/msg/Image", source })?;
@@ -727,17 +762,23 @@ pub fn decode_plane_f32(data: &[u8]) -> Result<PlaneF32, DecodeError> {
     plane_from_le(w, h, &img.encoding, img.step, &img.data)
 }
 
-/// A `32FC1` plane from its little-endian samples.
+/// A `16FC1` or `32FC1` plane from its little-endian samples.
 fn plane_from_le(w: usize, h: usize, encoding: &str, step: u32, bytes: &[u8]) -> Result<PlaneF32, DecodeError> {
-    if encoding != "32FC1" {
-        return Err(DecodeError::PlaneEncoding { encoding: encoding.to_string() });
-    }
-    let size = || DecodeError::PlaneSize { bytes: bytes.len(), step, width: w, height: h };
-    let n = w.checked_mul(h).and_then(|n| n.checked_mul(4));
-    if w.checked_mul(4) != Some(step as usize) || n != Some(bytes.len()) {
+    let (name, sample) = match encoding {
+        "16FC1" => ("16FC1", 2),
+        "32FC1" => ("32FC1", 4),
+        _ => return Err(DecodeError::PlaneEncoding { encoding: encoding.to_string() }),
+    };
+    let size = || DecodeError::PlaneSize { encoding: name, bytes: bytes.len(), step, width: w, height: h };
+    let n = w.checked_mul(h).and_then(|n| n.checked_mul(sample));
+    if w.checked_mul(sample) != Some(step as usize) || n != Some(bytes.len()) {
         return Err(size());
     }
-    let data = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let data = if sample == 2 {
+        bytes.chunks_exact(2).map(|b| half::f16::from_bits(u16::from_le_bytes([b[0], b[1]])).to_f32()).collect()
+    } else {
+        bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+    };
     PlaneF32::from_vec(w, h, data).ok_or_else(size)
 }
 

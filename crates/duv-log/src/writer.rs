@@ -1,7 +1,7 @@
 //! Segment files: one MCAP writer at a time, chunks closed and fsynced on a timer, rotation by
 //! size and age, and a write error (disk full, device gone) that stops logging cleanly.
 
-use super::chunked::{ChunkedWriter, WriterBuffers};
+use super::chunked::{ChunkCompression, ChunkedWriter, WriterBuffers};
 use super::encoder::{schema_in, ItemEncoder};
 use super::schema::{FrameEncoding, LogFormat, LogItem, Topic, ALL_TOPICS};
 use super::{list_segments, segment_name, LogError};
@@ -36,6 +36,11 @@ pub struct LogConfig {
     pub frame_encoding: FrameEncoding,
     /// Message schemas: Foxglove's, or a ROS 2 bag (the board's `[log] format`).
     pub format: LogFormat,
+    /// How chunks are compressed (the board's `[log] compression`).
+    pub compression: ChunkCompression,
+    /// The byte budget, MB (10^6 bytes) per second of log time (the board's `[log]
+    /// max_mb_per_s`); `None`: every map logged.
+    pub max_mb_per_s: Option<f64>,
 }
 
 impl LogConfig {
@@ -48,6 +53,8 @@ impl LogConfig {
             metadata: Vec::new(),
             frame_encoding: FrameEncoding::Raw,
             format: LogFormat::Foxglove,
+            compression: ChunkCompression::Zstd,
+            max_mb_per_s: None,
         }
     }
 }
@@ -65,6 +72,46 @@ pub struct LogStats {
     pub dropped_after_failure: u64,
     /// The write error that stopped logging.
     pub failure: Option<String>,
+    /// Map checkpoints (with their point clouds) logged, and skipped because the byte budget
+    /// did not cover them.
+    pub maps_logged: u64,
+    pub maps_skipped: u64,
+    /// Log time from the first item to the last, ns (what MB/s is measured over).
+    pub span_ns: i64,
+}
+
+impl LogStats {
+    /// Bytes per second of log time, in MB (10^6 bytes); `None` before a second item.
+    pub fn mb_per_s(&self) -> Option<f64> {
+        (self.span_ns > 0).then(|| self.bytes as f64 / 1e6 / (self.span_ns as f64 * 1e-9))
+    }
+}
+
+/// The byte budget: a token bucket filled at `max_mb_per_s` over log time. Every byte written
+/// draws from it (what the files grew by); a map is written only when the bucket covers twice
+/// its expected size (its uncompressed size times the compression ratio of the last logged
+/// map), so that the final map, always written, is paid for too.
+#[derive(Clone, Debug)]
+struct Budget {
+    bytes_per_ns: f64,
+    tokens: f64,
+    /// The newest log time seen.
+    t_ns: Option<i64>,
+    /// File bytes already drawn.
+    drawn: u64,
+    /// Compressed / uncompressed bytes of the last logged map.
+    map_ratio: f64,
+}
+
+impl Budget {
+    fn refill(&mut self, t_ns: i64) {
+        if let Some(t0) = self.t_ns {
+            if t_ns > t0 {
+                self.tokens += (t_ns - t0) as f64 * self.bytes_per_ns;
+            }
+        }
+        self.t_ns = Some(self.t_ns.map_or(t_ns, |t0| t0.max(t_ns)));
+    }
 }
 
 struct OpenSegment {
@@ -93,6 +140,8 @@ pub struct SegmentWriter {
     spare: Option<WriterBuffers>,
     /// Called after every fsync with (segment path, messages in it, file bytes).
     on_sync: Option<Box<dyn FnMut(&Path, u64, u64) + Send>>,
+    budget: Option<Budget>,
+    first_t_ns: Option<i64>,
 }
 
 fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> LogError + '_ {
@@ -120,7 +169,8 @@ impl SegmentWriter {
         let by_size = cfg.segment_max_bytes / CHUNK_BYTES;
         let chunks = (2.0 * by_age).min(1e6) as usize + by_size as usize + 64;
         let spare = Some(WriterBuffers::with_capacity(CHUNK_BYTES as usize, ALL_TOPICS.len(), chunks));
-        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, encoder, spare, on_sync: None })
+        let budget = cfg.max_mb_per_s.map(|mb| Budget { bytes_per_ns: mb * 1e6 * 1e-9, tokens: 0.0, t_ns: None, drawn: 0, map_ratio: 1.0 });
+        Ok(SegmentWriter { cfg, open: None, next_index, stats: LogStats::default(), failed: false, last_calibration: None, encoder, spare, on_sync: None, budget, first_t_ns: None })
     }
 
     /// Reports every fsync (the crash harness reads this to know what must survive).
@@ -151,7 +201,8 @@ impl SegmentWriter {
         let sync = file.try_clone().map_err(io_err(&path))?;
         let out = BufWriter::with_capacity(1 << 20, file);
         let buffers = self.spare.take().unwrap_or_default();
-        let writer = ChunkedWriter::with_profile(out, self.cfg.format.profile(), LIBRARY, CHUNK_BYTES as usize, buffers).map_err(io_err(&path))?;
+        let mut writer = ChunkedWriter::with_profile(out, self.cfg.format.profile(), LIBRARY, CHUNK_BYTES as usize, buffers).map_err(io_err(&path))?;
+        writer.set_compression(self.cfg.compression);
         let now = Instant::now();
         let mut seg = OpenSegment { path, writer, sync, opened: now, last_sync: now, channels: [false; ALL_TOPICS.len()], messages: 0 };
         for (name, map) in &self.cfg.metadata {
@@ -212,15 +263,55 @@ impl SegmentWriter {
             self.stats.dropped_after_failure += 1;
             return Ok(());
         }
+        let t_ns = item.t_ns().t_ns();
+        let first = *self.first_t_ns.get_or_insert(t_ns);
+        self.stats.span_ns = self.stats.span_ns.max(t_ns - first);
+        let mut map_bytes = None;
+        if let Some(b) = self.budget.as_mut() {
+            b.refill(t_ns);
+            if let LogItem::Map { last, .. } = item {
+                // Twice its size: what is left must still cover the final map (about as large),
+                // which is logged whatever the bucket holds.
+                let expected = item.approx_bytes() as f64 * b.map_ratio;
+                if !*last && b.tokens < 2.0 * expected {
+                    self.stats.maps_skipped += 1;
+                    return Ok(());
+                }
+                map_bytes = Some(item.approx_bytes());
+            }
+        }
+        if matches!(item, LogItem::Map { .. }) {
+            self.stats.maps_logged += 1;
+        }
         // A large record (map checkpoint, keyframe maps) starts after a closed, synced chunk,
         // so a failure while writing it cannot take the smaller records before it along.
         let large = matches!(item, LogItem::Map { .. } | LogItem::Keyframe(_));
         let pre = if large && self.open.is_some() { self.sync_now() } else { Ok(()) };
-        let result = pre.and_then(|()| self.write_inner(item)).and_then(|()| self.rotate_if_due(false));
+        let before = self.file_bytes();
+        let result = pre.and_then(|()| self.write_inner(item)).and_then(|()| {
+            // A map is a chunk of its own: closed now, so its compressed size is known.
+            if map_bytes.is_some() {
+                self.sync_now()?;
+            }
+            self.rotate_if_due(false)
+        });
         if let LogItem::Calibration { t_ns, camera } = item {
             self.last_calibration = Some((*t_ns, *camera));
         }
+        let now = self.file_bytes();
+        if let Some(b) = self.budget.as_mut() {
+            if let Some(n) = map_bytes.filter(|&n| n > 0) {
+                b.map_ratio = (now.saturating_sub(before) as f64 / n as f64).clamp(0.01, 1.1);
+            }
+            b.tokens -= now.saturating_sub(b.drawn) as f64;
+            b.drawn = now;
+        }
         self.check(result)
+    }
+
+    /// Bytes in the finished segments and the open one so far.
+    fn file_bytes(&self) -> u64 {
+        self.stats.bytes + self.open.as_ref().map_or(0, |s| s.writer_pos())
     }
 
     /// Closes the chunk and fsyncs when [`LogConfig::chunk_interval`] has passed; rotates an

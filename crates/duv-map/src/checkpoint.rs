@@ -34,6 +34,10 @@
 //! `/keyframe/*` messages, and without them a map at the board's caps fits the log queue (a
 //! 50k-Gaussian, 64-keyframe map at 320x240: 15 MB instead of 68.6 MB). Restoring one needs
 //! those keyframes back ([`RestoreOptions::keyframes`], matched by time stamp and size).
+//! A referenced checkpoint also leaves out the Gaussians' Adam moments (empty arrays, the step
+//! counts kept; two thirds of a map's bytes): restored, it is the same map and renders the same,
+//! and its optimiser starts again from zero moments, so its next iteration is not the stopped
+//! run's. (Resume reads the embedded files in `checkpoints/`, which keep everything.)
 
 use std::path::Path;
 
@@ -367,7 +371,7 @@ impl Mapper {
             .map(|k| 8 * 15 + 8 + 16 + if embed { k.kf.image.data.len() + 4 * (k.kf.inv_depth.data.len() + k.kf.inv_depth_variance.data.len()) } else { 0 })
             .sum();
         let groups: usize = ParamGroup::ALL.iter().map(|&g| 8 + 4 * self.gaussians.group(g).len()).sum();
-        let adam: usize = self.adam.iter().map(|a| 24 + 8 * a.moments().0.len()).sum::<usize>() + 24 + 8 * self.medium_adam.moments().0.len();
+        let adam: usize = self.adam.iter().map(|a| 24 + if embed { 8 * a.moments().0.len() } else { 0 }).sum::<usize>() + 24 + 8 * self.medium_adam.moments().0.len();
         let n = self.grads.densify_grad_norm().len();
         let medium_state = MediumStateRecord::of(self);
         let payload_len = 8 + config_toml.len() + 32 + 8 + 32 + groups + 3 * 8 + 12 * n + adam + 8 + 8 + 4 * self.medium.params().len() + 8 + kf_bytes + 16 + 8 * medium_state.prior.len() + 8 + 4 * n;
@@ -392,7 +396,13 @@ impl Mapper {
         put_u32s(w, self.grads.pixels_touched());
         put_u32s(w, self.grads.views());
         for a in &self.adam {
-            put_adam(w, a);
+            if embed {
+                put_adam(w, a);
+            } else {
+                put_u64(w, a.steps());
+                put_f32s(w, &[]);
+                put_f32s(w, &[]);
+            }
         }
         put_u64(w, self.medium.pe_frequencies() as u64);
         put_f32s(w, self.medium.params());
@@ -497,7 +507,13 @@ impl Mapper {
             m.gaussians.push(&super::gaussians::GaussianParam::from_array(&a)).map_err(MapperError::from)?;
         }
         for (k, rec) in payload.adam.iter().enumerate() {
-            m.adam[k].set_state(rec.steps, &floats(&rec.m), &floats(&rec.v)).map_err(MapperError::from)?;
+            if rec.m.is_empty() && rec.v.is_empty() && len > 0 {
+                // A referenced (logged) checkpoint: the moments start from zero.
+                let zeros = vec![0.0f32; len * ParamGroup::ALL[k].width()];
+                m.adam[k].set_state(rec.steps, &zeros, &zeros).map_err(MapperError::from)?;
+            } else {
+                m.adam[k].set_state(rec.steps, &floats(&rec.m), &floats(&rec.v)).map_err(MapperError::from)?;
+            }
             if m.adam[k].len() != len {
                 return Err(bad(format!("Adam group {k} holds {} items, the map {len}", m.adam[k].len())));
             }

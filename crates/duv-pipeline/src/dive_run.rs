@@ -243,7 +243,9 @@ pub enum Progress<'a> {
     /// Frame-in to pose-out latency of this run's frames.
     Latency { median_ms: f64, p99_ms: f64 },
     /// What the log took.
-    LogRate { log_bytes: u64, frames_captured: u64, frames_per_s: f64, wall_s: f64 },
+    /// `budget_mb_per_s`: the board's `[log] max_mb_per_s`; `maps_skipped` of `maps_offered`
+    /// map checkpoints were left out of the log to keep it.
+    LogRate { log_bytes: u64, frames_captured: u64, frames_per_s: f64, wall_s: f64, budget_mb_per_s: Option<f64>, maps_skipped: u64, maps_offered: u64 },
     /// The keyframes the full keyframe queue deferred were mapped from the log.
     CaughtUp { keyframes: usize },
     /// Where the stage threads ran ([`super::placement::PlacementReport::summary`]).
@@ -365,14 +367,20 @@ impl std::fmt::Display for Progress<'_> {
             ),
             Progress::NothingLeft { after_seq } => write!(f, "nothing left to track after frame {after_seq}: the outputs are written from the log"),
             Progress::Latency { median_ms, p99_ms } => write!(f, "frame-in to pose-out latency median {median_ms:.1} ms, p99 {p99_ms:.1} ms"),
-            Progress::LogRate { log_bytes, frames_captured, frames_per_s: fps, wall_s } => {
+            Progress::LogRate { log_bytes, frames_captured, frames_per_s: fps, wall_s, budget_mb_per_s, maps_skipped, maps_offered } => {
                 let per_frame = *log_bytes as f64 / (*frames_captured).max(1) as f64;
+                let mb_s = per_frame * fps / 1e6;
+                let budget = match budget_mb_per_s {
+                    Some(b) if mb_s <= *b => format!("; budget {b} MB/s: under by {:.2}", b - mb_s),
+                    Some(b) => format!("; budget {b} MB/s: OVER by {:.2}", mb_s - b),
+                    None => "; no budget ([log] max_mb_per_s)".to_string(),
+                };
                 write!(
                     f,
-                    "log {:.1} MB: {per_frame:.0} bytes per captured frame (all topics), {:.1} MB/s at the board's {fps:.0} frames/s ({:.2} MB/s over the {wall_s:.1} s run)",
+                    "log {:.1} MB: {per_frame:.0} bytes per captured frame (all topics), {mb_s:.2} MB/s at the board's {fps:.0} frames/s ({:.2} MB/s over the {wall_s:.1} s run){budget}; map checkpoints logged {} of {maps_offered}, {maps_skipped} skipped for the budget",
                     *log_bytes as f64 / 1e6,
-                    per_frame * fps / 1e6,
-                    *log_bytes as f64 / 1e6 / wall_s
+                    *log_bytes as f64 / 1e6 / wall_s,
+                    maps_offered - maps_skipped,
                 )
             }
             Progress::CaughtUp { keyframes } => write!(f, "map: {keyframes} logged keyframe(s) the keyframe queue had deferred mapped before the final optimisation"),
@@ -749,6 +757,9 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
             frames_captured: result.frames_captured,
             frames_per_s: 1e3 / pcfg.frame_period_ms,
             wall_s: result.wall.as_secs_f64().max(1e-9),
+            budget_mb_per_s: pcfg.log.max_mb_per_s,
+            maps_skipped: result.log.maps_skipped,
+            maps_offered: result.log.maps_logged + result.log.maps_skipped,
         });
     }
 

@@ -50,7 +50,7 @@ pub use progress::{ProgressSnapshot, RunProgress};
 pub use stop::Stop;
 
 use duv_camera::FrameSource;
-use duv_core::config::board::{Board, FrameLogEncoding, LogFormatSetting};
+use duv_core::config::board::{Board, FrameLogEncoding, LogCompression, LogFormatSetting};
 use duv_core::alloc::{self, ThreadRole};
 use duv_core::{Frame, Keyframe, Se3, Sim3, Timestamp};
 use duv_log::{FrameEncoding, LogConfig, LogItem, LogStats, PoseRecord, SegmentWriter};
@@ -133,6 +133,11 @@ pub trait MapStage: Send {
     fn step(&mut self) -> Result<bool, MapStageError>;
     /// A checkpoint to persist now (`None` when nothing changed since the last one).
     fn checkpoint(&mut self) -> Option<MapCheckpoint>;
+    /// The run's final checkpoint: made even when nothing changed since the last one (that one
+    /// may have been left out of the log for its byte budget), `None` only for an empty map.
+    fn final_checkpoint(&mut self) -> Option<MapCheckpoint> {
+        self.checkpoint()
+    }
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError>;
     /// The newest keyframe id the stage was fed (keyframes come in id order), `None` when it
@@ -327,6 +332,12 @@ impl PipelineConfig {
             LogFormatSetting::Foxglove => duv_log::LogFormat::Foxglove,
             LogFormatSetting::Ros2 => duv_log::LogFormat::Ros2,
         };
+        log.compression = match board.log.compression {
+            LogCompression::Zstd => duv_log::ChunkCompression::Zstd,
+            LogCompression::Lz4 => duv_log::ChunkCompression::Lz4,
+            LogCompression::None => duv_log::ChunkCompression::None,
+        };
+        log.max_mb_per_s = board.log.max_mb_per_s;
         log.metadata.push(("duv.board".into(), [("toml".to_string(), toml::to_string(board).unwrap_or_default())].into_iter().collect()));
         PipelineConfig {
             out_dir,
@@ -659,11 +670,11 @@ pub fn run<S: FrameSource + 'static>(
                 // A checkpoint that cannot be written (a full disk) is reported once; mapping
                 // goes on, and a resume starts from the newest one on disk.
                 let mut failed_saves = 0u64;
-                let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp| -> Result<(), PipelineError> {
-                    if let Some(c) = map.checkpoint() {
+                let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp, last: bool| -> Result<(), PipelineError> {
+                    if let Some(c) = if last { map.final_checkpoint() } else { map.checkpoint() } {
                         live.cloud(t, &c.centres_in_world, &c.colours);
                         match checkpoints.save(&c.file) {
-                            Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
+                            Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last }),
                             Err(e) => {
                                 failed_saves += 1;
                                 if failed_saves == 1 {
@@ -694,7 +705,7 @@ pub fn run<S: FrameSource + 'static>(
                     }
                     if last_ckpt.elapsed() >= interval {
                         last_ckpt = Instant::now();
-                        save(&mut map, last_t)?;
+                        save(&mut map, last_t, false)?;
                     }
                     if idle {
                         match kq.pop_timeout(Duration::from_millis(100)) {
@@ -707,7 +718,7 @@ pub fn run<S: FrameSource + 'static>(
                         }
                     }
                 }
-                save(&mut map, last_t)?;
+                save(&mut map, last_t, true)?;
                 Ok(map)
             };
             // Closed on any exit, so tracking never waits on a mapping thread that failed.
@@ -1052,9 +1063,9 @@ fn run_deterministic<S: FrameSource + 'static>(
         handoff.flush(tracker, |item| log(&mut writer, item), &mut to_mapping)
     })?;
     drop(to_mapping);
-    if let Some(c) = map.checkpoint() {
+    if let Some(c) = map.final_checkpoint() {
         match checkpoints.save(&c.file) {
-            Ok(_) => log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged }),
+            Ok(_) => log(&mut writer, LogItem::Map { t_ns: last_t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last: true }),
             Err(e) => tracing::error!("map checkpoint not written: {e}"),
         }
     }

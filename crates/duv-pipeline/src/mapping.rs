@@ -103,6 +103,11 @@ impl MapStage for GaussianMapping {
         Ok(true)
     }
 
+    fn final_checkpoint(&mut self) -> Option<MapCheckpoint> {
+        self.dirty |= self.fed > 0;
+        self.checkpoint()
+    }
+
     fn checkpoint(&mut self) -> Option<MapCheckpoint> {
         if !std::mem::take(&mut self.dirty) {
             return None;

@@ -215,6 +215,19 @@ pub enum LogFormatSetting {
     Ros2,
 }
 
+/// How the log's MCAP chunks are compressed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LogCompression {
+    /// Zstandard (level 1): the better ratio, the default.
+    #[default]
+    Zstd,
+    /// LZ4 frames: faster, larger.
+    Lz4,
+    /// Uncompressed chunks.
+    None,
+}
+
 /// The `[log]` section.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -228,6 +241,15 @@ pub struct LogSettings {
     /// JPEG quality, 1 to 100 (with `frame_encoding = "jpeg"`).
     #[serde(default = "default_jpeg_quality")]
     pub jpeg_quality: u8,
+    /// `zstd`, `lz4` or `none`: how the MCAP chunks are compressed.
+    #[serde(default)]
+    pub compression: LogCompression,
+    /// The log's byte budget, MB (10^6 bytes) per second of the run, on average. Frames,
+    /// poses, state, keyframes, navigation and health are always logged and draw from it
+    /// first; map checkpoints and point clouds are logged when what is left covers them (the
+    /// final map always). Absent: no budget, every checkpoint logged.
+    #[serde(default)]
+    pub max_mb_per_s: Option<f64>,
 }
 
 /// [`LogSettings::jpeg_quality`] when the board does not say.
@@ -239,7 +261,7 @@ fn default_jpeg_quality() -> u8 {
 
 impl Default for LogSettings {
     fn default() -> Self {
-        LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Raw, jpeg_quality: DEFAULT_JPEG_QUALITY }
+        LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Raw, jpeg_quality: DEFAULT_JPEG_QUALITY, compression: LogCompression::Zstd, max_mb_per_s: None }
     }
 }
 
@@ -374,6 +396,11 @@ impl Board {
         if !(1..=100).contains(&self.log.jpeg_quality) {
             return Err(invalid("log.jpeg_quality", self.log.jpeg_quality.to_string(), "must be in 1..=100"));
         }
+        if let Some(v) = self.log.max_mb_per_s {
+            if !(v.is_finite() && v > 0.0 && v <= 10_000.0) {
+                return Err(invalid("log.max_mb_per_s", v.to_string(), "must be a number of MB/s in (0, 10000]"));
+            }
+        }
         self.live.validate().map_err(|(key, value, why)| invalid(key, value, why))
     }
 
@@ -497,10 +524,19 @@ mapping = 1
     #[test]
     fn log_section_is_optional_and_strict() {
         let b = Board::parse(Path::new("t.toml"), MINIMAL).unwrap();
-        assert_eq!(b.log, LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Raw, jpeg_quality: 90 });
+        assert_eq!(b.log, LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Raw, jpeg_quality: 90, compression: LogCompression::Zstd, max_mb_per_s: None });
         let with = |body: &str| format!("{MINIMAL}[log]\n{body}\n");
         let b = Board::parse(Path::new("t.toml"), &with("frame_encoding = \"jpeg\"\njpeg_quality = 75")).unwrap();
-        assert_eq!(b.log, LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Jpeg, jpeg_quality: 75 });
+        assert_eq!(b.log, LogSettings { format: LogFormatSetting::Foxglove, frame_encoding: FrameLogEncoding::Jpeg, jpeg_quality: 75, compression: LogCompression::Zstd, max_mb_per_s: None });
+        let b = Board::parse(Path::new("t.toml"), &with("compression = \"lz4\"\nmax_mb_per_s = 8")).unwrap();
+        assert_eq!((b.log.compression, b.log.max_mb_per_s), (LogCompression::Lz4, Some(8.0)));
+        assert_eq!(Board::parse(Path::new("t.toml"), &with("compression = \"none\"")).unwrap().log.compression, LogCompression::None);
+        let e = Board::parse(Path::new("t.toml"), &with("compression = \"gzip\"")).unwrap_err().to_string();
+        assert!(e.contains("unknown variant `gzip`") && e.contains("zstd") && e.contains("lz4"), "{e}");
+        for v in ["0", "-1", "nan", "20000"] {
+            let e = Board::parse(Path::new("t.toml"), &with(&format!("max_mb_per_s = {v}"))).unwrap_err().to_string();
+            assert!(e.starts_with("t.toml: log.max_mb_per_s = ") && e.contains("MB/s"), "{v}: {e}");
+        }
         let b = Board::parse(Path::new("t.toml"), &with("format = \"ros2\"")).unwrap();
         assert_eq!(b.log.format, LogFormatSetting::Ros2);
         let e = Board::parse(Path::new("t.toml"), &with("format = \"rosbag\"")).unwrap_err().to_string();
