@@ -234,8 +234,11 @@ fn export_of_a_sim_run_reads_back_in_pycolmap_and_splat_transform() {
         let panel = read_image(&run.join("renders").join(&name)).unwrap().to_rgb8();
         let img = read_image(&restored.join("images").join(&name)).unwrap().to_rgb8();
         assert_eq!((img.width, img.height, panel.width), (cam.width, cam.height, cam.width * 5));
+        // The images sit under the panel's label strip.
+        let top = panel.height - cam.height;
+        assert_eq!(top, duv_map::stage::label_strip_height(cam.width));
         for y in 0..cam.height {
-            let src = (y * panel.width + 2 * cam.width) * 3;
+            let src = ((top + y) * panel.width + 2 * cam.width) * 3;
             assert_eq!(&img.data[y * cam.width * 3..(y + 1) * cam.width * 3], &panel.data[src..src + cam.width * 3], "{name} row {y}");
         }
     }

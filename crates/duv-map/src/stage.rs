@@ -305,12 +305,26 @@ const GLYPHS: [(char, [u8; 7]); 14] = [
     ('y', [0b00000, 0b00000, 0b10001, 0b10001, 0b01111, 0b00001, 0b01110]),
 ];
 
+fn label_scale(part_width: usize) -> usize {
+    if part_width >= 240 {
+        2
+    } else {
+        1
+    }
+}
+
+/// Rows of the label strip [`with_labels`] puts over parts `part_width` wide (readers of a
+/// panel find the images below it).
+pub fn label_strip_height(part_width: usize) -> usize {
+    7 * label_scale(part_width) + 4
+}
+
 /// `row` (parts `part_width` wide) under a black strip with `labels[k]` in white over part `k`
 /// (glyphs scaled by 2 where a part is at least 240 pixels wide; letters without a glyph are
 /// left blank).
 pub fn with_labels(row: &ImageRgb8, part_width: usize, labels: &[&str]) -> ImageRgb8 {
-    let scale = if part_width >= 240 { 2 } else { 1 };
-    let strip = 7 * scale + 4;
+    let scale = label_scale(part_width);
+    let strip = label_strip_height(part_width);
     let mut out = ImageRgb8::new(row.width, row.height + strip);
     out.data[strip * row.width * 3..].copy_from_slice(&row.data);
     for (k, label) in labels.iter().enumerate() {

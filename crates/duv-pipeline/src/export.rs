@@ -117,7 +117,7 @@ pub enum ExportError {
     DuplicateKeyframe { path: PathBuf, id: u64 },
     #[error("{path}: {width}x{height}, the calibration says {expected_width}x{expected_height}")]
     ImageSize { path: PathBuf, width: usize, height: usize, expected_width: usize, expected_height: usize },
-    #[error("{path}: {width}x{height}, not the {panels} panels of {expected_width}x{expected_height} (input | render | restored | depth | uncertainty) a render holds")]
+    #[error("{path}: {width}x{height}, not the {panels} panels of {expected_width}x{expected_height} (input | render | restored | depth | uncertainty, under their labels) a render holds")]
     RenderSize { path: PathBuf, width: usize, height: usize, panels: usize, expected_width: usize, expected_height: usize },
     #[error("{dir}: no restored keyframe image for any keyframe (renders/NNNNNN.png, written by the mapper at the end of a run that was not stopped)")]
     NoRestored { dir: PathBuf },
@@ -365,12 +365,15 @@ fn create_dir(path: &Path) -> Result<(), ExportError> {
 fn restored_panel(path: &Path, camera: &PinholeCamera) -> Result<ImageRgb8, ExportError> {
     let panel = read_image(path)?.to_rgb8();
     let (w, h) = (camera.width, camera.height);
-    if panel.width != w * RENDER_PANELS || panel.height != h {
+    // Under the label strip (`duv_map::stage::with_labels`); renders of older runs have none.
+    let strip = duv_map::stage::label_strip_height(w);
+    if panel.width != w * RENDER_PANELS || (panel.height != h && panel.height != h + strip) {
         return Err(ExportError::RenderSize { path: path.to_path_buf(), width: panel.width, height: panel.height, panels: RENDER_PANELS, expected_width: w, expected_height: h });
     }
+    let top = panel.height - h;
     let mut out = ImageRgb8::new(w, h);
     for y in 0..h {
-        let src = (y * panel.width + RESTORED_PANEL * w) * 3;
+        let src = ((top + y) * panel.width + RESTORED_PANEL * w) * 3;
         out.data[y * w * 3..(y + 1) * w * 3].copy_from_slice(&panel.data[src..src + w * 3]);
     }
     Ok(out)
@@ -721,11 +724,14 @@ mod tests {
         assert!(e.to_string().contains("renders"), "{e}");
         std::fs::create_dir_all(run.join("renders")).unwrap();
         // Renders of the first two keyframes only: panel k filled with 40 k + 1.
-        for id in &ids[..2] {
+        // The first as the mapper writes it (under its label strip), the second as older
+        // runs did (no labels).
+        for (k, id) in ids[..2].iter().enumerate() {
             let mut panel = ImageRgb8::new(cam.width * 5, cam.height);
             for (i, px) in panel.data.chunks_exact_mut(3).enumerate() {
                 px.fill(((i % (cam.width * 5)) / cam.width * 40 + 1) as u8);
             }
+            let panel = if k == 0 { duv_map::stage::with_labels(&panel, cam.width, &duv_map::stage::PANEL_LABELS) } else { panel };
             write_rgb8(&run.join("renders").join(format!("{id:06}.png")), &panel).unwrap();
         }
         let out = tmp.path().join("restored");
@@ -735,6 +741,8 @@ mod tests {
         let img = read_image(&out.join("images").join(format!("{:06}.png", ids[0]))).unwrap().to_rgb8();
         assert_eq!((img.width, img.height), (cam.width, cam.height));
         assert!(img.data.iter().all(|&v| v == 81), "the restored panel");
+        let img = read_image(&out.join("images").join(format!("{:06}.png", ids[1]))).unwrap().to_rgb8();
+        assert!(img.data.iter().all(|&v| v == 81), "the restored panel of an unlabelled render");
         // A render of the wrong size is refused, naming it.
         write_rgb8(&run.join("renders").join(format!("{:06}.png", ids[2])), &ImageRgb8::new(cam.width, cam.height)).unwrap();
         let e = export_run(&run, &out, &opts).unwrap_err();
