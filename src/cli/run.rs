@@ -349,7 +349,7 @@ fn evaluate(args: &RunArgs, source: &Source, tracker: &Tracker, gt: &[StampedPos
             // The map's renders of the frames between keyframes are the report's images; its
             // panels lie in the run folder, one up from `eval/`.
             let report = &mut evaluation.report;
-            report.images = duv_eval::map_quality::image_report(m, camera.width, camera.height);
+            report.images = duv_eval::report::ImageReport::from_map_quality(m, camera.width, camera.height);
             report.inputs.images = Some(format!("the map rendered at {} frames between keyframes (tracked poses) vs those frames, ../map/report.json", m.views));
             report.map = Some(duv_eval::MapQuality { panels: m.panels.iter().map(|p| format!("../{p}")).collect(), ..m.clone() });
         }

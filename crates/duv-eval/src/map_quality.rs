@@ -137,24 +137,6 @@ pub fn score_view(
     Ok((p, s, r))
 }
 
-/// The scored views as the evaluation report's image scores (`images` of `report.json`);
-/// `None` without views. `width x height`: the frames' size (RGB).
-pub fn image_report(q: &MapQuality, width: usize, height: usize) -> Option<super::report::ImageReport> {
-    if q.per_view.is_empty() {
-        return None;
-    }
-    let per_image: Vec<super::report::ImageScore> =
-        q.per_view.iter().map(|v| super::report::ImageScore { name: format!("frame {:06}", v.seq), width, height, channels: 3, psnr_db: v.psnr_db, ssim: v.ssim }).collect();
-    Some(super::report::ImageReport {
-        ssim_convention: q.ssim_convention,
-        pairs: per_image.len(),
-        psnr_mean_db: q.psnr_mean_db,
-        ssim_mean: q.ssim_mean,
-        identical: per_image.iter().filter(|s| s.psnr_db == f64::INFINITY).count(),
-        per_image,
-    })
-}
-
 /// Means of the restored scores of `views` (`None` where none has one).
 pub fn summarise_restored(views: &[MapViewScore]) -> Option<RestoredSummary> {
     let r: Vec<&RestoredScore> = views.iter().filter_map(|v| v.restored.as_ref()).collect();

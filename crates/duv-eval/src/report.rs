@@ -174,6 +174,26 @@ pub struct ImageReport {
     pub per_image: Vec<ImageScore>,
 }
 
+impl ImageReport {
+    /// The map report's scored views as image scores (`images` of `report.json`); `None`
+    /// without views. `width x height`: the frames' size (RGB).
+    pub fn from_map_quality(q: &super::map_quality::MapQuality, width: usize, height: usize) -> Option<ImageReport> {
+        if q.per_view.is_empty() {
+            return None;
+        }
+        let per_image: Vec<ImageScore> =
+            q.per_view.iter().map(|v| ImageScore { name: format!("frame {:06}", v.seq), width, height, channels: 3, psnr_db: v.psnr_db, ssim: v.ssim }).collect();
+        Some(ImageReport {
+            ssim_convention: q.ssim_convention,
+            pairs: per_image.len(),
+            psnr_mean_db: q.psnr_mean_db,
+            ssim_mean: q.ssim_mean,
+            identical: per_image.iter().filter(|s| s.psnr_db == f64::INFINITY).count(),
+            per_image,
+        })
+    }
+}
+
 /// AUSE of one keyframe.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

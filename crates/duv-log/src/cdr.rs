@@ -93,11 +93,11 @@ impl<'a> CdrWriter<'a> {
             self.out.extend_from_slice(&x.to_le_bytes());
         }
     }
-    /// f32 samples as a `uint8[]` of little-endian f16 ([`super::schema::plane_sample_f16`]).
+    /// f32 samples as a `uint8[]` of little-endian f16 ([`plane_sample_f16`]).
     pub fn f16_bytes(&mut self, v: &[f32]) {
         self.u32(2 * v.len() as u32);
         for &x in v {
-            self.out.extend_from_slice(&super::schema::plane_sample_f16(x).to_le_bytes());
+            self.out.extend_from_slice(&plane_sample_f16(x).to_le_bytes());
         }
     }
     /// A `float64[]`.
@@ -381,4 +381,11 @@ pub fn decode_health(data: &[u8]) -> Result<&str, CdrError> {
     let json = r.string()?;
     r.finish()?;
     Ok(json)
+}
+
+/// One keyframe plane sample as f16 bits (`schema::PLANE_ENCODING`, which states the
+/// precision): finite values clamped to the f16 range, infinities and NaN kept.
+pub fn plane_sample_f16(x: f32) -> u16 {
+    let x = if x.is_finite() { x.clamp(-65504.0, 65504.0) } else { x };
+    half::f16::from_f32(x).to_bits()
 }

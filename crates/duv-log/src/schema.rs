@@ -392,11 +392,9 @@ pub(crate) enum Pixels<'a> {
 /// than that. Logs written as `32FC1` (before this) are read as they are.
 pub const PLANE_ENCODING: &str = "16FC1";
 
-/// One plane sample as f16 bits (see [`PLANE_ENCODING`]).
-pub fn plane_sample_f16(x: f32) -> u16 {
-    let x = if x.is_finite() { x.clamp(-65504.0, 65504.0) } else { x };
-    half::f16::from_f32(x).to_bits()
-}
+/// One plane sample as f16 bits (see [`PLANE_ENCODING`]); in [`super::cdr`], whose CDR
+/// writer packs planes too.
+pub use super::cdr::plane_sample_f16;
 
 /// Encodes a `foxglove.RawImage` into `out` without building the message's `data` (a copy of
 /// every pixel): the other fields through the template, then field 6 (`data`, length
