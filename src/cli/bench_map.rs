@@ -199,7 +199,7 @@ fn tracked_keyframes(renderer: &SimRenderer, cfg: &TrackerConfig, cap: TrackerCa
         }
         Ok(())
     })?;
-    let fin = recorder.finish(&tracker);
+    let fin = recorder.finish(&mut tracker);
     let gt = &renderer.poses()[..frames.len()];
     let ev = evaluate_trajectory(gt, &fin.frames, &TrajectoryOptions::default(), "ground truth", "tracked").context("aligning the tracked trajectory")?;
     let align = ev.gt_from_est;

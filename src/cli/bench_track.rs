@@ -348,7 +348,7 @@ fn run_once(seq: &mut Sequence, cfg: &TrackerConfig, cap: TrackerCapacity, with_
     let cpu_ns = process_cpu_ns() - cpu0;
     let heap_peak = duv_core::alloc::peak_bytes().saturating_sub(live0) as f64 / MIB;
     let rss = rss_peak_mib();
-    let fin = recorder.finish(&tracker);
+    let fin = recorder.finish(&mut tracker);
     let gt = &seq.renderer.poses()[..n];
     // Scored on the frames with a pose estimate only, each map segment on its own (their
     // frames and scales differ until merged).

@@ -114,6 +114,25 @@ fn periodic_global_ba_runs_and_keeps_the_survey_accurate() {
 }
 
 #[test]
+fn background_global_ba_is_deterministic_and_as_accurate_as_the_inline_one() {
+    let (renderer, frames) = survey(80);
+    let base = duv_track::TrackerConfig { global_ba_period: 2, global_iterations: 3, defer_rounds: false, ..small_tracker_config() };
+    let inline = run(&renderer, &frames, &duv_track::TrackerConfig { global_ba_lag_frames: 0, ..base.clone() }, capacity(2));
+    let lagged = duv_track::TrackerConfig { global_ba_lag_frames: 4, ..base };
+    let a = run(&renderer, &frames, &lagged, capacity(2));
+    let b = run(&renderer, &frames, &lagged, capacity(2));
+    // Applied at a frame count, not when the worker happens to finish: the same poses.
+    assert_eq!(a.trajectory.frames.len(), b.trajectory.frames.len());
+    for (x, y) in a.trajectory.frames.iter().zip(&b.trajectory.frames) {
+        assert_eq!(x.world_from_cam, y.world_from_cam, "frame at {:?}", x.t_ns);
+    }
+    let (ci, ca) = (inline.tracker.counters(), a.tracker.counters());
+    assert!(ca.global_bas >= 1 && ci.global_bas >= 1, "inline {ci:?}, background {ca:?}");
+    assert!(a.ate_percent < SURVEY_ATE_PERCENT, "survey ATE with the global BA in the background {:.3} % (inline {:.3} %)", a.ate_percent, inline.ate_percent);
+    assert!(a.ate_percent < 1.5 * inline.ate_percent + 0.05, "background {:.3} % against inline {:.3} %", a.ate_percent, inline.ate_percent);
+}
+
+#[test]
 fn loop_closure_detects_the_loop_and_lowers_ate() {
     let renderer = SimRenderer::new(&sim_config(WaterPreset::Coastal, TrajectoryKind::Loop, 100, 160, 120, 1.0)).unwrap();
     let frames = render_all(&renderer);
@@ -261,7 +280,7 @@ fn bad_frames_are_lost_then_tracking_recovers_and_the_map_is_untouched() {
     for f in &frames {
         rec.record(&tracker2.track(f).unwrap());
     }
-    let fin = rec.finish(&tracker2);
+    let fin = rec.finish(&mut tracker2);
     let (_, percent, _) = track_sim::ate(renderer.poses(), &fin.frames);
     assert!(percent < 2.0 * SURVEY_ATE_PERCENT, "ATE with bad frames {percent:.3} %");
 }
@@ -318,7 +337,7 @@ fn an_initialisation_that_cannot_match_its_first_view_starts_again() {
         let mut rec = duv_track::TrajectoryRecorder::new();
         let outs: Vec<_> = frames.iter().map(|f| t.track(f).unwrap()).collect();
         outs.iter().for_each(|o| rec.record(o));
-        let fin = rec.finish(&t);
+        let fin = rec.finish(&mut t);
         (outs, fin, t.counters())
     };
     let (outs, fin, counters) = run(3);
@@ -367,7 +386,7 @@ fn a_snow_filled_frame_and_a_frame_after_a_long_gap_write_no_false_pose() {
     let mut rec = duv_track::TrajectoryRecorder::new();
     let outs: Vec<_> = kept.iter().map(|f| tracker.track(f).unwrap()).collect();
     outs.iter().for_each(|o| rec.record(o));
-    let fin = rec.finish(&tracker);
+    let fin = rec.finish(&mut tracker);
     let by_seq = |seq: usize| outs.iter().position(|o| o.seq as usize == seq).unwrap();
     // The snowy frame: tracked, or lost without touching the map.
     let o = &outs[by_seq(snow_at)];
@@ -451,7 +470,7 @@ fn a_collection_interrupted_after_enough_keyframes_initialises_early() {
         let mut rec = duv_track::TrajectoryRecorder::new();
         let outs: Vec<_> = frames.iter().map(|f| t.track(f).unwrap()).collect();
         outs.iter().for_each(|o| rec.record(o));
-        (outs, rec.finish(&t), t.counters())
+        (outs, rec.finish(&mut t), t.counters())
     };
     let (outs, fin, counters) = run(4);
     assert_eq!(counters.init_early, 1, "{:?}", outs[fourth..at + 3].iter().map(|o| (o.seq, o.state, o.note)).collect::<Vec<_>>());
@@ -589,7 +608,7 @@ fn an_ignore_mask_keeps_a_static_overlay_out_of_the_flow() {
         for f in &frames {
             rec.record(&t.track(f).unwrap());
         }
-        let fin = rec.finish(&t);
+        let fin = rec.finish(&mut t);
         let est: Vec<_> = fin.estimated();
         let percent = if est.len() >= 3 { track_sim::ate(renderer.poses(), &est).1 } else { f64::NAN };
         (est.len(), percent)

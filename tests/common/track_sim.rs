@@ -63,7 +63,7 @@ pub fn run(renderer: &SimRenderer, frames: &[Frame], cfg: &TrackerConfig, cap: T
         rec.record(&out);
         outputs.push(out);
     }
-    let trajectory = rec.finish(&tracker);
+    let trajectory = rec.finish(&mut tracker);
     let (ate_rmse_m, ate_percent, path_m) = ate(&renderer.poses()[..frames.len()], &trajectory.frames);
     RunResult { outputs, trajectory, ate_rmse_m, ate_percent, path_m, tracker }
 }

@@ -705,7 +705,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         r => r?,
     };
     let source = result.source.inner;
-    let tracker = result.tracker;
+    let mut tracker = result.tracker;
     let recorder = result.recorder;
     let mut map = result.map;
     let track_times = result.track_times;
@@ -789,7 +789,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
     }
     // The room kept since the start, for the dive's record (small files first).
     reserve.release();
-    let fin = finish_trajectory(&recorder, &tracker, pcfg.world_from_tracker.as_ref());
+    let fin = finish_trajectory(&recorder, &mut tracker, pcfg.world_from_tracker.as_ref());
     // Metres when the source has navigation input and a sensor observed the scale.
     let nav = if !opts.use_nav {
         None

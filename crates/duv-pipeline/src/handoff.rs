@@ -109,6 +109,8 @@ impl Handoff {
 
     /// End of the stream: every keyframe still waiting, to `log` and then `keyframe`.
     pub(super) fn flush(&mut self, tracker: &mut Tracker, mut log: impl FnMut(LogItem), mut keyframe: impl FnMut(Arc<Keyframe>) -> Result<(), PipelineError>) -> Result<(), PipelineError> {
+        // A global BA still in the background lands before the last keyframes go.
+        tracker.finish_global_ba();
         while let Some(kf) = self.pop_ready(tracker, true) {
             log(LogItem::Keyframe(Arc::clone(&kf)));
             keyframe(kf)?;

@@ -30,7 +30,7 @@ pub enum OutputError {
 
 /// The final poses of the run ([`TrajectoryRecorder::finish`]), in the recorded map frame when
 /// the run resumed a dive (`world_from_tracker`, the resume's alignment).
-pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &Tracker, world_from_tracker: Option<&Sim3>) -> FinalTrajectory {
+pub fn finish_trajectory(recorder: &TrajectoryRecorder, tracker: &mut Tracker, world_from_tracker: Option<&Sim3>) -> FinalTrajectory {
     let mut fin = recorder.finish(tracker);
     // Keyframes the tracker was seeded with on resume never came out of `track`: they are
     // listed from the tracker's graph.

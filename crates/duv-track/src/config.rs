@@ -243,6 +243,11 @@ pub struct TrackerConfig {
     pub global_ba_period: usize,
     /// Gauss-Newton iterations of the dense global BA.
     pub global_iterations: usize,
+    /// Frames the dense global BA runs in the background before it is applied (0: on the
+    /// tracking thread, in the frame that asks for it). Counted in frames, not time, so a
+    /// replay gives the same trajectory; the apply waits for the worker when it is not done
+    /// (`global_ba_waits`). See the tracker's `background` module.
+    pub global_ba_lag_frames: usize,
     /// Spatial sigma of the joint bilateral upsampling, low-res pixels.
     pub upsample_sigma_px: f32,
     /// Range sigma of the joint bilateral upsampling, intensity units.
@@ -367,6 +372,7 @@ impl Default for TrackerConfig {
             loop_global_ba: true,
             global_ba_period: 0,
             global_iterations: 6,
+            global_ba_lag_frames: 10,
             upsample_sigma_px: 0.8,
             upsample_sigma_intensity: 0.08,
             upsample_spread_gain: 1.0,

@@ -178,8 +178,10 @@ impl TrajectoryRecorder {
     }
 
     /// Final poses: anchored frames through their keyframe's current pose, the rest
-    /// interpolated.
-    pub fn finish(&self, tracker: &Tracker) -> FinalTrajectory {
+    /// interpolated. A global BA still running in the background is applied first (the end
+    /// of the stream; [`Tracker::finish_global_ba`]).
+    pub fn finish(&self, tracker: &mut Tracker) -> FinalTrajectory {
+        tracker.finish_global_ba();
         // Before the initial BA the keyframes' poses are provisional: nothing is measured yet;
         // the same holds for a later segment still collecting its first keyframes.
         let collecting = tracker.collecting_segment();

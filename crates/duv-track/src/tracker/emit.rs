@@ -76,6 +76,10 @@ impl Tracker {
     /// due, and always before the tracker is initialised. Keyframes the tracker no longer holds, or without depth yet, are skipped.
     pub fn next_final_keyframe(&mut self, flush: bool, out: &mut Keyframe) -> Option<u64> {
         let lag = self.emit.lag?;
+        if flush {
+            // The end of the stream: a global BA still in the background lands first.
+            self.st.finish_global_ba();
+        }
         // Before the initial BA the poses are provisional and the initialisation may start
         // again without them: nothing is handed on yet.
         if !self.is_initialised() {

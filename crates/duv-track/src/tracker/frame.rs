@@ -40,6 +40,8 @@ impl State {
         }
         self.stats.times.frames += 1;
         self.insert.evicted_slot = None;
+        // A global BA running in the background lands when due, before this frame's work.
+        self.global_ba_if_due();
         // One deferred stage of the last keyframe insertion (map work; the frame comes after).
         let mut loop_closed = false;
         // A window solve is the frame's only stage: it costs about two edge pairs.

@@ -4,7 +4,11 @@ use super::*;
 
 /// Loop closure and global BA.
 pub(super) struct Loops {
-    pub(super) gba: BaWorkspace,
+    /// The global BA's workspace and worker ([`super::background`]).
+    pub(super) gba: BackgroundBa,
+    /// The global BA started and not yet applied (when `gba_running`).
+    pub(super) pending_gba: PendingGlobalBa,
+    pub(super) gba_running: bool,
     pub(super) pg: PoseGraph,
     /// Loop candidates of the pending insertion (NCC, slot), best first; verified one per
     /// stage (relocalisation ranks into `Reloc::candidates`, so a loss between stages keeps them).
@@ -17,37 +21,6 @@ pub(super) struct Loops {
 }
 
 impl State {
-    /// Dense BA over every live keyframe of the current segment with every stored edge
-    /// between them (loops included).
-    pub(super) fn global_ba(&mut self) -> bool {
-        self.window_of_current_segment(usize::MAX);
-        let n = self.win.window.len();
-        if n < 3 || self.loops.gba.capacity().max_keyframes < n || !self.in_current_segment(self.motion.ref_slot) {
-            return false;
-        }
-        let t0 = Instant::now();
-        let ref_before = self.graph.kfs.slots[self.motion.ref_slot].world_from_cam;
-        let cfg = self.ba_config(self.cfg.global_iterations, 1);
-        let r = load_window(&mut self.loops.gba, &self.low, &mut self.graph.kfs, &self.graph.edges, &self.win.window, true)
-            .and_then(|_| self.loops.gba.solve(&cfg))
-            .and_then(|_| write_back(&self.loops.gba, &mut self.graph.kfs, &self.win.window));
-        self.stats.times.global_ba += t0.elapsed();
-        self.loops.inserted_since_global = 0;
-        match r {
-            Ok(()) => {
-                let ref_after = self.graph.kfs.slots[self.motion.ref_slot].world_from_cam;
-                self.motion.last_pose = ref_after * ref_before.inv_mul(&self.motion.last_pose);
-                self.stats.counters.global_bas += 1;
-                true
-            }
-            Err(e) => {
-                tracing::debug!(error = %e, "track: global BA failed");
-                self.stats.counters.ba_failures += 1;
-                false
-            }
-        }
-    }
-
     /// Median of `z_in_s (from c) * d_s(own)`: the scale of `s`'s own depth relative to `c`'s,
     /// with `world_from_s` expressed in `c`'s scale. Uses confident pixels of `obs_weight`.
     pub(super) fn relative_scale(&mut self, c: usize, world_from_s: &Se3, s: usize) -> Option<f64> {
@@ -186,6 +159,12 @@ impl State {
             let ed = &mut self.graph.edges.edges[e];
             ed.target.data.copy_from_slice(&self.work.obs_target.data);
             ed.weight.data.copy_from_slice(&self.work.obs_weight.data);
+        }
+        // A global BA still in the background lands before the pose graph (or the merge)
+        // moves the keyframes: it solved from their poses as they were at its start.
+        let c_before = self.graph.kfs.slots[c].world_from_cam;
+        if self.finish_global_ba() {
+            world_from_s = self.graph.kfs.slots[c].world_from_cam * c_before.inv_mul(&world_from_s);
         }
         if cross {
             self.merge_segments(c, s, &world_from_s, scale);

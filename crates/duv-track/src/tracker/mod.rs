@@ -8,6 +8,7 @@
 //! a loss and their merging), [`seed`] (resume seeding) and [`emit`] (keyframes handed on once
 //! their depth is final).
 
+mod background;
 mod emit;
 mod frame;
 mod init;
@@ -24,12 +25,13 @@ pub use seed::{ResumePoint, SeedFrame, SeedKeyframe, TrackerSeed};
 use frame::{FrameWork, Motion};
 use init::Init;
 use insert::{Insertion, Pending};
+use background::{BackgroundBa, PendingGlobalBa};
 use loops::Loops;
 use output::Stats;
 use reloc::Reloc;
 use segments::Segments;
 use window::WindowBa;
-use window::{load_window, write_back};
+use window::load_window;
 
 use super::ba::{solve_motion_only, BaCapacity, BaConfig, BaError, BaWorkspace, MotionOnlyObservation};
 use super::config::{ConfigError, TrackerCapacity, TrackerConfig};
@@ -383,7 +385,21 @@ impl Tracker {
     /// its pose graph). Returns whether it ran.
     pub fn global_bundle_adjustment(&mut self) -> bool {
         let st = &mut self.st;
-        self.pool.install(|| st.global_ba())
+        self.pool.install(|| {
+            let started = st.global_ba();
+            if st.loops.gba_running {
+                st.finish_global_ba()
+            } else {
+                started
+            }
+        })
+    }
+
+    /// Applies a global BA still running in the background now, waiting for it (the end of a
+    /// stream: [`Tracker::next_final_keyframe`] with `flush` does it). Returns whether one was
+    /// pending and moved the map.
+    pub fn finish_global_ba(&mut self) -> bool {
+        self.st.finish_global_ba()
     }
 }
 
@@ -623,7 +639,9 @@ impl State {
             win: WindowBa { ba, window: Vec::with_capacity(cap.max_keyframes) },
             init: Init { phase: Phase::Empty, init_snapshot: WindowSnapshot::new(cap.ba_window, init_edges, lw, lh), failed_in_a_row: 0 },
             loops: Loops {
-                gba,
+                gba: BackgroundBa::new(gba, (cfg.loop_closure || cfg.global_ba_period > 0) && cfg.global_ba_lag_frames > 0)?,
+                pending_gba: PendingGlobalBa { started_frame: 0, segment: 0, window: Vec::with_capacity(gba_kfs) },
+                gba_running: false,
                 pg: PoseGraph::new(cap.max_keyframes, 2 * cap.max_keyframes + 8),
                 loop_candidates: Vec::with_capacity(cap.max_keyframes),
                 inserted_since_loop: 0,

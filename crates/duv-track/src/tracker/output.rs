@@ -216,6 +216,9 @@ pub struct TrackerCounters {
     pub keyframes_evicted: u64,
     pub loops_closed: u64,
     pub global_bas: u64,
+    /// Global BAs whose apply frame came before the background worker was done (the
+    /// tracking thread waited for it).
+    pub global_ba_waits: u64,
     pub relocalisations: u64,
     pub lost_frames: u64,
     /// Solves that failed (the state was left as it was).
