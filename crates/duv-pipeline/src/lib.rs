@@ -157,6 +157,11 @@ pub trait MapStage: Send {
     fn gaussians(&self) -> Option<usize> {
         None
     }
+    /// Whether the stage runs data-parallel CPU work (the pipeline then gives it a pool of
+    /// `threads.mapping` workers); a stage that keeps no map needs none.
+    fn uses_cpu_workers(&self) -> bool {
+        true
+    }
     /// After the run: the final keyframe poses (after loop closures and global BA), a last
     /// optimisation and the exports into `out` (with `optimise` false, a stopped run: no
     /// optimisation and no keyframe renders, the map as it is); a one-line summary for the operator.
@@ -195,6 +200,9 @@ impl NoMapping {
 }
 
 impl MapStage for NoMapping {
+    fn uses_cpu_workers(&self) -> bool {
+        false
+    }
     fn add_keyframe(&mut self, kf: &Keyframe) -> Result<(), MapStageError> {
         self.keyframes.push((kf.index, kf.t_ns.t_ns(), duv_core::pose::se3_to_tum(&kf.world_from_cam)));
         self.dirty = true;
@@ -649,7 +657,7 @@ pub fn run<S: FrameSource + 'static>(
             // like this thread, so mapping never takes more than `threads.mapping` cores. Made
             // before this thread is placed: its workers would inherit the nice value, and each
             // raises its own.
-            let pool = (placement.mapping_workers > 0)
+            let pool = (placement.mapping_workers > 0 && map.uses_cpu_workers())
                 .then(|| {
                     let (sh, placement) = (sh.clone(), placement.clone());
                     rayon::ThreadPoolBuilder::new()
@@ -661,6 +669,9 @@ pub fn run<S: FrameSource + 'static>(
                         .ok()
                 })
                 .flatten();
+            if pool.is_some() {
+                sh.placed.mapping_pool_made(placement.mapping_workers);
+            }
             sh.placed.apply_here(&placement, StageThread::Mapping);
             let run = move || -> Result<Box<dyn MapStage>, PipelineError> {
                 alloc::label_current_thread(ThreadRole::Mapping);
@@ -965,7 +976,7 @@ pub fn run<S: FrameSource + 'static>(
     let (tracker, recorder, latencies, track_times) = tracked?;
     let map = mapped?;
     let deferred_keyframes = std::mem::take(&mut *shared.deferred_keyframes.lock().unwrap_or_else(|p| p.into_inner()));
-    let threads = shared.placed.summary(&cfg.placement);
+    let threads = shared.placed.summary();
     if let Some(e) = capture_error {
         tracing::warn!("the source ended with an error: {e}");
     }

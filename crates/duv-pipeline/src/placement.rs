@@ -103,6 +103,8 @@ impl ThreadPlacement {
 #[derive(Debug, Default)]
 pub struct PlacementReport {
     applied: Mutex<[Option<Applied>; 3]>,
+    /// Workers of the mapping pool made (0: none, e.g. a run without a map).
+    mapping_workers: std::sync::atomic::AtomicUsize,
 }
 
 impl PlacementReport {
@@ -123,9 +125,14 @@ impl PlacementReport {
         }
     }
 
+    /// The mapping stage made its pool of `n` workers.
+    pub fn mapping_pool_made(&self, n: usize) {
+        self.mapping_workers.store(n, std::sync::atomic::Ordering::Relaxed);
+    }
+
     /// One line: what each stage thread got, e.g. `threads: tracking cores [0] nice 0;
     /// mapping nice 19 workers 1; logging nice 5`.
-    pub fn summary(&self, placement: &ThreadPlacement) -> String {
+    pub fn summary(&self) -> String {
         let g = self.applied.lock().unwrap_or_else(|p| p.into_inner());
         let mut parts = Vec::with_capacity(3);
         for role in [StageThread::Tracking, StageThread::Mapping, StageThread::Logging] {
@@ -139,7 +146,8 @@ impl PlacementReport {
                 Ok(n) => format!(" nice {n}"),
                 Err(why) => format!(" nice NOT SET ({why})"),
             };
-            let workers = if role == StageThread::Mapping && placement.mapping_workers > 0 { format!(" workers {}", placement.mapping_workers) } else { String::new() };
+            let made = self.mapping_workers.load(std::sync::atomic::Ordering::Relaxed);
+            let workers = if role == StageThread::Mapping && made > 0 { format!(" workers {made}") } else { String::new() };
             parts.push(format!("{}{cores}{nice}{workers}", role.name()));
         }
         format!("threads: {}", parts.join("; "))
@@ -229,7 +237,10 @@ mod tests {
             let (r, p) = (report.clone(), placement.clone());
             std::thread::spawn(move || r.apply_here(&p, role)).join().unwrap();
         }
-        let line = report.summary(&placement);
+        // No pool made (a run without a map): no workers said.
+        assert!(!report.summary().contains("workers"), "{}", report.summary());
+        report.mapping_pool_made(1);
+        let line = report.summary();
         assert!(line.starts_with("threads: tracking NOT PINNED (none of cores [1000] is available"), "{line}");
         assert!(line.contains("; mapping nice "), "{line}");
         assert!(line.ends_with(" workers 1"), "{line}");
