@@ -90,7 +90,7 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
     let delivered = Arc::new(AtomicU64::new(0));
     let source = CopyingSource { camera, frames, next: 0, delivered: delivered.clone() };
     let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let run = std::thread::spawn(move || pipeline::run(source, tracker, Box::new(NoMapping::with_capacity(FRAMES)), &pcfg, Vec::new(), stop).map(|r| (r.frames_captured, r.log.messages, r.log.syncs)));
+    let run = std::thread::spawn(move || pipeline::run(source, tracker, Box::new(NoMapping::with_capacity(FRAMES)), &pcfg, Vec::new(), stop).map(|r| (r.frames_captured, r.log.messages, r.log.syncs, r.after_init_from, r.latencies.len())));
     while delivered.load(Ordering::SeqCst) < WARM {
         std::thread::sleep(Duration::from_millis(2));
     }
@@ -103,7 +103,7 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
     let after = StageAllocations::now();
     let window = window_start.elapsed();
     let counted = delivered.load(Ordering::SeqCst) - first;
-    let (captured, messages, syncs) = run.join().unwrap().unwrap();
+    let (captured, messages, syncs, after_init_from, tracked) = run.join().unwrap().unwrap();
     let d = |a: usize, b: usize| b - a;
     eprintln!(
         "steady state, {counted} frames: allocations capture {}, tracking {}, mapping {}, logging {} ({captured} frames captured, {messages} messages, {syncs} chunks synced)",
@@ -113,6 +113,9 @@ fn capture_tracking_mapping_and_logging_allocate_nothing_in_the_steady_state() {
         d(before.logging, after.logging)
     );
     assert_eq!(captured, FRAMES as u64);
+    // The steady-state latency figure starts after the initialisation (the survey initialises
+    // within its first half).
+    assert!(after_init_from.is_some_and(|i| i > 0 && i < tracked / 2), "after_init_from {after_init_from:?} of {tracked} latencies");
     // The counts are live: start-up allocated on these threads.
     assert!(before.capture > 0 && before.tracking > 0 && before.logging > 0, "{before:?}");
     assert_eq!(d(before.capture, after.capture), 0, "capture allocated in the steady state");

@@ -241,7 +241,9 @@ pub enum Progress<'a> {
     /// Resume with nothing left to track: the outputs come from the log.
     NothingLeft { after_seq: usize },
     /// Frame-in to pose-out latency of this run's frames.
-    Latency { median_ms: f64, p99_ms: f64 },
+    /// `after_init`: over the frames captured after the tracker's first measured pose (those
+    /// that did not wait for the initial BA): frames, p99 and max.
+    Latency { median_ms: f64, p99_ms: f64, after_init: Option<(usize, f64, f64)> },
     /// What the log took.
     /// `budget_mb_per_s`: the board's `[log] max_mb_per_s`; `maps_skipped` of `maps_offered`
     /// map checkpoints were left out of the log to keep it.
@@ -366,7 +368,13 @@ impl std::fmt::Display for Progress<'_> {
                 if *interrupted { "; interrupted" } else { "" }
             ),
             Progress::NothingLeft { after_seq } => write!(f, "nothing left to track after frame {after_seq}: the outputs are written from the log"),
-            Progress::Latency { median_ms, p99_ms } => write!(f, "frame-in to pose-out latency median {median_ms:.1} ms, p99 {p99_ms:.1} ms"),
+            Progress::Latency { median_ms, p99_ms, after_init } => {
+                write!(f, "frame-in to pose-out latency median {median_ms:.1} ms, p99 {p99_ms:.1} ms")?;
+                match after_init {
+                    Some((n, p99, max)) => write!(f, "; frames captured after initialisation ({n}): p99 {p99:.1} ms, max {max:.1} ms"),
+                    None => Ok(()),
+                }
+            }
             Progress::LogRate { log_bytes, frames_captured, frames_per_s: fps, wall_s, budget_mb_per_s, maps_skipped, maps_offered } => {
                 let per_frame = *log_bytes as f64 / (*frames_captured).max(1) as f64;
                 let mb_s = per_frame * fps / 1e6;
@@ -750,8 +758,13 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         progress(&Progress::NothingLeft { after_seq: start.saturating_sub(1) });
     } else {
         let mut e2e: Vec<Duration> = result.latencies.clone();
+        let after_init = result.after_init_from.filter(|&i| i < e2e.len()).map(|i| {
+            let mut steady = e2e[i..].to_vec();
+            steady.sort();
+            (steady.len(), percentile_ms(&steady, 0.99), percentile_ms(&steady, 1.0))
+        });
         e2e.sort();
-        progress(&Progress::Latency { median_ms: percentile_ms(&e2e, 0.5), p99_ms: percentile_ms(&e2e, 0.99) });
+        progress(&Progress::Latency { median_ms: percentile_ms(&e2e, 0.5), p99_ms: percentile_ms(&e2e, 0.99), after_init });
         progress(&Progress::LogRate {
             log_bytes: result.log.bytes,
             frames_captured: result.frames_captured,

@@ -447,6 +447,10 @@ pub struct PipelineResult<S> {
     pub recorder: TrajectoryRecorder,
     /// Frame-in (capture) to pose-out latency of every tracked frame.
     pub latencies: Vec<Duration>,
+    /// The first of `latencies` whose frame was captured after the tracker's first measured
+    /// pose (`None`: none was): from there on, the steady state (frames do not wait for the
+    /// initial BA).
+    pub after_init_from: Option<usize>,
     /// Tracker-only time of every tracked frame.
     pub track_times: Vec<Duration>,
     pub frames_captured: u64,
@@ -757,13 +761,14 @@ pub fn run<S: FrameSource + 'static>(
         let progress = cfg.progress.clone();
         let live = live.clone();
         let placement = cfg.placement.clone();
-        spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Vec<Duration>), PipelineError> {
+        spawn("tracking", move || -> Result<(Tracker, TrajectoryRecorder, Vec<Duration>, Option<usize>, Vec<Duration>), PipelineError> {
             alloc::label_current_thread(ThreadRole::Tracking);
             sh.placed.apply_here(&placement, StageThread::Tracking);
             let _span = tracing::info_span!("track").entered();
             // A run's record: an hour at 30 frames/s before it grows.
             let mut recorder = TrajectoryRecorder::with_capacity(RECORD_FRAMES, RECORD_FRAMES / 4);
             let mut latencies = Vec::with_capacity(RECORD_FRAMES);
+            let (mut initialised_at, mut after_init_from): (Option<Instant>, Option<usize>) = (None, None);
             let mut track_times = Vec::with_capacity(RECORD_FRAMES);
             let to_mapping = |kf: Arc<Keyframe>| {
                 progress.keyframe_handed_on();
@@ -798,8 +803,14 @@ pub fn run<S: FrameSource + 'static>(
                 }
                 drop(retrack);
                 while let Some((frame, arrived)) = fq.pop() {
+                    if after_init_from.is_none() && initialised_at.is_some_and(|t| arrived >= t) {
+                        after_init_from = Some(latencies.len());
+                    }
                     let t0 = Instant::now();
                     let out = tracker.track(&frame)?;
+                    if initialised_at.is_none() && out.state.is_tracked() {
+                        initialised_at = Some(Instant::now());
+                    }
                     track_times.push(t0.elapsed());
                     recorder.record(&out);
                     progress.frame_tracked(out.state.name(), out.segment);
@@ -828,7 +839,7 @@ pub fn run<S: FrameSource + 'static>(
             });
             kq.close();
             result?;
-            Ok((tracker, recorder, latencies, track_times))
+            Ok((tracker, recorder, latencies, after_init_from, track_times))
         })?
     };
 
@@ -973,7 +984,7 @@ pub fn run<S: FrameSource + 'static>(
     let live = live_thread.join();
     log_q.close();
     let (log_stats, log_error) = join(logging, "logging")?;
-    let (tracker, recorder, latencies, track_times) = tracked?;
+    let (tracker, recorder, latencies, after_init_from, track_times) = tracked?;
     let map = mapped?;
     let deferred_keyframes = std::mem::take(&mut *shared.deferred_keyframes.lock().unwrap_or_else(|p| p.into_inner()));
     let threads = shared.placed.summary();
@@ -985,6 +996,7 @@ pub fn run<S: FrameSource + 'static>(
         tracker,
         recorder,
         latencies,
+        after_init_from,
         track_times,
         frames_captured: shared.frames_captured.load(Ordering::Relaxed),
         frame_queue: frames.stats(),
@@ -1016,6 +1028,7 @@ fn run_deterministic<S: FrameSource + 'static>(
     let align = cfg.world_from_tracker;
     let mut recorder = TrajectoryRecorder::new();
     let mut latencies = Vec::new();
+    let (mut initialised, mut after_init_from) = (false, None);
     let mut track_times = Vec::new();
     let mut captured = 0u64;
     let mut log_error: Option<String> = None;
@@ -1063,8 +1076,12 @@ fn run_deterministic<S: FrameSource + 'static>(
             last_t = frame.t_ns;
             let frame = Arc::new(frame);
             log(&mut writer, LogItem::Frame(Arc::clone(&frame)));
+            if after_init_from.is_none() && initialised {
+                after_init_from = Some(latencies.len());
+            }
             let t0 = Instant::now();
             let out = tracker.track(&frame)?;
+            initialised |= out.state.is_tracked();
             track_times.push(t0.elapsed());
             latencies.push(t0.elapsed());
             recorder.record(&out);
@@ -1090,6 +1107,7 @@ fn run_deterministic<S: FrameSource + 'static>(
         tracker,
         recorder,
         latencies,
+        after_init_from,
         track_times,
         frames_captured: captured,
         frame_queue: QueueStats { pushed: n as u64, popped: n as u64, ..Default::default() },
