@@ -118,8 +118,12 @@ impl BackgroundBa {
     /// Waits for the job started last; returns the workspace with its result, and whether the
     /// worker was still solving when this was called.
     pub(super) fn wait(&self) -> (MutexGuard<'_, Job>, Result<BaReport, BaError>, bool) {
-        let mut waited = false;
-        let mut job = lock(&self.shared);
+        // The worker holds the lock while it solves: a lock that is not free at once is a wait.
+        let (mut job, mut waited) = match self.shared.job.try_lock() {
+            Ok(job) => (job, false),
+            Err(std::sync::TryLockError::Poisoned(p)) => (p.into_inner(), false),
+            Err(std::sync::TryLockError::WouldBlock) => (lock(&self.shared), true),
+        };
         loop {
             if let Some(r) = job.result.take() {
                 return (job, r, waited);

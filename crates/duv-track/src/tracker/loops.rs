@@ -1,8 +1,9 @@
-//! Loop closure (candidates, verification, pose graph) and global BA.
+//! Loop closure (candidates, verification, pose graph); the global BA it asks for is
+//! [`super::background`]'s.
 
 use super::*;
 
-/// Loop closure and global BA.
+/// Loop closure and the global BA's state.
 pub(super) struct Loops {
     /// The global BA's workspace and worker ([`super::background`]).
     pub(super) gba: BackgroundBa,

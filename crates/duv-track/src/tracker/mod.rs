@@ -4,9 +4,9 @@
 //! [`Tracker`] is the public face; its working state is split by concern, one file each:
 //! [`output`] (what it reports), [`frame`] (per-frame tracking), [`init`] (initialisation),
 //! [`window`] (edges and window BA), [`insert`] (keyframe insertion and eviction), [`loops`]
-//! (loop closure and global BA), [`reloc`] (relocalisation), [`segments`] (map segments after
-//! a loss and their merging), [`seed`] (resume seeding) and [`emit`] (keyframes handed on once
-//! their depth is final).
+//! (loop closure), [`background`] (the dense global BA, on a worker thread of its own),
+//! [`reloc`] (relocalisation), [`segments`] (map segments after a loss and their merging),
+//! [`seed`] (resume seeding) and [`emit`] (keyframes handed on once their depth is final).
 
 mod background;
 mod emit;
