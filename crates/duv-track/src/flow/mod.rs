@@ -64,6 +64,18 @@
 //!
 //! Scale them by the BA's nominal flow precision to get Sigma^-1 in 1/px^2.
 //!
+//! `fb_sigma_px` and `fb_max_px` are written in pixels of an image [`REFERENCE_WIDTH_PX`] (320)
+//! wide and scaled up with a wider input: the same angle of disagreement at every size above
+//! it. The finest level is about 160 x 120 at every size (`finest_min_pixels`), so a mismatch
+//! of one finest-level pixel is two input pixels at 320x240 and four at 640x480; thresholds
+//! fixed in input pixels rejected twice the angle at 640x480 and failed its initialisation on
+//! weak texture (the `sandturn` and `lowfps` rows of `duv bench track`). Narrower inputs keep
+//! them in input pixels: there the finest level is the input itself, and halved thresholds
+//! (a quarter of a finest-level pixel at 160x120) lost the generated survey (4.1 % of path). `texture_sigma_px` stays in
+//! input pixels: it is weighed against the sensor noise at the finest level, which falls
+//! faster than the cell grows. `pool_spread_px` stays too: scaled as well, the `lowfps` row at
+//! 640x480 kept fewer frames (131 of 150 against 144).
+//!
 //! # Grids and units
 //! A grid with cell `c` input pixels (level `l` has `c = 2^l`; the pooled output
 //! `c = output_factor`) has pixel `(i, j)` covering input pixels `[c i, c i + c)` with its
@@ -203,9 +215,11 @@ pub struct FlowConfig {
     pub texture_radius: usize,
     /// RMS feature residual at which the photometric weight is 0.5.
     pub residual_sigma: f32,
-    /// Forward-backward error at which its weight is 0.5, in input pixels.
+    /// Forward-backward error at which its weight is 0.5, in pixels of a
+    /// [`REFERENCE_WIDTH_PX`]-wide image (scaled up with a wider input).
     pub fb_sigma_px: f32,
-    /// Forward-backward error beyond which the weight is zero, in input pixels.
+    /// Forward-backward error beyond which the weight is zero, in pixels of a
+    /// [`REFERENCE_WIDTH_PX`]-wide image (scaled up with a wider input).
     pub fb_max_px: f32,
     /// Cell of the pooled output in input pixels (the BA's depth resolution, 4 to 8 typically);
     /// a multiple of the finest level's cell `2^finest_level`.
@@ -599,6 +613,23 @@ pub struct FlowEstimator {
     prep: PrepScratch,
 }
 
+/// Input width up to which the thresholds in reference pixels (`fb_sigma_px`, `fb_max_px`) are
+/// input pixels; [`FlowEstimator::new`] scales them by `width / REFERENCE_WIDTH_PX` above it.
+pub const REFERENCE_WIDTH_PX: usize = 320;
+
+impl FlowConfig {
+    /// The configuration with its reference-pixel thresholds in input pixels of a `width`-wide
+    /// image (unchanged up to [`REFERENCE_WIDTH_PX`]).
+    pub fn at_input_width(&self, width: usize) -> FlowConfig {
+        let scale = (width as f32 / REFERENCE_WIDTH_PX as f32).max(1.0);
+        FlowConfig {
+            fb_sigma_px: self.fb_sigma_px * scale,
+            fb_max_px: self.fb_max_px * scale,
+            ..self.clone()
+        }
+    }
+}
+
 /// Finest level accepted (1/16 of the input).
 const MAX_FINEST_LEVEL: usize = 4;
 
@@ -606,9 +637,12 @@ const MAX_FINEST_LEVEL: usize = 4;
 const MIN_LEVEL_PATCHES: usize = 2;
 
 impl FlowEstimator {
-    /// Validates `cfg` for `width x height` input and allocates all buffers.
+    /// Validates `cfg` for `width x height` input and allocates all buffers. The thresholds
+    /// in reference pixels are scaled to this width ([`FlowConfig::at_input_width`]);
+    /// [`FlowEstimator::config`] returns them scaled.
     pub fn new(cfg: FlowConfig, width: usize, height: usize) -> Result<Self, FlowError> {
         validate(&cfg)?;
+        let cfg = cfg.at_input_width(width);
         let finest = match cfg.finest_level {
             Some(l) => l,
             None => (0..=MAX_FINEST_LEVEL)
@@ -719,6 +753,7 @@ impl FlowEstimator {
         })
     }
 
+    /// The configuration in use, its reference-pixel thresholds in this input's pixels.
     pub fn config(&self) -> &FlowConfig {
         &self.cfg
     }

@@ -608,3 +608,17 @@ fn a_coarse_screen_tells_an_overlapping_view_from_an_unrelated_one() {
     let foreign = small.prepare(&PlaneF32::new(src.width / 2, src.height / 2)).unwrap();
     assert!(matches!(est.screen(&a, &foreign, None, level, 0.05), Err(FlowError::ForeignFrame { what: "dst" })));
 }
+
+/// The reference-pixel thresholds scale up with a wider input and with nothing else.
+#[test]
+fn forward_backward_thresholds_scale_with_the_input_width() {
+    let cfg = FlowConfig::default();
+    assert_eq!(cfg.at_input_width(REFERENCE_WIDTH_PX), cfg);
+    assert_eq!(cfg.at_input_width(REFERENCE_WIDTH_PX / 2), cfg);
+    let wide = cfg.at_input_width(2 * REFERENCE_WIDTH_PX);
+    assert_eq!((wide.fb_sigma_px, wide.fb_max_px), (2.0 * cfg.fb_sigma_px, 2.0 * cfg.fb_max_px));
+    assert_eq!(FlowConfig { fb_sigma_px: cfg.fb_sigma_px, fb_max_px: cfg.fb_max_px, ..wide.clone() }, cfg);
+    let est = FlowEstimator::new(cfg.clone(), 2 * W, 2 * H).unwrap();
+    assert_eq!(est.config(), &wide);
+}
+
