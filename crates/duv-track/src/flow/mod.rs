@@ -71,10 +71,10 @@
 //! fixed in input pixels rejected twice the angle at 640x480 and failed its initialisation on
 //! weak texture (the `sandturn` and `lowfps` rows of `duv bench track`). Narrower inputs keep
 //! them in input pixels: there the finest level is the input itself, and halved thresholds
-//! (a quarter of a finest-level pixel at 160x120) lost the generated survey (4.1 % of path). `texture_sigma_px` stays in
-//! input pixels: it is weighed against the sensor noise at the finest level, which falls
-//! faster than the cell grows. `pool_spread_px` stays too: scaled as well, the `lowfps` row at
-//! 640x480 kept fewer frames (131 of 150 against 144).
+//! (a quarter of a finest-level pixel at 160x120) lost the generated survey (4.1 % of path).
+//! `texture_sigma_px` stays in input pixels: it is weighed against the sensor noise at the
+//! finest level, which falls faster than the cell grows. `pool_spread_px` stays too: scaled as
+//! well, the `lowfps` row at 640x480 kept fewer frames (131 of 150 against 144).
 //!
 //! # Grids and units
 //! A grid with cell `c` input pixels (level `l` has `c = 2^l`; the pooled output

@@ -621,4 +621,3 @@ fn forward_backward_thresholds_scale_with_the_input_width() {
     let est = FlowEstimator::new(cfg.clone(), 2 * W, 2 * H).unwrap();
     assert_eq!(est.config(), &wide);
 }
-
