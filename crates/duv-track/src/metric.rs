@@ -41,6 +41,13 @@ pub enum MetricError {
     /// scale of a wrong path is no scale).
     #[error("metric alignment: the aligned camera heights miss the pressure depth by {rms_m:.2} m RMS over {frames} frames (at most {limit_m:.2} m): the tracked path does not follow the vehicle")]
     Inconsistent { rms_m: f64, frames: usize, limit_m: f64 },
+    /// [`dead_reckon`] over a gap that ends before it starts.
+    #[error("dead reckoning: the gap runs backwards ({from_s:.3} s to {to_s:.3} s)")]
+    Backwards { from_s: f64, to_s: f64 },
+    /// [`dead_reckon`]: no DVL velocity with an attitude over `hole_s` seconds of the gap (a
+    /// hole in the samples, or none at its start or end).
+    #[error("dead reckoning: no DVL velocity with an attitude for {hole_s:.2} s from {at_s:.3} s (at most {max_hole_s:.2} s)")]
+    Hole { at_s: f64, hole_s: f64, max_hole_s: f64 },
 }
 
 /// Settings of the alignment.
@@ -561,4 +568,59 @@ fn combine(estimates: &[ScaleEstimate]) -> ScaleEstimate {
 /// `pose` in the metric world.
 pub fn metric_pose(align: &MetricAlignment, world_from_cam: &Se3) -> Se3 {
     duv_core::pose::sim3_apply_to_pose(&align.metric_from_map, world_from_cam)
+}
+
+/// The displacement (world frame of the AHRS, metres) the navigation gives between `from` and
+/// `to`: each DVL velocity (camera frame, over ground) rotated into the world by the attitude
+/// at its time (interpolated within `max_dt_ns`), integrated as a piecewise-linear function of
+/// time; before the first and after the last sample it is held. An error when the velocity
+/// with an attitude leaves a hole longer than `max_hole_ns` in `[from, to]`, its ends
+/// included: dead reckoning through a DVL dropout is a guess, not an estimate.
+///
+/// Its error grows with the distance (the DVL's scale error, about 1 %) and with the AHRS's
+/// heading error over the gap; the world frame is the AHRS's, which is the one
+/// [`estimate_metric_alignment`] turns a map segment's heading to.
+pub fn dead_reckon(nav: &[NavSample], from: Timestamp, to: Timestamp, max_dt_ns: i64, max_hole_ns: i64) -> Result<Vector3<f64>, MetricError> {
+    let (t0, t1) = (from.t_ns(), to.t_ns());
+    if t1 < t0 {
+        return Err(MetricError::Backwards { from_s: from.as_secs_f64(), to_s: to.as_secs_f64() });
+    }
+    let lo = nav.partition_point(|s| s.t_ns.t_ns() < t0.saturating_sub(max_hole_ns));
+    let hi = nav.partition_point(|s| s.t_ns.t_ns() <= t1.saturating_add(max_hole_ns));
+    // (t, world velocity) of every sample near the gap that has both.
+    let points: Vec<(i64, Vector3<f64>)> = nav[lo..hi]
+        .iter()
+        .filter_map(|s| {
+            let v = s.vel_cam_mps?;
+            let q = s.world_from_cam_rot.or_else(|| interpolate(nav, s.t_ns, max_dt_ns, |n| n.world_from_cam_rot, |a, b, w| a.slerp(&b, w)))?;
+            Some((s.t_ns.t_ns(), q * v))
+        })
+        .collect();
+    let hole = |at: i64, len: i64| MetricError::Hole { at_s: at as f64 * 1e-9, hole_s: len as f64 * 1e-9, max_hole_s: max_hole_ns as f64 * 1e-9 };
+    let (Some(first), Some(last)) = (points.first(), points.last()) else {
+        return Err(hole(t0, t1 - t0 + 2 * max_hole_ns));
+    };
+    if first.0 - t0 > max_hole_ns {
+        return Err(hole(t0, first.0 - t0));
+    }
+    if t1 - last.0 > max_hole_ns {
+        return Err(hole(last.0, t1 - last.0));
+    }
+    if let Some(w) = points.windows(2).find(|w| w[1].0 - w[0].0 > max_hole_ns && w[1].0 > t0 && w[0].0 < t1) {
+        return Err(hole(w[0].0, w[1].0 - w[0].0));
+    }
+    // The velocity at t: linear between samples, held beyond them.
+    let at = |t: i64| -> Vector3<f64> {
+        let i = points.partition_point(|p| p.0 <= t);
+        match (i.checked_sub(1).map(|j| points[j]), points.get(i)) {
+            (Some(a), Some(b)) if b.0 > a.0 => a.1 + (b.1 - a.1) * ((t - a.0) as f64 / (b.0 - a.0) as f64),
+            (Some(a), _) => a.1,
+            (None, Some(b)) => b.1,
+            (None, None) => Vector3::zeros(),
+        }
+    };
+    // Trapezoids between the knots inside [t0, t1] (exact for a piecewise-linear velocity).
+    let mut knots: Vec<i64> = std::iter::once(t0).chain(points.iter().map(|p| p.0).filter(|&t| t > t0 && t < t1)).chain(std::iter::once(t1)).collect();
+    knots.dedup();
+    Ok(knots.windows(2).map(|w| (at(w[0]) + at(w[1])) * (0.5 * (w[1] - w[0]) as f64 * 1e-9)).sum())
 }
