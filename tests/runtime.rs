@@ -770,6 +770,67 @@ fn a_run_killed_during_its_initialisation_resumes_as_if_never_stopped() {
     assert!(worst < 1e-6, "resumed run departs from the uninterrupted one by {worst} m");
 }
 
+/// The same loss with the vehicle's navigation (the generator's `nav.csv`: depth, altitude,
+/// DVL, attitude): the new segment never merges by sight, so the DVL dead-reckoned across the
+/// gap and the segment's own metric alignment place it in the dive's world, and its poses are
+/// in `trajectory.txt` in metres with segment 0's (one trajectory, SE(3) ATE over all of it
+/// 0.60 % of path when measured). With the DVL silent for 2 s in the gap it stays apart in
+/// `trajectory-segment-1.txt`, and `metric.json` says why.
+#[test]
+fn a_loss_in_new_territory_with_navigation_is_joined_in_metres() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("seq");
+    run_ok(duv().args(["sim", "--frames", "150", "--burst", "6,1.5", "--width", W, "--height", H, "--out"]).arg(&data));
+    let source = format!("tum:{}", data.display());
+    let out = dir.path().join("run");
+    let text = run_ok(duv().args(["run", "--source", &source, "--no-progress", "--no-map", "--out"]).arg(&out));
+    let metric: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("metric.json")).unwrap()).unwrap();
+    let joined = metric["joined_segments"].as_array().unwrap_or_else(|| panic!("no joined segment: {metric}"));
+    assert_eq!(joined.len(), 1, "{metric}");
+    let j = &joined[0];
+    assert_eq!((j["segment"].as_u64(), j["from_segment"].as_u64()), (Some(1), Some(0)), "{j}");
+    // The burst lasts 1.5 s; tracking resumes after the new segment initialises.
+    let (gap_s, dr_m) = (j["gap_s"].as_f64().unwrap(), j["dead_reckoned_m"].as_f64().unwrap());
+    assert!(gap_s > 1.5 && gap_s < 12.0 && dr_m > 0.5 && dr_m < 0.6 * gap_s, "gap {gap_s} s, {dr_m} m dead-reckoned");
+    let rows = states_rows(&out.join("states.txt"));
+    let posed: Vec<u64> = rows.iter().filter(|v| v[5] != "-").map(|v| v[0].parse().unwrap()).collect();
+    assert!(rows.iter().filter(|v| v[5] == "1").count() >= 20, "segment 1 tracked too little");
+    assert_eq!(read_trajectory(&out.join("trajectory.txt")).keys().copied().collect::<Vec<_>>(), posed);
+    assert!(!out.join("trajectory-segment-1.txt").exists());
+    assert!(text.contains("joined by navigation"), "{text}");
+    // One trajectory in metres: SE(3) ATE over every posed frame (0.60 % when measured).
+    let line = text.lines().find(|l| l.starts_with("metric: ATE with SE(3) alignment")).unwrap_or_else(|| panic!("{text}"));
+    let pct: f64 = line.split(" m RMSE, ").nth(1).and_then(|r| r.split(' ').next()).and_then(|v| v.parse().ok()).unwrap_or_else(|| panic!("{line}"));
+    assert!(pct < 1.5, "{line}");
+
+    // The DVL silent from 6.5 to 8.5 s: no dead reckoning across the gap.
+    let nav_text = std::fs::read_to_string(data.join("nav.csv")).unwrap();
+    let mut lines = nav_text.lines();
+    let mut cut = format!("{}\n", lines.next().unwrap());
+    for l in lines {
+        let mut v: Vec<&str> = l.split(',').collect();
+        let t: f64 = v[0].parse().unwrap();
+        if t > 6.5 && t < 8.5 {
+            v[3] = "";
+            v[4] = "";
+            v[5] = "";
+        }
+        cut.push_str(&v.join(","));
+        cut.push('\n');
+    }
+    std::fs::write(data.join("nav.csv"), cut).unwrap();
+    let apart = dir.path().join("apart");
+    run_ok(duv().args(["run", "--source", &source, "--no-progress", "--no-map", "--out"]).arg(&apart));
+    let metric: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(apart.join("metric.json")).unwrap()).unwrap();
+    assert!(metric.get("joined_segments").is_none(), "{metric}");
+    let why = metric["segments_not_joined"][0]["why"].as_str().unwrap_or_else(|| panic!("{metric}"));
+    assert!(why.contains("no DVL velocity") && why.contains("2.00 s"), "{why}");
+    let rows = states_rows(&apart.join("states.txt"));
+    let in_segment = |s: &str| -> Vec<u64> { rows.iter().filter(|v| v[5] == s).map(|v| v[0].parse().unwrap()).collect() };
+    assert_eq!(read_trajectory(&apart.join("trajectory.txt")).keys().copied().collect::<Vec<_>>(), in_segment("0"));
+    assert_eq!(read_trajectory(&apart.join("trajectory-segment-1.txt")).keys().copied().collect::<Vec<_>>(), in_segment("1"));
+}
+
 /// Tracking lost in new territory (a turbidity burst on a survey, which never comes back over
 /// its start): a new map segment starts and tracks. Its poses go to `trajectory-segment-1.txt`
 /// (`trajectory.txt` holds segment 0's), `states.txt` and the log's state messages say which

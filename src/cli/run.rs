@@ -210,13 +210,15 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     };
     // Held until the evaluation report is written.
     let WrittenDive { folder_lock: _lock, source, tracker, outputs: written, record, part, frames_tracked: frames_done, track_times: latencies, interrupted, stop, log_error, map_quality } = *dive;
-    let in_world = written.segments.iter().find(|s| s.0 == 0).map_or(0, |s| s.1);
-    let others: Vec<String> = written.segments.iter().filter(|s| s.0 != 0).map(|(s, n)| format!("{n} in trajectory-segment-{s}.txt")).collect();
+    let in_world: u64 = written.segments.iter().filter(|s| s.0 == 0 || written.joined.contains(&s.0)).map(|s| s.1).sum();
+    let joined: Vec<String> = written.segments.iter().filter(|s| written.joined.contains(&s.0)).map(|(s, n)| format!("{n} of map segment {s}")).collect();
+    let others: Vec<String> = written.segments.iter().filter(|s| s.0 != 0 && !written.joined.contains(&s.0)).map(|(s, n)| format!("{n} in trajectory-segment-{s}.txt")).collect();
     println!(
-        "dive: {} frames ({} from earlier parts), {} with a pose estimate ({in_world} in trajectory.txt{}){}, {} keyframes, part {part} of {}",
+        "dive: {} frames ({} from earlier parts), {} with a pose estimate ({in_world} in trajectory.txt{}{}){}, {} keyframes, part {part} of {}",
         written.frames,
         written.frames_from_log,
         written.frames_with_pose,
+        if joined.is_empty() { String::new() } else { format!(", of them {}, joined by navigation", joined.join(", ")) },
         if others.is_empty() { String::new() } else { format!(", {}: map segments that never merged into the first", others.join(", ")) },
         if written.frames_with_pose < written.frames { "; the others: pose none in states.txt" } else { "" },
         written.keyframes,

@@ -22,7 +22,7 @@ use super::keyframe_folder::{KeyframeFolder, KeyframeFolderError};
 use super::lock::{LockError, RunFolderLock};
 use super::metric::MetricRecord;
 use super::mapping::{feed_logged_keyframes, feed_unmapped_keyframes, Refed, GaussianMapping};
-use super::outputs::{finish_trajectory, init_summary, write_keyframe_depths, write_tracking_outputs, DiskReserve, OutputError, WrittenOutputs};
+use super::outputs::{finish_trajectory, init_summary, write_keyframe_depths, write_tracking_outputs, DiskReserve, OutputError, OutputFrames, WrittenOutputs};
 use super::resume::{self, Relocalisation};
 use super::source::{RunSource, RunSourceError, Source, SourceOptions};
 use super::{MapStage, MapStageError, NoMapping, PipelineConfig, PipelineError, Stop};
@@ -35,7 +35,7 @@ use duv_map::mapper::{MapperCapacity, MapperConfig};
 use duv_map::stage::{MappingBudget, MappingStage};
 use duv_map::GpuOptions;
 use duv_track::{Tracker, TrackerCapacity, TrackerConfig};
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -840,13 +840,24 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
             Err(e) => (MetricRecord::map_units(e.to_string(), samples.len()), None),
         },
     };
+    // Segments that never merged by sight, placed in the metric world by the navigation.
+    let mut units = units;
+    let mut output_frames = OutputFrames { world: metric_from_world, joined: BTreeMap::new() };
+    if let (Some(samples), Some(world)) = (&nav, &metric_from_world) {
+        let (joined, not) = super::metric::join_segments(samples, &fin, history, &tracker, pcfg.world_from_tracker.as_ref(), world);
+        for (m, record) in joined {
+            output_frames.joined.insert(record.segment, m);
+            units.joined_segments.push(record);
+        }
+        units.segments_not_joined = not;
+    }
     progress(&Progress::Units { summary: &units.summary() });
     if let Err(e) = units.write(&opts.out) {
         progress(&Progress::MetricNotWritten { error: &e });
     }
     map.set_output_frame(metric_from_world);
     let mapped = opts.mapping.is_some().then_some(&keyframe_folder);
-    let written = write_tracking_outputs(&opts.out, &fin, recorder.frames(), &track_times, &tracker, mapped, history, metric_from_world.as_ref())?;
+    let written = write_tracking_outputs(&opts.out, &fin, recorder.frames(), &track_times, &tracker, mapped, history, &output_frames)?;
     // dive.json: the parts of the dive and how each ended.
     let end = match stop.signal() {
         Some(sig) if result.interrupted => format!("stopped by signal {sig}"),

@@ -1,6 +1,7 @@
 //! The files a finished run leaves in its folder, written in one place: `trajectory.txt`
 //! (every frame of map segment 0, the dive's world frame, with a pose estimate, TUM; a segment
-//! started after a loss that never merged into it goes to `trajectory-segment-N.txt`;
+//! started after a loss that never merged into it goes to `trajectory-segment-N.txt`, unless
+//! the navigation placed it in the metric world ([`OutputFrames`]);
 //! `states.txt` lists every frame with its state, where its pose comes from and its segment), `keyframes.txt`, the keyframes' full-resolution inverse depth and
 //! variance (PFM, through the keyframe folder's writer, [`KeyframeFolder`]), `states.txt`. A resumed dive's poses are put in the recorded frame here,
 //! once ([`finish_trajectory`]), and merged with what earlier processes of the dive logged
@@ -59,8 +60,11 @@ pub struct WrittenOutputs {
     /// Of them, frames with a pose estimate (every segment's).
     pub frames_with_pose: u64,
     /// Frames with a pose estimate per map segment, ascending by segment: segment 0's are
-    /// `trajectory.txt`, another's `trajectory-segment-N.txt`.
+    /// `trajectory.txt`, another's `trajectory-segment-N.txt` (or `trajectory.txt` when in
+    /// `joined`).
     pub segments: Vec<(u32, u64)>,
+    /// Segments other than 0 that the navigation placed in the world: in `trajectory.txt`.
+    pub joined: Vec<u32>,
     pub first_seq: Option<u64>,
     pub last_seq: Option<u64>,
     /// Of them, poses logged by earlier processes of the dive (not tracked by this one).
@@ -92,6 +96,33 @@ pub fn write_keyframe_depths(folder: &KeyframeFolder, tracker: &Tracker, inv: &m
     Ok(())
 }
 
+/// The frame each map segment's poses are written in.
+#[derive(Clone, Debug, Default)]
+pub struct OutputFrames {
+    /// `metric_from_map` of the dive's world frame (segment 0's; every pose without a frame of
+    /// its own): metres when the navigation gave it, map units without.
+    pub world: Option<Sim3>,
+    /// Segments that never merged into segment 0 by sight, placed in the metric world by the
+    /// navigation (`super::metric::join_segments`): `metric_from_map` of each. Their poses
+    /// go to `trajectory.txt` with segment 0's.
+    pub joined: BTreeMap<u32, Sim3>,
+}
+
+impl OutputFrames {
+    /// `pose` of `segment` in the outputs' frame.
+    fn to_output(&self, segment: u32, pose: &duv_core::Se3) -> duv_core::Se3 {
+        match self.joined.get(&segment).or(self.world.as_ref()) {
+            Some(a) => duv_core::pose::sim3_apply_to_pose(a, pose),
+            None => *pose,
+        }
+    }
+
+    /// Whether `segment`'s poses are in the dive's world frame (`trajectory.txt`).
+    fn in_world(&self, segment: u32) -> bool {
+        segment == 0 || self.joined.contains_key(&segment)
+    }
+}
+
 /// Writes `trajectory.txt`, `keyframes.txt` (with `mapped`, the run's keyframe folder: only the
 /// keyframes whose image it holds, those the mapping stage received, so `duv refine
 /// --keyframes` reads the folder) and `states.txt`
@@ -106,7 +137,7 @@ pub fn write_tracking_outputs(
     tracker: &Tracker,
     mapped: Option<&KeyframeFolder>,
     history: Option<&DiveHistory>,
-    metric: Option<&Sim3>,
+    frames_out: &OutputFrames,
 ) -> Result<WrittenOutputs, OutputError> {
     // seq -> (pose, state, where the pose comes from, tracker ms, note, segment): the log's
     // first, this process's over them.
@@ -136,20 +167,23 @@ pub fn write_tracking_outputs(
         }
     }
     // Metric outputs: every pose, logged or final, moved once ([`super::metric`]).
-    let to_output = |pose: &duv_core::Se3| metric.map_or(*pose, |a| duv_core::pose::sim3_apply_to_pose(a, pose));
     for v in dive.values_mut() {
-        v.0.world_from_cam = to_output(&v.0.world_from_cam);
+        v.0.world_from_cam = frames_out.to_output(v.5, &v.0.world_from_cam);
     }
     // Only estimated poses: a frame without one is in `states.txt` with pose `none`. One file
-    // per map segment (each its own frame and scale): segment 0, the dive's world frame,
-    // `trajectory.txt`, another that never merged into it `trajectory-segment-N.txt`.
+    // per frame: segment 0, the dive's world frame, and the segments the navigation placed in
+    // it `trajectory.txt`; another that never merged into it `trajectory-segment-N.txt` (its
+    // own frame and scale).
     let mut per_segment: BTreeMap<u32, Vec<StampedPose>> = BTreeMap::new();
+    let mut trajectory: Vec<StampedPose> = Vec::new();
     for v in dive.values().filter(|v| v.2.has_pose()) {
         per_segment.entry(v.5).or_default().push(v.0);
+        if frames_out.in_world(v.5) {
+            trajectory.push(v.0);
+        }
     }
-    let trajectory = per_segment.get(&0).cloned().unwrap_or_default();
     duv_core::io::tum::write_trajectory(&out.join("trajectory.txt"), &trajectory)?;
-    for (segment, poses) in per_segment.iter().filter(|(s, _)| **s != 0) {
+    for (segment, poses) in per_segment.iter().filter(|(s, _)| !frames_out.in_world(**s)) {
         duv_core::io::tum::write_trajectory(&out.join(format!("trajectory-segment-{segment}.txt")), poses)?;
     }
     // A segment file an earlier run of this folder left, that this dive does not have, goes.
@@ -157,7 +191,7 @@ pub fn write_tracking_outputs(
         for entry in dir.flatten() {
             let name = entry.file_name();
             let Some(n) = name.to_str().and_then(|n| n.strip_prefix("trajectory-segment-")).and_then(|n| n.strip_suffix(".txt")) else { continue };
-            if n.parse::<u32>().map_or(true, |s| s == 0 || !per_segment.contains_key(&s)) {
+            if n.parse::<u32>().map_or(true, |s| frames_out.in_world(s) || !per_segment.contains_key(&s)) {
                 if let Err(e) = std::fs::remove_file(entry.path()) {
                     tracing::warn!("{}: stale segment trajectory not removed: {e}", entry.path().display());
                 }
@@ -178,13 +212,13 @@ pub fn write_tracking_outputs(
         if mapped.is_some_and(|folder| !folder.has_image(*id)) {
             continue;
         }
-        let _ = writeln!(kf_text, "{id} {}", tum_line(*t_ns, &to_output(pose)));
+        let _ = writeln!(kf_text, "{id} {}", tum_line(*t_ns, &frames_out.to_output(0, pose)));
         kf_written += 1;
     }
     duv_core::io::write_atomic(&out.join("keyframes.txt"), kf_text.as_bytes())?;
     let live: Vec<(u64, u64)> = tracker.keyframes().filter(|k| k.segment == 0).map(|k: KeyframeView| (k.id, k.seq)).collect();
     let mut states_text = String::from(
-        "# seq timestamp state pose tracker_ms segment [why, while initialising] (pose: measured, interpolated between measured poses, none: no pose estimate, logged: an earlier process's pose whose state was lost; tracker_ms nan: tracked by an earlier process of the dive, see dive.json; segment: the map segment of the pose, 0 in trajectory.txt, N in trajectory-segment-N.txt, - without a pose)\n",
+        "# seq timestamp state pose tracker_ms segment [why, while initialising] (pose: measured, interpolated between measured poses, none: no pose estimate, logged: an earlier process's pose whose state was lost; tracker_ms nan: tracked by an earlier process of the dive, see dive.json; segment: the map segment of the pose, 0 in trajectory.txt, N in trajectory-segment-N.txt or, when the navigation joined it (metric.json), in trajectory.txt, - without a pose)\n",
     );
     for (seq, (pose, state, source, ms, note, segment)) in &dive {
         let _ = write!(states_text, "{seq} {:.9} {state} {} {:.3}", pose.t_ns.as_secs_f64(), source.name(), ms.unwrap_or(f64::NAN));
@@ -205,6 +239,7 @@ pub fn write_tracking_outputs(
         frames: dive.len() as u64,
         frames_with_pose: per_segment.values().map(|v| v.len() as u64).sum(),
         segments: per_segment.iter().map(|(s, v)| (*s, v.len() as u64)).collect(),
+        joined: frames_out.joined.keys().copied().filter(|s| per_segment.contains_key(s)).collect(),
         first_seq: dive.keys().next().copied(),
         last_seq: dive.keys().next_back().copied(),
         frames_from_log: from_log - replaced,
