@@ -171,9 +171,9 @@ pub fn write_tracking_outputs(
         v.0.world_from_cam = frames_out.to_output(v.5, &v.0.world_from_cam);
     }
     // Only estimated poses: a frame without one is in `states.txt` with pose `none`. One file
-    // per frame: segment 0, the dive's world frame, and the segments the navigation placed in
-    // it `trajectory.txt`; another that never merged into it `trajectory-segment-N.txt` (its
-    // own frame and scale).
+    // per frame of reference: segment 0 (the dive's world frame) and the segments the
+    // navigation placed in it, `trajectory.txt`; another that never merged into it,
+    // `trajectory-segment-N.txt` (its own frame and scale).
     let mut per_segment: BTreeMap<u32, Vec<StampedPose>> = BTreeMap::new();
     let mut trajectory: Vec<StampedPose> = Vec::new();
     for v in dive.values().filter(|v| v.2.has_pose()) {
