@@ -831,7 +831,7 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         (None, Some(logged)) => Some(duv_core::nav::validate_samples(logged.clone()).samples),
         (nav, None) => nav,
     };
-    let (units, metric_from_world) = match &nav {
+    let (mut units, metric_from_world) = match &nav {
         None if !opts.use_nav => (MetricRecord::map_units("navigation input turned off (--no-nav)", 0), None),
         None if opts.nav_input.is_some() => (MetricRecord::map_units(format!("--nav {} delivered no usable navigation sample", opts.nav_input.as_deref().unwrap_or_default()), 0), None),
         None => (MetricRecord::map_units("the source has no navigation input (nav.csv beside a dataset, nav=FILE, or sim:...,nav=on)", 0), None),
@@ -841,7 +841,6 @@ pub fn run_dive(opts: DiveOptions, progress: &mut dyn FnMut(&Progress)) -> Resul
         },
     };
     // Segments that never merged by sight, placed in the metric world by the navigation.
-    let mut units = units;
     let mut output_frames = OutputFrames { world: metric_from_world, joined: BTreeMap::new() };
     if let (Some(samples), Some(world)) = (&nav, &metric_from_world) {
         let (joined, not) = super::metric::join_segments(samples, &fin, history, &tracker, pcfg.world_from_tracker.as_ref(), world);

@@ -251,6 +251,7 @@ pub fn join_segments(nav: &[NavSample], fin: &FinalTrajectory, history: Option<&
     // (time, segment, metric position) of every frame placed so far.
     let mut placed: Vec<(i64, u32, nalgebra::Vector3<f64>)> = segment_frames(fin, history, 0).iter().map(|f| (f.t_ns.t_ns(), 0, (world * nalgebra::Point3::from(f.world_from_cam.translation.vector)).coords)).collect();
     let (mut joined, mut not) = (Vec::new(), Vec::new());
+    let (max_dt_ns, max_hole_ns) = (MetricOptions::default().max_dt_ns, (MAX_DVL_HOLE_S * 1e9) as i64);
     for (t_first, segment, frames) in segments {
         let Some(&(t_from, from_segment, p_from)) = placed.iter().filter(|p| p.0 < t_first).max_by_key(|p| p.0) else {
             not.push(SegmentNotJoined { segment, why: "no frame placed in the world before it to dead-reckon from".into() });
@@ -261,8 +262,7 @@ pub fn join_segments(nav: &[NavSample], fin: &FinalTrajectory, history: Option<&
             not.push(SegmentNotJoined { segment, why: format!("a gap of {gap_s:.1} s since the last placed frame (dead reckoning bridges at most {MAX_JOIN_GAP_S} s)") });
             continue;
         }
-        let opts = MetricOptions::default();
-        let dr = match duv_track::metric::dead_reckon(nav, duv_core::Timestamp::from_ns(t_from), frames[0].t_ns, opts.max_dt_ns, (MAX_DVL_HOLE_S * 1e9) as i64) {
+        let dr = match duv_track::metric::dead_reckon(nav, duv_core::Timestamp::from_ns(t_from), frames[0].t_ns, max_dt_ns, max_hole_ns) {
             Ok(d) => d,
             Err(e) => {
                 not.push(SegmentNotJoined { segment, why: e.to_string() });
