@@ -714,3 +714,31 @@ fn the_medium_estimate_is_made_again_with_more_keyframes_until_the_configured_co
     }
     assert!(runs[1].1 && !runs[2].1, "{runs:?}");
 }
+
+#[test]
+fn the_mapper_says_where_its_time_went() {
+    // Four keyframes (the medium estimate at the fourth), then 60 steps: densification at
+    // step 50 (`densify_every` and `densify_start` 50).
+    let (_r, kfs, cap) = small_turbid_survey(40);
+    let mut m = Mapper::new(MapperConfig::default(), cap).unwrap();
+    let t0 = std::time::Instant::now();
+    for k in kfs.iter().take(4) {
+        m.add_keyframe(&k.keyframe).unwrap();
+    }
+    let mut densified = 0;
+    for _ in 0..60 {
+        densified += m.iterate().unwrap().densify.is_some() as u64;
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    let t = *m.times();
+    assert_eq!((t.keyframes, t.medium_estimates, t.steps, t.densify), (4, 1, 60, 1), "{t:?}");
+    assert_eq!(densified, 1);
+    assert_eq!((t.uploads, t.read_backs), (0, 0), "the CPU reference keeps the map on the host: {t:?}");
+    assert!(t.medium_estimate_s > 0.0 && t.medium_estimate_s < t.keyframe_s, "{t:?}");
+    assert!(t.step_s > 0.0 && t.densify_s > 0.0, "{t:?}");
+    // The parts do not overlap and cover the calls.
+    let parts = t.step_s + t.densify_s + t.keyframe_s;
+    assert!(parts <= wall && parts > 0.9 * wall, "{parts} s of {wall} s: {t:?}");
+    assert!((t.step_ms_without_uploads() - t.step_s * 1e3 / 60.0).abs() < 1e-9);
+    assert!(t.summary().starts_with("steps "), "{}", t.summary());
+}

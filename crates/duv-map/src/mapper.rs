@@ -21,6 +21,7 @@
 //! Gaussians stay in the map).
 
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
 
 use super::adam::{AdamError, AdamGroup, AdamGroupConfig};
 use super::densify::{densify_and_prune, remove_gaussians, remove_where, DensifyParams, DensifyReport, DensifyScratch, Removal};
@@ -495,6 +496,8 @@ pub struct Mapper {
     pub(crate) medium_prior: Option<MediumPrior>,
     /// Keyframe count of the next medium estimate; 0 once every channel is set (or off).
     pub(crate) medium_estimate_at: usize,
+    /// Where the wall time went ([`Mapper::times`]).
+    times: MapperTimes,
 }
 
 /// Renders that needed more tile intersections than the buffers hold, and what the policy did
@@ -510,6 +513,61 @@ pub struct OverflowStats {
     /// The largest number of intersections a view asked for, and the buffer's size.
     pub largest_needed: u64,
     pub capacity: usize,
+}
+
+/// Where a mapper's wall time went since it was made (or restored): seconds and counts of each
+/// part, measured on the thread that calls it. The parts nest as their docs say; `duv run`
+/// reports them to show where mapping inside a run spends what an optimisation step alone
+/// (the `gpu_render` bench) does not.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MapperTimes {
+    /// Optimisation steps ([`Mapper::step_on_then`]), densification excluded, uploads included.
+    pub steps: u64,
+    pub step_s: f64,
+    /// Whole-map uploads to the device before a step (after the host changed the map: a new
+    /// keyframe, densification, a restore); inside `step_s`.
+    pub uploads: u64,
+    pub upload_s: f64,
+    /// Densify/prune runs, the map's read-back included.
+    pub densify: u64,
+    pub densify_s: f64,
+    /// [`Mapper::add_keyframe`] calls, whole (read-back, carving, seeding renders, medium
+    /// estimate).
+    pub keyframes: u64,
+    pub keyframe_s: f64,
+    /// Closed-form medium estimates; inside `keyframe_s`.
+    pub medium_estimates: u64,
+    pub medium_estimate_s: f64,
+    /// Reads of the device map to the host (before the host changes it, a checkpoint, an
+    /// export); inside the parts that asked for them. Nothing on the CPU reference.
+    pub read_backs: u64,
+    pub read_back_s: f64,
+}
+
+impl MapperTimes {
+    /// Milliseconds per step, uploads excluded: the figure the step bench measures.
+    pub fn step_ms_without_uploads(&self) -> f64 {
+        (self.step_s - self.upload_s) * 1e3 / self.steps.max(1) as f64
+    }
+
+    /// One line: each part's seconds and count.
+    pub fn summary(&self) -> String {
+        format!(
+            "steps {:.2} s ({}, {:.2} ms each without uploads; {} whole-map uploads {:.2} s), densify {:.2} s ({}), keyframes added {:.2} s ({}; medium estimates {:.2} s), map read back {:.2} s ({})",
+            self.step_s,
+            self.steps,
+            self.step_ms_without_uploads(),
+            self.uploads,
+            self.upload_s,
+            self.densify_s,
+            self.densify,
+            self.keyframe_s,
+            self.keyframes,
+            self.medium_estimate_s,
+            self.read_back_s,
+            self.read_backs
+        )
+    }
 }
 
 /// Renders of one view after an overflow before the mapper reports the overflow as an error.
@@ -570,6 +628,7 @@ impl Mapper {
             raster_capacity,
             config,
             capacity,
+            times: MapperTimes::default(),
         })
     }
 
@@ -634,12 +693,30 @@ impl Mapper {
     /// [`Mapper::gaussians`]' values, [`Mapper::adam_group`] or the statistics; nothing to do
     /// on the CPU reference.
     pub fn sync_from_device(&mut self) -> Result<(), MapperError> {
-        Ok(self.raster.sync(&mut self.gaussians, &mut self.grads, &mut self.adam)?)
+        let (t0, resident) = (Instant::now(), self.raster.is_resident());
+        self.raster.sync(&mut self.gaussians, &mut self.grads, &mut self.adam)?;
+        self.count_read_back(resident, t0);
+        Ok(())
+    }
+
+    fn count_read_back(&mut self, resident: bool, t0: Instant) {
+        if resident {
+            self.times.read_backs += 1;
+            self.times.read_back_s += t0.elapsed().as_secs_f64();
+        }
+    }
+
+    /// Where the mapper's wall time went so far ([`MapperTimes`]).
+    pub fn times(&self) -> &MapperTimes {
+        &self.times
     }
 
     /// Synced, and the host copy is the map again: before the host changes the map.
     fn release_device_map(&mut self) -> Result<(), MapperError> {
-        Ok(self.raster.release(&mut self.gaussians, &mut self.grads, &mut self.adam)?)
+        let (t0, resident) = (Instant::now(), self.raster.is_resident());
+        self.raster.release(&mut self.gaussians, &mut self.grads, &mut self.adam)?;
+        self.count_read_back(resident, t0);
+        Ok(())
     }
 
     /// Whether [`Mapper::gaussians`]' values are behind the device map's (optimisation steps on
@@ -814,7 +891,14 @@ impl Mapper {
     /// Stores the keyframe and seeds Gaussians from its confident inverse depth where the map
     /// does not cover it yet; returns how many Gaussians were added.
     pub fn add_keyframe(&mut self, kf: impl std::borrow::Borrow<Keyframe>) -> Result<usize, MapperError> {
-        let kf: &Keyframe = kf.borrow();
+        let t0 = Instant::now();
+        let added = self.add_keyframe_untimed(kf.borrow());
+        self.times.keyframes += 1;
+        self.times.keyframe_s += t0.elapsed().as_secs_f64();
+        added
+    }
+
+    fn add_keyframe_untimed(&mut self, kf: &Keyframe) -> Result<usize, MapperError> {
         self.check_camera(kf.index, &kf.camera)?;
         if !kf.is_consistent() {
             return Err(MapperError::BadKeyframe { index: kf.index, why: "image, inverse depth and variance sizes differ from the camera's" });
@@ -836,7 +920,11 @@ impl Mapper {
         self.store_keyframe(slot, kf);
         let estimate_at = self.medium_estimate_at.min(self.capacity.max_keyframes);
         if estimate_at > 0 && self.config.optimise_medium && self.keyframes.len() == estimate_at {
-            let all = match self.estimate_medium() {
+            let t_estimate = Instant::now();
+            let estimated = self.estimate_medium();
+            self.times.medium_estimates += 1;
+            self.times.medium_estimate_s += t_estimate.elapsed().as_secs_f64();
+            let all = match estimated {
                 Ok(e) => {
                     tracing::info!(beta_d = ?e.medium.beta_d, beta_b = ?e.medium.beta_b, b_inf = ?e.medium.b_inf, determined = ?e.determined.map(|d| d.bits()), std_error = ?e.std_error, samples = e.samples, pairs = ?e.attenuation_pairs, "map.medium_estimate");
                     e.accepted.iter().all(|&a| a)
@@ -1116,6 +1204,15 @@ impl Mapper {
     /// (`GpuRenderer::plan_next_view`). The next step renders exactly as without the hint; a
     /// hint that turns out wrong (another keyframe, the map changed) is ignored.
     pub fn step_on_then(&mut self, slot: usize, next: Option<usize>) -> Result<IterationReport, MapperError> {
+        let t0 = Instant::now();
+        let densify_before = self.times.densify_s;
+        let report = self.step_on_then_untimed(slot, next);
+        self.times.steps += 1;
+        self.times.step_s += t0.elapsed().as_secs_f64() - (self.times.densify_s - densify_before);
+        report
+    }
+
+    fn step_on_then_untimed(&mut self, slot: usize, next: Option<usize>) -> Result<IterationReport, MapperError> {
         let next = next.filter(|_| self.plan_ahead);
         let _span = tracing::debug_span!("map.iterate", iteration = self.iteration + 1).entered();
         let count = self.keyframes.len();
@@ -1247,7 +1344,11 @@ impl Mapper {
             self.overflow.densify_skipped += 1;
             None
         } else if due {
-            Some(self.densify_and_prune()?)
+            let t0 = Instant::now();
+            let report = self.densify_and_prune();
+            self.times.densify += 1;
+            self.times.densify_s += t0.elapsed().as_secs_f64();
+            Some(report?)
         } else {
             None
         };
@@ -1264,8 +1365,11 @@ impl Mapper {
         let cam_from_world = &world_from_cam.inverse();
         let mut tries = 0;
         loop {
-            if device_map {
+            if device_map && !self.raster.is_resident() {
+                let t0 = Instant::now();
                 self.raster.ensure_resident(&self.gaussians, &self.grads, &self.adam)?;
+                self.times.uploads += 1;
+                self.times.upload_s += t0.elapsed().as_secs_f64();
             }
             let v = &mut self.view;
             let rendered = if images_on_host {

@@ -138,6 +138,9 @@ pub trait MapStage: Send {
     fn final_checkpoint(&mut self) -> Option<MapCheckpoint> {
         self.checkpoint()
     }
+    /// The time the mapping thread took to write a checkpoint of this stage to disk (reported
+    /// with the stage's own times).
+    fn checkpoint_written(&mut self, _took: Duration) {}
     /// Restores a checkpoint written by [`MapStage::checkpoint`] (on resume).
     fn restore(&mut self, bytes: &[u8]) -> Result<(), MapStageError>;
     /// The newest keyframe id the stage was fed (keyframes come in id order), `None` when it
@@ -688,7 +691,10 @@ pub fn run<S: FrameSource + 'static>(
                 let mut save = |map: &mut Box<dyn MapStage>, t: Timestamp, last: bool| -> Result<(), PipelineError> {
                     if let Some(c) = if last { map.final_checkpoint() } else { map.checkpoint() } {
                         live.cloud(t, &c.centres_in_world, &c.colours);
-                        match checkpoints.save(&c.file) {
+                        let t_save = Instant::now();
+                        let saved = checkpoints.save(&c.file);
+                        map.checkpoint_written(t_save.elapsed());
+                        match saved {
                             Ok(_) => log_push(&lq, LogItem::Map { t_ns: t, centres_in_world: c.centres_in_world, checkpoint: c.logged, last }),
                             Err(e) => {
                                 failed_saves += 1;

@@ -43,6 +43,12 @@ pub struct GaussianMapping {
     folder_failures: u64,
     /// The frame the exports are written in ([`MapStage::set_output_frame`]).
     output_frame: Option<Sim3>,
+    /// Time and count of checkpoints made (the map's bytes) and written to disk, and of
+    /// keyframe folder writes: the mapping thread's work beside the mapper's own
+    /// ([`duv_map::mapper::MapperTimes`]).
+    checkpoint_made: (Duration, u64),
+    checkpoint_written: (Duration, u64),
+    folder_written: Duration,
 }
 
 impl GaussianMapping {
@@ -50,7 +56,7 @@ impl GaussianMapping {
     /// checkpoint bytes pass through.
     pub fn new(stage: MappingStage, keyframe_folder: KeyframeFolder, scratch: PathBuf, idle_iterations: u64, final_iterations: u64) -> Self {
         let budget = stage.budget();
-        GaussianMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0, output_frame: None }
+        GaussianMapping { stage, budget, keyframe_folder, scratch, idle_iterations, idle_left: 0, final_iterations, fed: 0, dirty: false, time: Duration::ZERO, device: None, folder_failures: 0, output_frame: None, checkpoint_made: (Duration::ZERO, 0), checkpoint_written: (Duration::ZERO, 0), folder_written: Duration::ZERO }
     }
 
     /// Renders with `device` from now on, also after a `restore` (see
@@ -65,6 +71,26 @@ impl GaussianMapping {
         &self.stage
     }
 
+    /// The checkpoint's bytes and the map's points for the log and the live view.
+    fn checkpoint_untimed(&mut self) -> Option<MapCheckpoint> {
+        let mapper = self.stage.mapper_mut();
+        // Straight from the mapper's buffers, each into one buffer of its exact size.
+        let made = mapper.checkpoint_bytes_with(KeyframePixels::Embedded).and_then(|file| Ok((file, mapper.checkpoint_bytes_with(KeyframePixels::Referenced)?)));
+        let (file, logged) = match made {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::warn!("map checkpoint not made: {e}");
+                return None;
+            }
+        };
+        let g = mapper.gaussians();
+        let centres_in_world = (0..g.len()).map(|i| g.get(i).mean).collect();
+        // The degree-0 colour (what the live view shows), as the renderer takes it.
+        let c0 = duv_map::gaussians::SH_C0 as f32;
+        let colours = (0..g.len()).map(|i| g.get(i).f_dc.map(|f| ((0.5 + c0 * f).clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
+        Some(MapCheckpoint { file, logged, centres_in_world, colours })
+    }
+
     /// Keyframes handed over so far.
     pub fn keyframes_fed(&self) -> usize {
         self.fed
@@ -76,7 +102,10 @@ impl MapStage for GaussianMapping {
         let id = kf.index;
         // The keyframe folder is written as keyframes arrive; a write that fails (a full disk)
         // is reported once and mapping goes on (the keyframes are in the log).
-        if let Err(e) = self.keyframe_folder.write_keyframe(kf) {
+        let t_folder = Instant::now();
+        let written = self.keyframe_folder.write_keyframe(kf);
+        self.folder_written += t_folder.elapsed();
+        if let Err(e) = written {
             self.folder_failures += 1;
             if self.folder_failures == 1 {
                 tracing::error!("keyframe folder not written: {e}; mapping goes on");
@@ -112,22 +141,16 @@ impl MapStage for GaussianMapping {
         if !std::mem::take(&mut self.dirty) {
             return None;
         }
-        let mapper = self.stage.mapper_mut();
-        // Straight from the mapper's buffers, each into one buffer of its exact size.
-        let made = mapper.checkpoint_bytes_with(KeyframePixels::Embedded).and_then(|file| Ok((file, mapper.checkpoint_bytes_with(KeyframePixels::Referenced)?)));
-        let (file, logged) = match made {
-            Ok(b) => b,
-            Err(e) => {
-                tracing::warn!("map checkpoint not made: {e}");
-                return None;
-            }
-        };
-        let g = mapper.gaussians();
-        let centres_in_world = (0..g.len()).map(|i| g.get(i).mean).collect();
-        // The degree-0 colour (what the live view shows), as the renderer takes it.
-        let c0 = duv_map::gaussians::SH_C0 as f32;
-        let colours = (0..g.len()).map(|i| g.get(i).f_dc.map(|f| ((0.5 + c0 * f).clamp(0.0, 1.0) * 255.0).round() as u8)).collect();
-        Some(MapCheckpoint { file, logged, centres_in_world, colours })
+        let t0 = Instant::now();
+        let made = self.checkpoint_untimed();
+        self.checkpoint_made.0 += t0.elapsed();
+        self.checkpoint_made.1 += made.is_some() as u64;
+        made
+    }
+
+    fn checkpoint_written(&mut self, took: Duration) {
+        self.checkpoint_written.0 += took;
+        self.checkpoint_written.1 += 1;
     }
 
     fn newest_keyframe(&self) -> Option<u64> {
@@ -168,6 +191,16 @@ impl MapStage for GaussianMapping {
         for (id, pose) in final_poses {
             self.stage.set_keyframe_pose(*id, *pose)?;
         }
+        // Where the mapping thread's time went while the run went (the final optimisation after).
+        let during_run = format!(
+            "mapping while the run went: {}; checkpoints made {:.2} s ({}), written {:.2} s ({}); keyframe folder {:.2} s",
+            self.stage.mapper().times().summary(),
+            self.checkpoint_made.0.as_secs_f64(),
+            self.checkpoint_made.1,
+            self.checkpoint_written.0.as_secs_f64(),
+            self.checkpoint_written.1,
+            self.folder_written.as_secs_f64()
+        );
         let t0 = Instant::now();
         if optimise {
             self.stage.optimise(self.final_iterations, None)?;
@@ -196,7 +229,7 @@ impl MapStage for GaussianMapping {
             f(m.beta_d),
             f(m.beta_b),
             f(m.b_inf)
-        )))
+        ) + "\n" + &during_run))
     }
 }
 
