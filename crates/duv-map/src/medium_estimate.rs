@@ -52,9 +52,10 @@
 //! A channel without enough pairs keeps the configured initial water for `beta_D`; no
 //! sample at all is an error that says what was missing. Everything is f64 and
 //! deterministic. Steps 2 to 5 run for the three channels side by side on scoped threads,
-//! which inherit the caller's cores and priority (the mapping thread's placement): at
-//! 640x480 the estimate took 3.0-3.8 s on one core, and it runs on the mapping thread
-//! (`cargo run --release --example medium_estimate_time` times it).
+//! which inherit the caller's cores and priority (the mapping thread's placement). The
+//! estimate runs on the mapping thread, where no optimisation step runs meanwhile: at 640x480
+//! on a 2-core machine it took 3.0-3.8 s with central differences on one thread and takes
+//! 0.5-1.3 s now (`cargo run --release --example medium_estimate_time` times it).
 
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
