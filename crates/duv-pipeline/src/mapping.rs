@@ -191,9 +191,10 @@ impl MapStage for GaussianMapping {
         for (id, pose) in final_poses {
             self.stage.set_keyframe_pose(*id, *pose)?;
         }
-        // Where the mapping thread's time went while the run went (the final optimisation after).
+        // Where the mapping thread's time went before the final optimisation: the run, and the
+        // keyframes fed from the log after it (those a full queue deferred).
         let during_run = format!(
-            "mapping while the run went: {}; checkpoints made {:.2} s ({}), written {:.2} s ({}); keyframe folder {:.2} s",
+            "mapping before the final optimisation: {}; checkpoints made {:.2} s ({}), written {:.2} s ({}); keyframe folder {:.2} s",
             self.stage.mapper().times().summary(),
             self.checkpoint_made.0.as_secs_f64(),
             self.checkpoint_made.1,
