@@ -2,8 +2,8 @@
 //! stream passed down, clean shutdown on SIGINT/SIGTERM, health telemetry once a second.
 //!
 //! ```text
-//!  capture ──frames (drop oldest)──> tracking ──keyframes (defer)──> mapping
-//!     │                                 │                                     │
+//!  capture ──frames (spread)──> tracking ──keyframes (defer)──> mapping
+//!     │                             │                                     │
 //!     └───────────── log records (bounded in bytes, drop newest) ────────┴──> logging
 //! ```
 //!
@@ -253,9 +253,10 @@ pub struct PipelineConfig {
     pub pace_speed: Option<f64>,
     /// Single-threaded, no drops (bit-identical output).
     pub deterministic: bool,
-    /// Capture waits for room in the frame queue instead of dropping the oldest frame: for
-    /// unpaced recorded sources (datasets, generated sequences, replay without `--speed`),
-    /// whose frames are not lost by waiting. Live and paced sources drop oldest.
+    /// Capture waits for room in the frame queue instead of dropping a frame: for unpaced
+    /// recorded sources (datasets, generated sequences, replay without `--speed`), whose
+    /// frames are not lost by waiting. Live and paced sources drop, spread
+    /// ([`queue::FullPolicy::Spread`]).
     pub lossless_frames: bool,
     pub health_interval: Duration,
     pub checkpoint_interval: Duration,
@@ -589,7 +590,7 @@ pub fn run<S: FrameSource + 'static>(
         return run_deterministic(source, tracker, map, cfg, writer, checkpoints, retrack, stop, started);
     }
 
-    let frames: Arc<BoundedQueue<(Arc<Frame>, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::DropOldest));
+    let frames: Arc<BoundedQueue<(Arc<Frame>, Instant)>> = Arc::new(BoundedQueue::new("frames", cfg.frame_queue, 0, FullPolicy::Spread));
     let keyframes: Arc<KeyframeQueue> = Arc::new(KeyframeQueue::new(cfg.keyframe_queue));
     let log_q: Arc<BoundedQueue<LogItem>> = Arc::new(BoundedQueue::new("log", 1 << 16, cfg.log_queue_bytes, FullPolicy::DropNewest));
     let shared = Arc::new(Shared {
@@ -914,8 +915,8 @@ pub fn run<S: FrameSource + 'static>(
                             }
                         }
                         let item = (frame, Instant::now());
-                        let pushed = if lossless { fq.push_wait(item, 0) } else { fq.push(item, 0) };
-                        if let Pushed::QueuedDroppedOldest(old) = pushed {
+                        let pushed = if lossless { fq.push_wait(item, 0) } else { fq.push_at(item, 0, t) };
+                        if let Pushed::QueuedDropped(old) = pushed {
                             tracing::trace!(seq = old.0.seq, "frame dropped (tracking behind)");
                         }
                     }

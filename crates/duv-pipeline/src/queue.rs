@@ -1,10 +1,12 @@
 //! Bounded queues with a written policy per edge (ARCHITECTURE.md, "Threads and queues").
 //!
 //! One type, [`BoundedQueue`], bounded in items and optionally in bytes, whose `push` never
-//! blocks: when full it either drops the oldest item ([`FullPolicy::DropOldest`], frames) or
-//! refuses the new one ([`FullPolicy::DropNewest`], log records), and counts
-//! the drop (keyframes have their own queue, `keyframe_queue`, which defers instead). End of stream is [`BoundedQueue::close`]: the consumer drains what is left and
-//! then gets `None`. The storage is allocated once, at construction.
+//! blocks: when full it drops the oldest item ([`FullPolicy::DropOldest`]), drops the item
+//! whose neighbours lie closest together in time so that what is kept spans the wait evenly
+//! ([`FullPolicy::Spread`], frames), or refuses the new one ([`FullPolicy::DropNewest`], log
+//! records), and counts the drop (keyframes have their own queue, `keyframe_queue`, which
+//! defers instead). End of stream is [`BoundedQueue::close`]: the consumer drains what is left
+//! and then gets `None`. The storage is allocated once, at construction.
 
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex};
@@ -13,8 +15,15 @@ use std::time::Duration;
 /// What `push` does when the queue is full.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FullPolicy {
-    /// Evict the oldest item to make room (the freshest frame matters most).
+    /// Evict the oldest item to make room (the freshest item matters most).
     DropOldest,
+    /// Evict the queued item whose neighbours lie closest together by the items' keys (their
+    /// times, [`BoundedQueue::push_at`]); the new item is always kept, and the item the consumer
+    /// took last counts as the oldest one's older neighbour. After the consumer was held up
+    /// (a tracker's long solve), what waits for it is spread evenly over the wait, from just
+    /// after what it saw last to the newest: it crosses the gap in steps it can follow instead
+    /// of one jump to the newest items. Ties go to the older item.
+    Spread,
     /// Refuse the new item (the producer must never wait).
     DropNewest,
 }
@@ -34,7 +43,10 @@ pub struct QueueStats {
 }
 
 struct Inner<T> {
-    items: VecDeque<(T, usize)>,
+    /// Each item with its bytes and its key.
+    items: VecDeque<(T, usize, i64)>,
+    /// The key of the item the consumer took last.
+    last_popped_key: Option<i64>,
     bytes: usize,
     closed: bool,
     stats: QueueStats,
@@ -55,8 +67,9 @@ pub struct BoundedQueue<T> {
 #[derive(Debug, PartialEq, Eq)]
 pub enum Pushed<T> {
     Queued,
-    /// Queued after evicting the oldest item, which is handed back.
-    QueuedDroppedOldest(T),
+    /// Queued after evicting an older item (the oldest, or with [`FullPolicy::Spread`] the
+    /// one whose neighbours lay closest), which is handed back.
+    QueuedDropped(T),
     /// Refused (full, or the item alone is larger than the byte budget).
     Refused(T),
     /// The queue is closed.
@@ -73,7 +86,7 @@ impl<T> BoundedQueue<T> {
             capacity,
             capacity_bytes,
             policy,
-            inner: Mutex::new(Inner { items: VecDeque::with_capacity(capacity), bytes: 0, closed: false, stats: QueueStats::default() }),
+            inner: Mutex::new(Inner { items: VecDeque::with_capacity(capacity), last_popped_key: None, bytes: 0, closed: false, stats: QueueStats::default() }),
             not_empty: Condvar::new(),
             not_full: Condvar::new(),
         }
@@ -92,8 +105,20 @@ impl<T> BoundedQueue<T> {
     }
 
     /// Pushes an item of `bytes` bytes (0 when the queue is not byte-bounded). Never blocks.
+    /// Its key is its place in the order of pushes (see [`push_at`](Self::push_at)).
     pub fn push(&self, item: T, bytes: usize) -> Pushed<T> {
+        self.push_keyed(item, bytes, None)
+    }
+
+    /// [`push`](Self::push) with the item's key, a time in any unit that does not decrease
+    /// from one push to the next: [`FullPolicy::Spread`] keeps the queued keys evenly spaced.
+    pub fn push_at(&self, item: T, bytes: usize, key: i64) -> Pushed<T> {
+        self.push_keyed(item, bytes, Some(key))
+    }
+
+    fn push_keyed(&self, item: T, bytes: usize, key: Option<i64>) -> Pushed<T> {
         let mut g = self.lock();
+        let key = key.unwrap_or(g.stats.pushed as i64);
         if g.closed {
             return Pushed::Closed(item);
         }
@@ -109,9 +134,13 @@ impl<T> BoundedQueue<T> {
                     g.stats.dropped += 1;
                     return Pushed::Refused(item);
                 }
-                FullPolicy::DropOldest => {
+                FullPolicy::DropOldest | FullPolicy::Spread => {
                     while g.items.len() >= self.capacity || over_bytes(&g) {
-                        let Some((old, b)) = g.items.pop_front() else { break };
+                        let i = match self.policy {
+                            FullPolicy::Spread => spread_victim(&g.items, g.last_popped_key, key),
+                            _ => 0,
+                        };
+                        let Some((old, b, _)) = g.items.remove(i) else { break };
                         g.bytes -= b;
                         g.stats.dropped += 1;
                         evicted = Some(old);
@@ -119,14 +148,14 @@ impl<T> BoundedQueue<T> {
                 }
             }
         }
-        g.items.push_back((item, bytes));
+        g.items.push_back((item, bytes, key));
         g.bytes += bytes;
         g.stats.pushed += 1;
         g.stats.max_depth = g.stats.max_depth.max(g.items.len());
         drop(g);
         self.not_empty.notify_one();
         match evicted {
-            Some(old) => Pushed::QueuedDroppedOldest(old),
+            Some(old) => Pushed::QueuedDropped(old),
             None => Pushed::Queued,
         }
     }
@@ -151,8 +180,9 @@ impl<T> BoundedQueue<T> {
             g = self.not_empty.wait_timeout_while(g, timeout, |g| g.items.is_empty() && !g.closed).unwrap_or_else(|p| p.into_inner()).0;
         }
         match g.items.pop_front() {
-            Some((item, b)) => {
+            Some((item, b, key)) => {
                 g.bytes -= b;
+                g.last_popped_key = Some(key);
                 g.stats.popped += 1;
                 drop(g);
                 self.not_full.notify_one();
@@ -194,6 +224,22 @@ impl<T> BoundedQueue<T> {
         let g = self.lock();
         QueueStats { depth: g.items.len(), depth_bytes: g.bytes, ..g.stats }
     }
+}
+
+/// The index of the queued item [`FullPolicy::Spread`] evicts before `new_key` is queued: the
+/// one whose neighbours' keys lie closest together (the new item is the newest one's newer
+/// neighbour, the consumer's last item the oldest one's older neighbour; without it the oldest
+/// is kept). The first of equal spans, so the older item. 0 (the oldest) with one item queued.
+fn spread_victim<T>(items: &VecDeque<(T, usize, i64)>, last_popped_key: Option<i64>, new_key: i64) -> usize {
+    let n = items.len();
+    let key = |j: usize| if j < n { items[j].2 } else { new_key };
+    let first = if last_popped_key.is_some() { 0 } else { 1 };
+    (first..n)
+        .min_by_key(|&i| {
+            let older = if i == 0 { last_popped_key.unwrap_or(i64::MIN) } else { key(i - 1) };
+            key(i + 1).saturating_sub(older)
+        })
+        .unwrap_or(0)
 }
 
 /// A single-value cell the producer overwrites (map -> tracking feedback).
@@ -261,10 +307,10 @@ mod tests {
 
     /// A producer at full speed against a consumer that takes 2 ms per item: the producer is
     /// never held up, the queue never exceeds its capacity, every drop is counted, and what
-    /// the consumer gets is in order and ends with the newest item (drop oldest).
+    /// the consumer gets is in order and ends with the newest item (drop oldest, spread).
     #[test]
     fn slow_consumer_never_blocks_the_producer_and_drops_are_counted() {
-        for policy in [FullPolicy::DropOldest, FullPolicy::DropNewest] {
+        for policy in [FullPolicy::DropOldest, FullPolicy::Spread, FullPolicy::DropNewest] {
             let q = Arc::new(BoundedQueue::new("slow", 4, 0, policy));
             let c = q.clone();
             let consumer = std::thread::spawn(move || {
@@ -289,15 +335,69 @@ mod tests {
             // the consumer alone needs 2 ms per item).
             assert!(worst < Duration::from_millis(50), "{policy:?}: a push took {worst:?}");
             assert!(s.dropped > 300, "{policy:?}: only {} dropped", s.dropped);
-            assert_eq!(s.pushed - (if policy == FullPolicy::DropOldest { s.dropped } else { 0 }), got.len() as u64, "{policy:?}");
+            assert_eq!(s.pushed - (if policy == FullPolicy::DropNewest { 0 } else { s.dropped }), got.len() as u64, "{policy:?}");
             assert_eq!(got.len() as u64 + s.dropped, 500, "{policy:?}");
             assert!(got.windows(2).all(|w| w[0] < w[1]), "{policy:?}: out of order");
-            if policy == FullPolicy::DropOldest {
+            if policy != FullPolicy::DropNewest {
                 assert_eq!(*got.last().unwrap(), 499);
             } else {
                 assert_eq!(got[0], 0);
             }
         }
+    }
+
+    /// The consumer takes item 0 and is then held up while items 1..=30 arrive (a tracker's
+    /// 3 s solve at 10 frames/s). Drop oldest leaves it 27..=30: a jump of 27 from what it saw
+    /// last. Spread leaves four items spaced evenly from 0 to 30 (at most 9 apart), the newest
+    /// among them, in order.
+    #[test]
+    fn spread_keeps_what_waits_evenly_spaced_after_a_stall() {
+        let waiting = |policy| {
+            let q = BoundedQueue::new("frames", 4, 0, policy);
+            q.push_at(0i64, 0, 0);
+            assert_eq!(q.try_pop(), Some(0));
+            for k in 1..=30i64 {
+                q.push_at(k, 0, 10 * k);
+                assert!(q.stats().depth <= 4);
+            }
+            assert_eq!(q.stats().dropped, 26);
+            std::iter::once(0).chain(std::iter::from_fn(|| q.try_pop())).collect::<Vec<i64>>()
+        };
+        let max_step = |v: &[i64]| v.windows(2).map(|w| w[1] - w[0]).max().unwrap();
+        let oldest = waiting(FullPolicy::DropOldest);
+        assert_eq!(oldest, vec![0, 27, 28, 29, 30]);
+        let spread = waiting(FullPolicy::Spread);
+        assert_eq!((spread.len(), *spread.last().unwrap()), (5, 30), "{spread:?}");
+        assert!(spread.windows(2).all(|w| w[0] < w[1]), "{spread:?}");
+        assert!(max_step(&spread) <= 9, "{spread:?}: a step of {}", max_step(&spread));
+        assert!(spread[1] > 1, "{spread:?}: the first step is wasted on the next item");
+    }
+
+    /// A consumer a little slower than the producer (4 items taken per 5 pushed), for 1000
+    /// pushes: with Spread, what it takes is never older than with drop oldest (3 pushes), and
+    /// it never skips more than 2 items at once.
+    #[test]
+    fn spread_under_a_steady_overload_stays_fresh() {
+        let run = |policy| {
+            let q = BoundedQueue::new("frames", 4, 0, policy);
+            let (mut worst_age, mut worst_skip, mut last) = (0i64, 0i64, -1i64);
+            for k in 0..1000i64 {
+                q.push_at(k, 0, k);
+                if k % 5 != 4 {
+                    if let Some(v) = q.try_pop() {
+                        worst_age = worst_age.max(k - v);
+                        worst_skip = worst_skip.max(v - last);
+                        last = v;
+                    }
+                }
+            }
+            (worst_age, worst_skip)
+        };
+        let (age_oldest, _) = run(FullPolicy::DropOldest);
+        let (age_spread, skip_spread) = run(FullPolicy::Spread);
+        assert_eq!(age_oldest, 3);
+        assert!(age_spread <= age_oldest, "age {age_spread} against {age_oldest}");
+        assert!(skip_spread <= 2, "skipped {skip_spread}");
     }
 
     /// The byte-bounded log queue under a slow writer: bytes never exceed the budget.

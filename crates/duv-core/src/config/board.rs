@@ -142,7 +142,8 @@ pub struct Budgets {
     pub map_keyframes: u32,
     /// Keyframes in the sliding bundle-adjustment window.
     pub ba_window: u32,
-    /// Frames buffered between capture and tracking (drop oldest when full).
+    /// Frames buffered between capture and tracking (when full, the frame whose neighbours lie
+    /// closest together in time is dropped).
     pub frame_queue: u32,
     /// Keyframes buffered between tracking and mapping.
     pub keyframe_queue: u32,
