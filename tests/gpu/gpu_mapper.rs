@@ -238,6 +238,7 @@ fn restored_mapping_stage_keeps_the_vulkan_renderer() {
 /// (`Mapper::sync_from_device`). A checkpoint taken mid-run (which syncs the moments and the
 /// densification statistics back) and restored onto Vulkan continues bit for bit like the run
 /// that was never interrupted: a sync that lost or misplaced any of that state would not.
+/// A sync with nothing run on the device since the last one reads nothing back.
 #[test]
 fn device_optimiser_state_comes_back_with_the_map() {
     let kfs = sequence(WaterPreset::Coastal);
@@ -259,14 +260,21 @@ fn device_optimiser_state_comes_back_with_the_map() {
         let moving = m.iter().filter(|&&x| x != 0.0).count();
         assert!(moving * 2 > m.len(), "{}: the device moments came back ({moving} of {} non-zero)", g.name(), m.len());
     }
+    // Nothing ran on the device map since that sync: a checkpoint (which syncs for each copy
+    // it makes) reads nothing back and holds the same map.
+    let reads = gpu.times().read_backs;
     let bytes = gpu.checkpoint_bytes().unwrap();
+    assert_eq!(gpu.times().read_backs, reads, "a checkpoint right after a sync read the map back again");
+    assert!(gpu.checkpoint_bytes().unwrap() == bytes, "two checkpoints of the same map differ");
     let mut restored = Mapper::from_checkpoint_bytes(&bytes, "mid-run", Default::default()).unwrap();
     restored.use_device(MapperDevice::Vulkan, &options).unwrap();
     for _ in 0..steps {
         gpu.iterate().unwrap();
         restored.iterate().unwrap();
     }
+    let reads = gpu.times().read_backs;
     gpu.sync_from_device().unwrap();
+    assert_eq!(gpu.times().read_backs, reads + 1, "steps ran since the last sync: this one reads the map back");
     restored.sync_from_device().unwrap();
     assert_eq!(map_bits(gpu.gaussians()), map_bits(restored.gaussians()), "a restored checkpoint must continue like the uninterrupted run");
 }

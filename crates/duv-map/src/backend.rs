@@ -203,18 +203,18 @@ impl RenderBackend {
 
     /// [`GpuRenderer::sync`]: the device's parameters, statistics and moments into
     /// `gaussians`, `grads` and `adam`.
-    pub fn sync(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+    pub fn sync(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
         match self {
             RenderBackend::Vulkan { ctx, renderer } => renderer.sync(ctx, gaussians, grads, adam),
-            RenderBackend::Cpu { .. } => Ok(()),
+            RenderBackend::Cpu { .. } => Ok(false),
         }
     }
 
     /// [`GpuRenderer::release`]: synced, and the host copy is the map again.
-    pub fn release(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
+    pub fn release(&mut self, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
         match self {
             RenderBackend::Vulkan { ctx, renderer } => renderer.release(ctx, gaussians, grads, adam),
-            RenderBackend::Cpu { .. } => Ok(()),
+            RenderBackend::Cpu { .. } => Ok(false),
         }
     }
 

@@ -693,14 +693,14 @@ impl Mapper {
     /// [`Mapper::gaussians`]' values, [`Mapper::adam_group`] or the statistics; nothing to do
     /// on the CPU reference.
     pub fn sync_from_device(&mut self) -> Result<(), MapperError> {
-        let (t0, resident) = (Instant::now(), self.raster.is_resident());
-        self.raster.sync(&mut self.gaussians, &mut self.grads, &mut self.adam)?;
-        self.count_read_back(resident, t0);
+        let t0 = Instant::now();
+        let read = self.raster.sync(&mut self.gaussians, &mut self.grads, &mut self.adam)?;
+        self.count_read_back(read, t0);
         Ok(())
     }
 
-    fn count_read_back(&mut self, resident: bool, t0: Instant) {
-        if resident {
+    fn count_read_back(&mut self, read: bool, t0: Instant) {
+        if read {
             self.times.read_backs += 1;
             self.times.read_back_s += t0.elapsed().as_secs_f64();
         }
@@ -713,9 +713,9 @@ impl Mapper {
 
     /// Synced, and the host copy is the map again: before the host changes the map.
     fn release_device_map(&mut self) -> Result<(), MapperError> {
-        let (t0, resident) = (Instant::now(), self.raster.is_resident());
-        self.raster.release(&mut self.gaussians, &mut self.grads, &mut self.adam)?;
-        self.count_read_back(resident, t0);
+        let t0 = Instant::now();
+        let read = self.raster.release(&mut self.gaussians, &mut self.grads, &mut self.adam)?;
+        self.count_read_back(read, t0);
         Ok(())
     }
 

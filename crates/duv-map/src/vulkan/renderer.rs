@@ -319,6 +319,11 @@ pub struct GpuRenderer {
     /// The device map's parameters changed since the host last had them ([`Self::adam_step`]
     /// reads nothing back; [`Self::sync`] does).
     params_stale: bool,
+    /// The host's copy of the resident map (parameters, gradients and densification
+    /// statistics, Adam moments) equals the device's: nothing ran on it since it was uploaded
+    /// or last read back. [`Self::sync`] then reads nothing (a checkpoint syncs once per copy
+    /// it makes: the second read the same map again).
+    host_synced: bool,
     /// [`Self::arm_adam_step`] was called: the next [`Self::loss_and_backward`] ends with the
     /// Adam step, whose outcome (`Some(taken)`) waits in `fused_adam` for [`Self::adam_step`].
     adam_armed: bool,
@@ -366,6 +371,7 @@ impl GpuRenderer {
             medium: None,
             resident: None,
             params_stale: false,
+            host_synced: false,
             adam_armed: false,
             fused_adam: None,
             next_view: None,
@@ -457,6 +463,7 @@ impl GpuRenderer {
         self.adam.upload_moments(ctx, adam, n)?;
         self.resident = Some(n);
         self.params_stale = false;
+        self.host_synced = true;
         self.disarm_adam();
         Ok(())
     }
@@ -474,11 +481,15 @@ impl GpuRenderer {
 
     /// Reads the device map's parameters into `gaussians` (when they changed since the host
     /// last had them), its gradients, densification statistics and Adam moments into `grads`
-    /// and `adam`; the map stays resident. Nothing to do when it is not.
-    pub fn sync(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
-        let Some(n) = self.resident else { return Ok(()) };
+    /// and `adam`; the map stays resident. Nothing to do when it is not resident or nothing
+    /// ran on it since the last read (the host's copy is the map). Returns whether it read.
+    pub fn sync(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
+        let Some(n) = self.resident else { return Ok(false) };
         if grads.len() != n || gaussians.len() != n {
             return Err(RenderError::GradLenMismatch { grads: grads.len(), gaussians: n }.into());
+        }
+        if self.host_synced {
+            return Ok(false);
         }
         if self.params_stale {
             self.fwd.projection.read_params(ctx, gaussians)?;
@@ -486,17 +497,18 @@ impl GpuRenderer {
         }
         self.project_backward.read(ctx, grads)?;
         self.adam.read_moments(ctx, adam, n)?;
-        Ok(())
+        self.host_synced = true;
+        Ok(true)
     }
 
     /// [`Self::sync`], then the host copy is the map again (before the host changes it:
-    /// densification, pruning, new keyframes).
-    pub fn release(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<(), VulkanRenderError> {
-        self.sync(ctx, gaussians, grads, adam)?;
+    /// densification, pruning, new keyframes). Returns whether it read.
+    pub fn release(&mut self, ctx: &GpuContext, gaussians: &mut Gaussians, grads: &mut GaussianGrads, adam: &mut [AdamGroup]) -> Result<bool, VulkanRenderError> {
+        let read = self.sync(ctx, gaussians, grads, adam)?;
         self.resident = None;
         self.fwd.forget_geometry_ahead();
         self.disarm_adam();
-        Ok(())
+        Ok(read)
     }
 
     /// Forgets the device map without reading it (the host replaced the whole map).
@@ -564,6 +576,7 @@ impl GpuRenderer {
         }
         // A step of its own changes the map a geometry submitted ahead projected.
         self.fwd.forget_geometry_ahead();
+        self.host_synced = false;
         self.write_next_step_constants(ctx, adam)?;
         ctx.begin()?;
         self.adam.record_step(ctx, &self.fwd.projection.params, &self.project_backward.grads, self.fwd.projection.scan.status.range(), n)?;
@@ -611,6 +624,8 @@ impl GpuRenderer {
         d_medium_loss: &mut crate::medium::MediumPlanes,
         device_medium: Option<&mut DeviceMediumBackward>,
     ) -> Result<(crate::loss::LossTerms, f64), VulkanRenderError> {
+        // The resident map's gradients (and, armed, its parameters and moments) change.
+        self.host_synced = false;
         let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
         let grid = last.grid;
         if gaussians.len() != last.n_gaussians {
@@ -774,6 +789,7 @@ impl GpuRenderer {
         grads: &mut GaussianGrads,
         medium_grads: &mut MediumPlanes,
     ) -> Result<(), VulkanRenderError> {
+        self.host_synced = false;
         let last = self.last.ok_or(RenderError::NoForward { why: "no successful forward pass in this renderer" })?;
         if self.fwd.ahead.is_some() {
             return Err(RenderError::NoForward { why: "the next step's geometry, submitted ahead, replaced this forward's (plan_next_view)" }.into());
