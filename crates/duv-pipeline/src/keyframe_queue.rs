@@ -25,7 +25,7 @@
 //!
 //! [`PipelineResult::deferred_keyframes`]: super::PipelineResult::deferred_keyframes
 
-use super::queue::QueueStats;
+use super::queue::{closest_neighbours, QueueStats};
 use duv_core::{Keyframe, Se3};
 use std::collections::VecDeque;
 use std::sync::{Arc, Condvar, Mutex};
@@ -61,23 +61,8 @@ pub fn view_distance(a: &View, b: &View) -> f64 {
 /// (`anchor`, the last keyframe mapping took, before the first) lie closest together; ties to
 /// the oldest. The first has no neighbour before it without an anchor: it is kept unless it is
 /// the only one.
-pub fn choose_deferred<'a>(anchor: Option<&View>, queued: impl ExactSizeIterator<Item = &'a View>, newest: &View) -> usize {
-    let n = queued.len();
-    let mut best = (0, f64::INFINITY);
-    let mut prev = anchor;
-    let mut it = queued.peekable();
-    let mut i = 0;
-    while let Some(v) = it.next() {
-        let next = it.peek().copied().unwrap_or(newest);
-        let gap = prev.map_or(f64::INFINITY, |p| view_distance(p, next));
-        if gap < best.1 {
-            best = (i, gap);
-        }
-        prev = Some(v);
-        i += 1;
-    }
-    debug_assert!(best.0 < n.max(1));
-    best.0
+pub fn choose_deferred<'a>(anchor: Option<&'a View>, queued: impl ExactSizeIterator<Item = &'a View>, newest: &'a View) -> usize {
+    closest_neighbours(anchor, queued, newest, view_distance)
 }
 
 /// What a push did.

@@ -226,20 +226,33 @@ impl<T> BoundedQueue<T> {
     }
 }
 
-/// The index of the queued item [`FullPolicy::Spread`] evicts before `new_key` is queued: the
-/// one whose neighbours' keys lie closest together (the new item is the newest one's newer
-/// neighbour, the consumer's last item the oldest one's older neighbour; without it the oldest
-/// is kept). The first of equal spans, so the older item. 0 (the oldest) with one item queued.
+/// Which of `queued` (oldest first) to take out so that `newest` fits with what stays spread
+/// out: the one whose neighbours lie closest together by `distance` (`anchor`, the item the
+/// consumer took last, is the first one's older neighbour; `newest` the last one's newer
+/// one); ties to the older. Without an anchor the first has no neighbour before it and is
+/// kept unless it is the only one. [`FullPolicy::Spread`] measures in time; the keyframe queue
+/// in view distance (`keyframe_queue::choose_deferred`).
+pub(crate) fn closest_neighbours<'a, V: 'a>(anchor: Option<&'a V>, queued: impl Iterator<Item = &'a V>, newest: &'a V, distance: impl Fn(&V, &V) -> f64) -> usize {
+    let mut best = (0, f64::INFINITY);
+    let mut prev = anchor;
+    let mut it = queued.peekable();
+    let mut i = 0;
+    while let Some(v) = it.next() {
+        let next = it.peek().copied().unwrap_or(newest);
+        let gap = prev.map_or(f64::INFINITY, |p| distance(p, next));
+        if gap < best.1 {
+            best = (i, gap);
+        }
+        prev = Some(v);
+        i += 1;
+    }
+    best.0
+}
+
+/// The index of the queued item [`FullPolicy::Spread`] evicts before `new_key` is queued
+/// ([`closest_neighbours`] by key).
 fn spread_victim<T>(items: &VecDeque<(T, usize, i64)>, last_popped_key: Option<i64>, new_key: i64) -> usize {
-    let n = items.len();
-    let key = |j: usize| if j < n { items[j].2 } else { new_key };
-    let first = if last_popped_key.is_some() { 0 } else { 1 };
-    (first..n)
-        .min_by_key(|&i| {
-            let older = if i == 0 { last_popped_key.unwrap_or(i64::MIN) } else { key(i - 1) };
-            key(i + 1).saturating_sub(older)
-        })
-        .unwrap_or(0)
+    closest_neighbours(last_popped_key.as_ref(), items.iter().map(|(_, _, k)| k), &new_key, |a, b| b.abs_diff(*a) as f64)
 }
 
 /// A single-value cell the producer overwrites (map -> tracking feedback).
